@@ -1,0 +1,146 @@
+"""Parameter sets of a model, in the spirit of lmfit's ``Parameters``.
+
+Values are SI.  A parameter is addressed by its stable name (``theta4``) or its alias
+(``area``).  START.json files, RESULT.json files and flat ``{name: value}`` objects all
+load into a :class:`Parameters`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import numpy as np
+
+from identify.model import CompiledModel
+
+
+class ParameterError(ValueError):
+    """A parameter file or name that does not fit the model."""
+
+
+@dataclass
+class Parameter:
+    """One parameter: its value, whether it is estimated, and its prior standard deviation."""
+
+    name: str
+    alias: str
+    unit: str
+    value: float
+    nominal: float
+    vary: bool = False
+    prior_std: float | None = None  # None: a scale-aware default (see estimator)
+
+
+class Parameters:
+    """Ordered parameters of one model."""
+
+    def __init__(self, model: CompiledModel, values: dict[str, float] | None = None):
+        self.model_name = model.name
+        self._items = [Parameter(p.name, p.alias, p.unit, p.nominal, p.nominal) for p in model.parameter_specs]
+        self._index = {}
+        for i, p in enumerate(self._items):
+            self._index[p.name] = i
+            if p.alias:
+                self._index[p.alias] = i
+        for k, v in (values or {}).items():
+            self[k].value = float(v)
+
+    def __getitem__(self, key: str) -> Parameter:
+        try:
+            return self._items[self._index[key]]
+        except KeyError:
+            known = ", ".join(p.name for p in self._items)
+            raise ParameterError(f"model {self.model_name!r} has no parameter {key!r} (known: {known})") from None
+
+    def __contains__(self, key: str) -> bool:
+        return key in self._index
+
+    def __iter__(self) -> Iterator[Parameter]:
+        return iter(self._items)
+
+    def __len__(self) -> int:
+        return len(self._items)
+
+    def names(self) -> list[str]:
+        return [p.name for p in self._items]
+
+    def index(self, key: str) -> int:
+        self[key]
+        return self._index[key]
+
+    def vector(self) -> np.ndarray:
+        return np.array([p.value for p in self._items], dtype=float)
+
+    def set_vector(self, values: np.ndarray) -> None:
+        for p, v in zip(self._items, values):
+            p.value = float(v)
+
+    def varying(self) -> list[str]:
+        return [p.name for p in self._items if p.vary]
+
+    def set_estimated(self, keys: list[str]) -> None:
+        """Estimate exactly these parameters (names or aliases), fix all others."""
+        idx = {self.index(k) for k in keys}
+        for i, p in enumerate(self._items):
+            p.vary = i in idx
+
+    def copy(self) -> "Parameters":
+        new = Parameters.__new__(Parameters)
+        new.model_name = self.model_name
+        new._items = [Parameter(**vars(p)) for p in self._items]
+        new._index = dict(self._index)
+        return new
+
+    def as_dict(self) -> dict[str, float]:
+        return {p.name: p.value for p in self._items}
+
+    # ----------------------------------------------------------------------------------
+    @classmethod
+    def from_file(cls, model: CompiledModel, path: str | Path) -> "Parameters":
+        """Load START.json, RESULT.json or a flat ``{name: value}`` object."""
+        path = Path(path)
+        try:
+            doc = json.loads(path.read_text())
+        except FileNotFoundError:
+            raise ParameterError(f"{path}: parameter file not found") from None
+        except json.JSONDecodeError as exc:
+            raise ParameterError(f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
+        return cls.from_document(model, doc, source=str(path))
+
+    @classmethod
+    def from_document(cls, model: CompiledModel, doc: Any, source: str = "parameters") -> "Parameters":
+        if not isinstance(doc, dict):
+            raise ParameterError(f"{source}: expected a JSON object")
+        declared = doc.get("model")
+        if isinstance(declared, str) and declared != model.name:
+            raise ParameterError(f"{source}: parameters are for model {declared!r}, not {model.name!r}")
+        body = doc.get("parameters", doc if "model" not in doc else {})
+        if not isinstance(body, dict):
+            raise ParameterError(f"{source}: 'parameters' must be an object of name: value")
+        params = cls(model)
+        for key, raw in body.items():
+            if key in ("model", "format"):
+                continue
+            if key not in params:
+                raise ParameterError(f"{source}: unknown parameter {key!r} for model {model.name!r}")
+            prior = None
+            value = raw
+            if isinstance(raw, dict):  # RESULT.json entry or {"value", "prior_std"}
+                value = raw.get("value")
+                prior = raw.get("prior_std")
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
+                raise ParameterError(f"{source}: parameter {key!r} must be a finite number, got {value!r}")
+            params[key].value = float(value)
+            if prior is not None:
+                if not isinstance(prior, (int, float)) or not prior > 0:
+                    raise ParameterError(f"{source}: prior_std of {key!r} must be a positive number")
+                params[key].prior_std = float(prior)
+        return params
+
+    def to_document(self) -> dict[str, Any]:
+        """START.json form."""
+        return {"model": self.model_name, "parameters": self.as_dict()}

@@ -1,0 +1,61 @@
+"""From dataset experiments to estimator problems: folded, converted to SI, weighted."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from identify.dataset import DatasetError, Experiment
+from identify.folding import FoldedRecord, fold
+from identify.model import CompiledModel
+
+
+@dataclass
+class PeriodicData:
+    """One periodic experiment on the grid, ready for the estimator (SI units)."""
+
+    label: str
+    frequency_hz: float
+    inputs: np.ndarray  # (n_inputs, n)
+    measured: np.ndarray  # (n_outputs, n) for the fitted outputs
+    grid_variance: np.ndarray  # (n_outputs,) noise variance of one grid value, SI (nan: unknown)
+    input_grid_variance: np.ndarray  # (n_inputs,) likewise for the inputs
+    folded: FoldedRecord
+
+
+def model_columns(model: CompiledModel, outputs: list[str]) -> list[str]:
+    """Dataset columns a fit needs: the model's input columns and the fitted outputs."""
+    d = model.declaration
+    return [ch.column for ch in d.inputs.values()] + [d.outputs[o].column for o in outputs]
+
+
+def resolve_outputs(model: CompiledModel, requested: list[str] | None) -> list[str]:
+    outputs = list(requested) if requested else list(model.declaration.default_outputs)
+    for o in outputs:
+        model.output_index(o)
+    if set(outputs) & {ch.column for ch in model.declaration.inputs.values()}:
+        raise ValueError(f"an output of the fit is also the model's input: {outputs}")
+    return outputs
+
+
+def prepare_periodic(model: CompiledModel, experiments: list[Experiment], n: int, outputs: list[str]) -> list[PeriodicData]:
+    """Fold each periodic experiment's input and output columns onto the n-point grid."""
+    d = model.declaration
+    prepared = []
+    for exp in experiments:
+        if exp.kind != "periodic":
+            raise DatasetError(f"experiment {exp.label!r} is a {exp.kind} record; the fit takes periodic records")
+        assert exp.data is not None
+        cols = {}
+        for ch in list(d.inputs.values()) + [d.outputs[o] for o in outputs]:
+            if ch.column not in exp.data.columns:
+                raise DatasetError(f"{exp.file}: column {ch.column!r}: missing (model {model.name!r} needs it)")
+            cols[ch.column] = exp.column(ch.column)
+        folded = fold(exp.label, exp.time_s, cols, exp.frequency_hz, n)
+        inputs = np.vstack([ch.to_si(folded.values[ch.column]) for ch in d.inputs.values()])
+        measured = np.vstack([d.outputs[o].to_si(folded.values[d.outputs[o].column]) for o in outputs])
+        gvar = np.array([folded.grid_variance(d.outputs[o].column) * d.outputs[o].scale ** 2 for o in outputs])
+        uvar = np.array([folded.grid_variance(ch.column) * ch.scale ** 2 for ch in d.inputs.values()])
+        prepared.append(PeriodicData(exp.label, exp.frequency_hz, inputs, measured, gvar, uvar, folded))
+    return prepared

@@ -1,0 +1,211 @@
+"""Fit results: RESULT.json (the contract other tools rely on) and a readable report."""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from identify.dataset import atomic_write_bytes
+from identify.model import CompiledModel
+from identify.parameters import Parameters
+
+RELATIVE_STD_WARNING = 0.10  # a parameter known to worse than 10 % is flagged
+CONDITION_WARNING = 1e6  # of the weighted, parameter-scaled sensitivity matrix
+CORRELATION_REPORT = 0.5
+
+
+@dataclass
+class ExperimentFit:
+    """Measured and predicted grid values of one experiment, in column units."""
+
+    label: str
+    frequency_hz: float
+    measured: dict[str, np.ndarray]
+    predicted: dict[str, np.ndarray]
+    newton_iterations: int
+
+    def residual(self, column: str) -> np.ndarray:
+        return self.measured[column] - self.predicted[column]
+
+    def stats(self, column: str) -> tuple[float, float]:
+        r = self.residual(column)
+        return float(np.mean(r)), float(np.std(r, ddof=1))
+
+
+@dataclass
+class FitResult:
+    """Everything a fit found; ``to_document`` is RESULT.json, ``fit_report`` the text."""
+
+    model: str
+    params: Parameters
+    estimated: list[str]
+    std: dict[str, float]
+    correlation: np.ndarray
+    covariance: np.ndarray
+    outputs: list[str]
+    channel_variances: dict[str, float]
+    experiments: list[ExperimentFit]
+    converged: bool
+    iterations: int
+    message: str
+    objective_history: list[float]
+    elapsed_s: float
+    n_grid: int
+    scheme: str
+    singular_values: np.ndarray
+    warnings: list[str] = field(default_factory=list)
+    start: dict[str, float] = field(default_factory=dict)
+    priors: dict[str, float | None] = field(default_factory=dict)
+
+    @classmethod
+    def build(cls, *, model: CompiledModel, params: Parameters, estimated: list[str], std: np.ndarray,
+              correlation: np.ndarray, covariance: np.ndarray, outputs: list[str],
+              experiments: list[ExperimentFit], converged: bool, iterations: int, message: str,
+              objective_history: list[float], elapsed_s: float, n_grid: int, scheme: str,
+              singular_values: np.ndarray, sensitivity_matrix: np.ndarray,
+              notes: list[str] = ()) -> "FitResult":
+        n_par = len(estimated)
+        variances = {}
+        for o in outputs:
+            r = np.concatenate([e.residual(o) for e in experiments])
+            # Bias correction: the estimated parameters' degrees of freedom, shared by the channels.
+            variances[o] = float(np.sum(r**2) / max(r.size - n_par / len(outputs), 1.0))
+        result = cls(
+            model=model.name, params=params, estimated=estimated,
+            std={nm: float(s) for nm, s in zip(estimated, std)}, correlation=correlation, covariance=covariance,
+            outputs=outputs,
+            channel_variances=variances, experiments=experiments, converged=converged, iterations=iterations,
+            message=message, objective_history=objective_history, elapsed_s=elapsed_s, n_grid=n_grid,
+            scheme=scheme, singular_values=singular_values,
+        )
+        result.warnings = result._identifiability_warnings(sensitivity_matrix) + list(notes)
+        return result
+
+    def _identifiability_warnings(self, Sw: np.ndarray) -> list[str]:
+        out = []
+        for nm in self.estimated:
+            value = self.params[nm].value
+            s = self.std[nm]
+            if value != 0 and s / abs(value) > RELATIVE_STD_WARNING:
+                out.append(f"{nm} ({self.params[nm].alias}) is poorly identifiable from these experiments: "
+                           f"±{100 * s / abs(value):.0f} %")
+        if Sw.size and len(self.singular_values) > 1:
+            sv = self.singular_values
+            cond = sv[0] / max(sv[-1], 1e-300)
+            if cond > CONDITION_WARNING:
+                _, _, vt = np.linalg.svd(Sw, full_matrices=False)
+                weak = np.abs(vt[-1])
+                names = [self.estimated[i] for i in np.argsort(weak)[::-1] if weak[i] > 0.3]
+                out.append(f"sensitivity matrix is ill-conditioned (condition number {cond:.2g}): the data "
+                           f"hardly separate {', '.join(names)}")
+        return out
+
+    # ----------------------------------------------------------------------------------
+    def value(self, name: str) -> float:
+        return self.params[name].value
+
+    def relative_std(self, name: str) -> float:
+        return self.std[name] / abs(self.value(name))
+
+    def to_document(self) -> dict[str, Any]:
+        """RESULT.json (contract: model, converged, iterations, parameters, correlation,
+        channels, experiments; extended with report details)."""
+        params = {}
+        for p in self.params:
+            est = p.name in self.estimated
+            params[p.name] = {
+                "value": p.value, "std": self.std[p.name] if est else None, "estimated": est, "unit": p.unit,
+                "alias": p.alias,
+            }
+            if p.name in self.start:
+                params[p.name]["initial"] = self.start[p.name]
+        corr = {a: {b: _finite(self.correlation[i, j]) for j, b in enumerate(self.estimated)}
+                for i, a in enumerate(self.estimated)}
+        experiments = {}
+        primary = self.outputs[0]
+        for e in self.experiments:
+            mean, std = e.stats(primary)
+            experiments[e.label] = {
+                "residual_mean": mean, "residual_std": std, "channel": primary,
+                "frequency_Hz": e.frequency_hz, "newton_iterations": e.newton_iterations,
+                "channels": {o: dict(zip(("residual_mean", "residual_std"), e.stats(o))) for o in self.outputs},
+            }
+        return {
+            "model": self.model,
+            "converged": self.converged,
+            "iterations": self.iterations,
+            "message": self.message,
+            "parameters": params,
+            "correlation": corr,
+            "channels": {o: {"variance": self.channel_variances[o]} for o in self.outputs},
+            "experiments": experiments,
+            "objective": self.objective_history[-1] if self.objective_history else None,
+            "n": self.n_grid,
+            "scheme": self.scheme,
+            "elapsed_s": self.elapsed_s,
+            "warnings": self.warnings,
+        }
+
+    def write_json(self, path: str | Path) -> None:
+        atomic_write_bytes(Path(path), (json.dumps(self.to_document(), indent=2) + "\n").encode())
+
+    # ----------------------------------------------------------------------------------
+    def fit_report(self, correlation_threshold: float = CORRELATION_REPORT) -> str:
+        """A readable report in the spirit of lmfit's ``fit_report``."""
+        n_points = sum(len(e.measured[self.outputs[0]]) for e in self.experiments) * len(self.outputs)
+        lines = [
+            "[[Fit statistics]]",
+            f"    model              = {self.model}",
+            f"    scheme, n          = {self.scheme}, {self.n_grid} points per period",
+            f"    experiments        = {len(self.experiments)} ({', '.join(e.label for e in self.experiments)})",
+            f"    fitted outputs     = {', '.join(self.outputs)}",
+            f"    data points        = {n_points}",
+            f"    variables          = {len(self.estimated)}",
+            f"    iterations         = {self.iterations}",
+            f"    converged          = {self.converged}  ({self.message})",
+            f"    objective (Σ N log v) = {self.objective_history[-1]:.6g}" if self.objective_history else "",
+            f"    time               = {self.elapsed_s:.3f} s",
+            "[[Variables]]",
+        ]
+        for p in self.params:
+            if p.name in self.estimated:
+                s = self.std[p.name]
+                rel = f"({100 * s / abs(p.value):.3g}%)" if p.value else ""
+                init = self.start.get(p.name)
+                init_s = f"(init = {init:.6g})" if init is not None else ""
+                prior = self.priors.get(p.name)
+                prior_s = f"prior std {prior:.3g}" if prior else "prior std 50 %"
+                lines.append(f"    {p.name:8s} {p.alias:18s} {p.value: .8g} +/- {s:.3g} {rel} {p.unit} {init_s}, {prior_s}")
+        fixed = [p for p in self.params if p.name not in self.estimated]
+        if fixed:
+            lines.append("    fixed: " + ", ".join(f"{p.name}={p.value:.6g}" for p in fixed))
+        pairs = []
+        for i in range(len(self.estimated)):
+            for j in range(i + 1, len(self.estimated)):
+                c = self.correlation[i, j]
+                if np.isfinite(c) and abs(c) >= correlation_threshold:
+                    pairs.append((abs(c), f"    C({self.estimated[i]}, {self.estimated[j]}) = {c:+.4f}"))
+        lines.append(f"[[Correlations]] (|C| >= {correlation_threshold})")
+        lines += [p for _, p in sorted(pairs, reverse=True)] or ["    none"]
+        lines.append("[[Channels]]")
+        for o in self.outputs:
+            lines.append(f"    {o:18s} residual variance {self.channel_variances[o]:.4g}   "
+                         f"(std {math.sqrt(self.channel_variances[o]):.4g})")
+        lines.append(f"[[Experiments]] residual mean +/- 2 sigma ({self.outputs[0]})")
+        for e in self.experiments:
+            mean, std = e.stats(self.outputs[0])
+            lines.append(f"    {e.label:12s} {e.frequency_hz:8.4g} Hz   {mean:+.4g} +/- {2 * std:.4g}"
+                         f"   ({e.newton_iterations} Newton iterations)")
+        if self.warnings:
+            lines.append("[[Warnings]]")
+            lines += [f"    {w}" for w in self.warnings]
+        return "\n".join(ln for ln in lines if ln != "")
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if np.isfinite(x) else None

@@ -1,0 +1,187 @@
+"""Physics of the virtual rig: the damper of models.md in displacement control.
+
+The shaker imposes the stroke; a servo-hydraulic actuator tracks the commanded stroke
+with a finite bandwidth (second order) and a velocity limit.  The gas temperature
+follows from the energy balance g2 integrated in time, the pressure from the gas law,
+and the axle force from g1 solved for Fe (inverse dynamics).  The equations are
+written here from models.md independently of ``identify``'s generated code, so that
+identification on simulated data also checks one against the other.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+from identify.plans import ExperimentSpec
+
+G0 = 9.81
+
+
+@dataclass(frozen=True)
+class Damper:
+    """Damper parameters θ (SI, keyed theta1…theta17) and the model variant."""
+
+    theta: dict[str, float]
+    model: str = "2dof"  # or "1dof": polytropic gas, no thermal state
+
+    def __post_init__(self) -> None:
+        if self.model not in ("1dof", "2dof"):
+            raise ValueError(f"unknown damper model {self.model!r}")
+
+    def __getattr__(self, name: str) -> float:
+        if name.startswith("theta"):
+            return self.theta[name]
+        raise AttributeError(name)
+
+    @property
+    def ambient_k(self) -> float:
+        return -self.theta17
+
+    def pressure(self, q: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """Absolute gas pressure [Pa]."""
+        if self.model == "1dof":
+            return self.theta5 * (1 + self.theta6 * q) ** (-self.theta7) + 0 * T
+        return self.theta5 * T / (1 + self.theta6 * q + self.theta7 * T)
+
+    def damper_force(self, q: np.ndarray, v: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """F_d = θ3·v|v| + θ4·p + (θ8 + θ9·p)·arctan(θ10·v) + θ11  [N]."""
+        p = self.pressure(q, T)
+        return (self.theta3 * v * np.abs(v) + self.theta4 * p
+                + (self.theta8 + self.theta9 * p) * np.arctan(self.theta10 * v) + self.theta11)
+
+    def axle_force(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """Fe from g1 = 0 (inverse dynamics of the imposed stroke) [N]."""
+        return self.theta1 * (a + self.theta2) + self.damper_force(q, v, T)
+
+    def temperature_rate(self, q: np.ndarray, v: np.ndarray, T: np.ndarray) -> np.ndarray:
+        """dT/dt from g2 = 0 [K/s]; zero for the 1-dof model."""
+        if self.model == "1dof":
+            return 0 * T
+        p = self.pressure(q, T)
+        return (-self.theta16 * (1 + self.theta6 * q) * (T + self.theta17)
+                + (self.theta4 * p + self.theta11) * v) / self.theta15
+
+    def static_stroke(self, force_n: float) -> float:
+        """Stroke at rest under a constant axle force, at ambient temperature (Newton)."""
+        q = 0.0
+        for _ in range(100):
+            f = self.axle_force(q, 0.0, 0.0, self.ambient_k) - force_n
+            dq = 1e-7
+            df = (self.axle_force(q + dq, 0.0, 0.0, self.ambient_k) - self.axle_force(q, 0.0, 0.0, self.ambient_k)) / dq
+            step = f / df
+            q -= step
+            if abs(step) < 1e-13:
+                return q
+        raise RuntimeError(f"no static stroke found for {force_n} N")
+
+
+@dataclass(frozen=True)
+class Actuator:
+    """Servo-hydraulic actuator: second-order tracking, velocity limit (hydraulic flow)."""
+
+    bandwidth_hz: float = 25.0
+    damping_ratio: float = 0.7
+    velocity_limit_m_s: float = 0.6
+
+    def response(self, frequency_hz: np.ndarray) -> np.ndarray:
+        """Complex frequency response from commanded to actual stroke."""
+        wa = 2 * np.pi * self.bandwidth_hz
+        w = 2 * np.pi * np.asarray(frequency_hz, dtype=float)
+        return wa**2 / (wa**2 - w**2 + 2j * self.damping_ratio * wa * w)
+
+
+def waveform_harmonics(waveform: str) -> tuple[np.ndarray, np.ndarray]:
+    """Harmonic numbers and sine coefficients of a unit-amplitude periodic waveform."""
+    if waveform == "sine":
+        return np.array([1]), np.array([1.0])
+    if waveform == "triangle":
+        k = np.arange(1, 200, 2)
+        return k, (8 / np.pi**2) * (-1.0) ** ((k - 1) // 2) / k**2
+    raise ValueError(f"unknown waveform {waveform!r} (sine or triangle)")
+
+
+def steady_stroke(spec: ExperimentSpec, actuator: Actuator, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Actual stroke, velocity and acceleration in the periodic steady state of a
+    commanded waveform (phase zero at t = 0), SI."""
+    k, b = waveform_harmonics(spec.waveform)
+    amp = spec.amplitude_mm * 1e-3
+    w = 2 * np.pi * spec.frequency_hz * k
+    h = actuator.response(spec.frequency_hz * k)
+    phase = np.outer(t, w) + np.angle(h)
+    gain = amp * b * np.abs(h)
+    q = spec.static_position_mm * 1e-3 + np.sin(phase) @ gain
+    v = np.cos(phase) @ (gain * w)
+    a = -np.sin(phase) @ (gain * w**2)
+    return q, v, a
+
+
+@dataclass
+class SteadyState:
+    """Noise-free signals of a periodic steady state (SI)."""
+
+    t: np.ndarray
+    stroke: np.ndarray
+    velocity: np.ndarray
+    acceleration: np.ndarray
+    temperature: np.ndarray
+    pressure: np.ndarray
+    axle_force: np.ndarray
+
+
+def periodic_steady_state(damper: Damper, actuator: Actuator, spec: ExperimentSpec, t: np.ndarray) -> SteadyState:
+    """Signals at times ``t`` once the experiment has reached its periodic steady state.
+
+    The gas temperature's periodic state is found by shooting on T(0) = T(period)
+    (the energy balance is nearly linear in T, so a few secant steps suffice); the
+    record is then integrated from there with tight tolerances.
+    """
+    period = spec.period_s
+
+    def rhs(time, T):
+        q, v, _ = steady_stroke(spec, actuator, np.atleast_1d(time))
+        return damper.temperature_rate(q, v, T)
+
+    T = np.full(len(t), damper.ambient_k)
+    if damper.model == "2dof":
+        def one_period(T0: float) -> float:
+            sol = solve_ivp(rhs, (0.0, period), [T0], method="DOP853", rtol=1e-11, atol=1e-10)
+            return float(sol.y[0, -1])
+
+        x0 = damper.ambient_k
+        f0 = one_period(x0) - x0
+        x1 = x0 + 1.0
+        for _ in range(30):
+            f1 = one_period(x1) - x1
+            if abs(f1) < 1e-10:
+                break
+            x0, x1, f0 = x1, x1 - f1 * (x1 - x0) / (f1 - f0), f1
+        t0 = np.floor(t[0] / period) * period
+        sol = solve_ivp(rhs, (t0, t[-1]), [x1], method="DOP853", rtol=1e-11, atol=1e-10, dense_output=True)
+        T = sol.sol(t)[0]
+    q, v, a = steady_stroke(spec, actuator, t)
+    if np.max(np.abs(v)) > actuator.velocity_limit_m_s:
+        raise ValueError(f"experiment {spec.letter}: peak velocity {np.max(np.abs(v)):.3f} m/s exceeds the "
+                         f"actuator's limit {actuator.velocity_limit_m_s} m/s")
+    return SteadyState(t, q, v, a, T, damper.pressure(q, T), damper.axle_force(q, v, a, T))
+
+
+def drop_test(damper: Damper, mass_kg: float, velocity_m_s: float, t: np.ndarray) -> SteadyState:
+    """Drop test of models.md: θ1 = M, θ2 = −g, Fe = 0, released at q = 0, T = ambient.
+
+    ``axle_force`` is the damper force F_d, which the ground load cell reads."""
+    theta = dict(damper.theta, theta1=mass_kg, theta2=-G0)
+    d = Damper(theta, damper.model)
+
+    def rhs(_, y):
+        q, v, T = y
+        a = -d.theta2 - d.damper_force(q, v, T) / d.theta1
+        return [v, a, d.temperature_rate(q, v, T)]
+
+    sol = solve_ivp(rhs, (0.0, t[-1]), [0.0, velocity_m_s, d.ambient_k], method="Radau",
+                    rtol=1e-9, atol=[1e-10, 1e-9, 1e-7], dense_output=True, max_step=0.01)
+    q, v, T = sol.sol(t)
+    a = np.gradient(v, t)
+    return SteadyState(t, q, v, a, T, d.pressure(q, T), d.damper_force(q, v, T))

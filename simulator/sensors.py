@@ -1,0 +1,67 @@
+"""The four DAQ channels: transducer noise, optional gain/offset errors and drift,
+16-bit quantisation with the datasheet calibration, and the over-range flag."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+COUNTS_MIN, COUNTS_MAX = -32768, 32767
+
+
+@dataclass(frozen=True)
+class ChannelSpec:
+    """Datasheet channel: engineering = offset + gain · counts; SI = (eng + si_offset) · si_scale."""
+
+    name: str
+    unit: str
+    gain: float
+    offset: float
+    noise_std: float  # transducer noise, engineering units
+    si_scale: float = 1.0
+    si_offset: float = 0.0
+
+    def to_engineering(self, si: np.ndarray) -> np.ndarray:
+        return np.asarray(si) / self.si_scale - self.si_offset
+
+
+DATASHEET_CHANNELS: tuple[ChannelSpec, ...] = (
+    ChannelSpec("stroke_mm", "mm", 0.005, 140.0, 0.01, 1e-3),
+    ChannelSpec("force_N", "N", 1.0, 0.0, 2.0),
+    ChannelSpec("pressure_bar", "bar", 0.001, 32.768, 0.003, 1e5),
+    ChannelSpec("gas_temperature_C", "degC", 0.005, 50.0, 0.02, 1.0, 273.15),
+)
+
+
+@dataclass
+class SensorSet:
+    """Transducers + ADC of the four channels.  Deterministic for a given seed."""
+
+    channels: tuple[ChannelSpec, ...] = DATASHEET_CHANNELS
+    seed: int = 0
+    noise_scale: float = 1.0
+    gain_error: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)  # relative, per channel
+    offset_error: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)  # engineering units, per channel
+    drift_per_s: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)  # engineering units per second
+    rng: np.random.Generator = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.rng = np.random.default_rng(self.seed)
+
+    def counts(self, si: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """ADC counts (4, N) int16 of true SI signals (4, N), and the over-range mask (N,)."""
+        out = np.empty(si.shape, dtype=np.int16)
+        over = np.zeros(si.shape[1], dtype=bool)
+        for i, ch in enumerate(self.channels):
+            eng = ch.to_engineering(si[i])
+            eng = eng * (1 + self.gain_error[i]) + self.offset_error[i] + self.drift_per_s[i] * t
+            eng = eng + self.noise_scale * ch.noise_std * self.rng.standard_normal(eng.shape)
+            raw = np.rint((eng - ch.offset) / ch.gain)
+            over |= (raw < COUNTS_MIN) | (raw > COUNTS_MAX)
+            out[i] = np.clip(raw, COUNTS_MIN, COUNTS_MAX)
+        return out, over
+
+    def engineering(self, counts: np.ndarray) -> np.ndarray:
+        """Engineering values (4, N) of counts with the datasheet calibration."""
+        return np.vstack([ch.offset + ch.gain * counts[i].astype(float) for i, ch in enumerate(self.channels)])
