@@ -18,7 +18,8 @@ Standard deviations come from a sandwich covariance A⁻¹·B·A⁻¹: the measu
 the model's input, and its noise reaches the outputs filtered by the damper's dynamics,
 so the residuals are coloured and the white-noise formula A⁻¹ alone would misstate the
 uncertainty.  B propagates the input noise (estimated by folding) through dŷ/du, which
-the same Jacobian factorisation gives.
+the same Jacobian factorisation gives.  The standard deviations are those of the
+measurement noise; residuals beyond it (model error) are flagged, not hidden in σ.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ from identify.preparation import PeriodicData
 from identify.result import ExperimentFit, FitResult
 
 DEFAULT_PRIOR_FRACTION = 0.5  # prior std as a fraction of |θ| where none is given
+MODEL_ERROR_RATIO = 2.0  # residual RMS over what the noise explains, above which a warning is given
 
 
 class EstimationError(RuntimeError):
@@ -118,17 +120,19 @@ class Estimator:
             g += np.einsum("onk,on->k", Sw, r)
         return A, g
 
-    def _prior_precision(self, theta: np.ndarray) -> np.ndarray:
-        prec = np.empty(len(self.index))
+    def _prior_std(self, theta: np.ndarray) -> np.ndarray:
+        """Prior standard deviations of the varying parameters: as given, or a fraction of
+        the parameter's size (its current or nominal value; 1 where both are zero)."""
+        out = np.empty(len(self.index))
         nominal = self.model.nominal_vector()
+        names = self.params.names()
         for i, j in enumerate(self.index):
-            p = self.params[self.params.names()[j]]
-            std = p.prior_std
+            std = self.params[names[j]].prior_std
             if std is None:
                 size = max(abs(theta[j]), abs(nominal[j]))
                 std = DEFAULT_PRIOR_FRACTION * size if size > 0 else 1.0
-            prec[i] = 1.0 / std**2
-        return prec
+            out[i] = std
+        return out
 
     # ----------------------------------------------------------------------------------
     def fit(self) -> FitResult:
@@ -148,10 +152,11 @@ class Estimator:
         for it in range(1, self.max_iterations + 1):
             iterations = it
             A, g = self._normal_equations(ev, v)
-            scale = np.maximum(np.abs(theta[self.index]), 1e-300)
-            prec = self._prior_precision(theta)
-            As = A * np.outer(scale, scale) + np.diag(prec * scale**2)
+            scale = self._prior_std(theta)  # solve in prior-std units: well scaled, zeros included
+            As = A * np.outer(scale, scale) + np.eye(len(scale))
             step = scale * np.linalg.solve(As, g * scale)
+            sigma = np.sqrt(np.abs(np.diag(np.linalg.pinv(A))))
+            small = bool(np.all(np.abs(step) <= self.step_tolerance * np.maximum(sigma, 1e-300)))
             lam = 1.0
             accepted = None
             while lam >= 1.0 / 64:
@@ -167,10 +172,9 @@ class Estimator:
                     break
                 lam /= 2
             if accepted is None:
-                # No decrease along the step: the estimate is at a (local) minimum
-                # to the resolution of the line search.
-                converged = True
-                message = "converged (no further decrease of the objective along the Gauss–Newton step)"
+                converged = small
+                message = ("converged (the remaining step is below the tolerance)" if small else
+                           "line search failed: no decrease of the objective along the Gauss–Newton step")
                 break
             theta = accepted.theta
             ev = accepted
@@ -181,8 +185,6 @@ class Estimator:
             history.append(self._log_likelihood_objective(ev, v))
             if self.progress:
                 self.progress(it, history[-1], theta[self.index])
-            A_new, _ = self._normal_equations(ev, v)
-            sigma = np.sqrt(np.abs(np.diag(np.linalg.pinv(A_new))))
             if np.all(np.abs(lam * step) <= self.step_tolerance * np.maximum(sigma, 1e-300)):
                 converged = True
                 message = "converged (last step below {:g} standard deviations)".format(self.step_tolerance)
@@ -190,11 +192,12 @@ class Estimator:
         return self._result(ev, v, converged, iterations, message, history, time.perf_counter() - t0)
 
     def _covariance(self, ev: _Evaluation, v: np.ndarray) -> tuple[np.ndarray, list[str]]:
-        """Sandwich covariance A⁻¹·B·A⁻¹ with the residual covariance of each experiment
-        modelled as: folded output noise (white) + folded input noise propagated through
-        the model (H·Hᵀ, H = dŷ/du) + whatever residual variance neither explains (white,
-        e.g. model error).  Falls back to A⁻¹ (white residuals) where the noise of a
-        record cannot be estimated."""
+        """Sandwich covariance A⁻¹·B·A⁻¹ of the estimates under the measurement noise:
+        folded output noise (white on the grid) plus folded input noise propagated
+        through the model (H·Hᵀ, H = dŷ/du).  Residuals well above what that noise
+        explains mean systematic model error, which a standard deviation cannot cover:
+        they are reported as a warning.  Falls back to A⁻¹ (white residuals of the
+        observed size) where the noise of a record cannot be estimated."""
         A, _ = self._normal_equations(ev, v)
         A_inv = np.linalg.pinv(A)
         notes = []
@@ -205,14 +208,22 @@ class Estimator:
             return A_inv, notes
         k = len(self.index)
         B = np.zeros((k, k))
+        excess = []
         for a, (d, sol, S, r) in enumerate(zip(self.data, ev.solutions, ev.sensitivities, ev.residuals)):
             Sw = S / v[a][:, None, None]  # (n_out, n, k)
             H = self.solver.output_input_sensitivities(sol, ev.theta, self.output_idx)  # (n_out, n, n_in, n)
-            explained = d.grid_variance + np.einsum("onjm,j->o", H**2, d.input_grid_variance) / H.shape[1]
-            white = d.grid_variance + np.maximum(v[a] - explained, 0.0)
-            B += np.einsum("onk,o,onl->kl", Sw, white, Sw)
+            B += np.einsum("onk,o,onl->kl", Sw, d.grid_variance, Sw)
             M = np.einsum("onjm,onk->jmk", H, Sw)  # (n_in, n, k)
             B += np.einsum("jmk,j,jml->kl", M, d.input_grid_variance, M)
+            explained = d.grid_variance + np.einsum("onjm,j->o", H**2, d.input_grid_variance) / H.shape[1]
+            excess.append(v[a] / explained)
+        ratio = np.sqrt(np.max(excess, axis=0))
+        for o, x in zip(self.outputs, ratio):
+            if x > MODEL_ERROR_RATIO:
+                worst = self.data[int(np.argmax([e[self.outputs.index(o)] for e in excess]))].label
+                notes.append(f"{o}: residuals up to {x:.1f}x what the measurement noise explains (worst: "
+                             f"{worst}): systematic model or discretisation error; the standard deviations "
+                             f"cover the noise only")
         return A_inv @ B @ A_inv, notes
 
     # ----------------------------------------------------------------------------------
@@ -239,7 +250,7 @@ class Estimator:
         for a, S in enumerate(ev.sensitivities):
             w = np.sqrt(1.0 / v[a])
             blocks.append((S * w[:, None, None]).reshape(-1, len(self.index)))
-        Sw = np.vstack(blocks) * np.abs(ev.theta[self.index])
+        Sw = np.vstack(blocks) * self._prior_std(ev.theta)
         singular = np.linalg.svd(Sw, compute_uv=False) if Sw.size else np.array([])
         return FitResult.build(
             model=self.model, params=params, estimated=[self.params.names()[j] for j in self.index],

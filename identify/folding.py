@@ -7,8 +7,10 @@ from those (phase, value) pairs.  That removes the bias a plain bin average has 
 bin's samples sit off its centre (2 Hz at 2 kHz has 1.25 samples per bin and period),
 and fills bins that got no sample.
 
-The period-to-period scatter of the samples around the folded curve estimates the
-measurement noise of each channel, which weights the experiments in the estimator.
+The period-to-period scatter estimates each channel's measurement noise: where a period
+holds a whole number of samples, from differences of samples one period apart (the
+signal cancels exactly); otherwise from the scatter around the folded curve, which also
+picks up interpolation error where the signal is sharp.
 """
 
 from __future__ import annotations
@@ -37,6 +39,16 @@ class FoldedRecord:
         return float(sigma**2 * np.mean(1.0 / np.maximum(self.counts, 1)))
 
 
+def _whole_period_lag(t: np.ndarray, frequency_hz: float) -> int:
+    """Samples per period when that is a whole number and the record spans two periods or more."""
+    dt = (t[-1] - t[0]) / (len(t) - 1)
+    per = 1.0 / (frequency_hz * dt)
+    lag = int(round(per))
+    if lag < 1 or abs(per - lag) > 1e-6 * per or len(t) < 2 * lag:
+        return 0
+    return lag
+
+
 def fold(label: str, time_s: np.ndarray, columns: dict[str, np.ndarray], frequency_hz: float, n: int) -> FoldedRecord:
     """Fold sample columns of a periodic record onto ``n`` phases of one period."""
     t = np.asarray(time_s, dtype=float)
@@ -52,12 +64,15 @@ def fold(label: str, time_s: np.ndarray, columns: dict[str, np.ndarray], frequen
     values: dict[str, np.ndarray] = {}
     noise: dict[str, float] = {}
     dof = len(t) - int(filled.sum())
+    lag = _whole_period_lag(t, frequency_hz)
     for name, v in columns.items():
         v = np.asarray(v, dtype=float)
         fp = np.bincount(b, weights=v, minlength=n)[filled] / counts[filled]
         grid = np.interp(mu, xp, fp, period=n)
         values[name] = grid
-        if dof > 0:
+        if lag:
+            noise[name] = float(np.sqrt(np.mean((v[lag:] - v[:-lag]) ** 2) / 2))
+        elif dof > 0:
             resid = v - np.interp(pos, mu, grid, period=n)
             noise[name] = float(np.sqrt(np.sum(resid**2) / dof))
         else:

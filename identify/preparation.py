@@ -54,7 +54,7 @@ def prepare_periodic(model: CompiledModel, experiments: list[Experiment], n: int
             cols[ch.column] = exp.column(ch.column)
         folded = fold(exp.label, exp.time_s, cols, exp.frequency_hz, n)
         inputs = np.vstack([ch.to_si(folded.values[ch.column]) for ch in d.inputs.values()])
-        measured = np.vstack([d.outputs[o].to_si(folded.values[d.outputs[o].column]) for o in outputs])
+        measured = np.array([d.outputs[o].to_si(folded.values[d.outputs[o].column]) for o in outputs]).reshape(-1, n)
         gvar = np.array([folded.grid_variance(d.outputs[o].column) * d.outputs[o].scale ** 2 for o in outputs])
         uvar = np.array([folded.grid_variance(ch.column) * ch.scale ** 2 for ch in d.inputs.values()])
         prepared.append(PeriodicData(exp.label, exp.frequency_hz, inputs, measured, gvar, uvar, folded))

@@ -70,7 +70,9 @@ class TransientSimulator:
             g = m.residual(X, DX, DDX, U, th)
             _, gdx, gddx = m.residual_jacobian(X, DX, DDX, U, th)
             J = np.stack([gddx[:, j] if o == 2 else gdx[:, j] for j, o in enumerate(m.orders)], axis=1)
-            step = np.linalg.solve(J, -g)
+            # (n_eq, n_states[, N]) -> batched solve over the time axis when there is one.
+            step = np.moveaxis(np.linalg.solve(np.moveaxis(J, (0, 1), (-2, -1)),
+                                               np.moveaxis(-g, 0, -1)[..., None])[..., 0], -1, 0)
             for j, o in enumerate(m.orders):
                 (DDX if o == 2 else DX)[j] += step[j]
             if np.all(np.abs(step) <= 1e-12 * (1 + np.abs(DDX + DX))):

@@ -1,0 +1,5 @@
+import sys
+
+from identify.cli import main
+
+sys.exit(main())

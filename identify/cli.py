@@ -1,0 +1,255 @@
+"""``python -m identify``: fit, predict, compare, report.
+
+Exit status: 0 success (a fit converged); 1 a fit did not converge (RESULT.json still
+written, ``converged`` false); 2 bad input (message names file and place, no traceback).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from identify.dataset import DatasetError, csv_bytes, atomic_write_bytes, read_dataset
+from identify.differentiation import SCHEMES, Grid
+from identify.estimator import EstimationError, Estimator
+from identify.model import CompiledModel, ModelError, load_model
+from identify.parameters import ParameterError, Parameters
+from identify.periodic import ConvergenceError, PeriodicSolver
+from identify.preparation import model_columns, prepare_periodic, resolve_outputs
+from identify.result import FitResult
+from identify.transient import IntegrationError, drop_test
+
+EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT = 0, 1, 2
+
+
+class UsageError(ValueError):
+    """Command-line input that does not fit (reported like bad input)."""
+
+
+def _csv_list(text: str | None) -> list[str] | None:
+    return [x.strip() for x in text.split(",") if x.strip()] if text else None
+
+
+def _labels(dataset_labels: list[str], wanted: list[str] | None) -> list[str] | None:
+    """Experiment labels from full labels or their final letters (``a`` for ``920713a``)."""
+    if not wanted:
+        return None
+    out = []
+    for w in wanted:
+        if w in dataset_labels:
+            out.append(w)
+            continue
+        hits = [lb for lb in dataset_labels if lb.endswith(w)]
+        if len(hits) != 1:
+            raise UsageError(f"--experiments: {w!r} matches {len(hits)} labels "
+                             f"(labels: {', '.join(dataset_labels)})")
+        out.append(hits[0])
+    return out
+
+
+def _load_params(model: CompiledModel, path: str | None) -> Parameters:
+    return Parameters.from_file(model, path) if path else Parameters(model)
+
+
+def _progress(console):
+    def report(iteration: int, objective: float, values: np.ndarray) -> None:
+        console.print(f"  iteration {iteration:2d}  objective {objective:.6g}  "
+                      + "  ".join(f"{v:.6g}" for v in values), highlight=False)
+    return report
+
+
+def run_fit(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    console = Console(stderr=True)
+    model = load_model(args.model)
+    outputs = resolve_outputs(model, _csv_list(args.outputs))
+    from identify.dataset import read_manifest
+
+    manifest = read_manifest(args.dataset)
+    periodic = [e.label for e in manifest.experiments if e.kind == "periodic"]
+    labels = _labels(manifest.labels(), _csv_list(args.experiments)) or periodic
+    ds = read_dataset(args.dataset, model_columns(model, outputs), labels)
+    params = _load_params(model, args.params)
+    start = params.as_dict()
+    estimate = _csv_list(args.estimate)
+    if not estimate:
+        raise UsageError("--estimate names no parameter")
+    params.set_estimated(estimate)
+    grid = Grid(args.n, args.scheme)
+    data = prepare_periodic(model, ds.select(labels), args.n, outputs)
+    console.print(f"fitting {', '.join(params.varying())} of model {model.name} on {len(data)} experiments "
+                  f"({grid.scheme}, n = {grid.n})", highlight=False)
+    progress = _progress(console) if not args.quiet else None
+    results: list[tuple[str, FitResult]] = []
+    groups = [[d] for d in data] if args.per_experiment else [data]
+    for group in groups:
+        try:
+            result = Estimator(model, group, params.copy(), grid, outputs, max_iterations=args.max_iterations,
+                               progress=progress).fit()
+        except EstimationError as exc:
+            console.print(f"[red]fit failed:[/red] {exc}", highlight=False)
+            _write_failed(args.output, model, params, str(exc))
+            return EXIT_NOT_CONVERGED
+        result.start = {k: start[k] for k in result.estimated}
+        result.priors = {k: params[k].prior_std for k in result.estimated}
+        results.append((group[0].label if args.per_experiment else "joint", result))
+    if args.per_experiment:
+        _per_experiment_table(console, results)
+        doc = {"model": model.name, "converged": all(r.converged for _, r in results),
+               "per_experiment": {lb: r.to_document() for lb, r in results}}
+        atomic_write_bytes(Path(args.output), (json.dumps(doc, indent=2) + "\n").encode())
+        return EXIT_OK if doc["converged"] else EXIT_NOT_CONVERGED
+    result = results[0][1]
+    result.write_json(args.output)
+    report = result.fit_report()
+    print(report)
+    if args.report:
+        atomic_write_bytes(Path(args.report), (report + "\n").encode())
+    if args.figures:
+        from identify.figures import write_figures
+
+        for path in write_figures(result, Path(args.figures)):
+            console.print(f"figure {path}", highlight=False)
+    return EXIT_OK if result.converged else EXIT_NOT_CONVERGED
+
+
+def _write_failed(path: str, model: CompiledModel, params: Parameters, message: str) -> None:
+    doc = {"model": model.name, "converged": False, "iterations": 0, "message": message,
+           "parameters": {p.name: {"value": p.value, "std": None, "estimated": p.vary, "unit": p.unit}
+                          for p in params},
+           "correlation": {}, "channels": {}, "experiments": {}}
+    atomic_write_bytes(Path(path), (json.dumps(doc, indent=2) + "\n").encode())
+
+
+def _per_experiment_table(console, results: list[tuple[str, FitResult]]) -> None:
+    from rich.table import Table
+
+    names = results[0][1].estimated
+    table = Table(title="per-experiment estimates (value ± std)")
+    table.add_column("experiment")
+    table.add_column("f [Hz]", justify="right")
+    for nm in names:
+        table.add_column(nm, justify="right")
+    for label, r in results:
+        table.add_row(label, f"{r.experiments[0].frequency_hz:g}",
+                      *[f"{r.value(nm):.6g} ± {r.std[nm]:.2g}" for nm in names])
+    Console = type(console)
+    Console().print(table)
+
+
+def run_predict(args: argparse.Namespace) -> int:
+    model = load_model(args.model)
+    params = _load_params(model, args.params)
+    from identify.dataset import read_manifest
+
+    manifest = read_manifest(args.dataset)
+    label = (_labels(manifest.labels(), [args.experiment]) or [args.experiment])[0]
+    exp = manifest.experiment(label)
+    d = model.declaration
+    input_cols = [ch.column for ch in d.inputs.values()] if exp.kind == "periodic" else []
+    ds = read_dataset(args.dataset, input_cols, [label])
+    exp = ds.experiment(label)
+    theta = params.vector()
+    t = exp.time_s
+    cols: dict[str, np.ndarray] = {"time_s": t}
+    if exp.kind == "periodic":
+        grid = Grid(args.n, args.scheme)
+        data = prepare_periodic(model, [exp], args.n, [])[0]
+        sol = PeriodicSolver(model, grid).solve(data.inputs, data.frequency_hz, theta, label=label)
+        y = model.output(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
+        phase = t * exp.frequency_hz
+        for name, ch in d.inputs.items():
+            cols[ch.column] = exp.column(ch.column)
+        for i, name in enumerate(model.output_names):
+            if name not in cols:
+                cols[name] = d.outputs[name].from_si(grid.interpolate(y[i], phase))
+    else:
+        mass = float(exp.meta["drop_mass_kg"])
+        v0 = float(exp.meta.get("drop_velocity_m_s", 0.0))
+        traj = drop_test(model, theta, mass, v0, t - t[0])
+        for i, name in enumerate(model.output_names):
+            cols[name] = d.outputs[name].from_si(traj.outputs[i])
+        rms = {name: float(np.sqrt(np.mean((cols[name] - exp.column(name)) ** 2)))
+               for name in model.output_names if exp.data is not None and name in exp.data.columns}
+        for name, value in rms.items():
+            print(f"{name:20s} RMS error {value:.5g}")
+    atomic_write_bytes(Path(args.output), csv_bytes(cols))
+    print(f"wrote {args.output} ({len(t)} samples, columns {', '.join(cols)})")
+    return EXIT_OK
+
+
+def run_report(args: argparse.Namespace) -> int:
+    try:
+        doc = json.loads(Path(args.result).read_text())
+    except FileNotFoundError:
+        raise UsageError(f"{args.result}: file not found") from None
+    except json.JSONDecodeError as exc:
+        raise UsageError(f"{args.result}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
+    if not isinstance(doc, dict) or "parameters" not in doc:
+        raise UsageError(f"{args.result}: not a RESULT.json (no 'parameters')")
+    lines = [f"model {doc.get('model')}  converged {doc.get('converged')}  iterations {doc.get('iterations')}"]
+    for name, p in doc["parameters"].items():
+        if p.get("estimated"):
+            rel = f"({100 * p['std'] / abs(p['value']):.3g}%)" if p.get("std") and p["value"] else ""
+            lines.append(f"  {name:8s} {p['value']: .8g} +/- {p.get('std') or 0:.3g} {rel} {p.get('unit', '')}")
+    for label, e in doc.get("experiments", {}).items():
+        lines.append(f"  {label:12s} residual {e['residual_mean']:+.4g} +/- {2 * e['residual_std']:.4g} (2 sigma)")
+    for w in doc.get("warnings", []):
+        lines.append(f"  warning: {w}")
+    print("\n".join(lines))
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m identify", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def model_args(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--model", default="2dof", help="1dof, 2dof, duffing or path/file.py:ClassName")
+        p.add_argument("--params", help="START.json / RESULT.json / flat {name: value} (default: nominal)")
+        p.add_argument("--scheme", choices=SCHEMES, default="bdf2", help="grid differentiation scheme")
+        p.add_argument("--n", type=int, default=800, help="grid points per period (default 800)")
+
+    fit = sub.add_parser("fit", help="estimate parameters from periodic experiments")
+    fit.add_argument("dataset", help="dataset folder (dataset.json + CSVs)")
+    model_args(fit)
+    fit.add_argument("--estimate", required=True, help="comma-separated parameters (names or aliases)")
+    fit.add_argument("--output", required=True, help="RESULT.json to write")
+    fit.add_argument("--experiments", help="comma-separated labels or letters (default: all periodic)")
+    fit.add_argument("--outputs", help="fitted output columns (default: the model's, e.g. stroke_mm,pressure_bar)")
+    fit.add_argument("--per-experiment", action="store_true", help="fit each experiment on its own, print a table")
+    fit.add_argument("--max-iterations", type=int, default=40)
+    fit.add_argument("--report", help="also write the text report here")
+    fit.add_argument("--figures", help="folder for PNG figures (measured vs predicted, residual bands)")
+    fit.add_argument("--quiet", action="store_true", help="no iteration progress")
+    fit.set_defaults(func=run_fit)
+
+    pred = sub.add_parser("predict", help="model prediction on an experiment's time base")
+    pred.add_argument("dataset")
+    model_args(pred)
+    pred.add_argument("--experiment", required=True, help="label (or letter) of the experiment")
+    pred.add_argument("--output", required=True, help="CSV to write")
+    pred.set_defaults(func=run_predict)
+
+    rep = sub.add_parser("report", help="print a RESULT.json as a report")
+    rep.add_argument("result")
+    rep.set_defaults(func=run_report)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except (DatasetError, ParameterError, ModelError, UsageError, KeyError, ValueError) as exc:
+        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
+        print(f"error: {message}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except (ConvergenceError, IntegrationError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_NOT_CONVERGED

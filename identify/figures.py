@@ -1,0 +1,55 @@
+"""Report figures as PNG: measured vs predicted per experiment, residual bands (paper Fig. 8/11)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from identify.result import FitResult
+
+
+def write_figures(result: FitResult, folder: Path) -> list[Path]:
+    """Write ``fit_<output>.png`` (measured vs predicted over the phase of each experiment)
+    and ``residuals.png`` (mean ± 2σ of the primary output per experiment)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    folder.mkdir(parents=True, exist_ok=True)
+    written = []
+    exps = result.experiments
+    cols = min(4, len(exps))
+    rows = int(np.ceil(len(exps) / cols))
+    for out in result.outputs:
+        fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.4 * rows), squeeze=False)
+        for ax, e in zip(axes.ravel(), exps):
+            tau = np.arange(len(e.measured[out])) / len(e.measured[out])
+            ax.plot(tau, e.measured[out], ".", ms=1.5, label="measured")
+            ax.plot(tau, e.predicted[out], "-", lw=1, label="model")
+            ax.set_title(f"{e.label} ({e.frequency_hz:g} Hz)", fontsize=8)
+            ax.tick_params(labelsize=7)
+        for ax in axes.ravel()[len(exps):]:
+            ax.axis("off")
+        axes[0, 0].legend(fontsize=7)
+        fig.suptitle(f"{result.model}: {out} over one period", fontsize=9)
+        fig.tight_layout()
+        path = folder / f"fit_{out}.png"
+        fig.savefig(path, dpi=110)
+        plt.close(fig)
+        written.append(path)
+    primary = result.outputs[0]
+    stats = np.array([e.stats(primary) for e in exps])
+    fig, ax = plt.subplots(figsize=(max(4, 0.5 * len(exps) + 2), 3))
+    x = np.arange(len(exps))
+    ax.errorbar(x, stats[:, 0], yerr=2 * stats[:, 1], fmt="o", capsize=3)
+    ax.axhline(0, color="k", lw=0.5)
+    ax.set_xticks(x, [e.label for e in exps], rotation=60, fontsize=7)
+    ax.set_ylabel(f"residual {primary} (mean ± 2σ)")
+    fig.tight_layout()
+    path = folder / "residuals.png"
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    written.append(path)
+    return written

@@ -1,0 +1,79 @@
+"""Identification end to end: simulated 2-dof data with known truth, and real Silverbox data."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+
+import pytest
+
+from tests.conftest import SILVERBOX
+
+TRUTH = {"theta4": 5.0e-3, "theta6": -3.0, "theta16": 0.85}
+
+
+@pytest.mark.slow
+def test_recovers_theta4_theta6_theta16_from_a_start_15_to_40_percent_off(standard_dataset, tmp_path):
+    start = tmp_path / "start.json"
+    start.write_text(json.dumps({"model": "2dof", "parameters": {"theta4": 5.0e-3 * 1.15, "theta6": -3.0 * 0.6,
+                                                                  "heat_transfer": 0.85 * 1.4}}))
+    result = tmp_path / "result.json"
+    proc = subprocess.run([sys.executable, "-m", "identify", "fit", str(standard_dataset), "--model", "2dof",
+                           "--params", str(start), "--estimate", "theta4,theta6,theta16", "--output", str(result),
+                           "--quiet"], capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr + proc.stdout
+    doc = json.loads(result.read_text())
+    assert doc["converged"] is True
+    for key in ("model", "iterations", "parameters", "correlation", "channels", "experiments"):
+        assert key in doc
+    p = doc["parameters"]
+    assert abs(p["theta4"]["value"] / TRUTH["theta4"] - 1) < 1e-3
+    assert abs(p["theta6"]["value"] / TRUTH["theta6"] - 1) < 1e-3
+    assert abs(p["theta16"]["value"] / TRUTH["theta16"] - 1) < 1e-2
+    assert p["theta1"]["std"] is None and p["theta1"]["estimated"] is False
+    assert len(doc["experiments"]) == 14
+    for e in doc["experiments"].values():
+        assert set(e) >= {"residual_mean", "residual_std"}
+
+
+@pytest.mark.slow
+def test_predict_writes_the_model_columns_on_the_record_time_base(standard_dataset, tmp_path):
+    import pandas as pd
+
+    out = tmp_path / "pred.csv"
+    proc = subprocess.run([sys.executable, "-m", "identify", "predict", str(standard_dataset), "--model", "2dof",
+                           "--experiment", "h", "--output", str(out)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    pred = pd.read_csv(out)
+    meas = pd.read_csv(standard_dataset / "261122h.csv")
+    assert list(pred.columns[:1]) == ["time_s"]
+    assert {"stroke_mm", "force_N", "pressure_bar", "gas_temperature_C"} <= set(pred.columns)
+    assert len(pred) == len(meas)
+    # With the true parameters the prediction follows the measurement to within ~noise.
+    assert (pred["stroke_mm"] - meas["stroke_mm"]).abs().max() < 0.1
+    assert (pred["pressure_bar"] - meas["pressure_bar"]).abs().max() < 0.02
+
+
+@pytest.mark.slow
+def test_silverbox_duffing_spectral(tmp_path):
+    start = tmp_path / "start.json"
+    start.write_text(json.dumps({"model": "duffing", "parameters": {"m": 1e-5, "d": 1e-3, "k": 1.0, "k3": 1.0}}))
+    result = tmp_path / "result.json"
+    proc = subprocess.run([sys.executable, "-m", "identify", "fit", str(SILVERBOX), "--model", "duffing",
+                           "--scheme", "spectral", "--n", "1024", "--params", str(start),
+                           "--estimate", "m,d,k,k2,k3", "--output", str(result), "--quiet"],
+                          capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr + proc.stdout
+    doc = json.loads(result.read_text())
+    p = {k: v["value"] for k, v in doc["parameters"].items()}
+    fn = math.sqrt(p["k"] / p["m"]) / (2 * math.pi)
+    zeta = p["d"] / (2 * math.sqrt(p["k"] * p["m"]))
+    assert 68.0 <= fn <= 69.5
+    assert 0.04 <= zeta <= 0.06
+    assert 2.5 <= p["k3"] / p["k"] <= 5.5
+    import pandas as pd
+
+    rms = max(pd.read_csv(SILVERBOX / f)["output"].pow(2).mean() ** 0.5 for f in ("schroeder1.csv", "schroeder2.csv"))
+    assert math.sqrt(doc["channels"]["output"]["variance"]) < 0.015 * rms

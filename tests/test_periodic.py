@@ -1,0 +1,105 @@
+"""Periodic solver: agreement with long transient simulation, O(h²) convergence,
+sensitivities, convergence from the static guess on the standard set."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from identify.differentiation import Grid
+from identify.model import load_model
+from identify.periodic import PeriodicSolver
+from identify.transient import TransientSimulator
+
+F_HZ = 0.5
+
+
+def force(t):
+    return 4500.0 + 2500.0 * np.sin(2 * np.pi * F_HZ * np.asarray(t))
+
+
+@pytest.fixture(scope="module")
+def transient_reference():
+    """1-dof response to a sine force, integrated for 20 periods with tight tolerances
+    (friction and inertia settle within a few periods); the last period on a fine grid.
+    The 2-dof model's slow thermal mode needs minutes of simulated time to settle."""
+    m = load_model("1dof")
+    th = m.nominal_vector()
+    solver = PeriodicSolver(m, Grid(64))
+    xs = solver.static_equilibrium(np.array([force(0.0)]), th)
+    periods = 20
+    tau = np.arange(3200) / 3200
+    t = np.concatenate([[0.0], (periods - 2 + tau) / F_HZ, (periods - 1 + tau) / F_HZ])
+    traj = TransientSimulator(m, th).run(xs, np.zeros(1), lambda tt: force(tt)[None], t, rtol=1e-11)
+    prev, last = traj.states[:, 1:3201], traj.states[:, 3201:]
+    assert np.max(np.abs(last - prev)) < 1e-8  # settled: the last two periods agree
+    return tau, last
+
+
+def test_bdf2_periodic_solution_matches_transient_and_converges_second_order(transient_reference):
+    tau_ref, states_ref = transient_reference
+    m = load_model("1dof")
+    th = m.nominal_vector()
+    errors = []
+    for n in (200, 400, 800, 1600):
+        grid = Grid(n)
+        sol = PeriodicSolver(m, grid).solve(force(grid.tau / F_HZ)[None], F_HZ, th)
+        ref = states_ref[0, :: 3200 // n]
+        errors.append(np.max(np.abs(sol.states[0] - ref)))
+    ratios = np.array(errors[:-1]) / np.array(errors[1:])
+    assert errors[-1] < 2e-5, errors  # m: 1600 points agree with the transient to 20 µm
+    assert np.all(ratios[1:] > 3.0) and np.all(ratios[1:] < 5.0), (errors, ratios)
+
+
+@pytest.mark.parametrize("scheme", ["bdf2", "spectral"])
+def test_sensitivities_match_finite_differences(scheme):
+    m = load_model("2dof")
+    th = m.nominal_vector()
+    grid = Grid(256, scheme)
+    solver = PeriodicSolver(m, grid)
+    u = force(grid.tau / F_HZ)[None] if scheme == "bdf2" else (4500 + 800 * np.sin(2 * np.pi * grid.tau))[None]
+    sol = solver.solve(u, F_HZ, th)
+    idx = [3, 5, 15]
+    S = solver.output_sensitivities(sol, th, idx, [0, 1])
+    for col, k in enumerate(idx):
+        h = abs(th[k]) * 1e-6
+        tp, tm = th.copy(), th.copy()
+        tp[k] += h
+        tm[k] -= h
+        yp = solver.outputs(solver.solve(u, F_HZ, tp, start=sol.states), tp, [0, 1])
+        ym = solver.outputs(solver.solve(u, F_HZ, tm, start=sol.states), tm, [0, 1])
+        fd = (yp - ym) / (2 * h)
+        np.testing.assert_allclose(S[:, :, col], fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+
+
+def test_input_sensitivities_match_finite_differences():
+    m = load_model("1dof")
+    th = m.nominal_vector()
+    grid = Grid(64)
+    solver = PeriodicSolver(m, grid)
+    u = force(grid.tau / F_HZ)[None]
+    sol = solver.solve(u, F_HZ, th)
+    H = solver.output_input_sensitivities(sol, th, [0])
+    for nu in (0, 17, 40):
+        up, um = u.copy(), u.copy()
+        up[0, nu] += 1e-3
+        um[0, nu] -= 1e-3
+        fd = (solver.outputs(solver.solve(up, F_HZ, th, start=sol.states), th, [0])
+              - solver.outputs(solver.solve(um, F_HZ, th, start=sol.states), th, [0])) / 2e-3
+        np.testing.assert_allclose(H[0, :, 0, nu], fd[0], rtol=1e-5, atol=1e-12)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("model_name", ["1dof", "2dof"])
+def test_every_standard_experiment_converges_from_the_static_guess(standard_dataset, model_name):
+    from identify.dataset import read_dataset
+    from identify.preparation import prepare_periodic
+
+    m = load_model(model_name)
+    ds = read_dataset(standard_dataset)
+    data = prepare_periodic(m, ds.select(kind="periodic"), 800, ["stroke_mm"])
+    assert len(data) == 14
+    solver = PeriodicSolver(m, Grid(800))
+    for d in data:
+        sol = solver.solve(d.inputs, d.frequency_hz, m.nominal_vector(), label=d.label)
+        assert sol.residual_norm < 1e-8, d.label
