@@ -10,7 +10,9 @@ from pathlib import Path
 
 import pytest
 
-SHARED = Path(__file__).resolve().parents[2] / "shared"
+# The specs and measured data sit beside the checkout (../shared); DAMPER_SHARED_DIR
+# points elsewhere for a checkout that lives somewhere else.
+SHARED = Path(os.environ.get("DAMPER_SHARED_DIR") or Path(__file__).resolve().parents[2] / "shared")
 SILVERBOX = SHARED / "data" / "silverbox"
 
 
