@@ -9,9 +9,11 @@ sensitivities dz/dθ = −(∂G/∂z)⁻¹·∂G/∂θ at the cost of back-subst
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.linalg import LinAlgWarning
 
 from identify.differentiation import Factorization, Grid
 from identify.model import CompiledModel
@@ -94,6 +96,15 @@ class PeriodicSolver:
         ``start`` (n_states, n) warm-starts Newton; otherwise the static equilibrium for
         the mean input is the first guess.  Raises :class:`ConvergenceError` naming ``label``.
         """
+        # Unphysical trial parameters (a line-search step too far) give NaNs or singular
+        # Jacobians; they end in ConvergenceError, which the caller handles, so numpy's
+        # and scipy's warnings about them would only be noise.
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", LinAlgWarning)
+            return self._solve(inputs, frequency_hz, theta, start, label)
+
+    def _solve(self, inputs: np.ndarray, frequency_hz: float, theta: np.ndarray,
+               start: np.ndarray | None, label: str) -> PeriodicSolution:
         m, grid, f = self.model, self.grid, frequency_hz
         ns, n = m.n_states, grid.n
         if start is None:
