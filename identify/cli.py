@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from identify.dataset import DatasetError, csv_bytes, atomic_write_bytes, read_dataset
+from identify.dataset import DatasetError, atomic_write_bytes, csv_bytes, read_dataset, read_manifest
 from identify.differentiation import SCHEMES, Grid
 from identify.estimator import EstimationError, Estimator
 from identify.model import CompiledModel, ModelError, load_model
@@ -68,8 +68,6 @@ def run_fit(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     model = load_model(args.model)
     outputs = resolve_outputs(model, _csv_list(args.outputs))
-    from identify.dataset import read_manifest
-
     manifest = read_manifest(args.dataset)
     periodic = [e.label for e in manifest.experiments if e.kind == "periodic"]
     labels = _labels(manifest.labels(), _csv_list(args.experiments)) or periodic
@@ -99,7 +97,7 @@ def run_fit(args: argparse.Namespace) -> int:
         result.priors = {k: params[k].prior_std for k in result.estimated}
         results.append((group[0].label if args.per_experiment else "joint", result))
     if args.per_experiment:
-        _per_experiment_table(console, results)
+        _per_experiment_table(results)
         doc = {"model": model.name, "converged": all(r.converged for _, r in results),
                "per_experiment": {lb: r.to_document() for lb, r in results}}
         atomic_write_bytes(Path(args.output), (json.dumps(doc, indent=2) + "\n").encode())
@@ -126,7 +124,8 @@ def _write_failed(path: str, model: CompiledModel, params: Parameters, message: 
     atomic_write_bytes(Path(path), (json.dumps(doc, indent=2) + "\n").encode())
 
 
-def _per_experiment_table(console, results: list[tuple[str, FitResult]]) -> None:
+def _per_experiment_table(results: list[tuple[str, FitResult]]) -> None:
+    from rich.console import Console
     from rich.table import Table
 
     names = results[0][1].estimated
@@ -138,17 +137,14 @@ def _per_experiment_table(console, results: list[tuple[str, FitResult]]) -> None
     for label, r in results:
         table.add_row(label, f"{r.experiments[0].frequency_hz:g}",
                       *[f"{r.value(nm):.6g} ± {r.std[nm]:.2g}" for nm in names])
-    Console = type(console)
-    Console().print(table)
+    Console().print(table)  # stdout: the table is the command's result, progress went to stderr
 
 
 def run_predict(args: argparse.Namespace) -> int:
     model = load_model(args.model)
     params = _load_params(model, args.params)
-    from identify.dataset import read_manifest
-
     manifest = read_manifest(args.dataset)
-    label = (_labels(manifest.labels(), [args.experiment]) or [args.experiment])[0]
+    label = _labels(manifest.labels(), [args.experiment])[0]
     exp = manifest.experiment(label)
     d = model.declaration
     input_cols = [ch.column for ch in d.inputs.values()] if exp.kind == "periodic" else []
@@ -163,7 +159,7 @@ def run_predict(args: argparse.Namespace) -> int:
         sol = PeriodicSolver(model, grid).solve(data.inputs, data.frequency_hz, theta, label=label)
         y = model.output(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         phase = t * exp.frequency_hz
-        for name, ch in d.inputs.items():
+        for ch in d.inputs.values():
             cols[ch.column] = exp.column(ch.column)
         for i, name in enumerate(model.output_names):
             if name not in cols:
@@ -174,10 +170,10 @@ def run_predict(args: argparse.Namespace) -> int:
         traj = drop_test(model, theta, mass, v0, t - t[0])
         for i, name in enumerate(model.output_names):
             cols[name] = d.outputs[name].from_si(traj.outputs[i])
-        rms = {name: float(np.sqrt(np.mean((cols[name] - exp.column(name)) ** 2)))
-               for name in model.output_names if exp.data is not None and name in exp.data.columns}
-        for name, value in rms.items():
-            print(f"{name:20s} RMS error {value:.5g}")
+        for name in model.output_names:
+            if name in exp.data.columns:
+                rms = float(np.sqrt(np.mean((cols[name] - exp.column(name)) ** 2)))
+                print(f"{name:20s} RMS error {rms:.5g}")
     atomic_write_bytes(Path(args.output), csv_bytes(cols))
     print(f"wrote {args.output} ({len(t)} samples, columns {', '.join(cols)})")
     return EXIT_OK

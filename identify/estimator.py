@@ -217,10 +217,11 @@ class Estimator:
             B += np.einsum("jmk,j,jml->kl", M, d.input_grid_variance, M)
             explained = d.grid_variance + np.einsum("onjm,j->o", H**2, d.input_grid_variance) / H.shape[1]
             excess.append(v[a] / explained)
-        ratio = np.sqrt(np.max(excess, axis=0))
-        for o, x in zip(self.outputs, ratio):
+        excess = np.array(excess)  # (n_experiments, n_outputs)
+        for b, o in enumerate(self.outputs):
+            x = float(np.sqrt(excess[:, b].max()))
             if x > MODEL_ERROR_RATIO:
-                worst = self.data[int(np.argmax([e[self.outputs.index(o)] for e in excess]))].label
+                worst = self.data[int(np.argmax(excess[:, b]))].label
                 notes.append(f"{o}: residuals up to {x:.1f}x what the measurement noise explains (worst: "
                              f"{worst}): systematic model or discretisation error; the standard deviations "
                              f"cover the noise only")
