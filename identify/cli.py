@@ -15,7 +15,8 @@ import numpy as np
 
 from identify.dataset import DatasetError, atomic_write_bytes, csv_bytes, read_dataset, read_manifest
 from identify.differentiation import SCHEMES, Grid
-from identify.estimator import EstimationError, Estimator
+from identify.estimator import EstimationError
+from identify.fit import fit_experiments
 from identify.model import CompiledModel, ModelError, load_model
 from identify.parameters import ParameterError, Parameters
 from identify.periodic import ConvergenceError, PeriodicSolver
@@ -73,28 +74,24 @@ def run_fit(args: argparse.Namespace) -> int:
     labels = _labels(manifest.labels(), _csv_list(args.experiments)) or periodic
     ds = read_dataset(args.dataset, model_columns(model, outputs), labels)
     params = _load_params(model, args.params)
-    start = params.as_dict()
     estimate = _csv_list(args.estimate)
     if not estimate:
         raise UsageError("--estimate names no parameter")
-    params.set_estimated(estimate)
+    params.copy().set_estimated(estimate)  # names checked before the (slower) folding
     grid = Grid(args.n, args.scheme)
-    data = prepare_periodic(model, ds.select(labels), args.n, outputs)
-    console.print(f"fitting {', '.join(params.varying())} of model {model.name} on {len(data)} experiments "
+    console.print(f"fitting {', '.join(estimate)} of model {model.name} on {len(labels)} experiments "
                   f"({grid.scheme}, n = {grid.n})", highlight=False)
     progress = _progress(console) if not args.quiet else None
     results: list[tuple[str, FitResult]] = []
-    groups = [[d] for d in data] if args.per_experiment else [data]
+    groups = [[e] for e in ds.select(labels)] if args.per_experiment else [ds.select(labels)]
     for group in groups:
         try:
-            result = Estimator(model, group, params.copy(), grid, outputs, max_iterations=args.max_iterations,
-                               progress=progress).fit()
+            result = fit_experiments(model, group, params, estimate, n=args.n, scheme=args.scheme, outputs=outputs,
+                                     max_iterations=args.max_iterations, progress=progress)
         except EstimationError as exc:
             console.print(f"[red]fit failed:[/red] {exc}", highlight=False)
             _write_failed(args.output, model, params, str(exc))
             return EXIT_NOT_CONVERGED
-        result.start = {k: start[k] for k in result.estimated}
-        result.priors = {k: params[k].prior_std for k in result.estimated}
         results.append((group[0].label if args.per_experiment else "joint", result))
     if args.per_experiment:
         _per_experiment_table(results)

@@ -1,16 +1,20 @@
 """``python -m simulator``: the virtual shaker rig.
 
+``serve`` runs the rig behind its two real interfaces (Modbus controller, serial DAQ);
 ``generate`` writes a dataset in the interchange format without the protocol loop.
 """
 
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
 import time
 
 from identify.parameters import ParameterError
 from identify.plans import STANDARD_SET, select
+from simulator.faults import FaultError, parse_fault
 from simulator.generate import generate
 from simulator.truth import load_truth
 
@@ -25,6 +29,51 @@ def run_generate(args: argparse.Namespace) -> int:
                    seed=args.seed, drop=args.drop, date=args.date, noise_scale=args.noise_scale)
     print(f"wrote {out} ({len(plan)} experiments{' + drop test' if args.drop else ''}, "
           f"{time.perf_counter() - t0:.1f} s)")
+    return 0
+
+
+def _host_port(text: str, option: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit():
+        raise ValueError(f"{option} {text!r}: expected HOST:PORT")
+    return host or "127.0.0.1", int(port)
+
+
+def run_serve(args: argparse.Namespace) -> int:
+    from simulator.daq import PtyPort, TcpPort
+    from simulator.engine import VirtualRig
+
+    if args.speed <= 0:
+        raise ValueError(f"--speed {args.speed}: must be positive")
+    faults = [parse_fault(f) for f in args.fault]
+    host, port = _host_port(args.modbus, "--modbus")
+    if args.daq == "pty":
+        daq_port = PtyPort()
+        if any(f.kind == "disconnect" for f in faults):
+            raise ValueError("--fault disconnect needs the TCP DAQ (a pseudo-terminal cannot be unplugged)")
+    elif args.daq.startswith("tcp://"):
+        daq_port = TcpPort(*_host_port(args.daq[len("tcp://"):], "--daq"))
+    else:
+        raise ValueError(f"--daq {args.daq!r}: expected pty or tcp://HOST:PORT")
+    rig = VirtualRig(load_truth(args.params, args.model), daq_port, speed=args.speed, seed=args.seed,
+                     faults=faults, modbus_host=host, modbus_port=port)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
+    try:
+        rig.start()
+    except OSError as exc:
+        daq_port.close()
+        raise ValueError(f"cannot open the Modbus endpoint {host}:{port}: {exc.strerror or exc}") from None
+    print(f"modbus {rig.modbus.url}", flush=True)
+    print(f"daq {daq_port.url}", flush=True)
+    try:
+        while not stop.wait(0.2):
+            pass
+    finally:
+        rig.close()
+        print(f"simulator stopped at simulated t = {rig.t:.1f} s; DAQ frames lost by faults: "
+              f"{rig.daq.lost_frames} {rig.daq.lost}", file=sys.stderr, flush=True)
     return 0
 
 
@@ -44,6 +93,21 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--date", help="label date yymmdd (default: today)")
     gen.add_argument("--noise-scale", type=float, default=1.0, help="multiplies the transducer noise")
     gen.set_defaults(func=run_generate)
+
+    serve = sub.add_parser("serve", help="run the rig behind its Modbus controller and serial DAQ",
+                           description="Run the virtual rig until SIGINT/SIGTERM. Once ready it prints one line "
+                                       "per endpoint: 'modbus tcp://HOST:PORT' and 'daq socket://HOST:PORT' or "
+                                       "'daq /dev/pts/N'. Port 0 picks a free port.")
+    serve.add_argument("--modbus", default="127.0.0.1:5020", help="HOST:PORT of the Modbus TCP server")
+    serve.add_argument("--daq", default="pty", help="pty (a pseudo-terminal) or tcp://HOST:PORT")
+    serve.add_argument("--speed", type=float, default=1.0, help="simulated seconds per wall second")
+    serve.add_argument("--params", help="true parameters (START.json format; default: nominal)")
+    serve.add_argument("--model", choices=("2dof", "1dof"), default="2dof")
+    serve.add_argument("--seed", type=int, default=0)
+    serve.add_argument("--fault", action="append", default=[], metavar="KIND[@T][=V]",
+                       help="inject a fault (repeatable): corrupt=P, drop=P, overflow@T=N, stall@T=D, "
+                            "disconnect@T, modbus-down@T=D, hydraulic-loss@T[=D], estop@T, drift=CH:RATE[@T]")
+    serve.set_defaults(func=run_serve)
     return parser
 
 
@@ -51,6 +115,6 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ParameterError, KeyError, ValueError) as exc:
+    except (ParameterError, FaultError, KeyError, ValueError) as exc:
         print(f"error: {exc.args[0] if isinstance(exc, KeyError) else exc}", file=sys.stderr)
         return 2

@@ -32,8 +32,10 @@ class Damper:
             raise ValueError(f"unknown damper model {self.model!r}")
 
     def __getattr__(self, name: str) -> float:
-        if name.startswith("theta"):
-            return self.theta[name]
+        if name.startswith("theta") and name in self.theta:
+            value = self.theta[name]
+            object.__setattr__(self, name, value)  # cached: the hot path reads θ per block
+            return value
         raise AttributeError(name)
 
     @property
@@ -185,3 +187,78 @@ def drop_test(damper: Damper, mass_kg: float, velocity_m_s: float, t: np.ndarray
     q, v, T = sol.sol(t)
     a = np.gradient(v, t)
     return SteadyState(t, q, v, a, T, d.pressure(q, T), d.damper_force(q, v, T))
+
+
+class StreamingPlant:
+    """The actuator and damper advanced block by block in simulated time.
+
+    The actuator is discretised exactly for a first-order-hold setpoint (so that the
+    acceleration, which enters the axle force through θ1, is continuous); the gas
+    temperature uses an exponential integrator of g2 whose nonlinear pressure term is
+    iterated to convergence within each block, so the result does not depend on how
+    the time line is cut into blocks.  Everything is vectorised over a block.
+    """
+
+    def __init__(self, damper: Damper, actuator: Actuator, dt_s: float, position_m: float) -> None:
+        from scipy.signal import cont2discrete, lfilter_zi
+
+        self.damper, self.actuator, self.dt = damper, actuator, dt_s
+        wa, zeta = 2 * np.pi * actuator.bandwidth_hz, actuator.damping_ratio
+        self._wa, self._zeta = wa, zeta
+        den = [1.0, 2 * zeta * wa, wa**2]
+        bq, aq, _ = cont2discrete(([wa**2], den), dt_s, method="foh")
+        bv, av, _ = cont2discrete(([wa**2, 0.0], den), dt_s, method="foh")
+        self._q_filter = (np.ravel(bq), np.ravel(aq))
+        self._v_filter = (np.ravel(bv), np.ravel(av))
+        self._zq = lfilter_zi(*self._q_filter) * position_m
+        self._zv = lfilter_zi(*self._v_filter) * position_m
+        self.temperature_k = damper.ambient_k
+        self._last = (position_m, 0.0)  # stroke and velocity at the last step taken
+        self._pending: tuple = (0, None, None, None, None, None)
+
+    def advance(self, setpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Stroke, velocity, acceleration and temperature at the next ``len(setpoint)``
+        steps, the setpoint being sampled at those steps.  Nothing is committed until
+        :meth:`commit` (a block cut short by a trip is recomputed)."""
+        from scipy.signal import lfilter
+
+        q, zq = lfilter(*self._q_filter, setpoint, zi=self._zq)
+        v, zv = lfilter(*self._v_filter, setpoint, zi=self._zv)
+        a = self._wa**2 * (setpoint - q) - 2 * self._zeta * self._wa * v
+        T = self._temperature(q, v)
+        self._pending = (len(setpoint), zq, zv, q, v, T)
+        return q, v, a, T
+
+    def commit(self, n: int) -> None:
+        """Keep the first ``n`` steps of the last :meth:`advance`."""
+        length, zq, zv, q, v, T = self._pending
+        if n != length:
+            raise ValueError("commit a whole block; recompute a shorter one with advance()")
+        self._zq, self._zv, self.temperature_k = zq, zv, float(T[-1])
+        self._last = (float(q[-1]), float(v[-1]))
+
+    def _temperature(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+        d = self.damper
+        if d.model == "1dof":
+            return np.full(q.shape, self.temperature_k)
+        # dT/dt = -c·(T - Ta) + w(T), c = θ16(1+θ6q)/θ15, w = (θ4 p(q,T) + θ11)·v/θ15.
+        qq = np.concatenate(([self._last[0]], q))
+        vv = np.concatenate(([self._last[1]], v))
+        c = d.theta16 * (1 + d.theta6 * qq) / d.theta15
+        cbar = 0.5 * (c[1:] + c[:-1])
+        alpha = np.exp(-cbar * self.dt)
+        phi = self.dt * np.where(cbar * self.dt > 1e-12, (1 - alpha) / np.maximum(cbar * self.dt, 1e-300), 1.0)
+        T = np.full(len(qq), self.temperature_k)
+        for _ in range(20):
+            w = (d.theta4 * d.pressure(qq, T) + d.theta11) * vv / d.theta15
+            beta = (1 - alpha) * d.ambient_k + phi * 0.5 * (w[1:] + w[:-1])
+            # T_{k+1} = alpha_k T_k + beta_k, solved as a scan with cumulative products.
+            P = np.cumprod(alpha)
+            new = np.empty_like(T)
+            new[0] = self.temperature_k
+            new[1:] = P * (self.temperature_k + np.cumsum(beta / P))
+            change = float(np.max(np.abs(new - T)))
+            T = new
+            if change < 1e-11:
+                break
+        return T[1:]

@@ -43,7 +43,8 @@ class SensorSet:
     noise_scale: float = 1.0
     gain_error: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)  # relative, per channel
     offset_error: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)  # engineering units, per channel
-    drift_per_s: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)  # engineering units per second
+    drift_per_s: list[float] = field(default_factory=lambda: [0.0] * 4)  # engineering units per second
+    drift_start_s: list[float] = field(default_factory=lambda: [0.0] * 4)
     rng: np.random.Generator = field(init=False)
 
     def __post_init__(self) -> None:
@@ -53,10 +54,14 @@ class SensorSet:
         """ADC counts (4, N) int16 of true SI signals (4, N), and the over-range mask (N,)."""
         out = np.empty(si.shape, dtype=np.int16)
         over = np.zeros(si.shape[1], dtype=bool)
+        # One draw per sample (all channels) so that the stream does not depend on how
+        # the time line is cut into blocks.
+        noise = self.rng.standard_normal((si.shape[1], len(self.channels))).T
         for i, ch in enumerate(self.channels):
             eng = ch.to_engineering(si[i])
-            eng = eng * (1 + self.gain_error[i]) + self.offset_error[i] + self.drift_per_s[i] * t
-            eng = eng + self.noise_scale * ch.noise_std * self.rng.standard_normal(eng.shape)
+            eng = (eng * (1 + self.gain_error[i]) + self.offset_error[i]
+                   + self.drift_per_s[i] * np.maximum(t - self.drift_start_s[i], 0.0))
+            eng = eng + self.noise_scale * ch.noise_std * noise[i]
             raw = np.rint((eng - ch.offset) / ch.gain)
             over |= (raw < COUNTS_MIN) | (raw > COUNTS_MAX)
             out[i] = np.clip(raw, COUNTS_MIN, COUNTS_MAX)

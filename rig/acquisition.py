@@ -1,0 +1,253 @@
+"""Steady-state capture of one periodic experiment: a small explicit state machine.
+
+    IDLE → MOVING (hydraulics on, static position, AT_STATIC)
+         → SETTLING (RUN with the amplitude ramp; DAQ streaming; until the
+                     cycle-to-cycle change of every channel is below its threshold)
+         → CAPTURING (K whole periods without lost samples, or flagged)
+         → STOPPING (fade out, STOP) → IDLE
+    any state → ALARM when the controller trips
+
+Each transition is published on the event bus; samples come from the DAQ reader
+thread into a :class:`Recorder` and are examined by the acquisition thread, which
+never waits on a subscriber.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from identify.plans import ExperimentSpec
+from rig.config import RigConfig
+from rig.daq import Daq, Samples
+from rig.events import EventBus, Phase
+from rig.shaker import AlarmError, Shaker
+
+POLL_S = 0.05
+COLUMNS = ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")
+
+
+class AcquisitionError(RuntimeError):
+    """An experiment could not be captured (names the experiment and why)."""
+
+
+class Interrupted(Exception):
+    """The operator asked to stop (Ctrl-C)."""
+
+
+@dataclass
+class ExperimentRecord:
+    """A captured periodic steady state (engineering units, as the CSV holds it)."""
+
+    spec: ExperimentSpec
+    label: str
+    rate_hz: int
+    index: np.ndarray            # sample numbers since START (gaps where samples were lost)
+    values: np.ndarray           # (N, 4)
+    settle_cycles: int
+    settled: bool
+    lost_samples: int            # inside the captured window
+    stream_lost: int             # over the whole experiment's stream
+    over_range: int
+    recaptures: int
+    flags: list[str] = field(default_factory=list)
+
+    @property
+    def time_s(self) -> np.ndarray:
+        return self.index / self.rate_hz
+
+
+class Recorder:
+    """Samples of the running experiment, addressed by their index (a lost sample is a hole)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self.values = np.zeros((0, 4))
+        self.present = np.zeros(0, dtype=bool)
+        self.over = np.zeros(0, dtype=bool)
+        self.end = 0
+
+    def __call__(self, s: Samples) -> None:
+        with self._lock:
+            top = int(s.index[-1]) + 1
+            if top > len(self.present):
+                cap = max(top, 2 * len(self.present), 65536)
+                grow = cap - len(self.present)
+                self.values = np.concatenate((self.values, np.zeros((grow, 4))))
+                self.present = np.concatenate((self.present, np.zeros(grow, dtype=bool)))
+                self.over = np.concatenate((self.over, np.zeros(grow, dtype=bool)))
+            self.values[s.index] = s.values
+            self.present[s.index] = True
+            self.over[s.index] = (s.flags & 1).astype(bool)
+            self.end = max(self.end, top)
+
+    def window(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        with self._lock:
+            return self.values[a:b].copy(), self.present[a:b].copy(), self.over[a:b].copy()
+
+
+class Acquisition:
+    """Runs experiments on a connected shaker and DAQ, publishing events on ``bus``."""
+
+    def __init__(self, shaker: Shaker, daq: Daq, config: RigConfig, bus: EventBus) -> None:
+        self.shaker, self.daq, self.config, self.bus = shaker, daq, config, bus
+        self.phase = Phase.IDLE
+        self.stop_requested = threading.Event()
+        self._recorder: Recorder | None = None
+        daq.subscribe(self._on_samples)
+
+    def _on_samples(self, s: Samples) -> None:
+        rec = self._recorder
+        if rec is not None:
+            rec(s)
+
+    def _enter(self, phase: Phase, label: str, **data) -> None:
+        self.phase = phase
+        self.bus.publish("phase", label, phase=phase.value, **data)
+
+    def _check_stop(self) -> None:
+        if self.stop_requested.is_set():
+            raise Interrupted()
+
+    def run_experiment(self, spec: ExperimentSpec, label: str) -> ExperimentRecord:
+        """Capture one experiment; raises :class:`AlarmError`, :class:`Interrupted`,
+        :class:`AcquisitionError` or a link error, leaving the shaker to :meth:`safe_stop`."""
+        ss = self.config.steady_state
+        static, amp = spec.static_position_mm * 1e-3, spec.amplitude_mm * 1e-3
+        self._enter(Phase.MOVING, label, target_mm=spec.static_position_mm)
+        st = self.shaker.status()
+        if st.state == "OFF":
+            self.shaker.hydraulics(True)
+        self.shaker.move_to(static)
+        timeout = 30.0 + math.pi * abs(static - st.position_m) / (2 * 0.05) * 2
+        self._wait_state({"AT_STATIC"}, timeout)
+        self._check_stop()
+
+        self._enter(Phase.SETTLING, label)
+        self._recorder = recorder = Recorder()
+        lost0 = self.daq.counters.lost_samples
+        self.daq.start()
+        self.shaker.run(static, amp, spec.frequency_hz, spec.waveform, ss.ramp_time_s)
+        try:
+            record = self._settle_and_capture(spec, label, recorder)
+        finally:
+            issued = self.daq.stop()
+            self._recorder = None
+        record.stream_lost = self.daq.counters.lost_samples - lost0
+        self.bus.publish("log", label, message=f"DAQ: {issued} samples taken, {record.stream_lost} lost in the "
+                                               f"stream, {record.lost_samples} in the captured window")
+        self._enter(Phase.STOPPING, label)
+        self.shaker.fade_out()
+        self._wait_state({"AT_STATIC"}, 30.0 + 2 * ss.ramp_time_s)
+        self.shaker.stop()
+        self._enter(Phase.IDLE, label)
+        return record
+
+    def _wait_state(self, states: set[str], timeout_s: float) -> None:
+        deadline = time.monotonic() + timeout_s
+        while True:
+            self._check_stop()
+            try:
+                self.shaker.wait_for(states, timeout_s=min(0.5, max(deadline - time.monotonic(), 0.0)))
+                return
+            except AlarmError:
+                raise
+            except Exception:
+                if time.monotonic() > deadline:
+                    raise
+
+    def _settle_and_capture(self, spec: ExperimentSpec, label: str, rec: Recorder) -> ExperimentRecord:
+        ss, rate = self.config.steady_state, self.daq.rate_hz
+        spp = rate / spec.frequency_hz                       # samples per period
+        start = int(math.ceil((ss.ramp_time_s + 0.5) * rate))  # after the fade-in (+ the actuator's lag)
+        m = max(1, math.ceil(ss.block_s * spec.frequency_hz))  # cycles per comparison block
+        thresholds = np.array([ss.thresholds[c] for c in COLUMNS])
+        block, prev_means, settled, cycles = 0, None, False, 0
+        while True:
+            # Settling: compare the channel means of consecutive blocks of whole cycles.
+            a = start + int(round(block * m * spp))
+            b = start + int(round((block + 1) * m * spp))
+            self._wait_samples(rec, b, label)
+            values, present, _ = rec.window(a, b)
+            means = values[present].mean(axis=0) if present.any() else np.full(4, np.nan)
+            cycles = (block + 1) * m
+            if prev_means is not None:
+                change = np.abs(means - prev_means)
+                self.bus.publish("progress", label, phase=Phase.SETTLING.value, cycles=cycles,
+                                 change={c: float(x) for c, x in zip(COLUMNS, change)})
+                if cycles >= ss.min_cycles and np.all(change < thresholds):
+                    settled = True
+                    break
+            if cycles >= ss.max_cycles:
+                break
+            prev_means, block = means, block + 1
+        self.bus.publish("log", label, message=(f"steady state after {cycles} cycles" if settled else
+                                                f"no steady state within {ss.max_cycles} cycles: captured anyway, "
+                                                f"flagged"))
+        self._enter(Phase.CAPTURING, label, cycles=cycles)
+        n = int(math.ceil(spec.periods * spp))
+        best = None
+        for attempt in range(ss.max_recaptures + 1):
+            a = b + attempt * n  # windows follow the last settling block back to back
+            self._wait_samples(rec, a + n, label, capture=(a, n))
+            values, present, over = rec.window(a, a + n)
+            lost = int(np.count_nonzero(~present))
+            if best is None or lost < best[3]:
+                best = (a, values, present, lost, over, attempt)
+            if lost == 0:
+                break
+            self.bus.publish("log", label, message=f"capture window {attempt + 1} lost {lost} samples"
+                                                   + ("; capturing again" if attempt < ss.max_recaptures else ""))
+        a, values, present, lost, over, attempt = best
+        flags = []
+        if not settled:
+            flags.append(f"steady state not reached within {ss.max_cycles} cycles")
+        if lost:
+            flags.append(f"{lost} samples lost in the captured window (rows absent)")
+        index = a + np.flatnonzero(present)
+        return ExperimentRecord(spec, label, rate, index, values[present], cycles, settled, lost, 0,
+                                int(np.count_nonzero(over[present])), attempt, flags)
+
+    def _wait_samples(self, rec: Recorder, end: int, label: str, capture: tuple[int, int] | None = None) -> None:
+        """Wait until the DAQ index reaches ``end``, watching the controller for alarms."""
+        last_status = 0.0
+        while rec.end < end:
+            self._check_stop()
+            if self.daq.reader_error:
+                raise AcquisitionError(f"experiment {label}: {self.daq.reader_error}")
+            now = time.monotonic()
+            if now - last_status > 0.2:
+                st = self.shaker.status()
+                if st.state == "ALARM":
+                    raise AlarmError(st)
+                last_status = now
+                if capture:
+                    a, n = capture
+                    self.bus.publish("progress", label, phase=Phase.CAPTURING.value,
+                                     fraction=min(max((rec.end - a) / n, 0.0), 1.0))
+            time.sleep(POLL_S)
+
+    def safe_stop(self, reason: str) -> None:
+        """Bring the rig to rest whatever happened: stop the stream, fade out, STOP,
+        hydraulics off.  Each step is tried even if an earlier one fails."""
+        self._enter(Phase.STOPPING, None, reason=reason)
+        steps = [("DAQ stop", self.daq.stop)]
+        st = None
+        try:
+            st = self.shaker.status()
+        except Exception as exc:  # link gone: report, keep trying the rest
+            self.bus.publish("log", None, message=f"safe stop: status unreadable ({exc})")
+        if st is not None and st.state == "RUNNING":
+            steps.append(("fade out", self.shaker.fade_out))
+            steps.append(("wait at static", lambda: self.shaker.wait_for({"AT_STATIC", "ALARM"}, 30.0)))
+        steps += [("stop", self.shaker.stop), ("hydraulics off", lambda: self.shaker.hydraulics(False))]
+        for name, step in steps:
+            try:
+                step()
+            except Exception as exc:
+                self.bus.publish("log", None, message=f"safe stop: {name} failed ({exc})")
+        self._enter(Phase.IDLE, None)

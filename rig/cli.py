@@ -1,0 +1,205 @@
+"""``python -m rig``: run a planned session, or look at and command the rig by hand.
+
+``run``      a plan of experiments → a session folder (and identification with --identify)
+``status``   the controller's state, alarm, position, force
+``move``     hydraulics on and move to a static position
+``stop``     stop motion, fade out or switch the hydraulics off; reset a latched alarm
+``monitor``  live channel values and loss counters in the terminal
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from rig.config import ConfigError, load_rig_config
+from rig.daq import Calibration, Daq, DaqError
+from rig.plans import PlanError
+from rig.registers import RegisterMapError, load_register_map
+from rig.run import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_OK, RunOptions, main_run
+from rig.session import SessionError
+from rig.shaker import LimitError, Shaker, ShakerError
+
+
+def known_error(exc: Exception) -> str | None:
+    """The one-line message of an anticipated error, None for a bug."""
+    from identify.dataset import DatasetError
+    from identify.model import ModelError
+    from identify.parameters import ParameterError
+
+    if isinstance(exc, (ConfigError, RegisterMapError, PlanError, SessionError, LimitError, DatasetError,
+                        ModelError, ParameterError, ShakerError, DaqError)):
+        return str(exc)
+    if isinstance(exc, KeyError):
+        return str(exc.args[0])
+    return None
+
+
+def _csv(text: str | None) -> list[str] | None:
+    return [x.strip() for x in text.split(",") if x.strip()] if text else None
+
+
+def _shaker(args: argparse.Namespace, heartbeat: bool = False) -> Shaker:
+    config = load_rig_config(args.rig_config)
+    shaker = Shaker(args.shaker, config.limits, load_register_map(args.register_map), reconnect_s=2.0)
+    shaker.connect(heartbeat=heartbeat)
+    return shaker
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    opt = RunOptions(plan=args.plan, shaker=args.shaker, daq=args.daq, out=Path(args.out),
+                     experiments=_csv(args.experiments), periods=args.periods, resume=args.resume,
+                     identify=args.identify, on_alarm=args.on_alarm, rig_config=args.rig_config,
+                     calibration=args.calibration, register_map=args.register_map, model=args.model,
+                     params=args.params, estimate=_csv(args.estimate) or [], date=args.date,
+                     unit_serial=args.unit)
+    if not opt.estimate:
+        raise PlanError("--estimate names no parameter")
+    return main_run(opt)
+
+
+def cmd_status(args: argparse.Namespace) -> int:
+    shaker = _shaker(args)
+    try:
+        st = shaker.status()
+    finally:
+        shaker.close()
+    print(f"state {st.state}  alarm {st.alarm}  position {st.position_m * 1e3:.2f} mm  force {st.force_n / 1e3:.2f} kN  "
+          f"cycles {st.cycles}  supply {st.hydraulic_pressure_pa / 1e5:.0f} bar")
+    return EXIT_OK if st.state != "ALARM" else EXIT_ABORTED
+
+
+def cmd_move(args: argparse.Namespace) -> int:
+    shaker = _shaker(args)
+    try:
+        if shaker.status().state == "OFF":
+            shaker.hydraulics(True)
+        shaker.move_to(args.position_mm * 1e-3)
+        if args.wait:
+            st = shaker.wait_for({"AT_STATIC"}, timeout_s=args.wait)
+            print(f"at static position {st.position_m * 1e3:.2f} mm")
+    finally:
+        shaker.close()
+    return EXIT_OK
+
+
+def cmd_stop(args: argparse.Namespace) -> int:
+    shaker = _shaker(args)
+    try:
+        if args.reset:
+            shaker.reset_alarm()
+        elif args.fade:
+            shaker.fade_out()
+        else:
+            shaker.stop()
+        if args.hydraulics_off:
+            shaker.hydraulics(False)
+        st = shaker.status()
+        print(f"state {st.state}  alarm {st.alarm}")
+    finally:
+        shaker.close()
+    return EXIT_OK
+
+
+def cmd_monitor(args: argparse.Namespace) -> int:
+    from rich.live import Live
+    from rich.table import Table
+
+    daq = Daq(args.daq, Calibration.from_file(args.calibration), rate_hz=args.rate)
+    print(daq.open(), file=sys.stderr)
+    daq.start()
+    deadline = time.monotonic() + args.duration if args.duration else None
+
+    def table() -> Table:
+        t = Table(title=f"DAQ {args.daq}")
+        for col in ("channel", "value", "unit"):
+            t.add_column(col)
+        _, values = daq.ring.latest(max(args.rate // 10, 1))
+        mean = values.mean(axis=0) if len(values) else [float("nan")] * 4
+        for name, unit, v in zip(daq.calibration.names, daq.calibration.units, mean):
+            t.add_row(name, f"{v:10.3f}", unit)
+        c = daq.counters
+        t.caption = (f"received {daq.parser.received}  lost {c.lost_samples}  overflow flags {c.overflow_flags}  "
+                     f"CRC errors {c.crc_errors}  over range {c.over_range}")
+        return t
+
+    try:
+        with Live(table(), refresh_per_second=5, transient=False) as live:
+            while deadline is None or time.monotonic() < deadline:
+                time.sleep(0.2)
+                live.update(table())
+    except KeyboardInterrupt:
+        pass
+    finally:
+        daq.close()
+    return EXIT_OK
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m rig", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def common(p: argparse.ArgumentParser, shaker: bool = True) -> None:
+        if shaker:
+            p.add_argument("--shaker", required=True, help="tcp://HOST:PORT or rtu:///dev/DEVICE")
+            p.add_argument("--register-map", help="register map TOML (default: the datasheet's)")
+        p.add_argument("--rig-config", help="limits and steady-state criteria TOML (default: config/rig-default.toml)")
+
+    run = sub.add_parser("run", help="run a plan of experiments into a session folder")
+    common(run)
+    run.add_argument("--plan", default="standard", help="standard or PLAN.toml")
+    run.add_argument("--daq", required=True, help="device path, socket://HOST:PORT or any pyserial URL")
+    run.add_argument("--out", required=True, help="session folder")
+    run.add_argument("--experiments", help="comma-separated letters of the plan (default: all)")
+    run.add_argument("--periods", type=int, help="whole periods to capture (default: the plan's)")
+    run.add_argument("--resume", action="store_true", help="continue an interrupted session in --out")
+    run.add_argument("--identify", action="store_true", help="identify right after the last capture")
+    run.add_argument("--on-alarm", choices=("abort", "skip"), default="abort",
+                     help="after an alarm and the safe stop: end the session, or reset and go on")
+    run.add_argument("--calibration", help="DAQ calibration TOML of this rig")
+    run.add_argument("--model", default="2dof", help="model for --identify")
+    run.add_argument("--params", help="start values and priors for --identify (default: nominal)")
+    run.add_argument("--estimate", default="theta4,theta6,theta16", help="parameters for --identify")
+    run.add_argument("--date", help="label date yymmdd (default: today)")
+    run.add_argument("--unit", default="unknown", help="serial number of the damper under test")
+    run.set_defaults(func=cmd_run)
+
+    status = sub.add_parser("status", help="controller state, alarm, position, force")
+    common(status)
+    status.set_defaults(func=cmd_status)
+
+    move = sub.add_parser("move", help="hydraulics on and move to a static position")
+    common(move)
+    move.add_argument("position_mm", type=float)
+    move.add_argument("--wait", type=float, default=60.0, help="seconds to wait for AT_STATIC (0: do not wait)")
+    move.set_defaults(func=cmd_move)
+
+    stop = sub.add_parser("stop", help="stop motion (or fade out, or reset an alarm)")
+    common(stop)
+    stop.add_argument("--fade", action="store_true", help="fade the waveform out instead of stopping at once")
+    stop.add_argument("--reset", action="store_true", help="reset a latched alarm")
+    stop.add_argument("--hydraulics-off", action="store_true")
+    stop.set_defaults(func=cmd_stop)
+
+    mon = sub.add_parser("monitor", help="live channel values and loss counters")
+    mon.add_argument("--daq", required=True)
+    mon.add_argument("--calibration")
+    mon.add_argument("--rate", type=int, default=1000)
+    mon.add_argument("--duration", type=float, help="seconds (default: until Ctrl-C)")
+    mon.set_defaults(func=cmd_monitor)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return args.func(args)
+    except Exception as exc:  # noqa: BLE001 — anticipated errors become one line
+        message = known_error(exc)
+        if message is None:
+            raise
+        print(f"error: {message}", file=sys.stderr)
+        return EXIT_BAD_INPUT if not isinstance(exc, (ShakerError, DaqError)) else EXIT_ABORTED

@@ -1,0 +1,298 @@
+"""Driver of the four-channel serial DAQ (pyserial: a device path, ``socket://`` or any
+pyserial URL).
+
+A reader thread journals every byte received (append-only, flushed at least every
+:data:`JOURNAL_FLUSH_S`), parses frames (:mod:`rig.frames`), converts counts with the
+rig's calibration file, fills a ring buffer for live views and hands each block to
+the listeners (the acquisition).  Lost samples are counted from sequence gaps and
+``OK STOP <n>``; a dropped link is reopened with back-off and the stream goes on,
+the gap counted as lost.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import threading
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+import serial
+
+from rig.frames import Block, FrameParser, LossCounters
+from rig.registers import CONFIG_DIR
+
+DEFAULT_CALIBRATION = CONFIG_DIR / "daq-calibration-datasheet.toml"
+JOURNAL_FLUSH_S = 0.5
+BAUDRATE = 460800
+_STOP_ANSWER = re.compile(rb"OK STOP (\d+)\n")
+
+
+class DaqError(RuntimeError):
+    """The DAQ did not answer as the datasheet says (names the command and the answer)."""
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """engineering = offset + gain · counts, per channel, from the rig's calibration file."""
+
+    source: str
+    names: tuple[str, ...]
+    units: tuple[str, ...]
+    gain: np.ndarray
+    offset: np.ndarray
+    text: str = ""
+
+    @classmethod
+    def from_file(cls, path: str | Path | None = None) -> "Calibration":
+        path = Path(path) if path else DEFAULT_CALIBRATION
+        try:
+            text = path.read_text()
+            channels = tomllib.loads(text)["channel"]
+            if len(channels) != 4:
+                raise ValueError(f"{len(channels)} [[channel]] tables, the DAQ has 4")
+            return cls(str(path), tuple(c["name"] for c in channels), tuple(c.get("unit", "") for c in channels),
+                       np.array([float(c["gain"]) for c in channels]), np.array([float(c["offset"]) for c in channels]),
+                       text)
+        except OSError as exc:
+            raise DaqError(f"calibration {path}: cannot be read ({exc.strerror})") from None
+        except (tomllib.TOMLDecodeError, KeyError, ValueError, TypeError) as exc:
+            raise DaqError(f"calibration {path}: {exc}") from None
+
+    def engineering(self, counts: np.ndarray) -> np.ndarray:
+        return self.offset + self.gain * counts.astype(float)
+
+
+@dataclass
+class Samples:
+    """Calibrated samples: running index (sample number since START), values (N, 4), flags."""
+
+    index: np.ndarray
+    values: np.ndarray
+    flags: np.ndarray
+
+
+class RingBuffer:
+    """The last ``capacity`` samples, for live views (the writer never waits on readers)."""
+
+    def __init__(self, capacity: int) -> None:
+        self.index = np.full(capacity, -1, dtype=np.int64)
+        self.values = np.zeros((capacity, 4))
+        self._pos = 0
+        self._lock = threading.Lock()
+
+    def append(self, index: np.ndarray, values: np.ndarray) -> None:
+        n, cap = len(index), len(self.index)
+        if n >= cap:
+            index, values, n = index[-cap:], values[-cap:], cap
+        with self._lock:
+            at = (self._pos + np.arange(n)) % cap
+            self.index[at], self.values[at] = index, values
+            self._pos = (self._pos + n) % cap
+
+    def latest(self, n: int) -> tuple[np.ndarray, np.ndarray]:
+        """Up to ``n`` most recent samples, oldest first."""
+        with self._lock:
+            cap = len(self.index)
+            n = min(n, cap)
+            at = (self._pos - n + np.arange(n)) % cap
+            idx, vals = self.index[at].copy(), self.values[at].copy()
+        valid = idx >= 0
+        return idx[valid], vals[valid]
+
+
+class Journal:
+    """Append-only file of every byte received, flushed to disk at least every 0.5 s."""
+
+    def __init__(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        self.path = path
+        self._file = open(path, "ab")
+        self._last_flush = time.monotonic()
+
+    def write(self, data: bytes) -> None:
+        self._file.write(data)
+        if time.monotonic() - self._last_flush >= JOURNAL_FLUSH_S:
+            self.flush()
+
+    def flush(self) -> None:
+        self._file.flush()
+        os.fsync(self._file.fileno())
+        self._last_flush = time.monotonic()
+
+    def close(self) -> None:
+        self.flush()
+        self._file.close()
+
+
+class Daq:
+    """The DAQ: handshake, streaming with a reader thread, losses, journal, ring buffer."""
+
+    def __init__(self, url: str, calibration: Calibration | None = None, *, rate_hz: int = 2000,
+                 journal: Path | None = None, port: serial.SerialBase | None = None,
+                 on_event: Callable[[str], None] = lambda message: None, reconnect_s: float = 10.0) -> None:
+        self.url, self.rate_hz, self.on_event, self.reconnect_s = url, rate_hz, on_event, reconnect_s
+        self.calibration = calibration or Calibration.from_file()
+        self.journal = Journal(journal) if journal else None
+        self.parser = FrameParser()
+        self.ring = RingBuffer(4 * 5000)
+        self.identity = ""
+        self.issued: int | None = None
+        self._port = port
+        self._listeners: list[Callable[[Samples], None]] = []
+        self._thread: threading.Thread | None = None
+        self._streaming = threading.Event()
+        self._stop_sent = False
+        self._stopped = threading.Event()
+        self._tail = b""
+        self.reader_error: str | None = None
+
+    @property
+    def counters(self) -> LossCounters:
+        return self.parser.counters
+
+    def subscribe(self, listener: Callable[[Samples], None]) -> None:
+        """Call ``listener`` from the reader thread with every calibrated block (keep it quick)."""
+        self._listeners.append(listener)
+
+    # ----- handshake ---------------------------------------------------------------------
+    def open(self) -> str:
+        """Open the line, stop any stream left running, identify, set the rate."""
+        if self._port is None:
+            self._port = self._open_port()
+        self._port.write(b"STOP\n")
+        self._drain(0.3)
+        self.identity = self.command("*IDN?")
+        if not self.identity.startswith("DAQ4,"):
+            raise DaqError(f"DAQ at {self.url}: *IDN? answered {self.identity!r}, expected 'DAQ4,…'")
+        answer = self.command(f"RATE {self.rate_hz}")
+        if answer != "OK":
+            raise DaqError(f"DAQ at {self.url}: RATE {self.rate_hz} answered {answer!r}")
+        return self.identity
+
+    def _open_port(self) -> serial.SerialBase:
+        try:
+            return serial.serial_for_url(self.url, baudrate=BAUDRATE, timeout=0.05)
+        except (serial.SerialException, ValueError) as exc:
+            raise DaqError(f"cannot open the DAQ at {self.url}: {exc}") from None
+
+    def _drain(self, quiet_s: float) -> None:
+        """Read and discard until the line has been quiet for ``quiet_s``."""
+        last = time.monotonic()
+        while time.monotonic() - last < quiet_s:
+            if self._port.read(65536):
+                last = time.monotonic()
+
+    def command(self, text: str, timeout_s: float = 2.0) -> str:
+        """Send one command line and return its answer line."""
+        self._port.write(text.encode("ascii") + b"\n")
+        line = self._read_line(timeout_s)
+        if line is None:
+            raise DaqError(f"DAQ at {self.url}: no answer to {text!r} within {timeout_s:g} s")
+        return line
+
+    def _read_line(self, timeout_s: float) -> str | None:
+        deadline, buf = time.monotonic() + timeout_s, b""
+        while time.monotonic() < deadline:
+            buf += self._port.read(1)
+            if buf.endswith(b"\n"):
+                return buf[:-1].decode("ascii", errors="replace").strip()
+        return None
+
+    # ----- streaming ---------------------------------------------------------------------
+    def start(self) -> None:
+        """START the stream; samples are indexed from 0 at this START."""
+        self.parser.reset()
+        self.issued = None
+        self._stop_sent = False
+        self._tail = b""
+        self._stopped.clear()
+        answer = self.command("START")
+        if answer != "OK":
+            raise DaqError(f"DAQ at {self.url}: START answered {answer!r}")
+        self._streaming.set()
+        self._thread = threading.Thread(target=self._reader, name="daq-reader", daemon=True)
+        self._thread.start()
+
+    def stop(self, timeout_s: float = 5.0) -> int:
+        """STOP the stream; returns the samples the DAQ took (lost tail counted)."""
+        if not self._streaming.is_set():
+            return self.issued or 0
+        self._stop_sent = True
+        try:
+            self._port.write(b"STOP\n")
+        except (serial.SerialException, OSError) as exc:
+            self.on_event(f"DAQ STOP not sent: {exc}")
+        if not self._stopped.wait(timeout_s):
+            self.on_event(f"DAQ at {self.url}: no 'OK STOP' within {timeout_s:g} s; tail losses unknown")
+        self._streaming.clear()
+        if self._thread is not None:
+            self._thread.join(timeout=2)
+        if self.journal:
+            self.journal.flush()
+        return self.issued if self.issued is not None else self.parser.next_index
+
+    def close(self) -> None:
+        if self._streaming.is_set():
+            self.stop()
+        if self.journal:
+            self.journal.close()
+        if self._port is not None:
+            self._port.close()
+
+    def _reader(self) -> None:
+        while self._streaming.is_set():
+            try:
+                data = self._port.read(65536)
+            except (serial.SerialException, OSError) as exc:
+                if not self._reopen(exc):
+                    return
+                continue
+            if not data:
+                continue
+            if self.journal:
+                self.journal.write(data)
+            if self._stop_sent:
+                # The answer follows the last frame; frames never contain this text.
+                text = self._tail + data
+                m = _STOP_ANSWER.search(text)
+                if m:
+                    data = data[:max(m.start() - len(self._tail), 0)]
+                    self._deliver(self.parser.feed(data))
+                    self.issued = int(m.group(1))
+                    self.parser.account_tail(self.issued)
+                    self._stopped.set()
+                    return
+                self._tail = text[-32:]
+            self._deliver(self.parser.feed(data))
+
+    def _reopen(self, exc: Exception) -> bool:
+        self.on_event(f"DAQ link lost ({exc}); reopening {self.url}")
+        deadline, delay = time.monotonic() + self.reconnect_s, 0.05
+        while self._streaming.is_set() and time.monotonic() < deadline:
+            time.sleep(delay)
+            delay = min(2 * delay, 1.0)
+            try:
+                self._port.close()
+                self._port = self._open_port()
+                self.on_event("DAQ link back; the stream continues (the gap is counted as lost samples)")
+                return True
+            except DaqError:
+                continue
+        self.reader_error = f"DAQ link to {self.url} lost and not back within {self.reconnect_s:g} s"
+        self.on_event(self.reader_error)
+        self._stopped.set()
+        return False
+
+    def _deliver(self, block: Block) -> None:
+        if not len(block):
+            return
+        values = self.calibration.engineering(block.counts)
+        self.ring.append(block.index, values)
+        samples = Samples(block.index, values, block.flags)
+        for listener in self._listeners:
+            listener(samples)

@@ -1,0 +1,78 @@
+"""Events of a session and the bus that carries them to subscribers (journal, dataset
+writer, progress display, live view), in the spirit of Bluesky's documents.
+
+Inline subscribers (the session log, the dataset writer) run in the publishing
+thread because the data depend on them; every other subscriber (a terminal
+progress display, the GUI) gets its own queue and thread, so the acquisition never
+waits on it.
+"""
+
+from __future__ import annotations
+
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from enum import Enum
+from typing import Any, Callable
+
+
+class Phase(str, Enum):
+    IDLE = "idle"
+    MOVING = "moving"
+    SETTLING = "settling"
+    CAPTURING = "capturing"
+    STOPPING = "stopping"
+    ALARM = "alarm"
+
+
+@dataclass(frozen=True)
+class Event:
+    """``kind``: session-start, phase, progress, captured, experiment-done,
+    experiment-failed, alarm, log, identified, session-end."""
+
+    kind: str
+    experiment: str | None = None
+    data: dict[str, Any] = field(default_factory=dict)
+    time: float = field(default_factory=time.time)
+
+
+Subscriber = Callable[[Event], None]
+
+
+class EventBus:
+    def __init__(self) -> None:
+        self._inline: list[Subscriber] = []
+        self._queued: list[tuple[queue.Queue, threading.Thread]] = []
+
+    def subscribe(self, fn: Subscriber, *, inline: bool = False) -> None:
+        if inline:
+            self._inline.append(fn)
+            return
+        q: queue.Queue = queue.Queue()
+
+        def pump() -> None:
+            while (event := q.get()) is not None:
+                try:
+                    fn(event)
+                except Exception:  # a broken display must not stop the session
+                    pass
+
+        thread = threading.Thread(target=pump, name="event-subscriber", daemon=True)
+        thread.start()
+        self._queued.append((q, thread))
+
+    def publish(self, kind: str, experiment: str | None = None, **data: Any) -> Event:
+        event = Event(kind, experiment, data)
+        for fn in self._inline:
+            fn(event)
+        for q, _ in self._queued:
+            q.put(event)
+        return event
+
+    def close(self, timeout_s: float = 2.0) -> None:
+        """Let queued subscribers finish what they were given."""
+        for q, _ in self._queued:
+            q.put(None)
+        for _, thread in self._queued:
+            thread.join(timeout=timeout_s)

@@ -1,0 +1,102 @@
+"""A Modbus device's register map declared as data (a TOML file), PyMeasure-style:
+each field has a table, an address, a type and a scale to SI.  The driver only
+speaks field names and SI values; this module turns them into register words.
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+CONFIG_DIR = Path(__file__).parent / "config"
+DEFAULT_MAP = CONFIG_DIR / "shaker-datasheet.toml"
+TABLES = ("holding", "coils", "inputs")
+
+
+class RegisterMapError(ValueError):
+    """A register map file that cannot be used (names the file and the field)."""
+
+
+@dataclass(frozen=True)
+class Field:
+    name: str
+    table: str
+    address: int
+    type: str = "u16"
+    scale: float = 1.0
+    unit: str = ""
+
+    def encode(self, value: float | bool) -> int | bool:
+        """SI value → register word (or coil bit); range errors name the field."""
+        if self.type == "bool":
+            return bool(value)
+        counts = round(float(value) / self.scale)
+        low, high = (-0x8000, 0x7FFF) if self.type == "s16" else (0, 0xFFFF)
+        if not low <= counts <= high:
+            raise ValueError(f"{self.name} = {value:g} {self.unit} does not fit a {self.type} register "
+                             f"(counts {counts} outside {low}…{high})")
+        return counts & 0xFFFF
+
+    def decode(self, word: int | bool) -> float | bool:
+        if self.type == "bool":
+            return bool(word)
+        if self.type == "s16" and word >= 0x8000:
+            word -= 0x10000
+        return word * self.scale if self.scale != 1.0 else int(word)
+
+
+@dataclass(frozen=True)
+class RegisterMap:
+    """The fields of a device by table, plus its enumerations and unit id."""
+
+    source: str
+    unit_id: int
+    fields: dict[str, Field]
+    states: tuple[str, ...]
+    alarms: tuple[str, ...]
+    modes: dict[str, int]
+    waveforms: dict[str, int]
+    text: str  # the file as read, for the session's configuration snapshot
+
+    def field(self, name: str) -> Field:
+        try:
+            return self.fields[name]
+        except KeyError:
+            raise RegisterMapError(f"{self.source}: no field {name!r} in the register map") from None
+
+    def table(self, table: str) -> list[Field]:
+        return sorted((f for f in self.fields.values() if f.table == table), key=lambda f: f.address)
+
+
+def load_register_map(path: str | Path | None = None) -> RegisterMap:
+    """Read a register map TOML (the datasheet's map by default)."""
+    path = Path(path) if path else DEFAULT_MAP
+    try:
+        text = path.read_text()
+        doc = tomllib.loads(text)
+    except OSError as exc:
+        raise RegisterMapError(f"{path}: cannot be read ({exc.strerror})") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise RegisterMapError(f"{path}: not valid TOML: {exc}") from None
+    fields: dict[str, Field] = {}
+    for table in TABLES:
+        for name, spec in doc.get(table, {}).items():
+            if not isinstance(spec, dict) or "address" not in spec:
+                raise RegisterMapError(f"{path}: [{table}] {name}: needs an address")
+            kind = spec.get("type", "bool" if table == "coils" else "u16")
+            if kind not in ("u16", "s16", "bool"):
+                raise RegisterMapError(f"{path}: [{table}] {name}: type {kind!r} is not u16, s16 or bool")
+            fields[name] = Field(name, table, int(spec["address"]), kind, float(spec.get("scale", 1.0)),
+                                 spec.get("unit", ""))
+    required = {"mode", "waveform", "static_position", "amplitude", "frequency", "ramp_time", "stroke_limit_low",
+                "stroke_limit_high", "force_limit", "watchdog_timeout", "heartbeat", "hydraulics_on", "alarm_reset",
+                "state", "alarm", "position", "force", "cycles", "hydraulic_pressure"}
+    missing = sorted(required - fields.keys())
+    if missing:
+        raise RegisterMapError(f"{path}: the map lacks {', '.join(missing)}")
+    try:
+        return RegisterMap(str(path), int(doc.get("unit_id", 1)), fields, tuple(doc["states"]), tuple(doc["alarms"]),
+                           dict(doc["modes"]), dict(doc["waveforms"]), text)
+    except KeyError as exc:
+        raise RegisterMapError(f"{path}: missing top-level key {exc.args[0]!r}") from None

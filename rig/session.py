@@ -1,0 +1,149 @@
+"""A session folder: the dataset in the interchange format (dataset.json + one CSV per
+experiment), the raw DAQ journal, a session log, a snapshot of the rig's
+configuration, and ``session.json`` with what ``--resume`` needs.
+
+Every file that describes captured data is written atomically (write, fsync,
+rename): a crash leaves either the previous or the new version, and experiments
+already captured are never rewritten.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import io
+import json
+import platform
+import time
+from dataclasses import dataclass
+from importlib import metadata
+from pathlib import Path
+from typing import Any
+
+import pandas as pd
+
+from identify.dataset import FORMAT, Experiment, atomic_write_bytes, csv_bytes, write_manifest
+from rig.acquisition import COLUMNS, ExperimentRecord
+from rig.events import Event
+
+SESSION_FILE = "session.json"
+
+
+class SessionError(ValueError):
+    """A session folder that cannot be created or resumed (says which and why)."""
+
+
+def _software() -> dict[str, str]:
+    out = {"python": platform.python_version()}
+    for dist in ("damper-rig", "numpy", "scipy", "pandas", "pymodbus", "pyserial"):
+        try:
+            out[dist] = metadata.version(dist)
+        except metadata.PackageNotFoundError:
+            pass
+    return out
+
+
+@dataclass
+class Session:
+    path: Path
+    meta: dict[str, Any]
+    manifest: dict[str, Any]
+
+    @classmethod
+    def create(cls, path: Path, *, plan_source: str, letters: list[str], periods: int | None, date: str | None,
+               snapshot: dict[str, str], unit: dict[str, str], endpoints: dict[str, str]) -> "Session":
+        path = Path(path)
+        if (path / SESSION_FILE).exists() or (path / "dataset.json").exists():
+            raise SessionError(f"{path} already holds a session: use --resume to continue it, or another --out")
+        path.mkdir(parents=True, exist_ok=True)
+        for name, text in snapshot.items():
+            atomic_write_bytes(path / "config" / name, text.encode())
+        atomic_write_bytes(path / "config" / "software.json", (json.dumps(_software(), indent=2) + "\n").encode())
+        meta = {"plan": plan_source, "experiments": letters, "periods": periods,
+                "date": date or _dt.date.today().strftime("%y%m%d"), "status": "running",
+                "started": _dt.datetime.now().isoformat(timespec="seconds"), "endpoints": endpoints}
+        manifest = {"format": FORMAT, "name": f"shaker session {meta['date']} ({plan_source} plan)", "unit": unit,
+                    "experiments": []}
+        session = cls(path, meta, manifest)
+        write_manifest(path, manifest)
+        session._save_meta()
+        return session
+
+    @classmethod
+    def resume(cls, path: Path) -> "Session":
+        path = Path(path)
+        try:
+            meta = json.loads((path / SESSION_FILE).read_text())
+            manifest = json.loads((path / "dataset.json").read_text())
+        except FileNotFoundError as exc:
+            raise SessionError(f"{path}: nothing to resume ({Path(exc.filename).name} missing)") from None
+        except json.JSONDecodeError as exc:
+            raise SessionError(f"{path}: unreadable session file ({exc})") from None
+        for entry in manifest.get("experiments", []):
+            if not (path / entry["file"]).is_file():
+                raise SessionError(f"{path}: experiment {entry['label']} is in dataset.json but {entry['file']} "
+                                   "is missing")
+        session = cls(path, meta, manifest)
+        session.meta["status"] = "running"
+        session.meta.setdefault("resumed", []).append(_dt.datetime.now().isoformat(timespec="seconds"))
+        session._save_meta()
+        return session
+
+    # ----- contents ----------------------------------------------------------------------
+    def label(self, letter: str) -> str:
+        return f"{self.meta['date']}{letter}"
+
+    def completed(self) -> set[str]:
+        """Letters of the experiments already captured and written."""
+        done = {e["label"] for e in self.manifest["experiments"]}
+        return {x for x in self.meta["experiments"] if self.label(x) in done}
+
+    @property
+    def journal_path(self) -> Path:
+        return self.path / "journal" / "daq-raw.bin"
+
+    def write_experiment(self, record: ExperimentRecord) -> Experiment:
+        """CSV then manifest, each atomically; returns the experiment as identify reads it."""
+        columns = {"time_s": record.time_s, **{c: record.values[:, i] for i, c in enumerate(COLUMNS)}}
+        payload = csv_bytes(columns)
+        file = f"{record.label}.csv"
+        atomic_write_bytes(self.path / file, payload)
+        entry = {"label": record.label, "file": file, **record.spec.metadata(), "sample_rate_Hz": record.rate_hz,
+                 "periods": record.spec.periods, "settle_cycles": record.settle_cycles,
+                 "steady_state": record.settled, "lost_samples": record.lost_samples,
+                 "stream_lost_samples": record.stream_lost, "over_range_samples": record.over_range,
+                 "recaptures": record.recaptures, "captured": _dt.datetime.now().isoformat(timespec="seconds")}
+        if record.flags:
+            entry["flags"] = record.flags
+        self.manifest["experiments"] = [e for e in self.manifest["experiments"] if e["label"] != record.label]
+        self.manifest["experiments"].append(entry)
+        write_manifest(self.path, self.manifest)
+        exp = Experiment(record.label, "periodic", file, dict(entry))
+        # Identification in memory sees exactly the numbers in the file.
+        exp.data = pd.read_csv(io.BytesIO(payload))
+        return exp
+
+    def finish(self, status: str) -> None:
+        self.meta["status"] = status
+        self.meta["finished"] = _dt.datetime.now().isoformat(timespec="seconds")
+        self._save_meta()
+
+    def _save_meta(self) -> None:
+        atomic_write_bytes(self.path / SESSION_FILE, (json.dumps(self.meta, indent=2) + "\n").encode())
+
+
+class SessionLog:
+    """Inline subscriber: every event as a line in ``session.log``, flushed at once."""
+
+    def __init__(self, path: Path) -> None:
+        self._file = open(path, "a", encoding="utf-8")
+
+    def __call__(self, event: Event) -> None:
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(event.time))
+        details = " ".join(f"{k}={v}" for k, v in event.data.items() if k != "message")
+        text = event.data.get("message", "")
+        self._file.write(f"{stamp} {event.kind:<18} {event.experiment or '-':<10} {text}{' ' if text and details else ''}"
+                         f"{details}\n")
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()

@@ -1,0 +1,246 @@
+"""Driver of the hydraulic shaker controller over Modbus (TCP or RTU).
+
+The register map is data (:mod:`rig.registers`); this module offers a typed API in
+SI units, checks every value against the rig's limits before anything is sent,
+turns Modbus exceptions into errors that say what was refused, feeds the
+controller's watchdog from a heartbeat thread, and reconnects with back-off when
+the link drops.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+from urllib.parse import urlparse
+
+from pymodbus.client import ModbusSerialClient, ModbusTcpClient
+from pymodbus.exceptions import ModbusException
+from pymodbus.framer import FramerType
+
+from rig.config import Limits
+from rig.registers import RegisterMap, load_register_map
+
+EXCEPTION_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
+                   4: "device failure", 6: "device busy"}
+
+
+class ShakerError(RuntimeError):
+    """The controller refused a command or reported an alarm."""
+
+
+class ShakerLinkError(ShakerError):
+    """The Modbus link is gone and did not come back within the reconnect time."""
+
+
+class AlarmError(ShakerError):
+    """The controller tripped (state ALARM)."""
+
+    def __init__(self, status: "ShakerStatus") -> None:
+        super().__init__(f"shaker alarm: {status.alarm} (stroke {status.position_m * 1e3:.2f} mm, "
+                         f"force {status.force_n / 1e3:.2f} kN)")
+        self.status = status
+
+
+class LimitError(ValueError):
+    """A command outside the rig's limits, refused before anything is sent."""
+
+
+@dataclass(frozen=True)
+class ShakerStatus:
+    state: str
+    alarm: str
+    position_m: float
+    force_n: float
+    cycles: int
+    hydraulic_pressure_pa: float
+
+
+def check_waveform(limits: Limits, static_m: float, amplitude_m: float, frequency_hz: float,
+                   waveform: str = "sine") -> list[str]:
+    """Every way a waveform breaks the limits (empty when it is fine)."""
+    problems = []
+    low, high = limits.stroke_low_m, limits.stroke_high_m
+    if not low <= static_m <= high:
+        problems.append(f"static position {static_m * 1e3:.2f} mm outside the stroke limits "
+                        f"{low * 1e3:.1f}…{high * 1e3:.1f} mm")
+    if static_m - amplitude_m < low or static_m + amplitude_m > high:
+        problems.append(f"stroke {(static_m - amplitude_m) * 1e3:.1f}…{(static_m + amplitude_m) * 1e3:.1f} mm "
+                        f"crosses the stroke limits {low * 1e3:.1f}…{high * 1e3:.1f} mm")
+    if not 0 < frequency_hz <= limits.max_frequency_hz:
+        problems.append(f"frequency {frequency_hz:g} Hz outside 0…{limits.max_frequency_hz:g} Hz")
+    if waveform not in ("sine", "triangle"):
+        problems.append(f"waveform {waveform!r} is not sine or triangle")
+    peak = amplitude_m * frequency_hz * (2 * math.pi if waveform == "sine" else 4.0)
+    if peak > limits.max_velocity_m_s:
+        problems.append(f"peak velocity {peak:.3f} m/s above the hydraulic flow limit {limits.max_velocity_m_s} m/s")
+    return problems
+
+
+class Shaker:
+    """Typed, limit-checked access to the shaker controller."""
+
+    def __init__(self, url: str, limits: Limits, register_map: RegisterMap | None = None, *,
+                 timeout_s: float = 1.0, reconnect_s: float = 20.0,
+                 on_event: Callable[[str], None] = lambda message: None) -> None:
+        self.url, self.limits = url, limits
+        self.map = register_map or load_register_map()
+        self.reconnect_s, self.on_event = reconnect_s, on_event
+        parsed = urlparse(url)
+        if parsed.scheme == "tcp" and parsed.hostname and parsed.port:
+            self._client = ModbusTcpClient(parsed.hostname, port=parsed.port, timeout=timeout_s, retries=0)
+        elif parsed.scheme == "rtu" and parsed.path:
+            self._client = ModbusSerialClient(parsed.path, framer=FramerType.RTU, baudrate=115200,
+                                              timeout=timeout_s, retries=0)
+        else:
+            raise ValueError(f"shaker address {url!r}: expected tcp://HOST:PORT or rtu:///dev/DEVICE")
+        self._lock = threading.RLock()
+        self._heartbeat_stop = threading.Event()
+        self._heartbeat: threading.Thread | None = None
+        self._beat = 0
+
+    # ----- connection --------------------------------------------------------------------
+    def connect(self, heartbeat: bool = True) -> None:
+        """Open the link, write the rig's limits and watchdog, start the heartbeat."""
+        with self._lock:
+            if not self._client.connect():
+                raise ShakerLinkError(f"no Modbus controller answers at {self.url}")
+        lim = self.limits
+        self._write_holding({"stroke_limit_low": lim.stroke_low_m, "stroke_limit_high": lim.stroke_high_m,
+                             "force_limit": lim.force_limit_n})
+        if heartbeat:
+            self._write_holding({"watchdog_timeout": lim.watchdog_timeout_s, "heartbeat": 0})
+            self._heartbeat = threading.Thread(target=self._heartbeat_loop, name="shaker-heartbeat", daemon=True)
+            self._heartbeat.start()
+
+    def close(self) -> None:
+        self._heartbeat_stop.set()
+        if self._heartbeat is not None:
+            self._heartbeat.join(timeout=2)
+        with self._lock:
+            self._client.close()
+
+    def __enter__(self) -> "Shaker":
+        self.connect()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ----- commands ----------------------------------------------------------------------
+    def status(self) -> ShakerStatus:
+        raw = self._read("inputs")
+        state, alarm = int(raw["state"]), int(raw["alarm"])
+        return ShakerStatus(self.map.states[state] if state < len(self.map.states) else f"state {state}",
+                            self.map.alarms[alarm] if alarm < len(self.map.alarms) else f"alarm {alarm}",
+                            raw["position"], raw["force"], int(raw["cycles"]), raw["hydraulic_pressure"])
+
+    def hydraulics(self, on: bool) -> None:
+        self._write_coil("hydraulics_on", on)
+
+    def reset_alarm(self) -> None:
+        self._write_coil("alarm_reset", True)
+
+    def move_to(self, static_m: float) -> None:
+        """Move to a static position (state MOVING, then AT_STATIC)."""
+        lim = self.limits
+        if not lim.stroke_low_m <= static_m <= lim.stroke_high_m:
+            raise LimitError(f"static position {static_m * 1e3:.2f} mm outside the stroke limits "
+                             f"{lim.stroke_low_m * 1e3:.1f}…{lim.stroke_high_m * 1e3:.1f} mm")
+        self._write_holding({"static_position": static_m})
+        self._write_holding({"mode": self.map.modes["static"]})
+
+    def run(self, static_m: float, amplitude_m: float, frequency_hz: float, waveform: str = "sine",
+            ramp_s: float = 2.0) -> None:
+        """Start a waveform around a static position, faded in over ``ramp_s``."""
+        problems = check_waveform(self.limits, static_m, amplitude_m, frequency_hz, waveform)
+        if problems:
+            raise LimitError("; ".join(problems))
+        self._write_holding({"waveform": self.map.waveforms[waveform], "static_position": static_m,
+                             "amplitude": amplitude_m, "frequency": frequency_hz, "ramp_time": ramp_s})
+        self._write_holding({"mode": self.map.modes["run"]})
+
+    def fade_out(self) -> None:
+        """Fade the waveform out over its ramp time and stay at the static position."""
+        self._write_holding({"mode": self.map.modes["static"]})
+
+    def stop(self) -> None:
+        """Stop motion and hold the present position."""
+        self._write_holding({"mode": self.map.modes["stop"]})
+
+    def wait_for(self, states: set[str], timeout_s: float, poll_s: float = 0.02) -> ShakerStatus:
+        """Poll until the controller is in one of ``states``; an alarm raises :class:`AlarmError`."""
+        deadline = time.monotonic() + timeout_s
+        while True:
+            st = self.status()
+            if st.state in states:
+                return st
+            if st.state == "ALARM":
+                raise AlarmError(st)
+            if time.monotonic() > deadline:
+                raise ShakerError(f"controller still {st.state} after {timeout_s:g} s (waiting for "
+                                  f"{' or '.join(sorted(states))})")
+            time.sleep(poll_s)
+
+    # ----- register access ---------------------------------------------------------------
+    def _read(self, table: str) -> dict[str, float]:
+        fields = self.map.table(table)
+        first, last = fields[0].address, fields[-1].address
+        reader = {"inputs": "read_input_registers", "holding": "read_holding_registers"}[table]
+        words = self._call(reader, first, count=last - first + 1)
+        return {f.name: f.decode(words[f.address - first]) for f in fields}
+
+    def _write_holding(self, values: dict[str, float]) -> None:
+        fields = sorted((self.map.field(n) for n in values), key=lambda f: f.address)
+        words = {f.address: f.encode(values[f.name]) for f in fields}
+        # Contiguous runs go out as one write-multiple request, so the controller checks
+        # them together (e.g. a new static position with its amplitude).
+        run: list[int] = []
+        for addr in sorted(words) + [None]:
+            if run and (addr is None or addr != run[-1] + 1):
+                self._call("write_registers", run[0], [words[a] for a in run],
+                           what=", ".join(f"{f.name}={values[f.name]:g}" for f in fields if f.address in run))
+                run = []
+            if addr is not None:
+                run.append(addr)
+
+    def _write_coil(self, name: str, value: bool) -> None:
+        self._call("write_coil", self.map.field(name).address, bool(value), what=f"{name}={int(value)}")
+
+    def _call(self, method: str, *args, what: str = "", **kwargs):
+        with self._lock:
+            deadline = None
+            delay = 0.05
+            while True:
+                try:
+                    result = getattr(self._client, method)(*args, device_id=self.map.unit_id, **kwargs)
+                except ModbusException as exc:
+                    deadline = deadline or time.monotonic() + self.reconnect_s
+                    if time.monotonic() > deadline:
+                        raise ShakerLinkError(f"Modbus link to {self.url} lost and not back within "
+                                              f"{self.reconnect_s:g} s ({exc})") from None
+                    if delay == 0.05:
+                        self.on_event(f"Modbus link to {self.url} lost ({exc}); reconnecting")
+                    self._client.close()
+                    time.sleep(delay)
+                    delay = min(2 * delay, 1.0)
+                    self._client.connect()
+                    continue
+                if deadline is not None:
+                    self.on_event(f"Modbus link to {self.url} back")
+                if result.isError():
+                    code = getattr(result, "exception_code", None)
+                    raise ShakerError(f"controller refused {what or method} "
+                                      f"(Modbus exception {code}: {EXCEPTION_NAMES.get(code, 'unknown')})")
+                return result.bits if method.endswith("coils") else result.registers
+
+    def _heartbeat_loop(self) -> None:
+        period = max(self.limits.watchdog_timeout_s / 4, 0.05)
+        while not self._heartbeat_stop.wait(period):
+            self._beat = (self._beat + 1) & 0xFFFF
+            try:
+                self._write_holding({"heartbeat": self._beat})
+            except ShakerError as exc:
+                self.on_event(f"heartbeat failed: {exc}")

@@ -1,0 +1,182 @@
+"""The virtual rig: one simulated time line for the controller, the plant and the DAQ.
+
+An engine thread advances simulated time to ``speed × wall time`` in blocks of at
+most :data:`BLOCK_S`; in each block the controller's setpoint drives the plant at
+:data:`PHYSICS_RATE_HZ`, limits are checked sample by sample (a trip cuts the block
+at the offending sample), the DAQ's due samples are interpolated from the plant's
+states and quantised, and scheduled faults fire.  Modbus reads and DAQ frames
+therefore describe the same simulated instant; given the seed and the command
+times, the data are deterministic.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from simulator.controller import Alarm, ShakerController
+from simulator.daq import DaqDevice, Port
+from simulator.faults import Fault, FaultLog
+from simulator.modbus import ModbusEndpoint
+from simulator.physics import Actuator, Damper, StreamingPlant
+from simulator.sensors import SensorSet
+
+PHYSICS_RATE_HZ = 10_000.0
+BLOCK_S = 0.1  # at most; at 1x a wall tick is a couple of milliseconds of simulated time
+TICK_S = 0.002  # wall-clock sleep between engine steps
+
+
+@dataclass
+class _Scheduled:
+    at_s: float
+    fault: Fault
+    action: str = "begin"   # or "end" for the second half of a timed fault
+
+
+@dataclass
+class VirtualRig:
+    """The simulated rig: damper + actuator + controller + sensors + DAQ (+ Modbus)."""
+
+    damper: Damper
+    daq_port: Port
+    speed: float = 1.0
+    seed: int = 0
+    faults: list[Fault] = field(default_factory=list)
+    log: FaultLog = field(default_factory=FaultLog)
+    modbus_host: str = "127.0.0.1"
+    modbus_port: int = 5020
+    modbus_serial: str | None = None
+    actuator: Actuator = field(default_factory=Actuator)
+
+    def __post_init__(self) -> None:
+        self.t = 0.0
+        self._dt = 1.0 / PHYSICS_RATE_HZ
+        self.controller = ShakerController(on_event=lambda m: self.log.record(self.t, m))
+        self.plant = StreamingPlant(self.damper, self.actuator, self._dt, self.controller.position_m)
+        self.sensors = SensorSet(seed=self.seed)
+        self.daq = DaqDevice(self.daq_port, now=lambda: self.t, log=self.log, speed=self.speed, seed=self.seed)
+        self.modbus = ModbusEndpoint(self.controller, host=self.modbus_host, port=self.modbus_port,
+                                     serial_port=self.modbus_serial)
+        self._last = self._states_at_rest()
+        self._schedule: list[_Scheduled] = sorted(
+            (_Scheduled(f.at_s if f.at_s is not None else 0.0, f) for f in self.faults), key=lambda s: s.at_s)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="rig-engine", daemon=True)
+
+    # ----- lifecycle ---------------------------------------------------------------------
+    def start(self) -> None:
+        """Open the endpoints and start the simulated clock."""
+        self.modbus.start()
+        self.daq.start()
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join(timeout=5)
+        self.modbus.close()
+        self.daq.close()
+
+    def _run(self) -> None:
+        wall0, sim0 = time.monotonic(), self.t
+        while not self._stop.is_set():
+            self.step_to(sim0 + self.speed * (time.monotonic() - wall0))
+            self._stop.wait(TICK_S)
+
+    # ----- simulation --------------------------------------------------------------------
+    def step_to(self, t_target: float) -> None:
+        """Advance simulated time to ``t_target`` (whole physics steps)."""
+        while self.t + 0.5 * self._dt < t_target:
+            n = int(min(BLOCK_S, t_target - self.t) / self._dt + 0.5)
+            self._block(max(n, 1))
+
+    def _states_at_rest(self) -> tuple[float, float, float, float]:
+        return (self.controller.position_m, 0.0, 0.0, self.plant.temperature_k)
+
+    def _block(self, n: int) -> None:
+        t = self.t + self._dt * np.arange(1, n + 1)
+        u = self.controller.setpoint(t)
+        q, v, a, T = self.plant.advance(u)
+        force = self.damper.axle_force(q, v, a, T)
+        trip = self.controller.trip_index(q, force) if self.controller.hydraulics_on else None
+        if trip is not None and trip[0] + 1 < n:
+            n = trip[0] + 1
+            t, u, force = t[:n], u[:n], force[:n]
+            q, v, a, T = self.plant.advance(u)
+        self.plant.commit(n)
+        self._sample(t, q, v, a, T)
+        t_end = float(t[-1])
+        self._last = (float(q[-1]), float(v[-1]), float(a[-1]), float(T[-1]))
+        self.t = t_end
+        if trip is not None:
+            i, alarm = trip
+            limit = (f"force {force[-1]:.0f} N" if alarm == Alarm.FORCE_LIMIT else f"stroke {q[-1] * 1e3:.2f} mm")
+            self.controller.position_m = float(q[-1])
+            self.controller.trip(alarm, t_end, limit)
+        self.controller.update(t_end, float(q[-1]), float(v[-1]), float(force[-1]))
+        self._fire_faults()
+
+    def _sample(self, t: np.ndarray, q: np.ndarray, v: np.ndarray, a: np.ndarray, T: np.ndarray) -> None:
+        ts = self.daq.due_times(float(t[-1]))
+        if not len(ts):
+            return
+        grid = np.concatenate(([self.t], t))
+        states = [np.interp(ts, grid, np.concatenate(([last], x))) for last, x in zip(self._last, (q, v, a, T))]
+        qs, vs, as_, Ts = states
+        si = np.vstack([qs, self.damper.axle_force(qs, vs, as_, Ts), self.damper.pressure(qs, Ts), Ts])
+        counts, over = self.sensors.counts(si, ts)
+        self.daq.emit(counts, over)
+
+    def _fire_faults(self) -> None:
+        while self._schedule and self._schedule[0].at_s <= self.t:
+            item = self._schedule.pop(0)
+            self._apply(item)
+
+    def _later(self, at_s: float, fault: Fault) -> None:
+        self._schedule.append(_Scheduled(at_s, fault, "end"))
+        self._schedule.sort(key=lambda s: s.at_s)
+
+    def _apply(self, item: _Scheduled) -> None:
+        f, t = item.fault, self.t
+        if item.action == "end":
+            if f.kind == "modbus-down":
+                self.modbus.start()
+                self.log.record(t, "fault end: Modbus server back")
+            elif f.kind == "hydraulic-loss":
+                self.controller.supply_lost = False
+                self.log.record(t, "fault end: hydraulic supply restored")
+            return
+        if f.kind == "corrupt":
+            self.daq.corrupt_probability = f.value
+            self.log.record(t, f"fault: DAQ byte corruption, probability {f.value:g} per byte")
+        elif f.kind == "drop":
+            self.daq.drop_probability = f.value
+            self.log.record(t, f"fault: DAQ frames dropped on the line, probability {f.value:g}")
+        elif f.kind == "overflow":
+            self.daq.overflow_burst(int(f.value))
+            self.log.record(t, f"fault: DAQ-internal overflow, {int(f.value)} samples lost")
+        elif f.kind == "stall":
+            self.daq.stall(t + f.value)
+            self.log.record(t, f"fault: serial line stalls for {f.value:g} s")
+        elif f.kind == "disconnect":
+            self.daq.port.disconnect()
+            self.log.record(t, "fault: DAQ link disconnected")
+        elif f.kind == "modbus-down":
+            self.modbus.stop()
+            self.log.record(t, f"fault: Modbus server gone for {f.value:g} s")
+            self._later(t + f.value, f)
+        elif f.kind == "hydraulic-loss":
+            self.controller.supply_lost = True
+            self.log.record(t, "fault: hydraulic supply pressure lost")
+            if f.value:
+                self._later(t + f.value, f)
+        elif f.kind == "estop":
+            self.log.record(t, "fault: emergency stop pressed")
+            self.controller.emergency_stop(t)
+        elif f.kind == "drift":
+            self.sensors.drift_per_s[f.channel] = f.value
+            self.sensors.drift_start_s[f.channel] = t
+            self.log.record(t, f"fault: channel {f.channel} drifts {f.value:g} units/s")
