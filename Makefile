@@ -15,14 +15,10 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install -q -e '.[dev]'
 	@touch $(STAMP)
 
-# Until the rig's session runner lands (issue 3), the demo generates the standard set
-# with the simulator and identifies theta4/theta6/theta16 from a start 15-40 % off.
-DEMO_DIR := out/demo
+# The whole product: the simulator at 50x, the standard plan over Modbus + serial,
+# identification, parameters beside the simulator's truth (examples/demo.py).
 demo: $(STAMP)
-	$(BIN)/python -m simulator generate --plan standard --out $(DEMO_DIR) --seed 1 --drop
-	$(BIN)/python -m identify fit $(DEMO_DIR) --model 2dof --params examples/start-2dof.json \
-	  --estimate theta4,theta6,theta16 --output $(DEMO_DIR)/RESULT.json --figures $(DEMO_DIR)/figures
-	@echo "simulator truth: theta4 = 0.005, theta6 = -3.0, theta16 = 0.85 ($(DEMO_DIR)/truth.json)"
+	$(BIN)/python examples/demo.py --out out/demo-session
 
 test: $(STAMP)
 	QT_QPA_PLATFORM=offscreen $(BIN)/python -m pytest -q

@@ -39,6 +39,7 @@ from identify.result import ExperimentFit, FitResult
 
 DEFAULT_PRIOR_FRACTION = 0.5  # prior std as a fraction of |θ| where none is given
 MODEL_ERROR_RATIO = 2.0  # residual RMS over what the noise explains, above which a warning is given
+CHI2_TOLERANCE = 0.1  # a Gauss-Newton step promising less χ² decrease than this changes nothing that matters
 
 
 class EstimationError(RuntimeError):
@@ -172,9 +173,16 @@ class Estimator:
                     break
                 lam /= 2
             if accepted is None:
-                converged = small
+                # The objective is Σ r²/v (χ² units); a step that would lower it by less
+                # than CHI2_TOLERANCE is beyond what the data can tell apart, and the line
+                # search then only sees the periodic solutions' numerical noise.
+                predicted = float(g @ step - 0.5 * step @ A @ step)
+                converged = small or predicted < CHI2_TOLERANCE
                 message = ("converged (the remaining step is below the tolerance)" if small else
-                           "line search failed: no decrease of the objective along the Gauss–Newton step")
+                           f"converged (the remaining step would lower χ² by {predicted:.2g} < {CHI2_TOLERANCE:g})"
+                           if converged else
+                           f"line search failed: no decrease of the objective along the Gauss–Newton step "
+                           f"(predicted χ² decrease {predicted:.3g})")
                 break
             theta = accepted.theta
             ev = accepted
