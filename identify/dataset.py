@@ -152,8 +152,12 @@ def read_manifest(directory: str | Path) -> Dataset:
     return Dataset(directory, manifest, experiments)
 
 
-def load_csv(path: Path, required: Iterable[str] = (), frequency_hz: float | None = None) -> pd.DataFrame:
+def load_csv(path: Path, required: Iterable[str] = (), frequency_hz: float | None = None, *,
+             lost_samples: int = 0, sample_rate_hz: float | None = None) -> pd.DataFrame:
     """Read one experiment CSV and check every rule of the format.
+
+    ``lost_samples`` (from the manifest) allows that many absent rows on the uniform
+    grid of ``sample_rate_hz``: samples the rig lost and declared, never guessed.
 
     Row numbers in messages are line numbers of the file (the header is line 1).
     """
@@ -192,14 +196,31 @@ def load_csv(path: Path, required: Iterable[str] = (), frequency_hz: float | Non
         row = int(bad[0]) + 1
         raise DatasetError(f"{path}: line {row + 2}, column 'time_s': time {t[row]!r} does not increase "
                            f"(previous {t[row - 1]!r})")
-    mean_dt = (t[-1] - t[0]) / (len(t) - 1)
-    off = np.flatnonzero(np.abs(dt - mean_dt) > _UNIFORM_TOLERANCE * mean_dt)
-    if off.size:
-        row = int(off[0]) + 1
-        raise DatasetError(f"{path}: line {row + 2}, column 'time_s': sampling is not uniform "
-                           f"(step {dt[row - 1]:.9g} s against a mean of {mean_dt:.9g} s)")
+    if lost_samples:
+        # Rows of samples lost on the rig are absent, declared in the manifest: the
+        # remaining times must still lie on the uniform grid of the sample rate.
+        if not sample_rate_hz:
+            raise DatasetError(f"{path}: the manifest declares {lost_samples} lost samples but no sample_rate_Hz")
+        mean_dt = 1.0 / sample_rate_hz
+        steps = dt / mean_dt
+        off = np.flatnonzero((np.abs(steps - np.rint(steps)) > _UNIFORM_TOLERANCE) | (np.rint(steps) < 1))
+        if off.size:
+            row = int(off[0]) + 1
+            raise DatasetError(f"{path}: line {row + 2}, column 'time_s': step {dt[row - 1]:.9g} s is not a "
+                               f"multiple of the sampling interval {mean_dt:.9g} s")
+        missing = int(np.sum(np.rint(steps) - 1))
+        if missing != lost_samples:
+            raise DatasetError(f"{path}: column 'time_s' has {missing} missing samples, the manifest declares "
+                               f"lost_samples = {lost_samples}")
+    else:
+        mean_dt = (t[-1] - t[0]) / (len(t) - 1)
+        off = np.flatnonzero(np.abs(dt - mean_dt) > _UNIFORM_TOLERANCE * mean_dt)
+        if off.size:
+            row = int(off[0]) + 1
+            raise DatasetError(f"{path}: line {row + 2}, column 'time_s': sampling is not uniform "
+                               f"(step {dt[row - 1]:.9g} s against a mean of {mean_dt:.9g} s)")
     if frequency_hz is not None:
-        covered = len(t) * mean_dt
+        covered = (t[-1] - t[0]) + mean_dt
         if covered * frequency_hz < 1.0 - 1e-9:
             need = int(math.ceil(1.0 / (frequency_hz * mean_dt)))
             raise DatasetError(f"{path}: {len(t)} samples cover {covered:.6g} s, less than one period "
@@ -223,7 +244,8 @@ def read_dataset(directory: str | Path, required_columns: Iterable[str] = DAMPER
             continue
         path = ds.path / exp.file
         freq = exp.frequency_hz if exp.kind == "periodic" else None
-        exp.data = load_csv(path, required, freq)
+        exp.data = load_csv(path, required, freq, lost_samples=int(exp.meta.get("lost_samples", 0) or 0),
+                            sample_rate_hz=exp.meta.get("sample_rate_Hz"))
     return ds
 
 

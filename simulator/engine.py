@@ -61,6 +61,7 @@ class VirtualRig:
         self.modbus = ModbusEndpoint(self.controller, host=self.modbus_host, port=self.modbus_port,
                                      serial_port=self.modbus_serial)
         self._last = self._states_at_rest()
+        self._servo_drift: tuple[float, float] | None = None  # (start, m/s) of a servo null drift
         self._schedule: list[_Scheduled] = sorted(
             (_Scheduled(f.at_s if f.at_s is not None else 0.0, f) for f in self.faults), key=lambda s: s.at_s)
         self._stop = threading.Event()
@@ -99,6 +100,9 @@ class VirtualRig:
     def _block(self, n: int) -> None:
         t = self.t + self._dt * np.arange(1, n + 1)
         u = self.controller.setpoint(t)
+        if self._servo_drift is not None:
+            t0, rate = self._servo_drift
+            u = u + rate * np.maximum(t - t0, 0.0)
         q, v, a, T = self.plant.advance(u)
         force = self.damper.axle_force(q, v, a, T)
         trip = self.controller.trip_index(q, force) if self.controller.hydraulics_on else None
@@ -176,6 +180,9 @@ class VirtualRig:
         elif f.kind == "estop":
             self.log.record(t, "fault: emergency stop pressed")
             self.controller.emergency_stop(t)
+        elif f.kind == "servo-drift":
+            self._servo_drift = (t, f.value * 1e-3)
+            self.log.record(t, f"fault: servo valve null drifts, actuator creeps {f.value:g} mm/s")
         elif f.kind == "drift":
             self.sensors.drift_per_s[f.channel] = f.value
             self.sensors.drift_start_s[f.channel] = t

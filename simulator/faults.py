@@ -14,6 +14,8 @@ repeated) or built with :func:`parse_fault`:
 ``hydraulic-loss@T[=D]`` at T s the supply pressure is lost (for D s, else for good)
 ``estop@T``         at T s the emergency stop is pressed
 ``drift=CH:RATE[@T]`` from T s, channel CH drifts by RATE engineering units per s
+``servo-drift@T=RATE`` from T s the servo valve's null drifts: the actuator creeps
+                    away from its command at RATE mm/s (what trips the stroke limit)
 ==================  ==========================================================
 """
 
@@ -24,8 +26,9 @@ import sys
 from dataclasses import dataclass, field
 from typing import Callable
 
-KINDS = ("corrupt", "drop", "overflow", "stall", "disconnect", "modbus-down", "hydraulic-loss", "estop", "drift")
-_TIMED = {"overflow", "stall", "disconnect", "modbus-down", "hydraulic-loss", "estop"}
+KINDS = ("corrupt", "drop", "overflow", "stall", "disconnect", "modbus-down", "hydraulic-loss", "estop", "drift",
+         "servo-drift")
+_TIMED = {"overflow", "stall", "disconnect", "modbus-down", "hydraulic-loss", "estop", "servo-drift"}
 _SYNTAX = re.compile(r"^(?P<kind>[a-z-]+)(?:@(?P<at>[0-9.eE+-]+))?(?:=(?P<value>[^@]+))?(?:@(?P<at2>[0-9.eE+-]+))?$")
 
 
@@ -73,6 +76,8 @@ def parse_fault(text: str) -> Fault:
     if kind in ("corrupt", "drop") and (value is None or not 0 <= value < 1):
         raise FaultError(f"fault {text!r}: {kind} needs =PROBABILITY in [0, 1)")
     if kind in ("overflow", "stall", "modbus-down") and (value is None or value <= 0):
+        raise FaultError(f"fault {text!r}: {kind} needs a positive =VALUE")
+    if kind == "servo-drift" and not value:
         raise FaultError(f"fault {text!r}: {kind} needs a positive =VALUE")
     return Fault(kind, at, value)
 

@@ -26,3 +26,59 @@ def standard_dataset(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("standard")
     generate(out, list(STANDARD_SET), load_truth(), periods=3, rate_hz=2000.0, seed=7, drop=True, date="261122")
     return out
+
+
+class ServedRig:
+    """``python -m simulator serve`` in a subprocess, on free ports, as a client sees it."""
+
+    def __init__(self, *args: str, daq: str = "tcp://127.0.0.1:0", speed: float = 50.0) -> None:
+        import subprocess
+        import sys
+
+        cmd = [sys.executable, "-m", "simulator", "serve", "--modbus", "127.0.0.1:0", "--daq", daq,
+               "--speed", str(speed), *args]
+        self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        endpoints = {}
+        while len(endpoints) < 2:
+            line = self.proc.stdout.readline()
+            if not line:
+                raise RuntimeError(f"simulator did not start: {self.proc.stderr.read()}")
+            kind, url = line.split(maxsplit=1)
+            endpoints[kind] = url.strip()
+        self.modbus_url, self.daq_url = endpoints["modbus"], endpoints["daq"]
+        host_port = self.modbus_url.removeprefix("tcp://")
+        self.host, self.port = host_port.rsplit(":", 1)[0], int(host_port.rsplit(":", 1)[1])
+        self.stderr = ""
+
+    def stop(self) -> str:
+        """SIGTERM, wait for a clean exit, return what the simulator logged."""
+        import signal
+
+        if self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGTERM)
+            _, self.stderr = self.proc.communicate(timeout=20)
+            assert self.proc.returncode == 0, self.stderr
+        return self.stderr
+
+    def lost_frames(self) -> int:
+        """The simulator's own count of DAQ frames lost to injected faults (after stop)."""
+        import re
+
+        m = re.search(r"DAQ frames lost by faults: (\d+)", self.stderr)
+        assert m, self.stderr
+        return int(m.group(1))
+
+
+@pytest.fixture
+def served_rig():
+    """Factory: ``served_rig(*serve_args, daq=..., speed=...)``; all stopped at teardown."""
+    rigs: list[ServedRig] = []
+
+    def start(*args: str, **kwargs) -> ServedRig:
+        rig = ServedRig(*args, **kwargs)
+        rigs.append(rig)
+        return rig
+
+    yield start
+    for rig in rigs:
+        rig.stop()

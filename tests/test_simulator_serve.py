@@ -1,0 +1,213 @@
+"""The virtual rig seen from outside: a plain pymodbus client by the datasheet's raw
+addresses, mbpoll where installed, and a small independent DAQ decoder (sync,
+CRC-16/MODBUS, sequence) on TCP and on a pseudo-terminal.  No project code on the
+client side."""
+
+from __future__ import annotations
+
+import shutil
+import socket
+import struct
+import subprocess
+import time
+
+import crcmod.predefined
+import pytest
+import serial
+from pymodbus.client import ModbusTcpClient
+
+CRC = crcmod.predefined.mkCrcFun("modbus")
+OFF, IDLE, MOVING, AT_STATIC, RUNNING, ALARM = range(6)
+
+
+def client(rig) -> ModbusTcpClient:
+    c = ModbusTcpClient(rig.host, port=rig.port, timeout=2)
+    assert c.connect()
+    return c
+
+
+def inputs(c: ModbusTcpClient) -> list[int]:
+    return c.read_input_registers(0, count=7, device_id=1).registers
+
+
+def wait_state(c: ModbusTcpClient, state: int, timeout_s: float = 20.0) -> list[int]:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        regs = inputs(c)
+        if regs[0] == state:
+            return regs
+        time.sleep(0.02)
+    raise AssertionError(f"state {regs[0]} (alarm {regs[1]}), expected {state}")
+
+
+def s16(word: int) -> int:
+    return word - 0x10000 if word >= 0x8000 else word
+
+
+def test_modbus_map_state_machine_and_cycles(served_rig):
+    rig = served_rig()
+    c = client(rig)
+    regs = inputs(c)
+    assert regs[0] == OFF and regs[1] == 0 and regs[6] == 123
+    assert c.read_holding_registers(0, count=11, device_id=1).registers[6:9] == [(-1000) & 0xFFFF, 27000, 5000]
+    assert not c.write_coil(0, True, device_id=1).isError()
+    assert wait_state(c, IDLE)[5] == 2100  # supply 210.0 bar
+    assert not c.write_register(2, 13300, device_id=1).isError()
+    assert not c.write_register(0, 1, device_id=1).isError()
+    assert inputs(c)[0] == MOVING
+    regs = wait_state(c, AT_STATIC)
+    assert abs(s16(regs[2]) - 13300) <= 2
+    # sine 10 mm at 2 Hz: RUNNING, cycles count whole periods
+    assert not c.write_registers(1, [0, 13300, 1000, 2000, 5], device_id=1).isError()
+    assert not c.write_register(0, 2, device_id=1).isError()
+    wait_state(c, RUNNING)
+    time.sleep(0.5)  # 25 simulated seconds at 50x
+    assert 40 <= inputs(c)[4] <= 60
+    assert not c.write_register(0, 1, device_id=1).isError()  # fade out
+    wait_state(c, AT_STATIC)
+    c.close()
+
+
+def test_out_of_range_writes_get_exception_3_and_change_nothing(served_rig):
+    rig = served_rig()
+    c = client(rig)
+    before = c.read_holding_registers(0, count=11, device_id=1).registers
+    bad = [(2, [30000]),                       # static position 300 mm > 270 mm limit
+           (0, [7]),                           # no such mode
+           (0, [1]),                           # STATIC with hydraulics off
+           (6, [27500]),                       # low limit above the high limit
+           (7, [(-31000) & 0xFFFF]),           # high limit outside the actuator's travel
+           ]
+    for address, values in bad:
+        r = c.write_registers(address, values, device_id=1)
+        assert r.isError() and r.exception_code == 3, (address, values, r)
+    c.write_coil(0, True, device_id=1)
+    c.write_registers(1, [0, 13300, 20000, 0, 5], device_id=1)  # armed only by RUN
+    r = c.write_register(0, 2, device_id=1)             # RUN: 200 mm amplitude crosses the limits
+    assert r.isError() and r.exception_code == 3
+    c.write_registers(3, [1000, 0], device_id=1)
+    r = c.write_register(0, 2, device_id=1)             # frequency 0 in RUN
+    assert r.isError() and r.exception_code == 3
+    after = c.read_holding_registers(0, count=11, device_id=1).registers
+    assert after[0] == before[0] == 0 and after[6:9] == before[6:9]
+    assert c.read_holding_registers(11, count=1, device_id=1).exception_code == 2
+    c.close()
+
+
+@pytest.mark.parametrize("fault, setup, alarm", [
+    ("servo-drift@2=20", None, 1),                   # stroke limit
+    (None, "force", 2),                              # force limit
+    ("hydraulic-loss@2", None, 3),                   # low hydraulic pressure
+    (None, "watchdog", 4),                           # watchdog
+    ("estop@2", None, 5),                            # emergency stop
+])
+def test_every_trip_is_seen_as_alarm_with_its_code(served_rig, fault, setup, alarm):
+    rig = served_rig(*(["--fault", fault] if fault else []))
+    c = client(rig)
+    c.write_coil(0, True, device_id=1)
+    if setup == "force":
+        c.write_register(8, 100, device_id=1)          # 1 kN, below the static load
+    if setup == "watchdog":
+        c.write_register(9, 3, device_id=1)            # 0.3 s without heartbeat
+    regs = wait_state(c, ALARM)
+    assert regs[1] == alarm
+    # latched: stays until reset; motion stopped
+    time.sleep(0.2)
+    assert inputs(c)[:2] == [ALARM, alarm]
+    assert c.write_register(0, 1, device_id=1).exception_code == 3  # no motion while the alarm is latched
+    if alarm in (2, 4, 5):
+        c.write_register(8, 5000, device_id=1)
+        c.write_register(9, 0, device_id=1)
+        c.write_coil(1, True, device_id=1)
+        assert inputs(c)[1] == 0 and inputs(c)[0] in (OFF, IDLE)
+    c.close()
+
+
+@pytest.mark.skipif(not shutil.which("mbpoll"), reason="mbpoll not installed")
+def test_mbpoll_reads_the_controller(served_rig):
+    rig = served_rig()
+    out = subprocess.run(["mbpoll", "-m", "tcp", "-a", "1", "-t", "3", "-r", "0", "-c", "7", "-1", "-0",
+                          "-p", str(rig.port), rig.host], capture_output=True, text=True, timeout=20)
+    assert out.returncode == 0, out.stdout + out.stderr
+    values = dict(line.split(":") for line in out.stdout.splitlines() if line.startswith("["))
+    assert int(values["[0]"]) == OFF and int(values["[6]"]) == 123   # state, firmware
+    # a write from mbpoll: hydraulics on (coil 0), then the state reads IDLE
+    out = subprocess.run(["mbpoll", "-m", "tcp", "-a", "1", "-t", "0", "-r", "0", "-0", "-1",
+                          "-p", str(rig.port), rig.host, "1"], capture_output=True, text=True, timeout=20)
+    assert out.returncode == 0, out.stdout + out.stderr
+    c = client(rig)
+    wait_state(c, IDLE)
+    c.close()
+
+
+def decode(stream: bytes) -> tuple[list[int], int]:
+    """Independent decoder: sequence numbers of CRC-valid frames, and bad CRCs."""
+    seqs, bad, i = [], 0, 0
+    while i + 16 <= len(stream):
+        if stream[i] != 0xA5 or stream[i + 1] != 0x5A:
+            i += 1
+            continue
+        frame = stream[i:i + 16]
+        if CRC(frame[2:14]) != struct.unpack("<H", frame[14:16])[0]:
+            bad += 1
+            i += 1
+            continue
+        seqs.append(struct.unpack("<H", frame[2:4])[0])
+        i += 16
+    return seqs, bad
+
+
+def exchange(port, read) -> None:
+    port.write(b"*IDN?\n")
+    assert read().startswith(b"DAQ4,")
+    port.write(b"RATE 9000\n")
+    assert read().startswith(b"ERR")
+    port.write(b"RATE 2000\n")
+    assert read() == b"OK\n"
+
+
+def stream_once(write, read_chunk, seconds: float) -> tuple[list[int], int, int]:
+    write(b"START\n")
+    data = b""
+    t0 = time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        data += read_chunk()
+    write(b"STOP\n")
+    t0 = time.monotonic()
+    while b"OK STOP" not in data[-64:] and time.monotonic() - t0 < 5:
+        data += read_chunk()
+    assert data.startswith(b"OK\n")
+    body, _, tail = data[3:].rpartition(b"OK STOP ")
+    issued = int(tail.strip())
+    seqs, bad = decode(body)
+    return seqs, bad, issued
+
+
+@pytest.mark.parametrize("transport", ["tcp", "pty"])
+def test_daq_stream_decoded_independently(served_rig, transport):
+    rig = served_rig(daq="tcp://127.0.0.1:0" if transport == "tcp" else "pty", speed=20)
+    if transport == "tcp":
+        host, port = rig.daq_url.removeprefix("socket://").rsplit(":", 1)
+        sock = socket.create_connection((host, int(port)))
+        sock.settimeout(0.05)
+        f = sock.makefile("rb")
+
+        def chunk() -> bytes:
+            try:
+                return sock.recv(65536)
+            except TimeoutError:
+                return b""
+        write, readline = sock.sendall, f.readline
+    else:
+        port = serial.Serial(rig.daq_url, timeout=0.05)
+        write, readline = port.write, port.readline
+
+        def chunk() -> bytes:
+            return port.read(65536)
+    port_like = type("P", (), {"write": staticmethod(write)})
+    exchange(port_like, readline)
+    seqs, bad, issued = stream_once(write, chunk, 1.0)
+    assert bad == 0
+    assert len(seqs) == issued > 20000  # 2 kHz at 20x for about a second
+    assert seqs[0] == 0
+    assert all((b - a) & 0xFFFF == 1 for a, b in zip(seqs, seqs[1:]))
