@@ -53,7 +53,7 @@ class ExperimentRecord:
     lost_samples: int            # inside the captured window
     stream_lost: int             # over the whole experiment's stream
     over_range: int
-    recaptures: int
+    recaptures: int              # windows captured again after one that lost samples
     flags: list[str] = field(default_factory=list)
 
     @property
@@ -120,6 +120,8 @@ class Acquisition:
         static, amp = spec.static_position_mm * 1e-3, spec.amplitude_mm * 1e-3
         self._enter(Phase.MOVING, label, target_mm=spec.static_position_mm)
         st = self.shaker.status()
+        if st.state == "ALARM":
+            raise AlarmError(st)
         if st.state == "OFF":
             self.shaker.hydraulics(True)
         self.shaker.move_to(static)
@@ -190,8 +192,9 @@ class Acquisition:
                                                 f"flagged"))
         self._enter(Phase.CAPTURING, label, cycles=cycles)
         n = int(math.ceil(spec.periods * spp))
-        best = None
+        best, attempts = None, 0
         for attempt in range(ss.max_recaptures + 1):
+            attempts = attempt + 1
             a = b + attempt * n  # windows follow the last settling block back to back
             self._wait_samples(rec, a + n, label, capture=(a, n))
             values, present, over = rec.window(a, a + n)
@@ -207,10 +210,10 @@ class Acquisition:
         if not settled:
             flags.append(f"steady state not reached within {ss.max_cycles} cycles")
         if lost:
-            flags.append(f"{lost} samples lost in the captured window (rows absent)")
+            flags.append(f"{lost} samples lost in the captured window (rows absent; best of {attempts} windows)")
         index = a + np.flatnonzero(present)
         return ExperimentRecord(spec, label, rate, index, values[present], cycles, settled, lost, 0,
-                                int(np.count_nonzero(over[present])), attempt, flags)
+                                int(np.count_nonzero(over[present])), attempts - 1, flags)
 
     def _wait_samples(self, rec: Recorder, end: int, label: str, capture: tuple[int, int] | None = None) -> None:
         """Wait until the DAQ index reaches ``end``, watching the controller for alarms."""

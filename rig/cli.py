@@ -41,10 +41,13 @@ def _csv(text: str | None) -> list[str] | None:
     return [x.strip() for x in text.split(",") if x.strip()] if text else None
 
 
-def _shaker(args: argparse.Namespace, heartbeat: bool = False) -> Shaker:
+def _shaker(args: argparse.Namespace) -> Shaker:
+    """A connection for one manual command.  Nothing feeds the watchdog once the command
+    returns, so manual commands switch it off; ``run`` switches it on again."""
     config = load_rig_config(args.rig_config)
     shaker = Shaker(args.shaker, config.limits, load_register_map(args.register_map), reconnect_s=2.0)
-    shaker.connect(heartbeat=heartbeat)
+    shaker.connect(heartbeat=False)
+    shaker.disable_watchdog()
     return shaker
 
 

@@ -46,6 +46,7 @@ class RigConfig:
     limits: Limits
     daq_rate_hz: int
     steady_state: SteadyStateCriteria
+    reconnect_s: float = 20.0
     text: str = field(repr=False, default="")
 
 
@@ -66,10 +67,11 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
         criteria = SteadyStateCriteria(float(ss["block_s"]), thresholds, int(ss["min_cycles"]),
                                        int(ss["max_cycles"]), int(ss["max_recaptures"]), float(ss["ramp_time_s"]))
         rate = int(doc["daq"]["rate_Hz"])
+        reconnect = float(doc.get("link", {}).get("reconnect_s", 20.0))
     except KeyError as exc:
         raise ConfigError(f"{path}: missing key {exc.args[0]!r}") from None
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: {exc}") from None
     if limits.stroke_low_m >= limits.stroke_high_m:
         raise ConfigError(f"{path}: [limits] stroke_low_mm must be below stroke_high_mm")
-    return RigConfig(str(path), limits, rate, criteria, text)
+    return RigConfig(str(path), limits, rate, criteria, reconnect, text)

@@ -184,7 +184,9 @@ class Daq:
         """Read and discard until the line has been quiet for ``quiet_s``."""
         last = time.monotonic()
         while time.monotonic() - last < quiet_s:
-            if self._port.read(65536):
+            data = self._port.read(65536)
+            if data:
+                self._journal(data)
                 last = time.monotonic()
 
     def command(self, text: str, timeout_s: float = 2.0) -> str:
@@ -198,7 +200,9 @@ class Daq:
     def _read_line(self, timeout_s: float) -> str | None:
         deadline, buf = time.monotonic() + timeout_s, b""
         while time.monotonic() < deadline:
-            buf += self._port.read(1)
+            byte = self._port.read(1)
+            self._journal(byte)
+            buf += byte
             if buf.endswith(b"\n"):
                 return buf[:-1].decode("ascii", errors="replace").strip()
         return None
@@ -254,8 +258,7 @@ class Daq:
                 continue
             if not data:
                 continue
-            if self.journal:
-                self.journal.write(data)
+            self._journal(data)
             if self._stop_sent:
                 # The answer follows the last frame; frames never contain this text.
                 text = self._tail + data
@@ -269,6 +272,10 @@ class Daq:
                     return
                 self._tail = text[-32:]
             self._deliver(self.parser.feed(data))
+
+    def _journal(self, data: bytes) -> None:
+        if self.journal and data:
+            self.journal.write(data)
 
     def _reopen(self, exc: Exception) -> bool:
         self.on_event(f"DAQ link lost ({exc}); reopening {self.url}")

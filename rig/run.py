@@ -112,9 +112,10 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
         kept = sorted(session.completed())
         bus.publish("log", message=f"resuming: {len(kept)} experiments kept as captured ({', '.join(kept) or 'none'}), "
                                    f"{len(todo)} to do")
-    shaker = Shaker(opt.shaker, config.limits, register_map, on_event=lambda m: bus.publish("log", message=m))
+    shaker = Shaker(opt.shaker, config.limits, register_map, reconnect_s=config.reconnect_s,
+                    on_event=lambda m: bus.publish("log", message=m))
     daq = Daq(opt.daq, calibration, rate_hz=config.daq_rate_hz, journal=session.journal_path,
-              on_event=lambda m: bus.publish("log", message=m))
+              reconnect_s=config.reconnect_s, on_event=lambda m: bus.publish("log", message=m))
     acquisition = Acquisition(shaker, daq, config, bus)
     previous = signal.signal(signal.SIGINT, lambda *_: acquisition.stop_requested.set())
     status, code, captured = "complete", EXIT_OK, []

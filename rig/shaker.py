@@ -115,6 +115,10 @@ class Shaker:
             self._heartbeat = threading.Thread(target=self._heartbeat_loop, name="shaker-heartbeat", daemon=True)
             self._heartbeat.start()
 
+    def disable_watchdog(self) -> None:
+        """For manual commands: no program will feed the watchdog after they return."""
+        self._write_holding({"watchdog_timeout": 0.0})
+
     def close(self) -> None:
         self._heartbeat_stop.set()
         if self._heartbeat is not None:

@@ -1,0 +1,196 @@
+"""Sessions end to end over the real protocols, against ``python -m simulator serve``:
+capture, storage, identification, and what happens when things go wrong."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pymodbus.client import ModbusTcpClient
+
+from rig.frames import FrameParser
+
+TOLERANCE = {"theta4": 1e-3, "theta6": 1e-3, "theta16": 1e-2}
+NOMINAL = {"theta4": 5.0e-3, "theta6": -3.0, "theta16": 0.85}
+START = Path(__file__).resolve().parents[1] / "examples" / "start-2dof.json"
+
+
+def rig_cmd(sim, out: Path, *args: str) -> list[str]:
+    return [sys.executable, "-m", "rig", "run", "--shaker", sim.modbus_url, "--daq", sim.daq_url, "--out", str(out),
+            "--date", "261122", *args]
+
+
+def run_rig(sim, out: Path, *args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+    return subprocess.run(rig_cmd(sim, out, *args), capture_output=True, text=True, timeout=timeout)
+
+
+def manifest(out: Path) -> dict:
+    return json.loads((out / "dataset.json").read_text())
+
+
+def test_session_files_and_identify_from_files_gives_the_same_numbers(served_rig, tmp_path):
+    sim = served_rig()
+    out = tmp_path / "session"
+    r = run_rig(sim, out, "--experiments", "j,n,l", "--identify", "--params", str(START))
+    assert r.returncode == 0, r.stderr[-3000:]
+    m = manifest(out)
+    assert [e["label"] for e in m["experiments"]] == ["261122j", "261122n", "261122l"]
+    for e in m["experiments"]:
+        assert e["steady_state"] and e["lost_samples"] == 0 and e["frequency_Hz"] in (2.0, 0.5)
+    for name in ("config/rig.toml", "config/daq-calibration.toml", "config/register-map.toml", "config/plan.txt",
+                 "config/software.json", "session.log", "session.json", "journal/daq-raw.bin", "RESULT.json",
+                 "report.txt"):
+        assert (out / name).is_file(), name
+    assert json.loads((out / "session.json").read_text())["status"] == "complete"
+    in_memory = json.loads((out / "RESULT.json").read_text())
+    f = subprocess.run([sys.executable, "-m", "identify", "fit", str(out), "--params", str(START), "--estimate",
+                        "theta4,theta6,theta16", "--output", str(tmp_path / "R.json"), "--quiet"],
+                       capture_output=True, text=True, timeout=120)
+    assert f.returncode == 0, f.stderr
+    from_files = json.loads((tmp_path / "R.json").read_text())
+    for k in TOLERANCE:
+        assert from_files["parameters"][k]["value"] == in_memory["parameters"][k]["value"]
+        assert from_files["parameters"][k]["std"] == in_memory["parameters"][k]["std"]
+
+
+@pytest.mark.slow
+def test_standard_plan_over_modbus_and_serial_recovers_the_truth(served_rig, tmp_path):
+    sim = served_rig("--seed", "5")
+    out = tmp_path / "standard"
+    r = run_rig(sim, out, "--identify", "--params", str(START), timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    result = json.loads((out / "RESULT.json").read_text())
+    assert result["converged"] and len(result["experiments"]) == 14
+    for k, tol in TOLERANCE.items():
+        assert abs(result["parameters"][k]["value"] / NOMINAL[k] - 1) < tol, (k, result["parameters"][k])
+
+
+def test_line_faults_are_counted_exactly_and_the_capture_recaptured_or_flagged(served_rig, tmp_path):
+    sim = served_rig("--fault", "corrupt=1e-4", "--fault", "drop=1e-3", "--fault", "overflow@30=500")
+    out = tmp_path / "faults"
+    r = run_rig(sim, out, "--experiments", "j")
+    assert r.returncode == 0, r.stderr[-3000:]
+    sim.stop()
+    (entry,) = manifest(out)["experiments"]
+    assert sim.lost_frames() > 500
+    assert entry["stream_lost_samples"] == sim.lost_frames()      # the reader's count equals the simulator's
+    assert entry["recaptures"] > 0 or entry["lost_samples"] == 0
+    if entry["lost_samples"]:
+        assert any("lost" in f for f in entry["flags"])
+    # identify accepts the declared holes and nothing else
+    f = subprocess.run([sys.executable, "-m", "identify", "fit", str(out), "--estimate", "theta4", "--output",
+                        str(tmp_path / "R.json"), "--quiet"], capture_output=True, text=True, timeout=120)
+    assert f.returncode == 0, f.stderr
+
+
+def test_modbus_link_lost_mid_session_reconnects_and_continues(served_rig, tmp_path):
+    sim = served_rig("--fault", "modbus-down@150=25")   # 0.5 s of wall time at 50x, below the 2 s watchdog
+    out = tmp_path / "link"
+    r = run_rig(sim, out, "--experiments", "j")
+    assert r.returncode == 0, r.stderr[-3000:]
+    log = (out / "session.log").read_text()
+    assert "Modbus link" in log and "lost" in log and "back" in log
+    assert len(manifest(out)["experiments"]) == 1
+
+
+def test_modbus_link_gone_for_good_aborts_safely_and_the_watchdog_stops_the_shaker(served_rig, tmp_path):
+    sim = served_rig("--fault", "modbus-down@150=400")  # 8 s of wall time, while j settles
+    config = tmp_path / "rig.toml"
+    default = (Path(__file__).resolve().parents[1] / "rig" / "config" / "rig-default.toml").read_text()
+    config.write_text(default.replace("reconnect_s = 20.0", "reconnect_s = 2.0"))
+    out = tmp_path / "gone"
+    r = run_rig(sim, out, "--experiments", "j", "--rig-config", str(config))
+    assert r.returncode == 3
+    assert "Modbus link" in r.stderr and "not back within 2 s" in r.stderr
+    assert json.loads((out / "session.json").read_text())["status"].startswith("aborted")
+    time.sleep(8)                                       # the server comes back
+    c = ModbusTcpClient(sim.host, port=sim.port, timeout=2)
+    assert c.connect()
+    state, alarm = c.read_input_registers(0, count=2, device_id=1).registers
+    assert (state, alarm) == (5, 4)                     # ALARM, watchdog: the shaker was stopped
+    c.close()
+
+
+@pytest.mark.slow
+def test_killed_mid_experiment_resume_finishes_and_keeps_earlier_files(served_rig, tmp_path):
+    sim = served_rig()
+    out = tmp_path / "killed"
+    proc = subprocess.Popen(rig_cmd(sim, out, "--experiments", "j,n"), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL)
+    first = out / "261122j.csv"
+    deadline = time.monotonic() + 120
+    while not first.exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert first.exists()
+    time.sleep(2.0)                                     # well into experiment n's settling
+    digest = hashlib.sha256(first.read_bytes()).hexdigest()
+    os.kill(proc.pid, signal.SIGKILL)
+    killed_at = time.time()
+    proc.wait()
+    journal = out / "journal" / "daq-raw.bin"
+    assert killed_at - journal.stat().st_mtime < 1.0     # flushed at most about a second before the kill
+    parser = FrameParser()
+    raw = journal.read_bytes()
+    assert raw.startswith(b"OK STOP 0\nDAQ4,")                # the handshake is journaled too
+    tail = raw.rsplit(b"OK STOP ", 1)[1].split(b"\n", 1)[1]   # experiment n's stream after its START's OK
+    assert tail.startswith(b"OK\n")
+    block = parser.feed(tail[3:])
+    assert len(block) > 1000 and parser.counters.lost_samples == 0
+
+    c = ModbusTcpClient(sim.host, port=sim.port, timeout=2)   # the app is dead: the watchdog stops the shaker
+    assert c.connect()
+    deadline = time.monotonic() + 5
+    while c.read_input_registers(0, count=2, device_id=1).registers != [5, 4] and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert c.read_input_registers(0, count=2, device_id=1).registers == [5, 4]
+    c.close()
+    reset = subprocess.run([sys.executable, "-m", "rig", "stop", "--reset", "--shaker", sim.modbus_url],
+                           capture_output=True, text=True, timeout=60)   # the operator resets the alarm
+    assert reset.returncode == 0 and "alarm none" in reset.stdout, reset.stdout + reset.stderr
+
+    r = run_rig(sim, out, "--resume")
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert hashlib.sha256(first.read_bytes()).hexdigest() == digest
+    assert [e["label"] for e in manifest(out)["experiments"]] == ["261122j", "261122n"]
+    assert "resuming: 1 experiments kept" in (out / "session.log").read_text()
+    data = np.loadtxt(out / "261122n.csv", delimiter=",", skiprows=1)
+    assert len(data) == 3000
+
+
+@pytest.mark.parametrize("policy, code, captured", [("abort", 3, 0), ("skip", 0, 1)])
+def test_alarm_stops_safely_and_the_policy_decides(served_rig, tmp_path, policy, code, captured):
+    sim = served_rig("--fault", "estop@150")
+    out = tmp_path / policy
+    r = run_rig(sim, out, "--experiments", "j,n", "--on-alarm", policy)
+    assert r.returncode == code, r.stderr[-3000:]
+    log = (out / "session.log").read_text()
+    assert "shaker alarm: emergency stop" in log and "stopping" in log
+    assert len(manifest(out)["experiments"]) == captured
+
+
+def test_ctrl_c_ramps_out_switches_hydraulics_off_and_leaves_consistent_files(served_rig, tmp_path):
+    sim = served_rig()
+    out = tmp_path / "interrupted"
+    proc = subprocess.Popen(rig_cmd(sim, out, "--experiments", "j"), stdout=subprocess.DEVNULL,
+                            stderr=subprocess.PIPE, text=True)
+    c = ModbusTcpClient(sim.host, port=sim.port, timeout=2)
+    assert c.connect()
+    deadline = time.monotonic() + 60
+    while c.read_input_registers(0, count=1, device_id=1).registers[0] != 4 and time.monotonic() < deadline:
+        time.sleep(0.05)                                # RUNNING
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert c.read_input_registers(0, count=2, device_id=1).registers == [0, 0]   # OFF, no alarm
+    c.close()
+    assert json.loads((out / "session.json").read_text())["status"] == "interrupted"
+    assert manifest(out)["experiments"] == []
+    assert "safe stop:" not in err                     # no safe-stop step failed
