@@ -42,12 +42,17 @@ def _spectral_symbols(n: int) -> tuple[np.ndarray, np.ndarray]:
 
 @dataclass
 class Factorization:
-    """A factorised Newton Jacobian; ``solve`` takes (N,) or (N, k) right-hand sides."""
+    """A factorised Newton Jacobian J; ``solve`` (J x = b) and ``solve_transposed``
+    (Jᵀ x = b, for adjoint sensitivities) take (N,) or (N, k) right-hand sides."""
 
     _solve: object
+    _solve_transposed: object
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         return self._solve(rhs)  # type: ignore[operator]
+
+    def solve_transposed(self, rhs: np.ndarray) -> np.ndarray:
+        return self._solve_transposed(rhs)  # type: ignore[operator]
 
 
 class Grid:
@@ -88,6 +93,20 @@ class Grid:
         ddx = np.fft.irfft(X * (f * f * self._s2), n=self.n, axis=-1)
         return dx, ddx
 
+    def derivatives_transposed(self, w: np.ndarray, frequency_hz: float) -> tuple[np.ndarray, np.ndarray]:
+        """D1ᵀ·w and D2ᵀ·w along the last axis (the adjoints of :meth:`derivatives`)."""
+        f = frequency_hz
+        if self.scheme == "bdf2":
+            w1 = np.roll(w, -1, axis=-1)
+            w2 = np.roll(w, -2, axis=-1)
+            w3 = np.roll(w, -3, axis=-1)
+            c1, c2 = self._c1, self._c2
+            return (f * (c1[0] * w + c1[1] * w1 + c1[2] * w2),
+                    f * f * (c2[0] * w + c2[1] * w1 + c2[2] * w2 + c2[3] * w3))
+        W = np.fft.rfft(w, axis=-1)
+        return (np.fft.irfft(W * (f * np.conj(self._s1)), n=self.n, axis=-1),
+                np.fft.irfft(W * (f * f * np.conj(self._s2)), n=self.n, axis=-1))
+
     def apply_derivative_operators(self, dz: np.ndarray, frequency_hz: float) -> tuple[np.ndarray, np.ndarray]:
         """Derivatives of a stack of state perturbations dz with shape (n_states, n, k)."""
         moved = np.moveaxis(dz, 1, -1)
@@ -108,7 +127,8 @@ class Grid:
                 block[np.diag_indices(n)] += gx[i, j]
                 J[i * n:(i + 1) * n, j * n:(j + 1) * n] = block
         lu = sla.lu_factor(J, check_finite=False)
-        return Factorization(lambda rhs: sla.lu_solve(lu, rhs, check_finite=False))
+        return Factorization(lambda rhs: sla.lu_solve(lu, rhs, check_finite=False),
+                             lambda rhs: sla.lu_solve(lu, rhs, trans=1, check_finite=False))
 
     @functools.lru_cache(maxsize=8)
     def _banded_layout(self, neq: int, ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -150,8 +170,8 @@ class Grid:
         if info != 0:
             raise np.linalg.LinAlgError(f"singular periodic Jacobian (banded LU pivot {info})")
 
-        def band_solve(b: np.ndarray) -> np.ndarray:
-            x, info_ = lapack.dgbtrs(lu, kl, ku, b, piv)
+        def band_solve(b: np.ndarray, trans: int = 0) -> np.ndarray:
+            x, info_ = lapack.dgbtrs(lu, kl, ku, b, piv, trans=trans)
             return x
 
         unit = np.zeros((N, rc))
@@ -159,15 +179,33 @@ class Grid:
         W = band_solve(unit)
         K = np.eye(rc) + corner @ W[N - rc:]
         K_lu = sla.lu_factor(K, check_finite=False)
+        # Jᵀ = Bᵀ + Q·cornerᵀ·Pᵀ (P: first rc rows, Q: last rc columns): the same
+        # Woodbury identity with the roles of P and Q exchanged, built on first use.
+        adjoint: list = []
 
-        def solve(rhs: np.ndarray) -> np.ndarray:
-            shape = rhs.shape
-            b = rhs.reshape(ns, n, -1).transpose(1, 0, 2).reshape(N, -1)
-            y = band_solve(b)
-            y -= W @ sla.lu_solve(K_lu, corner @ y[N - rc:], check_finite=False)
+        def interleave(rhs: np.ndarray) -> np.ndarray:
+            return rhs.reshape(ns, n, -1).transpose(1, 0, 2).reshape(N, -1)
+
+        def deinterleave(y: np.ndarray, shape: tuple) -> np.ndarray:
             return y.reshape(n, ns, -1).transpose(1, 0, 2).reshape(shape)
 
-        return Factorization(solve)
+        def solve(rhs: np.ndarray) -> np.ndarray:
+            y = band_solve(interleave(rhs))
+            y -= W @ sla.lu_solve(K_lu, corner @ y[N - rc:], check_finite=False)
+            return deinterleave(y, rhs.shape)
+
+        def solve_transposed(rhs: np.ndarray) -> np.ndarray:
+            if not adjoint:
+                last = np.zeros((N, rc))
+                last[N - rc + np.arange(rc), np.arange(rc)] = 1.0
+                Wt = band_solve(last, trans=1)
+                adjoint.extend([Wt, sla.lu_factor(np.eye(rc) + corner.T @ Wt[:rc], check_finite=False)])
+            Wt, Kt_lu = adjoint
+            y = band_solve(interleave(rhs), trans=1)
+            y -= Wt @ sla.lu_solve(Kt_lu, corner.T @ y[:rc], check_finite=False)
+            return deinterleave(y, rhs.shape)
+
+        return Factorization(solve, solve_transposed)
 
     def interpolate(self, values: np.ndarray, phase: np.ndarray) -> np.ndarray:
         """Values (…, n) on the grid evaluated at arbitrary phases (periodic).

@@ -162,22 +162,35 @@ class PeriodicSolver:
         rhs = np.transpose(gth, (0, 2, 1)).reshape(-1, len(indices))
         return -sol.factorization.solve(rhs).reshape(m.n_states, n, len(indices))
 
-    def output_input_sensitivities(self, sol: PeriodicSolution, theta: np.ndarray, outputs: list[int]) -> np.ndarray:
-        """dŷ(τ_μ)/du_j(τ_ν) for every input j and grid point ν: (len(outputs), n, n_inputs, n).
-
-        This is how noise on the (folded) input reaches the outputs through the model."""
-        m, n = self.model, self.grid.n
+    def input_response(self, sol: PeriodicSolution, theta: np.ndarray, outputs: list[int], du: np.ndarray) -> np.ndarray:
+        """Output perturbations (len(outputs), n, k) caused by input perturbations du
+        (n_inputs, n, k): dŷ/du applied to k vectors (how input noise reaches the outputs)."""
+        m = self.model
         args = (sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         gu = m.residual_dinput(*args)  # (neq, nin, n): each input sample enters its own equations
-        nin = gu.shape[1]
-        rhs = np.zeros((m.n_states, n, nin, n))
-        diag = np.arange(n)
-        rhs[:, diag, :, diag] = np.transpose(gu, (2, 0, 1))
-        dX = -sol.factorization.solve(rhs.reshape(m.n_states * n, nin * n)).reshape(m.n_states, n, nin * n)
-        dY = self._output_response(sol, theta, dX, outputs).reshape(len(outputs), n, nin, n)
+        rhs = np.einsum("ijn,jnk->ink", gu, du)
+        k = du.shape[2]
+        dX = -sol.factorization.solve(rhs.reshape(-1, k)).reshape(m.n_states, self.grid.n, k)
         hu = m.output_dinput(*args)[outputs]  # (nout, nin, n)
-        dY[:, diag, :, diag] += np.transpose(hu, (2, 0, 1))
-        return dY
+        return self._output_response(sol, theta, dX, outputs) + np.einsum("ojn,jnk->onk", hu, du)
+
+    def input_adjoint(self, sol: PeriodicSolution, theta: np.ndarray, outputs: list[int], w: np.ndarray) -> np.ndarray:
+        """(dŷ/du)ᵀ applied to output weights w (len(outputs), n, k): (n_inputs, n, k).
+
+        One transposed solve with k right-hand sides instead of n per input."""
+        m, f = self.model, sol.frequency_hz
+        args = (sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
+        hx, hdx, hddx = m.output_jacobian(*args)
+        wk = np.moveaxis(w, 1, -1)  # (nout, k, n)
+        lam = np.einsum("ojn,okn->jkn", hx[outputs], wk)
+        d1, d2 = self.grid.derivatives_transposed(
+            np.stack([np.einsum("ojn,okn->jkn", hdx[outputs], wk), np.einsum("ojn,okn->jkn", hddx[outputs], wk)]), f)
+        lam = np.moveaxis(lam + d1[0] + d2[1], -1, 1)  # (n_states, n, k)
+        k = w.shape[2]
+        mu = sol.factorization.solve_transposed(lam.reshape(-1, k)).reshape(m.n_states, self.grid.n, k)
+        gu = m.residual_dinput(*args)
+        hu = m.output_dinput(*args)[outputs]
+        return -np.einsum("ijn,ink->jnk", gu, mu) + np.einsum("ojn,onk->jnk", hu, w)
 
     def _output_response(self, sol: PeriodicSolution, theta: np.ndarray, dX: np.ndarray,
                          outputs: list[int]) -> np.ndarray:

@@ -79,14 +79,31 @@ def test_input_sensitivities_match_finite_differences():
     solver = PeriodicSolver(m, grid)
     u = force(grid.tau / F_HZ)[None]
     sol = solver.solve(u, F_HZ, th)
-    H = solver.output_input_sensitivities(sol, th, [0])
-    for nu in (0, 17, 40):
+    unit = np.zeros((1, 64, 3))
+    unit[0, [0, 17, 40], [0, 1, 2]] = 1.0
+    H = solver.input_response(sol, th, [0], unit)
+    for col, nu in enumerate((0, 17, 40)):
         up, um = u.copy(), u.copy()
         up[0, nu] += 1e-3
         um[0, nu] -= 1e-3
         fd = (solver.outputs(solver.solve(up, F_HZ, th, start=sol.states), th, [0])
               - solver.outputs(solver.solve(um, F_HZ, th, start=sol.states), th, [0])) / 2e-3
-        np.testing.assert_allclose(H[0, :, 0, nu], fd[0], rtol=1e-5, atol=1e-12)
+        np.testing.assert_allclose(H[0, :, col], fd[0], rtol=1e-5, atol=1e-12)
+
+
+@pytest.mark.parametrize("scheme", ["bdf2", "spectral"])
+def test_input_adjoint_is_the_transpose_of_the_input_response(scheme):
+    m = load_model("2dof")
+    th = m.nominal_vector()
+    grid = Grid(48, scheme)
+    solver = PeriodicSolver(m, grid)
+    u = (4500 + 800 * np.sin(2 * np.pi * grid.tau))[None]
+    sol = solver.solve(u, F_HZ, th)
+    rng = np.random.default_rng(3)
+    du, w = rng.standard_normal((1, 48, 2)), rng.standard_normal((2, 48, 2))
+    forward = np.einsum("onk,onk->k", w, solver.input_response(sol, th, [0, 1], du))
+    backward = np.einsum("jnk,jnk->k", solver.input_adjoint(sol, th, [0, 1], w), du)
+    np.testing.assert_allclose(forward, backward, rtol=1e-9)
 
 
 @pytest.mark.slow
