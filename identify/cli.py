@@ -1,4 +1,4 @@
-"""``python -m identify``: fit, predict, compare, report.
+"""``python -m identify``: fit, compare, friction, predict, report.
 
 Exit status: 0 success (a fit converged); 1 a fit did not converge (RESULT.json still
 written, ``converged`` false); 2 bad input (message names file and place, no traceback).
@@ -84,10 +84,16 @@ def run_fit(args: argparse.Namespace) -> int:
     progress = _progress(console) if not args.quiet else None
     results: list[tuple[str, FitResult]] = []
     groups = [[e] for e in ds.select(labels)] if args.per_experiment else [ds.select(labels)]
+    fixed = None
+    if args.friction:
+        from identify.friction import load_fixed
+
+        fixed = load_fixed(args.friction, params.names())
     for group in groups:
         try:
             result = fit_experiments(model, group, params, estimate, n=args.n, scheme=args.scheme, outputs=outputs,
-                                     max_iterations=args.max_iterations, progress=progress)
+                                     max_iterations=args.max_iterations, progress=progress, fixed=fixed,
+                                     stability=args.stability)
         except EstimationError as exc:
             console.print(f"[red]fit failed:[/red] {exc}", highlight=False)
             _write_failed(args.output, model, params, str(exc))
@@ -176,6 +182,73 @@ def run_predict(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def run_friction(args: argparse.Namespace) -> int:
+    from identify.folding import fold
+    from identify.friction import extract
+
+    columns = ("stroke_mm", "force_N", "pressure_bar")
+    manifest = read_manifest(args.dataset)
+    periodic = [e.label for e in manifest.experiments if e.kind == "periodic"]
+    labels = _labels(manifest.labels(), _csv_list(args.experiments)) or periodic
+    ds = read_dataset(args.dataset, columns, labels)
+    records = [fold(e.label, e.time_s, {c: e.column(c) for c in columns}, e.frequency_hz, args.n)
+               for e in ds.select(labels)]
+    result = extract(records)
+    print(result.table())
+    atomic_write_bytes(Path(args.output), (json.dumps(result.to_document(), indent=2) + "\n").encode())
+    if args.figure:
+        from identify.figures import friction_figure
+
+        print(f"figure {friction_figure(result, Path(args.figure))}")
+    return EXIT_OK
+
+
+def run_compare(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console(stderr=True)
+    manifest = read_manifest(args.dataset)
+    periodic = [e.label for e in manifest.experiments if e.kind == "periodic"]
+    labels = _labels(manifest.labels(), _csv_list(args.experiments)) or periodic
+    column = "stroke_mm"
+    fits: dict[str, FitResult] = {}
+    for name, params_path, estimate in (("1dof", args.params_1dof, args.estimate_1dof),
+                                        ("2dof", args.params_2dof, args.estimate_2dof)):
+        model = load_model(name)
+        ds = read_dataset(args.dataset, model_columns(model, [column]), labels)
+        console.print(f"fitting {estimate} of {name} on {len(labels)} experiments (output {column})", highlight=False)
+        try:
+            fits[name] = fit_experiments(model, ds.select(labels), _load_params(model, params_path),
+                                         _csv_list(estimate) or [], n=args.n, scheme=args.scheme, outputs=[column])
+        except EstimationError as exc:
+            console.print(f"[red]{name} fit failed:[/red] {exc}", highlight=False)
+            return EXIT_NOT_CONVERGED
+    table = Table(title=f"model comparison: {column} residual mean ± 2σ per experiment (mm)")
+    for col in ("experiment", "f [Hz]", "1-dof", "2-dof"):
+        table.add_column(col, justify="right" if col != "experiment" else "left")
+    rows, rms = [], {}
+    for e1, e2 in zip(fits["1dof"].experiments, fits["2dof"].experiments):
+        (m1, s1), (m2, s2) = e1.stats(column), e2.stats(column)
+        table.add_row(e1.label, f"{e1.frequency_hz:g}", f"{m1:+.4f} ± {2 * s1:.4f}", f"{m2:+.4f} ± {2 * s2:.4f}")
+        rows.append({"label": e1.label, "frequency_Hz": e1.frequency_hz, "1dof": {"mean": m1, "std": s1},
+                     "2dof": {"mean": m2, "std": s2}})
+    for name, fit in fits.items():
+        rms[name] = float(np.sqrt(np.mean(np.concatenate([e.residual(column) for e in fit.experiments]) ** 2)))
+    ratio = rms["1dof"] / rms["2dof"]
+    Console().print(table)
+    for name, fit in fits.items():
+        if not fit.converged:
+            print(f"warning: the {name} fit did not converge ({fit.message}); its residuals are not its best")
+    print(f"overall {column} residual RMS: 1-dof {rms['1dof']:.4g} mm, 2-dof {rms['2dof']:.4g} mm, "
+          f"ratio 1-dof/2-dof {ratio:.3g}")
+    if args.output:
+        doc = {"column": column, "experiments": rows, "rms": rms, "ratio_1dof_2dof": ratio,
+               "fits": {k: v.to_document() for k, v in fits.items()}}
+        atomic_write_bytes(Path(args.output), (json.dumps(doc, indent=2) + "\n").encode())
+    return EXIT_OK if all(f.converged for f in fits.values()) else EXIT_NOT_CONVERGED
+
+
 def run_report(args: argparse.Namespace) -> int:
     try:
         doc = json.loads(Path(args.result).read_text())
@@ -220,6 +293,9 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--report", help="also write the text report here")
     fit.add_argument("--figures", help="folder for PNG figures (measured vs predicted, residual bands)")
     fit.add_argument("--quiet", action="store_true", help="no iteration progress")
+    fit.add_argument("--friction", help="FRICTION.json: fixed per-experiment theta8, theta9, theta10")
+    fit.add_argument("--stability", action="store_true",
+                     help="Floquet multipliers of each periodic solution (warns about unstable orbits)")
     fit.set_defaults(func=run_fit)
 
     pred = sub.add_parser("predict", help="model prediction on an experiment's time base")
@@ -228,6 +304,27 @@ def build_parser() -> argparse.ArgumentParser:
     pred.add_argument("--experiment", required=True, help="label (or letter) of the experiment")
     pred.add_argument("--output", required=True, help="CSV to write")
     pred.set_defaults(func=run_predict)
+
+    fr = sub.add_parser("friction", help="theta8-theta10 from the force jumps at velocity reversals (paper Fig. 7)")
+    fr.add_argument("dataset")
+    fr.add_argument("--output", required=True, help="FRICTION.json to write (usable as fit --friction)")
+    fr.add_argument("--experiments", help="comma-separated labels or letters (default: all periodic)")
+    fr.add_argument("--n", type=int, default=800, help="grid points per period for folding")
+    fr.add_argument("--figure", help="PNG of friction amplitude against pressure with the fitted line")
+    fr.set_defaults(func=run_friction)
+
+    cmp_ = sub.add_parser("compare", help="1-dof against 2-dof on one dataset: residuals per experiment")
+    cmp_.add_argument("dataset")
+    cmp_.add_argument("--params-1dof", help="start values of the 1-dof fit (default: nominal)")
+    cmp_.add_argument("--params-2dof", help="start values of the 2-dof fit (default: nominal)")
+    cmp_.add_argument("--estimate-1dof", default="theta5,theta6,theta7",
+                      help="(theta4 and theta5 enter the 1-dof gas force as a product: estimate one of them)")
+    cmp_.add_argument("--estimate-2dof", default="theta4,theta6,theta16")
+    cmp_.add_argument("--experiments", help="comma-separated labels or letters (default: all periodic)")
+    cmp_.add_argument("--scheme", choices=SCHEMES, default="bdf2")
+    cmp_.add_argument("--n", type=int, default=800)
+    cmp_.add_argument("--output", help="COMPARE.json to write")
+    cmp_.set_defaults(func=run_compare)
 
     rep = sub.add_parser("report", help="print a RESULT.json as a report")
     rep.add_argument("result")

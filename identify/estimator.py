@@ -61,7 +61,7 @@ class Estimator:
 
     def __init__(self, model: CompiledModel, data: list[PeriodicData], params: Parameters, grid: Grid,
                  outputs: list[str], max_iterations: int = 40, step_tolerance: float = 0.05,
-                 progress: Callable[[int, float, np.ndarray], None] | None = None):
+                 progress: Callable[[int, float, np.ndarray], None] | None = None, stability: bool = False):
         if not data:
             raise EstimationError("no periodic experiment to fit")
         if not params.varying():
@@ -77,19 +77,21 @@ class Estimator:
         self.max_iterations = max_iterations
         self.step_tolerance = step_tolerance
         self.progress = progress
+        self.stability = stability  # Floquet multipliers of each solution in the result
 
     # ----------------------------------------------------------------------------------
     def _evaluate(self, theta: np.ndarray, start: _Evaluation | None, sensitivities: bool) -> _Evaluation:
         sols, preds, res, sens = [], [], [], []
         for a, d in enumerate(self.data):
             warm = start.solutions[a].states if start is not None else None
-            sol = self.solver.solve(d.inputs, d.frequency_hz, theta, start=warm, label=d.label)
-            y = self.solver.outputs(sol, theta, self.output_idx)
+            th = d.theta(theta)
+            sol = self.solver.solve(d.inputs, d.frequency_hz, th, start=warm, label=d.label)
+            y = self.solver.outputs(sol, th, self.output_idx)
             sols.append(sol)
             preds.append(y)
             res.append(d.measured - y)
             if sensitivities:
-                sens.append(self.solver.output_sensitivities(sol, theta, self.index, self.output_idx))
+                sens.append(self.solver.output_sensitivities(sol, th, self.index, self.output_idx))
         return _Evaluation(theta, sols, preds, res, sens)
 
     def _variances(self, ev: _Evaluation) -> np.ndarray:
@@ -204,8 +206,8 @@ class Estimator:
                 break
             theta = accepted.theta
             ev = accepted
-            ev.sensitivities = [self.solver.output_sensitivities(s, theta, self.index, self.output_idx)
-                                for s in ev.solutions]
+            ev.sensitivities = [self.solver.output_sensitivities(s, d.theta(theta), self.index, self.output_idx)
+                                for s, d in zip(ev.solutions, self.data)]
             v = self._variances(ev)
             objective = self._objective(ev, v)
             history.append(self._log_likelihood_objective(ev, v))
@@ -239,13 +241,14 @@ class Estimator:
         for a, (d, sol, S, r) in enumerate(zip(self.data, ev.solutions, ev.sensitivities, ev.residuals)):
             Sw = S / v[a][:, None, None]  # (n_out, n, k)
             B += np.einsum("onk,o,onl->kl", Sw, d.grid_variance, Sw)
-            M = self.solver.input_adjoint(sol, ev.theta, self.output_idx, Sw)  # Hᵀ·Sw, H = dŷ/du: (n_in, n, k)
+            th = d.theta(ev.theta)
+            M = self.solver.input_adjoint(sol, th, self.output_idx, Sw)  # Hᵀ·Sw, H = dŷ/du: (n_in, n, k)
             B += np.einsum("jmk,j,jml->kl", M, d.input_grid_variance, M)
             # Output variance the input noise explains, diag(H·Σu·Hᵀ) averaged over the
             # grid, estimated with random probes (Hutchinson) instead of forming H.
             z = rng.standard_normal((len(d.input_grid_variance), S.shape[1], PROBES))
             z *= np.sqrt(d.input_grid_variance)[:, None, None]
-            Hz = self.solver.input_response(sol, ev.theta, self.output_idx, z)
+            Hz = self.solver.input_response(sol, th, self.output_idx, z)
             explained = d.grid_variance + np.mean(Hz**2, axis=(1, 2))
             excess.append(v[a] / explained)
         excess = np.array(excess)  # (n_experiments, n_outputs)
@@ -276,7 +279,13 @@ class Estimator:
                 measured={c.column: c.from_si(dat.measured[b]) for b, c in enumerate(chans)},
                 predicted={c.column: c.from_si(ev.predicted[a][b]) for b, c in enumerate(chans)},
                 newton_iterations=ev.solutions[a].iterations,
+                floquet=(self.solver.floquet_multipliers(ev.solutions[a], dat.theta(ev.theta))
+                         if self.stability else None),
             ))
+        unstable = [e.label for e in experiments if e.floquet is not None and np.abs(e.floquet[0]) >= 1.0]
+        if unstable:
+            notes.append(f"unstable periodic solution (a Floquet multiplier on or outside the unit circle): "
+                         f"{', '.join(unstable)}; the fit may describe an orbit the damper cannot follow")
         # Weighted, parameter-scaled sensitivities for the identifiability check.
         blocks = []
         for a, S in enumerate(ev.sensitivities):

@@ -53,3 +53,28 @@ def write_figures(result: FitResult, folder: Path) -> list[Path]:
     plt.close(fig)
     written.append(path)
     return written
+
+
+def friction_figure(result, path: Path) -> Path:
+    """Friction amplitude at each reversal against gas pressure, with the set's line (paper Fig. 7)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4))
+    p = np.array([r.pressure_bar for e in result.experiments for r in e.reversals])
+    a = np.array([r.amplitude_n for e in result.experiments for r in e.reversals])
+    ax.plot(p, a, "o", ms=4, label="reversals")
+    x = np.linspace(0, p.max() * 1.05, 50)
+    ax.plot(x, result.theta8 + result.theta9 * x * 1e5, "-", label=f"θ8 + θ9·p  (θ8 = {result.theta8:.3g} N, "
+                                                                     f"θ9 = {result.theta9:.3g} m²)")
+    ax.set_xlabel("gas pressure [bar]")
+    ax.set_ylabel("friction amplitude [N]")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -22,6 +22,15 @@ class PeriodicData:
     grid_variance: np.ndarray  # (n_outputs,) noise variance of one grid value, SI (nan: unknown)
     input_grid_variance: np.ndarray  # (n_inputs,) likewise for the inputs
     folded: FoldedRecord
+    fixed: dict[int, float] = field(default_factory=dict)  # per-experiment parameter values (e.g. friction)
+
+    def theta(self, theta: np.ndarray) -> np.ndarray:
+        """The shared parameter vector with this experiment's own fixed values."""
+        if not self.fixed:
+            return theta
+        out = theta.copy()
+        out[list(self.fixed)] = list(self.fixed.values())
+        return out
 
 
 def model_columns(model: CompiledModel, outputs: list[str]) -> list[str]:

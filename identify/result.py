@@ -28,6 +28,7 @@ class ExperimentFit:
     measured: dict[str, np.ndarray]
     predicted: dict[str, np.ndarray]
     newton_iterations: int
+    floquet: np.ndarray | None = None  # multipliers, largest magnitude first (when asked for)
 
     def residual(self, column: str) -> np.ndarray:
         return self.measured[column] - self.predicted[column]
@@ -135,6 +136,9 @@ class FitResult:
                 "frequency_Hz": e.frequency_hz, "newton_iterations": e.newton_iterations,
                 "channels": {o: dict(zip(("residual_mean", "residual_std"), e.stats(o))) for o in self.outputs},
             }
+            if e.floquet is not None:
+                experiments[e.label]["floquet_max_multiplier"] = float(np.abs(e.floquet[0]))
+                experiments[e.label]["stable"] = bool(np.abs(e.floquet[0]) < 1.0)
         return {
             "model": self.model,
             "converged": self.converged,
@@ -199,8 +203,10 @@ class FitResult:
         lines.append(f"[[Experiments]] residual mean +/- 2 sigma ({self.outputs[0]})")
         for e in self.experiments:
             mean, std = e.stats(self.outputs[0])
+            stability = "" if e.floquet is None else (
+                f", Floquet |μ|max {np.abs(e.floquet[0]):.4g} ({'stable' if np.abs(e.floquet[0]) < 1 else 'UNSTABLE'})")
             lines.append(f"    {e.label:12s} {e.frequency_hz:8.4g} Hz   {mean:+.4g} +/- {2 * std:.4g}"
-                         f"   ({e.newton_iterations} Newton iterations)")
+                         f"   ({e.newton_iterations} Newton iterations{stability})")
         if self.warnings:
             lines.append("[[Warnings]]")
             lines += [f"    {w}" for w in self.warnings]

@@ -77,3 +77,48 @@ def test_silverbox_duffing_spectral(tmp_path):
 
     rms = max(pd.read_csv(SILVERBOX / f)["output"].pow(2).mean() ** 0.5 for f in ("schroeder1.csv", "schroeder2.csv"))
     assert math.sqrt(doc["channels"]["output"]["variance"]) < 0.015 * rms
+
+
+def identify(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "identify", *args], capture_output=True, text=True, timeout=600)
+
+
+@pytest.mark.slow
+def test_friction_from_force_jumps_gives_the_linear_law_and_feeds_a_fit(standard_dataset, tmp_path):
+    out = tmp_path / "FRICTION.json"
+    proc = identify("friction", str(standard_dataset), "--output", str(out), "--figure", str(tmp_path / "f.png"))
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(out.read_text())
+    assert doc["set"]["theta8"] == pytest.approx(80.0, rel=0.05)        # truth: nominal friction law
+    assert doc["set"]["theta9"] == pytest.approx(4.0e-5, rel=0.1)
+    assert doc["set"]["theta10"] == pytest.approx(2000.0, rel=0.2)
+    assert len(doc["experiments"]) == 14 and (tmp_path / "f.png").stat().st_size > 0
+    result = tmp_path / "R.json"
+    proc = identify("fit", str(standard_dataset), "--estimate", "theta4,theta6", "--friction", str(out),
+                    "--experiments", "b,h,j", "--output", str(result), "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert json.loads(result.read_text())["parameters"]["theta4"]["value"] == pytest.approx(5.0e-3, rel=2e-3)
+    clash = identify("fit", str(standard_dataset), "--estimate", "theta8", "--friction", str(out),
+                     "--experiments", "b", "--output", str(result))
+    assert clash.returncode == 2 and "estimated and also fixed" in clash.stderr
+
+
+@pytest.mark.slow
+def test_compare_1dof_and_2dof_table_and_ratio(standard_dataset, tmp_path):
+    out = tmp_path / "COMPARE.json"
+    proc = identify("compare", str(standard_dataset), "--experiments", "a,b,j,c", "--output", str(out))
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads(out.read_text())
+    assert [r["label"][-1] for r in doc["experiments"]] == ["a", "b", "j", "c"]
+    assert doc["ratio_1dof_2dof"] > 5            # the thermal model explains what the polytropic one cannot
+    assert "ratio 1-dof/2-dof" in proc.stdout
+
+
+@pytest.mark.slow
+def test_stability_reports_floquet_multipliers(standard_dataset, tmp_path):
+    result = tmp_path / "R.json"
+    proc = identify("fit", str(standard_dataset), "--estimate", "theta4", "--experiments", "h,c",
+                    "--stability", "--output", str(result), "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    for e in json.loads(result.read_text())["experiments"].values():
+        assert e["stable"] and 0 < e["floquet_max_multiplier"] < 1

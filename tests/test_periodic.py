@@ -120,3 +120,24 @@ def test_every_standard_experiment_converges_from_the_static_guess(standard_data
     for d in data:
         sol = solver.solve(d.inputs, d.frequency_hz, m.nominal_vector(), label=d.label)
         assert sol.residual_norm < 1e-8, d.label
+
+
+def test_floquet_multipliers_of_a_linear_oscillator_are_exp_lambda_T():
+    m = load_model("duffing")
+    names = [p.name for p in m.declaration.parameters]
+    th = m.nominal_vector()
+    th[names.index("k2")] = th[names.index("k3")] = 0.0
+    mass, damping, stiffness = (th[names.index(k)] for k in ("m", "d", "k"))
+    f = 20.0
+    grid = Grid(800)
+    solver = PeriodicSolver(m, grid)
+    sol = solver.solve(np.sin(2 * np.pi * grid.tau)[None], f, th)
+    mu = solver.floquet_multipliers(sol, th)
+    lam = np.roots([mass, damping, stiffness])
+    expected = np.exp(lam / f)
+    assert len(mu) == 2
+    np.testing.assert_allclose(np.sort(np.abs(mu)), np.sort(np.abs(expected)), rtol=2e-3)
+    # an unstable orbit is seen as one: negative damping
+    th[names.index("d")] = -damping
+    sol = solver.solve(np.sin(2 * np.pi * grid.tau)[None], f, th)
+    assert np.abs(solver.floquet_multipliers(sol, th)[0]) > 1.0
