@@ -194,3 +194,14 @@ def test_ctrl_c_ramps_out_switches_hydraulics_off_and_leaves_consistent_files(se
     assert json.loads((out / "session.json").read_text())["status"] == "interrupted"
     assert manifest(out)["experiments"] == []
     assert "safe stop:" not in err                     # no safe-stop step failed
+
+
+def test_daq_link_dropped_mid_experiment_is_reopened_and_the_gap_counted(served_rig, tmp_path):
+    sim = served_rig("--fault", "disconnect@150")
+    out = tmp_path / "daqlink"
+    r = run_rig(sim, out, "--experiments", "j")
+    assert r.returncode == 0, r.stderr[-3000:]
+    log = (out / "session.log").read_text()
+    assert "DAQ link lost" in log and "DAQ link back" in log
+    (entry,) = manifest(out)["experiments"]
+    assert entry["stream_lost_samples"] > 0 and entry["lost_samples"] == 0

@@ -12,6 +12,7 @@ import subprocess
 import time
 
 import crcmod.predefined
+import numpy as np
 import pytest
 import serial
 from pymodbus.client import ModbusTcpClient
@@ -211,3 +212,73 @@ def test_daq_stream_decoded_independently(served_rig, transport):
     assert len(seqs) == issued > 20000  # 2 kHz at 20x for about a second
     assert seqs[0] == 0
     assert all((b - a) & 0xFFFF == 1 for a, b in zip(seqs, seqs[1:]))
+
+
+def read_stream(sock: socket.socket, seconds: float) -> list[tuple[float, bytes]]:
+    """(arrival time, bytes) chunks for a while; stops early at EOF."""
+    chunks, t0 = [], time.monotonic()
+    while time.monotonic() - t0 < seconds:
+        try:
+            data = sock.recv(65536)
+        except TimeoutError:
+            continue
+        except OSError:
+            break
+        if not data:
+            break
+        chunks.append((time.monotonic(), data))
+    return chunks
+
+
+def daq_socket(rig) -> socket.socket:
+    host, port = rig.daq_url.removeprefix("socket://").rsplit(":", 1)
+    sock = socket.create_connection((host, int(port)))
+    sock.settimeout(0.05)
+    return sock
+
+
+def test_serial_stall_delays_frames_without_losing_them(served_rig):
+    rig = served_rig("--fault", "stall@20=50")           # 1 s of wall time at 50x
+    sock = daq_socket(rig)
+    sock.sendall(b"RATE 500\nSTART\n")
+    chunks = read_stream(sock, 3.0)
+    arrivals = [t for t, _ in chunks]
+    assert max(np.diff(arrivals)) > 0.7                  # the line went quiet
+    seqs, bad = decode(b"".join(d for _, d in chunks).split(b"OK\n", 2)[-1])
+    assert bad == 0 and all((b - a) & 0xFFFF == 1 for a, b in zip(seqs, seqs[1:]))   # and nothing was lost
+    sock.close()
+
+
+def test_disconnect_drops_the_link_and_a_new_connection_gets_the_stream(served_rig):
+    rig = served_rig("--fault", "disconnect@20")
+    sock = daq_socket(rig)
+    sock.sendall(b"RATE 500\nSTART\n")
+    t0 = time.monotonic()
+    chunks = read_stream(sock, 3.0)
+    assert chunks and time.monotonic() - t0 < 2.0        # EOF long before the 3 s were up
+    sock.close()
+    again = daq_socket(rig)                              # the DAQ kept streaming meanwhile
+    seqs, bad = decode(b"".join(d for _, d in read_stream(again, 0.5)))
+    assert len(seqs) > 1000 and seqs[0] > 0
+    again.sendall(b"STOP\n")
+    again.close()
+    assert "fault: DAQ link disconnected" in rig.stop()
+
+
+def test_sensor_drift_moves_the_channel(served_rig):
+    rig = served_rig("--fault", "drift=3:0.1@30")        # temperature channel, +0.1 degC per simulated second
+    sock = daq_socket(rig)
+    sock.sendall(b"RATE 500\nSTART\n")
+    stream = b"".join(d for _, d in read_stream(sock, 2.0)).split(b"OK\n", 1)[-1]
+    sock.sendall(b"STOP\n")
+    counts = []
+    i = 0
+    while i + 16 <= len(stream):
+        if stream[i:i + 2] == b"\xa5\x5a" and CRC(stream[i + 2:i + 14]) == struct.unpack("<H", stream[i + 14:i + 16])[0]:
+            counts.append(struct.unpack("<4h", stream[i + 4:i + 12])[3])
+            i += 16
+        else:
+            i += 1
+    temperature = 50.0 + 0.005 * np.array(counts)
+    assert temperature[-500:].mean() - temperature[:500].mean() > 3.0   # > 30 s of drift at 0.1 degC/s
+    sock.close()
