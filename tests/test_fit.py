@@ -122,3 +122,31 @@ def test_stability_reports_floquet_multipliers(standard_dataset, tmp_path):
     assert proc.returncode == 0, proc.stderr
     for e in json.loads(result.read_text())["experiments"].values():
         assert e["stable"] and 0 < e["floquet_max_multiplier"] < 1
+
+
+@pytest.mark.slow
+def test_reported_standard_deviations_are_calibrated_over_noise_realisations(tmp_path):
+    """Spread of the estimates over 16 fixed noise seeds within a factor 1.5 of the reported σ."""
+    import numpy as np
+
+    from identify.dataset import read_dataset
+    from identify.fit import fit_experiments
+    from identify.model import load_model
+    from identify.parameters import Parameters
+    from identify.plans import STANDARD_SET, select
+    from identify.preparation import model_columns, resolve_outputs
+    from simulator.generate import generate
+    from simulator.truth import load_truth
+
+    model = load_model("2dof")
+    columns = model_columns(model, resolve_outputs(model, None))
+    estimate = ["theta4", "theta6", "theta16"]
+    values, stds = [], []
+    for seed in range(100, 116):
+        out = tmp_path / str(seed)
+        generate(out, select(STANDARD_SET, ["b", "j", "c"]), load_truth(), periods=3, rate_hz=2000.0, seed=seed)
+        result = fit_experiments(model, read_dataset(out, columns).experiments, Parameters(model), estimate)
+        values.append([result.value(k) for k in estimate])
+        stds.append([result.std[k] for k in estimate])
+    ratio = np.std(values, axis=0, ddof=1) / np.mean(stds, axis=0)
+    assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), dict(zip(estimate, ratio))
