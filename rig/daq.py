@@ -167,6 +167,8 @@ class Daq:
         self._port.write(b"STOP\n")
         self._drain(0.3)
         self.identity = self.command("*IDN?")
+        while self.identity.startswith("OK STOP"):  # a late answer to the STOP above
+            self.identity = self._read_line(2.0) or ""
         if not self.identity.startswith("DAQ4,"):
             raise DaqError(f"DAQ at {self.url}: *IDN? answered {self.identity!r}, expected 'DAQ4,…'")
         answer = self.command(f"RATE {self.rate_hz}")
