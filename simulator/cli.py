@@ -46,7 +46,14 @@ def run_serve(args: argparse.Namespace) -> int:
     if args.speed <= 0:
         raise ValueError(f"--speed {args.speed}: must be positive")
     faults = [parse_fault(f) for f in args.fault]
-    host, port = _host_port(args.modbus, "--modbus")
+    bridge = None
+    if args.modbus == "rtu:pty":
+        from simulator.daq import PtyBridge
+
+        bridge = PtyBridge()
+        host, port = "", 0
+    else:
+        host, port = _host_port(args.modbus, "--modbus")
     if args.daq == "pty":
         daq_port = PtyPort()
         if any(f.kind == "disconnect" for f in faults):
@@ -56,7 +63,8 @@ def run_serve(args: argparse.Namespace) -> int:
     else:
         raise ValueError(f"--daq {args.daq!r}: expected pty or tcp://HOST:PORT")
     rig = VirtualRig(load_truth(args.params, args.model), daq_port, speed=args.speed, seed=args.seed,
-                     faults=faults, modbus_host=host, modbus_port=port)
+                     faults=faults, modbus_host=host, modbus_port=port,
+                     modbus_serial=bridge.server_path if bridge else None)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -65,13 +73,15 @@ def run_serve(args: argparse.Namespace) -> int:
     except OSError as exc:
         daq_port.close()
         raise ValueError(f"cannot open the Modbus endpoint {host}:{port}: {exc.strerror or exc}") from None
-    print(f"modbus {rig.modbus.url}", flush=True)
+    print(f"modbus {f'rtu://{bridge.client_path}' if bridge else rig.modbus.url}", flush=True)
     print(f"daq {daq_port.url}", flush=True)
     try:
         while not stop.wait(0.2):
             pass
     finally:
         rig.close()
+        if bridge:
+            bridge.close()
         print(f"simulator stopped at simulated t = {rig.t:.1f} s; DAQ frames lost by faults: "
               f"{rig.daq.lost_frames} {rig.daq.lost}", file=sys.stderr, flush=True)
     return 0
@@ -98,7 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
                            description="Run the virtual rig until SIGINT/SIGTERM. Once ready it prints one line "
                                        "per endpoint: 'modbus tcp://HOST:PORT' and 'daq socket://HOST:PORT' or "
                                        "'daq /dev/pts/N'. Port 0 picks a free port.")
-    serve.add_argument("--modbus", default="127.0.0.1:5020", help="HOST:PORT of the Modbus TCP server")
+    serve.add_argument("--modbus", default="127.0.0.1:5020",
+                       help="HOST:PORT of the Modbus TCP server, or rtu:pty for Modbus RTU on a pseudo-terminal")
     serve.add_argument("--daq", default="pty", help="pty (a pseudo-terminal) or tcp://HOST:PORT")
     serve.add_argument("--speed", type=float, default=1.0, help="simulated seconds per wall second")
     serve.add_argument("--params", help="true parameters (START.json format; default: nominal)")

@@ -157,6 +157,36 @@ class PtyPort:
                 pass
 
 
+class PtyBridge:
+    """Two pseudo-terminals joined back to back (like ``socat pty pty``): a server opens
+    :attr:`server_path`, a client :attr:`client_path`; bytes cross over in a thread."""
+
+    def __init__(self) -> None:
+        self._pairs = [os.openpty(), os.openpty()]
+        for master, slave in self._pairs:
+            tty.setraw(master)
+            tty.setraw(slave)
+        self.server_path, self.client_path = (os.ttyname(slave) for _, slave in self._pairs)
+        self._running = True
+        self._thread = threading.Thread(target=self._pump, name="pty-bridge", daemon=True)
+        self._thread.start()
+
+    def _pump(self) -> None:
+        a, b = self._pairs[0][0], self._pairs[1][0]
+        while self._running:
+            ready, _, _ = select.select([a, b], [], [], 0.05)
+            for fd in ready:
+                data = os.read(fd, 65536)
+                os.write(b if fd == a else a, data)
+
+    def close(self) -> None:
+        self._running = False
+        self._thread.join(timeout=1)
+        for master, slave in self._pairs:
+            os.close(master)
+            os.close(slave)
+
+
 class DaqDevice:
     """Command interpreter, sampler bookkeeping, FIFO and link faults of the DAQ."""
 

@@ -46,8 +46,9 @@ class ServedRig:
             kind, url = line.split(maxsplit=1)
             endpoints[kind] = url.strip()
         self.modbus_url, self.daq_url = endpoints["modbus"], endpoints["daq"]
-        host_port = self.modbus_url.removeprefix("tcp://")
-        self.host, self.port = host_port.rsplit(":", 1)[0], int(host_port.rsplit(":", 1)[1])
+        if self.modbus_url.startswith("tcp://"):
+            host, port = self.modbus_url.removeprefix("tcp://").rsplit(":", 1)
+            self.host, self.port = host, int(port)
         self.stderr = ""
 
     def stop(self) -> str:

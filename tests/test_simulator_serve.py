@@ -282,3 +282,17 @@ def test_sensor_drift_moves_the_channel(served_rig):
     temperature = 50.0 + 0.005 * np.array(counts)
     assert temperature[-500:].mean() - temperature[:500].mean() > 3.0   # > 30 s of drift at 0.1 degC/s
     sock.close()
+
+
+def test_modbus_rtu_on_a_pseudo_terminal(served_rig):
+    from pymodbus.client import ModbusSerialClient
+    from pymodbus.framer import FramerType
+
+    rig = served_rig("--modbus", "rtu:pty")
+    assert rig.modbus_url.startswith("rtu:///dev/")
+    c = ModbusSerialClient(rig.modbus_url.removeprefix("rtu://"), framer=FramerType.RTU, baudrate=115200, timeout=2)
+    assert c.connect()
+    regs = c.read_input_registers(0, count=7, device_id=1).registers
+    assert regs[0] == OFF and regs[6] == 123
+    assert c.write_register(2, 30000, device_id=1).exception_code == 3
+    c.close()
