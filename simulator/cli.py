@@ -64,7 +64,8 @@ def run_serve(args: argparse.Namespace) -> int:
         raise ValueError(f"--daq {args.daq!r}: expected pty or tcp://HOST:PORT")
     rig = VirtualRig(load_truth(args.params, args.model), daq_port, speed=args.speed, seed=args.seed,
                      faults=faults, modbus_host=host, modbus_port=port,
-                     modbus_serial=bridge.server_path if bridge else None)
+                     modbus_serial=bridge.server_path if bridge else None, rig_type=args.rig,
+                     drop_mass_kg=args.drop_mass)
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -115,6 +116,9 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--params", help="true parameters (START.json format; default: nominal)")
     serve.add_argument("--model", choices=("2dof", "1dof"), default="2dof")
     serve.add_argument("--seed", type=int, default=0)
+    serve.add_argument("--rig", choices=("shaker", "drop"), default="shaker",
+                       help="drop: a drop-test rig; RUN (mode 2, hydraulics on) releases the mass at q = 0")
+    serve.add_argument("--drop-mass", type=float, default=350.0, help="dropped mass, kg (drop rig)")
     serve.add_argument("--fault", action="append", default=[], metavar="KIND[@T][=V]",
                        help="inject a fault (repeatable): corrupt=P, drop=P, overflow@T=N, stall@T=D, "
                             "disconnect@T, modbus-down@T=D, hydraulic-loss@T[=D], estop@T, drift=CH:RATE[@T]")

@@ -21,12 +21,13 @@ from simulator.controller import Alarm, ShakerController
 from simulator.daq import DaqDevice, Port
 from simulator.faults import Fault, FaultLog
 from simulator.modbus import ModbusEndpoint
-from simulator.physics import Actuator, Damper, StreamingPlant
+from simulator.physics import Actuator, Damper, SteadyState, StreamingPlant, drop_test
 from simulator.sensors import SensorSet
 
 PHYSICS_RATE_HZ = 10_000.0
 BLOCK_S = 0.1  # at most; at 1x a wall tick is a couple of milliseconds of simulated time
 TICK_S = 0.002  # wall-clock sleep between engine steps
+DROP_RECORD_S = 120.0  # a drop and the gas cooling back to ambient
 
 
 @dataclass
@@ -50,6 +51,8 @@ class VirtualRig:
     modbus_port: int = 5020
     modbus_serial: str | None = None
     actuator: Actuator = field(default_factory=Actuator)
+    rig_type: str = "shaker"        # or "drop": a mass released onto the damper by a RUN command
+    drop_mass_kg: float = 350.0
 
     def __post_init__(self) -> None:
         self.t = 0.0
@@ -66,6 +69,14 @@ class VirtualRig:
             (_Scheduled(f.at_s if f.at_s is not None else 0.0, f) for f in self.faults), key=lambda s: s.at_s)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rig-engine", daemon=True)
+        self._drop: SteadyState | None = None
+        self._released_at: float | None = None
+        if self.rig_type == "drop":
+            # The whole drop (released at q = 0, v0 = 0, gas at ambient) is integrated once,
+            # stiffly and tightly; the stream samples it from the moment of release.
+            self._drop = drop_test(self.damper, self.drop_mass_kg, 0.0, np.arange(0.0, DROP_RECORD_S, 1e-3))
+        elif self.rig_type != "shaker":
+            raise ValueError(f"rig type {self.rig_type!r}: shaker or drop")
 
     # ----- lifecycle ---------------------------------------------------------------------
     def start(self) -> None:
@@ -98,6 +109,9 @@ class VirtualRig:
         return (self.controller.position_m, 0.0, 0.0, self.plant.temperature_k)
 
     def _block(self, n: int) -> None:
+        if self._drop is not None:
+            self._drop_block(n)
+            return
         t = self.t + self._dt * np.arange(1, n + 1)
         u = self.controller.setpoint(t)
         if self._servo_drift is not None:
@@ -121,6 +135,33 @@ class VirtualRig:
             self.controller.position_m = float(q[-1])
             self.controller.trip(alarm, t_end, limit)
         self.controller.update(t_end, float(q[-1]), float(v[-1]), float(force[-1]))
+        self._fire_faults()
+
+    def _drop_block(self, n: int) -> None:
+        """Drop rig: RUN releases the mass; the load cell under the axle reads the damper force."""
+        t = self.t + self._dt * np.arange(1, n + 1)
+        c = self.controller
+        if self._released_at is None and c.holding["mode"] == 2 and c.hydraulics_on:
+            self._released_at = self.t
+            self.log.record(self.t, f"drop: {self.drop_mass_kg:g} kg released at q = 0")
+        ts = self.daq.due_times(float(t[-1]))
+        if len(ts):
+            tt = ts - self._released_at if self._released_at is not None else np.full(len(ts), -1.0)
+            d, rec = self.damper, self._drop
+            inside = np.clip(tt, 0.0, rec.t[-1])
+            q = np.where(tt >= 0, np.interp(inside, rec.t, rec.stroke), 0.0)
+            v = np.where(tt >= 0, np.interp(inside, rec.t, rec.velocity), 0.0)
+            T = np.where(tt >= 0, np.interp(inside, rec.t, rec.temperature), d.ambient_k)
+            si = np.vstack([q, d.damper_force(q, v, T), d.pressure(q, T), T])
+            counts, over = self.sensors.counts(si, ts)
+            self.daq.emit(counts, over)
+        released = self._released_at is not None
+        tt = float(t[-1]) - (self._released_at or 0.0)
+        q = float(np.interp(min(tt, self._drop.t[-1]), self._drop.t, self._drop.stroke)) if released else 0.0
+        if released and tt > self._drop.t[-1] and c.holding["mode"] == 2:
+            c.write_holding(0, [0])  # the drop is over: IDLE, the mass resting on the damper (one drop per run)
+        self.t = float(t[-1])
+        c.update(self.t, q, 0.0, 0.0)
         self._fire_faults()
 
     def _sample(self, t: np.ndarray, q: np.ndarray, v: np.ndarray, a: np.ndarray, T: np.ndarray) -> None:

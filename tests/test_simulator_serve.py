@@ -296,3 +296,28 @@ def test_modbus_rtu_on_a_pseudo_terminal(served_rig):
     assert regs[0] == OFF and regs[6] == 123
     assert c.write_register(2, 30000, device_id=1).exception_code == 3
     c.close()
+
+
+def test_drop_rig_releases_the_mass_and_the_damper_settles(served_rig):
+    rig = served_rig("--rig", "drop", speed=50)
+    c = client(rig)
+    c.write_coil(0, True, device_id=1)
+    sock = daq_socket(rig)
+    sock.sendall(b"RATE 200\nSTART\n")
+    time.sleep(0.3)
+    assert not c.write_register(0, 2, device_id=1).isError()     # release
+    stream = b"".join(d for _, d in read_stream(sock, 2.6)).split(b"OK\n", 1)[-1]   # 130 simulated seconds
+    sock.sendall(b"STOP\n")
+    sock.close()
+    frames = [struct.unpack("<4h", stream[i + 4:i + 12]) for i in range(len(stream) - 15)
+              if stream[i:i + 2] == b"\xa5\x5a" and CRC(stream[i + 2:i + 14]) == struct.unpack("<H", stream[i + 14:i + 16])[0]]
+    counts = np.array(frames, dtype=float)
+    stroke, force = 140 + 0.005 * counts[:, 0], counts[:, 1]
+    temperature = 50 + 0.005 * counts[:, 3]
+    assert stroke[0] == pytest.approx(0.0, abs=0.1)
+    released = int(np.argmax(stroke > 1.0))
+    assert stroke[released + 400] < stroke[-100:].mean() - 1.0     # 2 s after release, warm gas; cooled, it sinks
+    assert force[-100:].mean() == pytest.approx(350 * 9.81, rel=0.01)   # at rest the load cell carries M·g
+    assert temperature.max() > temperature[-100:].mean() + 5
+    assert inputs(c)[0] in (IDLE, RUNNING)
+    c.close()
