@@ -130,12 +130,15 @@ def test_killed_mid_experiment_resume_finishes_and_keeps_earlier_files(served_ri
     while not first.exists() and time.monotonic() < deadline:
         time.sleep(0.05)
     assert first.exists()
-    time.sleep(2.0)                                     # well into experiment n's settling
+    journal = out / "journal" / "daq-raw.bin"
+    size_after_j = journal.stat().st_size
+    while journal.stat().st_size < size_after_j + 200_000 and time.monotonic() < deadline:
+        time.sleep(0.05)                                # into experiment n's stream
+    time.sleep(0.3)
     digest = hashlib.sha256(first.read_bytes()).hexdigest()
     os.kill(proc.pid, signal.SIGKILL)
     killed_at = time.time()
     proc.wait()
-    journal = out / "journal" / "daq-raw.bin"
     assert killed_at - journal.stat().st_mtime < 1.0     # flushed at most about a second before the kill
     parser = FrameParser()
     raw = journal.read_bytes()
