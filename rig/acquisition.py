@@ -25,7 +25,7 @@ from identify.plans import ExperimentSpec
 from rig.config import RigConfig
 from rig.daq import Daq, Samples
 from rig.events import EventBus, Phase
-from rig.shaker import AlarmError, Shaker
+from rig.shaker import AlarmError, Shaker, ShakerTimeout
 
 POLL_S = 0.05
 COLUMNS = ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")
@@ -150,15 +150,14 @@ class Acquisition:
         return record
 
     def _wait_state(self, states: set[str], timeout_s: float) -> None:
+        """Wait for a controller state in short slices, so that Ctrl-C is honoured."""
         deadline = time.monotonic() + timeout_s
         while True:
             self._check_stop()
             try:
                 self.shaker.wait_for(states, timeout_s=min(0.5, max(deadline - time.monotonic(), 0.0)))
                 return
-            except AlarmError:
-                raise
-            except Exception:
+            except ShakerTimeout:
                 if time.monotonic() > deadline:
                     raise
 

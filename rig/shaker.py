@@ -35,6 +35,10 @@ class ShakerLinkError(ShakerError):
     """The Modbus link is gone and did not come back within the reconnect time."""
 
 
+class ShakerTimeout(ShakerError):
+    """The controller did not reach the awaited state in time."""
+
+
 class AlarmError(ShakerError):
     """The controller tripped (state ALARM)."""
 
@@ -184,7 +188,7 @@ class Shaker:
             if st.state == "ALARM":
                 raise AlarmError(st)
             if time.monotonic() > deadline:
-                raise ShakerError(f"controller still {st.state} after {timeout_s:g} s (waiting for "
+                raise ShakerTimeout(f"controller still {st.state} after {timeout_s:g} s (waiting for "
                                   f"{' or '.join(sorted(states))})")
             time.sleep(poll_s)
 
