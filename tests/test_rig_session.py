@@ -208,3 +208,20 @@ def test_daq_link_dropped_mid_experiment_is_reopened_and_the_gap_counted(served_
     assert "DAQ link lost" in log and "DAQ link back" in log
     (entry,) = manifest(out)["experiments"]
     assert entry["stream_lost_samples"] > 0 and entry["lost_samples"] == 0
+
+
+def test_manual_commands_and_monitor(served_rig):
+    sim = served_rig()
+
+    def rig(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "rig", *args], capture_output=True, text=True, timeout=60)
+
+    assert "state OFF" in rig("status", "--shaker", sim.modbus_url).stdout
+    moved = rig("move", "120", "--shaker", sim.modbus_url)
+    assert moved.returncode == 0 and "at static position 120.00 mm" in moved.stdout, moved.stderr
+    refused = rig("move", "400", "--shaker", sim.modbus_url)
+    assert refused.returncode == 2 and "outside the stroke limits" in refused.stderr
+    stopped = rig("stop", "--hydraulics-off", "--shaker", sim.modbus_url)
+    assert "state OFF" in stopped.stdout
+    monitor = rig("monitor", "--daq", sim.daq_url, "--duration", "1")
+    assert monitor.returncode == 0 and "stroke_mm" in monitor.stdout and "lost 0" in monitor.stdout
