@@ -163,12 +163,22 @@ def load_csv(path: Path, required: Iterable[str] = (), frequency_hz: float | Non
     """
     if not path.is_file():
         raise DatasetError(f"{path}: file not found")
+    # Fast path: a well-formed file parses straight to floats.  Anything else is read
+    # again as text, so that the message can name the offending row and column.
     try:
-        df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
-    except pd.errors.EmptyDataError:
-        raise DatasetError(f"{path}: empty file (a header and samples are required)") from None
-    except (pd.errors.ParserError, UnicodeDecodeError) as exc:
-        raise DatasetError(f"{path}: cannot be parsed as CSV: {str(exc).strip()}") from None
+        fast = pd.read_csv(path, dtype=float, skipinitialspace=True)
+        if not np.isfinite(fast.to_numpy()).all():
+            fast = None
+    except (ValueError, pd.errors.ParserError, pd.errors.EmptyDataError, UnicodeDecodeError):
+        fast = None
+    df = fast
+    if df is None:
+        try:
+            df = pd.read_csv(path, dtype=str, keep_default_na=False, skipinitialspace=True)
+        except pd.errors.EmptyDataError:
+            raise DatasetError(f"{path}: empty file (a header and samples are required)") from None
+        except (pd.errors.ParserError, UnicodeDecodeError) as exc:
+            raise DatasetError(f"{path}: cannot be parsed as CSV: {str(exc).strip()}") from None
     df.columns = [str(c).strip() for c in df.columns]
     dup = df.columns[df.columns.duplicated()].tolist()
     if dup:
@@ -180,6 +190,9 @@ def load_csv(path: Path, required: Iterable[str] = (), frequency_hz: float | Non
         raise DatasetError(f"{path}: {len(df)} sample rows; at least 2 are needed")
     numeric = {}
     for col in df.columns:
+        if fast is not None:
+            numeric[col] = df[col].to_numpy(dtype=float)
+            continue
         text = df[col]
         values = pd.to_numeric(text, errors="coerce")
         bad = values.isna() | ~np.isfinite(values.to_numpy(dtype=float, na_value=np.nan))
