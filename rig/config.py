@@ -3,11 +3,11 @@
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from rig.registers import CONFIG_DIR
+from rig.tomlfile import read_toml
 
 DEFAULT_RIG_CONFIG = CONFIG_DIR / "rig-default.toml"
 
@@ -52,13 +52,7 @@ class RigConfig:
 
 def load_rig_config(path: str | Path | None = None) -> RigConfig:
     path = Path(path) if path else DEFAULT_RIG_CONFIG
-    try:
-        text = path.read_text()
-        doc = tomllib.loads(text)
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot be read ({exc.strerror})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    text, doc = read_toml(path, ConfigError)
     try:
         lim, ss = doc["limits"], doc["steady_state"]
         limits = Limits(lim["stroke_low_mm"] * 1e-3, lim["stroke_high_mm"] * 1e-3, lim["force_limit_kN"] * 1e3,

@@ -15,7 +15,6 @@ import os
 import re
 import threading
 import time
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -25,6 +24,7 @@ import serial
 
 from rig.frames import Block, FrameParser, LossCounters
 from rig.registers import CONFIG_DIR
+from rig.tomlfile import read_toml
 
 DEFAULT_CALIBRATION = CONFIG_DIR / "daq-calibration-datasheet.toml"
 JOURNAL_FLUSH_S = 0.5
@@ -50,17 +50,15 @@ class Calibration:
     @classmethod
     def from_file(cls, path: str | Path | None = None) -> "Calibration":
         path = Path(path) if path else DEFAULT_CALIBRATION
+        text, doc = read_toml(path, DaqError, "calibration ")
         try:
-            text = path.read_text()
-            channels = tomllib.loads(text)["channel"]
+            channels = doc["channel"]
             if len(channels) != 4:
                 raise ValueError(f"{len(channels)} [[channel]] tables, the DAQ has 4")
             return cls(str(path), tuple(c["name"] for c in channels), tuple(c.get("unit", "") for c in channels),
                        np.array([float(c["gain"]) for c in channels]), np.array([float(c["offset"]) for c in channels]),
                        text)
-        except OSError as exc:
-            raise DaqError(f"calibration {path}: cannot be read ({exc.strerror})") from None
-        except (tomllib.TOMLDecodeError, KeyError, ValueError, TypeError) as exc:
+        except (KeyError, ValueError, TypeError) as exc:
             raise DaqError(f"calibration {path}: {exc}") from None
 
     def engineering(self, counts: np.ndarray) -> np.ndarray:

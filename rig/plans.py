@@ -5,13 +5,13 @@ duration."""
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, replace
 from pathlib import Path
 
 from identify.plans import STANDARD_SET, ExperimentSpec
 from rig.config import RigConfig
 from rig.shaker import check_waveform
+from rig.tomlfile import read_toml
 
 MOVE_SPEED_M_S = 0.05  # the controller's profile speed, for the duration estimate
 
@@ -47,13 +47,7 @@ def load_plan(source: str) -> Plan:
     if source == "standard":
         return Plan("standard", STANDARD_SET, "standard")
     path = Path(source)
-    try:
-        text = path.read_text()
-        doc = tomllib.loads(text)
-    except OSError as exc:
-        raise PlanError(f"plan {path}: cannot be read ({exc.strerror})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise PlanError(f"plan {path}: not valid TOML: {exc}") from None
+    text, doc = read_toml(path, PlanError, "plan ")
     entries = doc.get("experiment", [])
     if not entries:
         raise PlanError(f"plan {path}: no [[experiment]] tables")

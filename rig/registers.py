@@ -5,9 +5,10 @@ speaks field names and SI values; this module turns them into register words.
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+
+from rig.tomlfile import read_toml
 
 CONFIG_DIR = Path(__file__).parent / "config"
 DEFAULT_MAP = CONFIG_DIR / "shaker-datasheet.toml"
@@ -72,13 +73,7 @@ class RegisterMap:
 def load_register_map(path: str | Path | None = None) -> RegisterMap:
     """Read a register map TOML (the datasheet's map by default)."""
     path = Path(path) if path else DEFAULT_MAP
-    try:
-        text = path.read_text()
-        doc = tomllib.loads(text)
-    except OSError as exc:
-        raise RegisterMapError(f"{path}: cannot be read ({exc.strerror})") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise RegisterMapError(f"{path}: not valid TOML: {exc}") from None
+    text, doc = read_toml(path, RegisterMapError)
     fields: dict[str, Field] = {}
     for table in TABLES:
         for name, spec in doc.get(table, {}).items():
