@@ -52,6 +52,13 @@ def _labels(dataset_labels: list[str], wanted: list[str] | None) -> list[str] | 
     return out
 
 
+def _chosen_labels(dataset: str, experiments: str | None) -> list[str]:
+    """Labels named by ``--experiments`` (labels or letters), else every periodic experiment."""
+    manifest = read_manifest(dataset)
+    periodic = [e.label for e in manifest.experiments if e.kind == "periodic"]
+    return _labels(manifest.labels(), _csv_list(experiments)) or periodic
+
+
 def _load_params(model: CompiledModel, path: str | None) -> Parameters:
     return Parameters.from_file(model, path) if path else Parameters(model)
 
@@ -69,9 +76,7 @@ def run_fit(args: argparse.Namespace) -> int:
     console = Console(stderr=True)
     model = load_model(args.model)
     outputs = resolve_outputs(model, _csv_list(args.outputs))
-    manifest = read_manifest(args.dataset)
-    periodic = [e.label for e in manifest.experiments if e.kind == "periodic"]
-    labels = _labels(manifest.labels(), _csv_list(args.experiments)) or periodic
+    labels = _chosen_labels(args.dataset, args.experiments)
     ds = read_dataset(args.dataset, model_columns(model, outputs), labels)
     params = _load_params(model, args.params)
     estimate = _csv_list(args.estimate)
@@ -187,9 +192,7 @@ def run_friction(args: argparse.Namespace) -> int:
     from identify.friction import extract
 
     columns = ("stroke_mm", "force_N", "pressure_bar")
-    manifest = read_manifest(args.dataset)
-    periodic = [e.label for e in manifest.experiments if e.kind == "periodic"]
-    labels = _labels(manifest.labels(), _csv_list(args.experiments)) or periodic
+    labels = _chosen_labels(args.dataset, args.experiments)
     ds = read_dataset(args.dataset, columns, labels)
     records = [fold(e.label, e.time_s, {c: e.column(c) for c in columns}, e.frequency_hz, args.n)
                for e in ds.select(labels)]
@@ -208,9 +211,7 @@ def run_compare(args: argparse.Namespace) -> int:
     from rich.table import Table
 
     console = Console(stderr=True)
-    manifest = read_manifest(args.dataset)
-    periodic = [e.label for e in manifest.experiments if e.kind == "periodic"]
-    labels = _labels(manifest.labels(), _csv_list(args.experiments)) or periodic
+    labels = _chosen_labels(args.dataset, args.experiments)
     column = "stroke_mm"
     fits: dict[str, FitResult] = {}
     for name, params_path, estimate in (("1dof", args.params_1dof, args.estimate_1dof),
