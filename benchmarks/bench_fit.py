@@ -51,7 +51,7 @@ def rel_errors(values: dict[str, float], truth: dict[str, float]) -> str:
     return "  ".join(f"{k} {values[k] / truth[k] - 1:+.1e}" for k in ESTIMATE)
 
 
-def transient_fit(model, data, params, truth) -> tuple[float, dict[str, float], int]:
+def transient_fit(model, data, params) -> tuple[float, dict[str, float], int]:
     """The conventional approach on one experiment: integrate to the periodic steady state
     for every parameter vector least_squares asks for."""
     theta0 = params.vector()
@@ -138,7 +138,7 @@ def main() -> int:
         t0 = time.perf_counter()
         ours_h = fit_experiments(model, h, params, ESTIMATE)
         t_ours_h = time.perf_counter() - t0
-        t_base, base_values, nfev = transient_fit(model, prepare_periodic(model, h, 800, outputs)[0], params, truth)
+        t_base, base_values, nfev = transient_fit(model, prepare_periodic(model, h, 800, outputs)[0], params)
 
     print("identification speed, 2-dof, n = 800, theta4/theta6/theta16 from a start 15-40 % off")
     print(f"  joint fit, 14 experiments:           {t_joint:7.2f} s  ({joint.iterations} iterations; target <= 0.5 s: "

@@ -26,8 +26,8 @@ from scipy.linalg import lapack
 SCHEMES = ("bdf2", "spectral")
 
 # Backward stencils on offsets 0, -1, -2, -3 (in units of Δτ and Δτ²).
-_BDF_D1 = np.array([3.0, -4.0, 1.0, 0.0]) / 2.0
-_BDF_D2 = np.array([2.0, -5.0, 4.0, -1.0])
+BDF2_D1 = np.array([3.0, -4.0, 1.0, 0.0]) / 2.0
+BDF2_D2 = np.array([2.0, -5.0, 4.0, -1.0])
 
 
 def _spectral_symbols(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -68,8 +68,8 @@ class Grid:
         self.tau = np.arange(n) / n
         h = 1.0 / n
         if scheme == "bdf2":
-            self._c1 = _BDF_D1 / h
-            self._c2 = _BDF_D2 / h**2
+            self._c1 = BDF2_D1 / h
+            self._c2 = BDF2_D2 / h**2
         else:
             self._s1, self._s2 = _spectral_symbols(n)
             eye = np.eye(n)

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.linalg import LinAlgWarning
 
-from identify.differentiation import Factorization, Grid
+from identify.differentiation import BDF2_D1, BDF2_D2, Factorization, Grid
 from identify.model import CompiledModel
 
 
@@ -173,8 +173,8 @@ class PeriodicSolver:
         m, grid, f = self.model, self.grid, sol.frequency_hz
         gx, gdx, gddx = m.residual_jacobian(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         h = 1.0 / grid.n
-        c1 = np.array([3.0, -4.0, 1.0, 0.0]) / (2 * h) * f
-        c2 = np.array([2.0, -5.0, 4.0, -1.0]) / h**2 * f * f
+        c1 = BDF2_D1 / h * f
+        c2 = BDF2_D2 / h**2 * f * f
         A = c1[:, None, None, None] * gdx[None] + c2[:, None, None, None] * gddx[None]  # (4, neq, ns, n)
         A[0] += gx
         ns = m.n_states

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy.integrate import solve_ivp
+from scipy.signal import cont2discrete, lfilter, lfilter_zi
 
 from identify.plans import ExperimentSpec
 
@@ -200,8 +201,6 @@ class StreamingPlant:
     """
 
     def __init__(self, damper: Damper, actuator: Actuator, dt_s: float, position_m: float) -> None:
-        from scipy.signal import cont2discrete, lfilter_zi
-
         self.damper, self.actuator, self.dt = damper, actuator, dt_s
         wa, zeta = 2 * np.pi * actuator.bandwidth_hz, actuator.damping_ratio
         self._wa, self._zeta = wa, zeta
@@ -220,8 +219,6 @@ class StreamingPlant:
         """Stroke, velocity, acceleration and temperature at the next ``len(setpoint)``
         steps, the setpoint being sampled at those steps.  Nothing is committed until
         :meth:`commit` (a block cut short by a trip is recomputed)."""
-        from scipy.signal import lfilter
-
         q, zq = lfilter(*self._q_filter, setpoint, zi=self._zq)
         v, zv = lfilter(*self._v_filter, setpoint, zi=self._zv)
         a = self._wa**2 * (setpoint - q) - 2 * self._zeta * self._wa * v
