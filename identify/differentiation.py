@@ -17,8 +17,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import functools
-
 import numpy as np
 import scipy.linalg as sla
 from scipy.linalg import lapack
@@ -38,6 +36,17 @@ def _spectral_symbols(n: int) -> tuple[np.ndarray, np.ndarray]:
         d1[-1] = 0.0  # the Nyquist mode has no well-defined odd derivative
     d2 = -(2 * np.pi * k) ** 2
     return d1, d2
+
+
+def _shifts(x: np.ndarray, step: int) -> tuple[np.ndarray, ...]:
+    """x(τ_μ), x(τ_{μ+step}), x(τ_{μ+2·step}), x(τ_{μ+3·step}) along the last axis, periodic,
+    as views of one padded copy (three np.roll calls would copy three times); step ±1."""
+    n = x.shape[-1]
+    if step < 0:
+        padded = np.concatenate((x[..., -3:], x), axis=-1)
+        return x, padded[..., 2:n + 2], padded[..., 1:n + 1], padded[..., :n]
+    padded = np.concatenate((x, x[..., :3]), axis=-1)
+    return x, padded[..., 1:n + 1], padded[..., 2:n + 2], padded[..., 3:n + 3]
 
 
 @dataclass
@@ -81,12 +90,10 @@ class Grid:
         """First and second time derivatives of x (…, n) on the grid."""
         f = frequency_hz
         if self.scheme == "bdf2":
-            x1 = np.roll(x, 1, axis=-1)
-            x2 = np.roll(x, 2, axis=-1)
-            x3 = np.roll(x, 3, axis=-1)
+            x0, x1, x2, x3 = _shifts(x, -1)
             c1, c2 = self._c1, self._c2
-            dx = f * (c1[0] * x + c1[1] * x1 + c1[2] * x2)
-            ddx = f * f * (c2[0] * x + c2[1] * x1 + c2[2] * x2 + c2[3] * x3)
+            dx = f * (c1[0] * x0 + c1[1] * x1 + c1[2] * x2)
+            ddx = f * f * (c2[0] * x0 + c2[1] * x1 + c2[2] * x2 + c2[3] * x3)
             return dx, ddx
         X = np.fft.rfft(x, axis=-1)
         dx = np.fft.irfft(X * (f * self._s1), n=self.n, axis=-1)
@@ -97,12 +104,10 @@ class Grid:
         """D1ᵀ·w and D2ᵀ·w along the last axis (the adjoints of :meth:`derivatives`)."""
         f = frequency_hz
         if self.scheme == "bdf2":
-            w1 = np.roll(w, -1, axis=-1)
-            w2 = np.roll(w, -2, axis=-1)
-            w3 = np.roll(w, -3, axis=-1)
+            w0, w1, w2, w3 = _shifts(w, +1)
             c1, c2 = self._c1, self._c2
-            return (f * (c1[0] * w + c1[1] * w1 + c1[2] * w2),
-                    f * f * (c2[0] * w + c2[1] * w1 + c2[2] * w2 + c2[3] * w3))
+            return (f * (c1[0] * w0 + c1[1] * w1 + c1[2] * w2),
+                    f * f * (c2[0] * w0 + c2[1] * w1 + c2[2] * w2 + c2[3] * w3))
         W = np.fft.rfft(w, axis=-1)
         return (np.fft.irfft(W * (f * np.conj(self._s1)), n=self.n, axis=-1),
                 np.fft.irfft(W * (f * f * np.conj(self._s2)), n=self.n, axis=-1))
@@ -130,22 +135,6 @@ class Grid:
         return Factorization(lambda rhs: sla.lu_solve(lu, rhs, check_finite=False),
                              lambda rhs: sla.lu_solve(lu, rhs, trans=1, check_finite=False))
 
-    @functools.lru_cache(maxsize=8)
-    def _banded_layout(self, neq: int, ns: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Where each BDF2 Jacobian entry goes: flat positions in the LAPACK band storage
-        and in the wrap-around corner, and the matching flat positions in the
-        (offset, equation, state, time) coefficient array."""
-        n = self.n
-        N, kl, ku, rc = n * ns, 4 * ns - 1, ns - 1, 3 * ns
-        k, i, j, mu = np.meshgrid(np.arange(4), np.arange(neq), np.arange(ns), np.arange(n), indexing="ij")
-        src = np.arange(k.size).reshape(k.shape)
-        inside = mu >= k
-        rows = mu * ns + i
-        cols = (mu - k) * ns + j
-        band_at = (kl + ku + rows - cols) * N + cols
-        corner_at = rows * rc + cols + rc  # wrapped column (cols + N) minus the corner start N - rc
-        return band_at[inside], src[inside], corner_at[~inside], src[~inside]
-
     def _factorize_banded(self, gx: np.ndarray, gdx: np.ndarray, gddx: np.ndarray, f: float) -> Factorization:
         """Banded LU of the BDF2 Jacobian, with the periodic wrap-around as a low-rank
         (Woodbury) correction.
@@ -161,11 +150,19 @@ class Grid:
         data[0] += gx  # (offset k, i, j, μ): coefficient of x_j(τ_{μ-k}) in g_i(τ_μ)
         kl, ku = 4 * ns - 1, ns - 1
         rc = 3 * ns
-        band_at, band_src, corner_at, corner_src = self._banded_layout(neq, ns)
+        # Band storage: J[r, c] sits at ab[kl + ku + r - c, c]; for x_j(τ_{μ-k}) in g_i(τ_μ)
+        # r - c = k·ns + i - j, so each (k, i, j) fills a strided slice of one band row.
         ab = np.zeros((2 * kl + ku + 1, N))
-        ab.flat[band_at] = data.ravel()[band_src]
+        for k in range(4):
+            for i in range(neq):
+                for j in range(ns):
+                    ab[kl + ku + k * ns + i - j, j:N - k * ns:ns] = data[k, i, j, k:]
+        # The wrap-around: g(τ_μ), μ < k, reaches back to τ_{n+μ-k}, among the last 3 points.
         corner = np.zeros((rc, rc))
-        corner.flat[corner_at] = data.ravel()[corner_src]
+        blocks = corner.reshape(3, ns, 3, ns)
+        for k in range(1, 4):
+            for mu in range(k):
+                blocks[mu, :, mu + 3 - k, :] = data[k, :, :, mu]
         lu, piv, info = lapack.dgbtrf(ab, kl, ku)
         if info != 0:
             raise np.linalg.LinAlgError(f"singular periodic Jacobian (banded LU pivot {info})")
@@ -174,9 +171,7 @@ class Grid:
             x, info_ = lapack.dgbtrs(lu, kl, ku, b, piv, trans=trans)
             return x
 
-        unit = np.zeros((N, rc))
-        unit[np.arange(rc), np.arange(rc)] = 1.0
-        W = band_solve(unit)
+        W = band_solve(np.eye(N, rc))
         K = np.eye(rc) + corner @ W[N - rc:]
         K_lu = sla.lu_factor(K, check_finite=False)
         # Jᵀ = Bᵀ + Q·cornerᵀ·Pᵀ (P: first rc rows, Q: last rc columns): the same

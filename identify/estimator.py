@@ -53,7 +53,8 @@ class _Evaluation:
     solutions: list[PeriodicSolution]
     predicted: list[np.ndarray]  # (n_outputs, n) per experiment
     residuals: list[np.ndarray]
-    sensitivities: list[np.ndarray] = field(default_factory=list)  # (n_outputs, n, k)
+    sensitivities: list[np.ndarray] = field(default_factory=list)  # dŷ/dθ (n_outputs, n, k)
+    state_sensitivities: list[np.ndarray] = field(default_factory=list)  # dX/dθ (n_states, n, k)
 
 
 class Estimator:
@@ -81,18 +82,34 @@ class Estimator:
 
     # ----------------------------------------------------------------------------------
     def _evaluate(self, theta: np.ndarray, start: _Evaluation | None, sensitivities: bool) -> _Evaluation:
-        sols, preds, res, sens = [], [], [], []
+        ev = _Evaluation(theta, [], [], [])
         for a, d in enumerate(self.data):
-            warm = start.solutions[a].states if start is not None else None
             th = d.theta(theta)
-            sol = self.solver.solve(d.inputs, d.frequency_hz, th, start=warm, label=d.label)
+            sol = self.solver.solve(d.inputs, d.frequency_hz, th, start=self._predicted_states(start, a, theta),
+                                    label=d.label)
             y = self.solver.outputs(sol, th, self.output_idx)
-            sols.append(sol)
-            preds.append(y)
-            res.append(d.measured - y)
-            if sensitivities:
-                sens.append(self.solver.output_sensitivities(sol, th, self.index, self.output_idx))
-        return _Evaluation(theta, sols, preds, res, sens)
+            ev.solutions.append(sol)
+            ev.predicted.append(y)
+            ev.residuals.append(d.measured - y)
+        if sensitivities:
+            self._add_sensitivities(ev)
+        return ev
+
+    def _predicted_states(self, start: _Evaluation | None, a: int, theta: np.ndarray) -> np.ndarray | None:
+        """Newton's warm start for experiment a at θ: the solution at the earlier θ moved
+        along its sensitivities (first order), which saves Newton iterations per solve."""
+        if start is None:
+            return None
+        states = start.solutions[a].states
+        if not start.state_sensitivities:
+            return states
+        return states + start.state_sensitivities[a] @ (theta - start.theta)[self.index]
+
+    def _add_sensitivities(self, ev: _Evaluation) -> None:
+        for sol, d in zip(ev.solutions, self.data):
+            dX, dY = self.solver.sensitivities(sol, d.theta(ev.theta), self.index, self.output_idx)
+            ev.state_sensitivities.append(dX)
+            ev.sensitivities.append(dY)
 
     def _variances(self, ev: _Evaluation) -> np.ndarray:
         """(n_experiments, n_outputs) residual variances with the bias correction for the
@@ -170,33 +187,26 @@ class Estimator:
         for it in range(1, self.max_iterations + 1):
             iterations = it
             A, g = self._normal_equations(ev, v)
-            A_step = A - self._variance_coupling(ev, v)
-            if np.min(np.linalg.eigvals(np.linalg.solve(A, A_step)).real) < 0.1:
-                A_step = A  # far from the optimum the correction would make the step uphill
+            A_coupled = A - self._variance_coupling(ev, v)
+            # Far from the optimum the correction would make the step uphill.
+            coupled = np.min(np.linalg.eigvals(np.linalg.solve(A, A_coupled)).real) >= 0.1
             scale = self._prior_std(theta)  # solve in prior-std units: well scaled, zeros included
-            As = A_step * np.outer(scale, scale) + np.eye(len(scale))
-            step = scale * np.linalg.solve(As, g * scale)
             sigma = np.sqrt(np.abs(np.diag(np.linalg.pinv(A))))
-            small = bool(np.all(np.abs(step) <= self.step_tolerance * np.maximum(sigma, 1e-300)))
-            lam = 1.0
-            accepted = None
-            while lam >= 1.0 / 64:
-                trial = theta.copy()
-                trial[self.index] += lam * step
-                try:
-                    ev_t = self._evaluate(trial, ev, sensitivities=False)
-                except ConvergenceError:
-                    lam /= 2
-                    continue
-                if self._objective(ev_t, v) <= objective:
-                    accepted = ev_t
+            for A_step in ((A_coupled, A) if coupled else (A,)):
+                As = A_step * np.outer(scale, scale) + np.eye(len(scale))
+                step = scale * np.linalg.solve(As, g * scale)
+                small = bool(np.all(np.abs(step) <= self.step_tolerance * np.maximum(sigma, 1e-300)))
+                predicted = float(g @ step - 0.5 * step @ A @ step)
+                accepted, lam, trial_objective = self._line_search(ev, step, v, objective)
+                # The line search judges χ² at fixed variances, the plain Gauss–Newton
+                # model; where the coupled step fails it (and is not a converged one),
+                # the plain step is tried.
+                if accepted is not None or small or 0.0 <= predicted < CHI2_TOLERANCE:
                     break
-                lam /= 2
             if accepted is None:
                 # The objective is Σ r²/v (χ² units); a step that would lower it by less
                 # than CHI2_TOLERANCE is beyond what the data can tell apart, and the line
                 # search then only sees the periodic solutions' numerical noise.
-                predicted = float(g @ step - 0.5 * step @ A @ step)
                 converged = small or 0.0 <= predicted < CHI2_TOLERANCE
                 message = ("converged (the remaining step is below the tolerance)" if small else
                            f"converged (the remaining step would lower χ² by {predicted:.2g} < {CHI2_TOLERANCE:g})"
@@ -206,8 +216,8 @@ class Estimator:
                 break
             theta = accepted.theta
             ev = accepted
-            ev.sensitivities = [self.solver.output_sensitivities(s, d.theta(theta), self.index, self.output_idx)
-                                for s, d in zip(ev.solutions, self.data)]
+            objective_before = objective
+            self._add_sensitivities(ev)
             v = self._variances(ev)
             objective = self._objective(ev, v)
             history.append(self._log_likelihood_objective(ev, v))
@@ -217,7 +227,31 @@ class Estimator:
                 converged = True
                 message = "converged (last step below {:g} standard deviations)".format(self.step_tolerance)
                 break
+            if 0.0 <= predicted < CHI2_TOLERANCE and objective_before - trial_objective < CHI2_TOLERANCE:
+                converged = True  # the same judgement as above, for a step the line search took
+                message = (f"converged (the last step lowered χ² by {objective_before - trial_objective:.2g} "
+                           f"< {CHI2_TOLERANCE:g})")
+                break
         return self._result(ev, v, converged, iterations, message, history, time.perf_counter() - t0)
+
+    def _line_search(self, ev: _Evaluation, step: np.ndarray, v: np.ndarray,
+                     objective: float) -> tuple[_Evaluation | None, float, float]:
+        """Backtracking along ``step`` from ev.theta until χ² (at the variances v) does not
+        rise: (the accepted evaluation or None, its step fraction, its χ²)."""
+        lam = 1.0
+        while lam >= 1.0 / 64:
+            trial = ev.theta.copy()
+            trial[self.index] += lam * step
+            try:
+                ev_t = self._evaluate(trial, ev, sensitivities=False)
+            except ConvergenceError:
+                lam /= 2
+                continue
+            trial_objective = self._objective(ev_t, v)
+            if trial_objective <= objective:
+                return ev_t, lam, trial_objective
+            lam /= 2
+        return None, lam, objective
 
     def _covariance(self, ev: _Evaluation, v: np.ndarray) -> tuple[np.ndarray, list[str]]:
         """Sandwich covariance A⁻¹·B·A⁻¹ of the estimates under the measurement noise:

@@ -101,36 +101,43 @@ class PeriodicSolver:
         # and scipy's warnings about them would only be noise.
         with np.errstate(all="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", LinAlgWarning)
+            if start is None:
+                xs = self.static_equilibrium(inputs.mean(axis=1), theta, label)
+                start = np.repeat(xs[:, None], self.grid.n, axis=1)
             return self._solve(inputs, frequency_hz, theta, start, label)
 
     def _solve(self, inputs: np.ndarray, frequency_hz: float, theta: np.ndarray,
-               start: np.ndarray | None, label: str) -> PeriodicSolution:
+               start: np.ndarray, label: str) -> PeriodicSolution:
         m, grid, f = self.model, self.grid, frequency_hz
         ns, n = m.n_states, grid.n
-        if start is None:
-            xs = self.static_equilibrium(inputs.mean(axis=1), theta, label)
-            X = np.repeat(xs[:, None], n, axis=1)
-        else:
-            X = np.array(start, dtype=float, copy=True)
+        X = np.array(start, dtype=float, copy=True)
         tol = self.tolerance * m.state_scales[:, None]
+        DX, DDX = grid.derivatives(X, f)
+        G = m.residual(X, DX, DDX, inputs, theta)
         weights = None
         merit = np.inf
+        last_full_step = np.nan  # scaled size of the previous step, when it was a full one
         for it in range(self.max_iterations + 1):
-            DX, DDX = grid.derivatives(X, f)
-            G = m.residual(X, DX, DDX, inputs, theta)
             jac = m.residual_jacobian(X, DX, DDX, inputs, theta)
             if weights is None:
                 weights = self._equation_weights(jac, f)[:, None]
-            merit = float(np.sum((weights * G) ** 2))
+                merit = float(np.sum((weights * G) ** 2))
             if not np.isfinite(merit):
                 break
             fac = grid.factorize(*jac, f)
             dX = -fac.solve(G.ravel()).reshape(ns, n)
             if not np.all(np.isfinite(dX)):
                 break
-            if np.all(np.abs(dX) <= tol):
-                X = X + dX
-                DX, DDX = grid.derivatives(X, f)
+            # Differentiation is linear: the trial points' derivatives are combinations.
+            dD1, dD2 = grid.derivatives(dX, f)
+            # Converged when the step is below the tolerance, or when the contraction Θ of
+            # two full steps says the error left after this one, Θ·|dX|, is (Deuflhard's
+            # a-posteriori estimate): that saves the last factorisation, which would only
+            # confirm it.
+            size = float(np.max(np.abs(dX) / tol))
+            contraction = size / last_full_step  # nan (no estimate) after a damped or no step
+            if size <= 1.0 or (contraction < 0.5 and contraction * size <= 1.0):
+                X, DX, DDX = X + dX, DX + dD1, DDX + dD2
                 G = m.residual(X, DX, DDX, inputs, theta)
                 rms = float(np.sqrt(np.mean((weights * G) ** 2)))
                 return PeriodicSolution(label, f, inputs, X, DX, DDX, it + 1, rms, fac)
@@ -138,15 +145,16 @@ class PeriodicSolver:
                 break
             lam = 1.0
             while True:
-                Xt = X + lam * dX
-                D1, D2 = grid.derivatives(Xt, f)
-                trial = float(np.sum((weights * m.residual(Xt, D1, D2, inputs, theta)) ** 2))
+                Xt, D1, D2 = X + lam * dX, DX + lam * dD1, DDX + lam * dD2
+                Gt = m.residual(Xt, D1, D2, inputs, theta)
+                trial = float(np.sum((weights * Gt) ** 2))
                 if (np.isfinite(trial) and trial <= (1 - 1e-4 * lam) * merit) or lam < 1.0 / 1024:
                     break
                 lam /= 2
             if not np.isfinite(trial):
                 break
-            X = Xt
+            last_full_step = size if lam == 1.0 else np.nan
+            X, DX, DDX, G, merit = Xt, D1, D2, Gt, trial
         rms = float(np.sqrt(merit / (ns * n))) if np.isfinite(merit) else float("nan")
         raise ConvergenceError(
             f"{label or 'experiment'}: periodic solution did not converge in {it} Newton iterations "
@@ -236,9 +244,15 @@ class PeriodicSolver:
         y = self.model.output(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         return y[outputs]
 
+    def sensitivities(self, sol: PeriodicSolution, theta: np.ndarray, indices: list[int],
+                      outputs: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """dX/dθ_k (n_states, n, k) and dŷ/dθ_k (len(outputs), n, k) on the grid."""
+        dX = self.state_sensitivities(sol, theta, indices)
+        hth = self.model.output_dtheta(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
+        dY = self._output_response(sol, theta, dX, outputs) + np.transpose(hth[outputs][:, indices, :], (0, 2, 1))
+        return dX, dY
+
     def output_sensitivities(self, sol: PeriodicSolution, theta: np.ndarray, indices: list[int],
                              outputs: list[int]) -> np.ndarray:
         """dŷ/dθ_k on the grid: (len(outputs), n, k)."""
-        dX = self.state_sensitivities(sol, theta, indices)
-        hth = self.model.output_dtheta(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
-        return self._output_response(sol, theta, dX, outputs) + np.transpose(hth[outputs][:, indices, :], (0, 2, 1))
+        return self.sensitivities(sol, theta, indices, outputs)[1]
