@@ -171,8 +171,14 @@ class Grid:
             x, info_ = lapack.dgbtrs(lu, kl, ku, b, piv, trans=trans)
             return x
 
-        W = band_solve(np.eye(N, rc))
-        K = np.eye(rc) + corner @ W[N - rc:]
+        # Equations the wrap-around does not reach (a first-order state's row at τ_2, say)
+        # need no column of W: one band solve fewer each.
+        live = np.flatnonzero(np.any(corner != 0.0, axis=1))
+        corner = corner[live]  # (r, rc): J = B + P[:, live]·corner·Qᵀ
+        P = np.zeros((N, live.size))
+        P[live, np.arange(live.size)] = 1.0
+        W = band_solve(P)
+        K = np.eye(live.size) + corner @ W[N - rc:]
         K_lu = sla.lu_factor(K, check_finite=False)
         # Jᵀ = Bᵀ + Q·cornerᵀ·Pᵀ (P: first rc rows, Q: last rc columns): the same
         # Woodbury identity with the roles of P and Q exchanged, built on first use.
@@ -194,10 +200,10 @@ class Grid:
                 last = np.zeros((N, rc))
                 last[N - rc + np.arange(rc), np.arange(rc)] = 1.0
                 Wt = band_solve(last, trans=1)
-                adjoint.extend([Wt, sla.lu_factor(np.eye(rc) + corner.T @ Wt[:rc], check_finite=False)])
+                adjoint.extend([Wt, sla.lu_factor(np.eye(rc) + corner.T @ Wt[live], check_finite=False)])
             Wt, Kt_lu = adjoint
             y = band_solve(interleave(rhs), trans=1)
-            y -= Wt @ sla.lu_solve(Kt_lu, corner.T @ y[:rc], check_finite=False)
+            y -= Wt @ sla.lu_solve(Kt_lu, corner.T @ y[live], check_finite=False)
             return deinterleave(y, rhs.shape)
 
         return Factorization(solve, solve_transposed)

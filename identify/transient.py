@@ -12,7 +12,6 @@ from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
-from scipy.integrate import solve_ivp
 
 from identify.model import CompiledModel
 
@@ -107,6 +106,8 @@ class TransientSimulator:
             atol[ix] = 1e-6 * m.state_scales[j]
             if idx is not None:
                 atol[idx] = 1e-5 * m.state_scales[j]
+        from scipy.integrate import solve_ivp  # only prediction needs it; fit's start-up stays short
+
         sol = solve_ivp(lambda tt, y: self.rhs(y, inputs(tt)), (t[0], t[-1]), y0, method=method,
                         rtol=rtol, atol=atol, dense_output=True)
         if not sol.success:
