@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from identify.dataset import DatasetError, atomic_write_bytes, csv_bytes, read_dataset, read_manifest
+from identify.dataset import DatasetError, csv_bytes, read_dataset, read_manifest
+from identify.files import atomic_write_bytes
 from identify.differentiation import SCHEMES, Grid
 from identify.estimator import EstimationError
 from identify.fit import fit_experiments

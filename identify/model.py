@@ -16,13 +16,14 @@ import importlib.util
 import inspect
 import os
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
 from typing import Any, Callable, ClassVar
 
 import numpy as np
+
+from identify.files import atomic_write_bytes
 
 GENERATOR_VERSION = "5"
 
@@ -331,11 +332,7 @@ def compile_model(cls: type[ModelDeclaration]) -> CompiledModel:
     if module is None:
         src = generate_source(decl)
         try:
-            directory.mkdir(parents=True, exist_ok=True)
-            fd, tmp = tempfile.mkstemp(dir=directory, suffix=".tmp")
-            with os.fdopen(fd, "w") as f:
-                f.write(src)
-            os.replace(tmp, path)
+            atomic_write_bytes(path, src.encode())
             module = _load_module(path, modname)
         except OSError:
             # Read-only home: keep the generated code in memory for this process.

@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from identify.dataset import atomic_write_bytes
+from identify.files import atomic_write_bytes
 from identify.model import CompiledModel
 from identify.parameters import Parameters
 

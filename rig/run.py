@@ -16,7 +16,8 @@ from pathlib import Path
 
 from rich.console import Console
 
-from identify.dataset import Experiment, atomic_write_bytes
+from identify.dataset import Experiment
+from identify.files import atomic_write_bytes
 from identify.estimator import EstimationError
 from rig.acquisition import Acquisition, AcquisitionError, Interrupted
 from rig.config import load_rig_config

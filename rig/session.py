@@ -21,7 +21,8 @@ from typing import Any
 
 import pandas as pd
 
-from identify.dataset import FORMAT, Experiment, atomic_write_bytes, csv_bytes, write_manifest
+from identify.dataset import FORMAT, Experiment, csv_bytes, write_manifest
+from identify.files import atomic_write_bytes
 from rig.acquisition import COLUMNS, ExperimentRecord
 from rig.events import Event
 

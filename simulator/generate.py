@@ -9,7 +9,8 @@ from pathlib import Path
 
 import numpy as np
 
-from identify.dataset import FORMAT, atomic_write_bytes, csv_bytes, write_manifest
+from identify.dataset import FORMAT, csv_bytes, write_manifest
+from identify.files import atomic_write_bytes
 from identify.plans import ExperimentSpec
 from simulator.physics import Actuator, Damper, SteadyState, drop_test, periodic_steady_state
 from simulator.sensors import SensorSet
