@@ -13,22 +13,23 @@ from pathlib import Path
 
 import numpy as np
 
-from identify.dataset import DatasetError, csv_bytes, read_dataset, read_manifest
+from identify.dataset import csv_bytes, read_dataset, read_manifest
+from identify.errors import ComputationError, InputError
 from identify.files import atomic_write_bytes
 from identify.differentiation import SCHEMES, Grid
 from identify.estimator import EstimationError
 from identify.fit import fit_experiments
-from identify.model import CompiledModel, ModelError, load_model
-from identify.parameters import ParameterError, Parameters
-from identify.periodic import ConvergenceError, PeriodicSolver
+from identify.model import CompiledModel, load_model
+from identify.parameters import Parameters
+from identify.periodic import PeriodicSolver
 from identify.preparation import model_columns, prepare_periodic, resolve_outputs
 from identify.result import FitResult
-from identify.transient import IntegrationError, drop_test
+from identify.transient import drop_test
 
 EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT = 0, 1, 2
 
 
-class UsageError(ValueError):
+class UsageError(InputError):
     """Command-line input that does not fit (reported like bad input)."""
 
 
@@ -338,10 +339,9 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (DatasetError, ParameterError, ModelError, UsageError, KeyError, ValueError) as exc:
-        message = exc.args[0] if isinstance(exc, KeyError) and exc.args else exc
-        print(f"error: {message}", file=sys.stderr)
+    except InputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
-    except (ConvergenceError, IntegrationError) as exc:
+    except ComputationError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return EXIT_NOT_CONVERGED

@@ -16,6 +16,7 @@ from typing import Any, Iterable
 import numpy as np
 import pandas as pd
 
+from identify.errors import InputError
 from identify.files import atomic_write_bytes
 
 FORMAT = "damper-dataset/1"
@@ -25,7 +26,7 @@ OPTIONAL_DAMPER_COLUMNS = ("gas_temperature_C",)
 _UNIFORM_TOLERANCE = 1e-3  # relative deviation of a sampling step from the mean step
 
 
-class DatasetError(ValueError):
+class DatasetError(InputError):
     """A dataset that breaks the interchange format; the message names file and place."""
 
 

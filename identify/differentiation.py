@@ -21,6 +21,8 @@ import numpy as np
 import scipy.linalg as sla
 from scipy.linalg import lapack
 
+from identify.errors import InputError
+
 SCHEMES = ("bdf2", "spectral")
 
 # Backward stencils on offsets 0, -1, -2, -3 (in units of Δτ and Δτ²).
@@ -69,9 +71,9 @@ class Grid:
 
     def __init__(self, n: int, scheme: str = "bdf2"):
         if scheme not in SCHEMES:
-            raise ValueError(f"unknown scheme {scheme!r}: use one of {', '.join(SCHEMES)}")
+            raise InputError(f"unknown scheme {scheme!r}: use one of {', '.join(SCHEMES)}")
         if n < 8:
-            raise ValueError(f"n = {n} points per period is too few (at least 8)")
+            raise InputError(f"n = {n} points per period is too few (at least 8)")
         self.n = n
         self.scheme = scheme
         self.tau = np.arange(n) / n

@@ -31,6 +31,7 @@ from typing import Callable
 import numpy as np
 
 from identify.differentiation import Grid
+from identify.errors import ComputationError
 from identify.model import CompiledModel
 from identify.parameters import Parameters
 from identify.periodic import ConvergenceError, PeriodicSolution, PeriodicSolver
@@ -43,7 +44,7 @@ PROBES = 16  # random probes estimating the input-noise share of the output vari
 CHI2_TOLERANCE = 0.1  # a Gauss-Newton step promising less χ² decrease than this changes nothing that matters
 
 
-class EstimationError(RuntimeError):
+class EstimationError(ComputationError):
     """The fit cannot start (e.g. no periodic solution at the starting parameters)."""
 
 

@@ -9,6 +9,7 @@ import numpy as np
 
 from identify.dataset import Experiment
 from identify.differentiation import Grid
+from identify.errors import InputError
 from identify.estimator import Estimator
 from identify.model import CompiledModel
 from identify.parameters import Parameters
@@ -36,7 +37,7 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
             d.fixed = dict(fixed.get(d.label, {}))
             clash = [names[i] for i in d.fixed if names[i] in estimate]
             if clash:
-                raise ValueError(f"{', '.join(clash)}: estimated and also fixed per experiment")
+                raise InputError(f"{', '.join(clash)}: estimated and also fixed per experiment")
     result = Estimator(model, data, params.copy(), Grid(n, scheme), outputs, max_iterations=max_iterations,
                        progress=progress, stability=stability).fit()
     result.start = {k: start[k] for k in result.estimated}

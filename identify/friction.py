@@ -21,6 +21,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from identify.dataset import DatasetError
+from identify.errors import InputError
 from identify.folding import FoldedRecord
 
 HARMONICS = 60           # the stroke is smooth: its velocity from the first harmonics only
@@ -28,7 +29,7 @@ WINDOW_FRACTION = 0.03   # each side of a reversal, as a fraction of the period
 MIN_SPEED_M_S = 2e-3     # the friction law must be saturated at the window's ends
 
 
-class FrictionError(ValueError):
+class FrictionError(InputError):
     """Friction could not be extracted (names the experiment and why)."""
 
 

@@ -23,6 +23,7 @@ from typing import Any, Callable, ClassVar
 
 import numpy as np
 
+from identify.errors import InputError
 from identify.files import atomic_write_bytes
 
 GENERATOR_VERSION = "5"
@@ -91,7 +92,7 @@ class ModelDeclaration:
         return {}
 
 
-class ModelError(ValueError):
+class ModelError(InputError):
     """A model declaration that cannot be compiled or loaded."""
 
 
@@ -143,13 +144,13 @@ class CompiledModel:
             if name_or_alias in (p.name, p.alias):
                 return i
         known = ", ".join(f"{p.name} ({p.alias})" for p in self.parameter_specs)
-        raise KeyError(f"model {self.name!r} has no parameter {name_or_alias!r}; it has {known}")
+        raise ModelError(f"model {self.name!r} has no parameter {name_or_alias!r}; it has {known}")
 
     def output_index(self, name: str) -> int:
         try:
             return self.output_names.index(name)
         except ValueError:
-            raise KeyError(
+            raise ModelError(
                 f"model {self.name!r} has no output {name!r}; it has {', '.join(self.output_names)}"
             ) from None
 

@@ -15,10 +15,11 @@ from typing import Any, Iterator
 
 import numpy as np
 
+from identify.errors import InputError
 from identify.model import CompiledModel
 
 
-class ParameterError(ValueError):
+class ParameterError(InputError):
     """A parameter file or name that does not fit the model."""
 
 

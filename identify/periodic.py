@@ -16,10 +16,11 @@ import numpy as np
 from scipy.linalg import LinAlgWarning
 
 from identify.differentiation import BDF2_D1, BDF2_D2, Factorization, Grid
+from identify.errors import ComputationError
 from identify.model import CompiledModel
 
 
-class ConvergenceError(RuntimeError):
+class ConvergenceError(ComputationError):
     """Newton's method did not find the periodic (or static) solution."""
 
     def __init__(self, message: str, label: str = "", iterations: int = 0, residual: float = float("nan")):

@@ -4,6 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from identify.errors import InputError
+
+
+class PlanError(InputError):
+    """A plan that names an experiment it does not have."""
+
 
 @dataclass(frozen=True)
 class ExperimentSpec:
@@ -53,5 +59,5 @@ def select(specs: tuple[ExperimentSpec, ...], letters: list[str] | None) -> list
     by_letter = {s.letter: s for s in specs}
     unknown = [x for x in letters if x not in by_letter]
     if unknown:
-        raise KeyError(f"no experiment {', '.join(unknown)} in the plan (letters: {', '.join(by_letter)})")
+        raise PlanError(f"no experiment {', '.join(unknown)} in the plan (letters: {', '.join(by_letter)})")
     return [by_letter[x] for x in letters]

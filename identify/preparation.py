@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from identify.dataset import DatasetError, Experiment
+from identify.errors import InputError
 from identify.folding import FoldedRecord, fold
 from identify.model import CompiledModel
 
@@ -44,7 +45,7 @@ def resolve_outputs(model: CompiledModel, requested: list[str] | None) -> list[s
     for o in outputs:
         model.output_index(o)
     if set(outputs) & {ch.column for ch in model.declaration.inputs.values()}:
-        raise ValueError(f"an output of the fit is also the model's input: {outputs}")
+        raise InputError(f"an output of the fit is also the model's input: {outputs}")
     return outputs
 
 

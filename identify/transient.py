@@ -13,12 +13,13 @@ from typing import Callable
 
 import numpy as np
 
+from identify.errors import ComputationError
 from identify.model import CompiledModel
 
 G0 = 9.81
 
 
-class IntegrationError(RuntimeError):
+class IntegrationError(ComputationError):
     """The time integration failed."""
 
 
