@@ -16,22 +16,22 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from identify.plans import ExperimentSpec
+from rig.clock import WALL_CLOCK, Clock
 from rig.config import RigConfig
-from rig.daq import Daq, Samples
+from rig.daq import CHANNELS, Daq, Samples
+from rig.errors import RigFault
 from rig.events import EventBus, Phase
 from rig.shaker import AlarmError, Shaker, ShakerTimeout
 
 POLL_S = 0.05
-COLUMNS = ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")
 
 
-class AcquisitionError(RuntimeError):
+class AcquisitionError(RigFault):
     """An experiment could not be captured (names the experiment and why)."""
 
 
@@ -93,8 +93,8 @@ class Recorder:
 class Acquisition:
     """Runs experiments on a connected shaker and DAQ, publishing events on ``bus``."""
 
-    def __init__(self, shaker: Shaker, daq: Daq, config: RigConfig, bus: EventBus) -> None:
-        self.shaker, self.daq, self.config, self.bus = shaker, daq, config, bus
+    def __init__(self, shaker: Shaker, daq: Daq, config: RigConfig, bus: EventBus, clock: Clock = WALL_CLOCK) -> None:
+        self.shaker, self.daq, self.config, self.bus, self.clock = shaker, daq, config, bus, clock
         self.phase = Phase.IDLE
         self.stop_requested = threading.Event()
         self._recorder: Recorder | None = None
@@ -151,14 +151,14 @@ class Acquisition:
 
     def _wait_state(self, states: set[str], timeout_s: float) -> None:
         """Wait for a controller state in short slices, so that Ctrl-C is honoured."""
-        deadline = time.monotonic() + timeout_s
+        deadline = self.clock.monotonic() + timeout_s
         while True:
             self._check_stop()
             try:
-                self.shaker.wait_for(states, timeout_s=min(0.5, max(deadline - time.monotonic(), 0.0)))
+                self.shaker.wait_for(states, timeout_s=min(0.5, max(deadline - self.clock.monotonic(), 0.0)))
                 return
             except ShakerTimeout:
-                if time.monotonic() > deadline:
+                if self.clock.monotonic() > deadline:
                     raise
 
     def _settle_and_capture(self, spec: ExperimentSpec, label: str, rec: Recorder) -> ExperimentRecord:
@@ -166,7 +166,7 @@ class Acquisition:
         spp = rate / spec.frequency_hz                       # samples per period
         start = int(math.ceil((ss.ramp_time_s + 0.5) * rate))  # after the fade-in (+ the actuator's lag)
         m = max(1, math.ceil(ss.block_s * spec.frequency_hz))  # cycles per comparison block
-        thresholds = np.array([ss.thresholds[c] for c in COLUMNS])
+        thresholds = np.array([ss.thresholds[c] for c in CHANNELS])
         block, prev_means, settled, cycles = 0, None, False, 0
         while True:
             # Settling: compare the channel means of consecutive blocks of whole cycles.
@@ -179,7 +179,7 @@ class Acquisition:
             if prev_means is not None:
                 change = np.abs(means - prev_means)
                 self.bus.publish("progress", label, phase=Phase.SETTLING.value, cycles=cycles,
-                                 change={c: float(x) for c, x in zip(COLUMNS, change)})
+                                 change={c: float(x) for c, x in zip(CHANNELS, change)})
                 if cycles >= ss.min_cycles and np.all(change < thresholds):
                     settled = True
                     break
@@ -221,7 +221,7 @@ class Acquisition:
             self._check_stop()
             if self.daq.reader_error:
                 raise AcquisitionError(f"experiment {label}: {self.daq.reader_error}")
-            now = time.monotonic()
+            now = self.clock.monotonic()
             if now - last_status > 0.2:
                 st = self.shaker.status()
                 if st.state == "ALARM":
@@ -231,11 +231,12 @@ class Acquisition:
                     a, n = capture
                     self.bus.publish("progress", label, phase=Phase.CAPTURING.value,
                                      fraction=min(max((rec.end - a) / n, 0.0), 1.0))
-            time.sleep(POLL_S)
+            self.clock.sleep(POLL_S)
 
-    def safe_stop(self, reason: str) -> None:
+    def safe_stop(self, reason: str) -> list[str]:
         """Bring the rig to rest whatever happened: stop the stream, fade out, STOP,
-        hydraulics off.  Each step is tried even if an earlier one fails."""
+        hydraulics off.  Each step is tried even if an earlier one fails; the steps
+        that failed are returned (and logged), so that the record can say so."""
         self._enter(Phase.STOPPING, None, reason=reason)
         steps = [("DAQ stop", self.daq.stop)]
         st = None
@@ -247,9 +248,14 @@ class Acquisition:
             steps.append(("fade out", self.shaker.fade_out))
             steps.append(("wait at static", lambda: self.shaker.wait_for({"AT_STATIC", "ALARM"}, 30.0)))
         steps += [("stop", self.shaker.stop), ("hydraulics off", lambda: self.shaker.hydraulics(False))]
+        failed = []
         for name, step in steps:
             try:
                 step()
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 — every step is tried; each failure is on record
+                failed.append(f"{name}: {exc}")
                 self.bus.publish("log", None, message=f"safe stop: {name} failed ({exc})")
+        self.bus.publish("log", None, message="safe stop done: stream stopped, STOP, hydraulics off" if not failed
+                         else f"safe stop incomplete: {len(failed)} of {len(steps)} steps failed")
         self._enter(Phase.IDLE, None)
+        return failed

@@ -5,6 +5,12 @@
 ``move``     hydraulics on and move to a static position
 ``stop``     stop motion, fade out or switch the hydraulics off; reset a latched alarm
 ``monitor``  live channel values and loss counters in the terminal
+
+Exit status (every command): 0 done; 1 identification did not converge (``run
+--identify``); 2 bad input (a file, address or argument; one line naming it, and
+nothing moved or written); 3 the rig failed or refused (a dead link, an alarm, a
+controller or DAQ fault) after the safe stop; 70 an internal error (a bug: traceback
+shown) after the safe stop; 130 interrupted after the safe stop.
 """
 
 from __future__ import annotations
@@ -12,29 +18,34 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import traceback
 from pathlib import Path
 
-from rig.config import ConfigError, load_rig_config
-from rig.daq import Calibration, Daq, DaqError
-from rig.plans import PlanError
-from rig.registers import RegisterMapError, load_register_map
-from rig.run import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_OK, RunOptions, main_run
-from rig.session import SessionError
-from rig.shaker import LimitError, Shaker, ShakerError
+from identify.errors import InputError
+from rig.config import load_rig_config
+from rig.daq import Calibration, Daq
+from rig.errors import BadInput, RigFault
+from rig.registers import load_register_map
+from rig.run import (
+    EXIT_ABORTED,
+    EXIT_BAD_INPUT,
+    EXIT_INTERNAL,
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    RunOptions,
+    run_session,
+)
+from rig.shaker import LimitError, Shaker
 
 
-def known_error(exc: Exception) -> str | None:
-    """The one-line message of an anticipated error, None for a bug."""
-    from identify.dataset import DatasetError
-    from identify.model import ModelError
-    from identify.parameters import ParameterError
-
-    if isinstance(exc, (ConfigError, RegisterMapError, PlanError, SessionError, LimitError, DatasetError,
-                        ModelError, ParameterError, ShakerError, DaqError)):
-        return str(exc)
-    if isinstance(exc, KeyError):
-        return str(exc.args[0])
-    return None
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{value}: must be at least 1")
+    return value
 
 
 def _csv(text: str | None) -> list[str] | None:
@@ -52,15 +63,15 @@ def _shaker(args: argparse.Namespace) -> Shaker:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    if not args.resume and not (args.shaker and args.daq):
+        raise BadInput("run: --shaker and --daq are needed (only --resume takes them from the session)")
     opt = RunOptions(plan=args.plan, shaker=args.shaker, daq=args.daq, out=Path(args.out),
                      experiments=_csv(args.experiments), periods=args.periods, resume=args.resume,
-                     identify=args.identify, on_alarm=args.on_alarm, rig_config=args.rig_config,
-                     calibration=args.calibration, register_map=args.register_map, model=args.model,
-                     params=args.params, estimate=_csv(args.estimate) or [], date=args.date,
+                     reset_alarm=args.reset_alarm, identify=args.identify, on_alarm=args.on_alarm,
+                     rig_config=args.rig_config, calibration=args.calibration, register_map=args.register_map,
+                     model=args.model, params=args.params, estimate=_csv(args.estimate) or [], date=args.date,
                      unit_serial=args.unit)
-    if not opt.estimate:
-        raise PlanError("--estimate names no parameter")
-    return main_run(opt)
+    return run_session(opt)
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -79,10 +90,21 @@ def cmd_move(args: argparse.Namespace) -> int:
     try:
         if shaker.status().state == "OFF":
             shaker.hydraulics(True)
-        shaker.move_to(args.position_mm * 1e-3)
-        if args.wait:
-            st = shaker.wait_for({"AT_STATIC"}, timeout_s=args.wait)
-            print(f"at static position {st.position_m * 1e3:.2f} mm")
+        try:
+            shaker.move_to(args.position_mm * 1e-3)
+            if args.wait:
+                st = shaker.wait_for({"AT_STATIC"}, timeout_s=args.wait)
+                print(f"at static position {st.position_m * 1e3:.2f} mm")
+        except LimitError:
+            raise  # refused before anything was sent: nothing moves, nothing to stop
+        except BaseException:
+            # The actuator may be moving and nobody will watch it: hold it and take the pressure off.
+            for step in (shaker.stop, lambda: shaker.hydraulics(False)):
+                try:
+                    step()
+                except Exception as exc:  # noqa: BLE001 — the original error is the one to report
+                    print(f"safe stop step failed: {exc}", file=sys.stderr)
+            raise
     finally:
         shaker.close()
     return EXIT_OK
@@ -145,20 +167,22 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    def common(p: argparse.ArgumentParser, shaker: bool = True) -> None:
-        if shaker:
-            p.add_argument("--shaker", required=True, help="tcp://HOST:PORT or rtu:///dev/DEVICE")
-            p.add_argument("--register-map", help="register map TOML (default: the datasheet's)")
+    def common(p: argparse.ArgumentParser, shaker_required: bool = True) -> None:
+        p.add_argument("--shaker", required=shaker_required, help="tcp://HOST:PORT or rtu:///dev/DEVICE")
+        p.add_argument("--register-map", help="register map TOML (default: the datasheet's)")
         p.add_argument("--rig-config", help="limits and steady-state criteria TOML (default: config/rig-default.toml)")
 
     run = sub.add_parser("run", help="run a plan of experiments into a session folder")
-    common(run)
+    common(run, shaker_required=False)
     run.add_argument("--plan", default="standard", help="standard or PLAN.toml")
-    run.add_argument("--daq", required=True, help="device path, socket://HOST:PORT or any pyserial URL")
+    run.add_argument("--daq", help="device path, socket://HOST:PORT or any pyserial URL")
     run.add_argument("--out", required=True, help="session folder")
     run.add_argument("--experiments", help="comma-separated letters of the plan (default: all)")
-    run.add_argument("--periods", type=int, help="whole periods to capture (default: the plan's)")
-    run.add_argument("--resume", action="store_true", help="continue an interrupted session in --out")
+    run.add_argument("--periods", type=_positive_int, help="whole periods to capture (default: the plan's)")
+    run.add_argument("--resume", action="store_true",
+                     help="continue an interrupted session in --out (addresses default to the session's)")
+    run.add_argument("--reset-alarm", action="store_true",
+                     help="clear an alarm the controller latched before this session (it is read and logged first)")
     run.add_argument("--identify", action="store_true", help="identify right after the last capture")
     run.add_argument("--on-alarm", choices=("abort", "skip"), default="abort",
                      help="after an alarm and the safe stop: end the session, or reset and go on")
@@ -197,12 +221,21 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command line's one error boundary: known errors become one line and their
+    exit status; anything else is a bug and keeps its traceback."""
     args = build_parser().parse_args(argv)
     try:
-        return args.func(args)
-    except Exception as exc:  # noqa: BLE001 — anticipated errors become one line
-        message = known_error(exc)
-        if message is None:
-            raise
-        print(f"error: {message}", file=sys.stderr)
-        return EXIT_BAD_INPUT if not isinstance(exc, (ShakerError, DaqError)) else EXIT_ABORTED
+        return int(args.func(args))
+    except (BadInput, InputError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
+    except RigFault as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_ABORTED
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    except Exception:
+        traceback.print_exc()
+        print("internal error: a bug, please report it with the traceback above", file=sys.stderr)
+        return EXIT_INTERNAL

@@ -6,13 +6,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from rig.errors import BadInput
 from rig.registers import CONFIG_DIR
 from rig.tomlfile import read_toml
 
 DEFAULT_RIG_CONFIG = CONFIG_DIR / "rig-default.toml"
 
 
-class ConfigError(ValueError):
+class ConfigError(BadInput):
     """A configuration file that cannot be used (names the file and the key)."""
 
 

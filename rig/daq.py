@@ -11,6 +11,7 @@ the gap counted as lost.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import re
 import threading
@@ -22,6 +23,7 @@ from typing import Callable
 import numpy as np
 import serial
 
+from rig.errors import AddressError, BadInput, RigFault
 from rig.frames import Block, FrameParser, LossCounters
 from rig.registers import CONFIG_DIR
 from rig.tomlfile import read_toml
@@ -30,10 +32,31 @@ DEFAULT_CALIBRATION = CONFIG_DIR / "daq-calibration-datasheet.toml"
 JOURNAL_FLUSH_S = 0.5
 BAUDRATE = 460800
 _STOP_ANSWER = re.compile(rb"OK STOP (\d+)\n")
+# The datasheet's channel order of the frames; the dataset columns carry these names.
+CHANNELS = ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")
 
 
-class DaqError(RuntimeError):
+class DaqError(RigFault):
     """The DAQ did not answer as the datasheet says (names the command and the answer)."""
+
+
+class CalibrationError(BadInput):
+    """A calibration file that cannot be used (names the file and the channel)."""
+
+
+def check_daq_address(url: str) -> None:
+    """Refuse an address pyserial cannot even try: an unknown ``scheme://`` or a
+    ``socket://`` without host and port.  A device path is only known once opened."""
+    scheme, sep, rest = url.partition("://")
+    if not sep:
+        return
+    if not scheme.isidentifier() or importlib.util.find_spec(f"serial.urlhandler.protocol_{scheme}") is None:
+        raise AddressError(f"DAQ address {url!r}: unknown scheme {scheme!r} (expected a device path, "
+                           "socket://HOST:PORT or another pyserial URL)")
+    if scheme == "socket":
+        host, _, port = rest.partition("/")[0].rpartition(":")
+        if not host or not port.isdigit():
+            raise AddressError(f"DAQ address {url!r}: expected socket://HOST:PORT")
 
 
 @dataclass(frozen=True)
@@ -50,16 +73,27 @@ class Calibration:
     @classmethod
     def from_file(cls, path: str | Path | None = None) -> "Calibration":
         path = Path(path) if path else DEFAULT_CALIBRATION
-        text, doc = read_toml(path, DaqError, "calibration ")
+        text, doc = read_toml(path, CalibrationError, "calibration ")
         try:
             channels = doc["channel"]
-            if len(channels) != 4:
-                raise ValueError(f"{len(channels)} [[channel]] tables, the DAQ has 4")
-            return cls(str(path), tuple(c["name"] for c in channels), tuple(c.get("unit", "") for c in channels),
-                       np.array([float(c["gain"]) for c in channels]), np.array([float(c["offset"]) for c in channels]),
-                       text)
-        except (KeyError, ValueError, TypeError) as exc:
-            raise DaqError(f"calibration {path}: {exc}") from None
+            if len(channels) != len(CHANNELS):
+                raise CalibrationError(f"calibration {path}: {len(channels)} [[channel]] tables, the DAQ has "
+                                       f"{len(CHANNELS)}")
+            names = tuple(c["name"] for c in channels)
+            calibration = cls(str(path), names, tuple(c.get("unit", "") for c in channels),
+                              np.array([float(c["gain"]) for c in channels]),
+                              np.array([float(c["offset"]) for c in channels]), text)
+        except KeyError as exc:
+            raise CalibrationError(f"calibration {path}: a [[channel]] lacks {exc.args[0]!r}") from None
+        except (ValueError, TypeError) as exc:
+            raise CalibrationError(f"calibration {path}: {exc}") from None
+        # The tables are applied to the frame's channels by position: a file whose tables
+        # were reordered would silently give stroke the pressure's gain and label it so.
+        for i, (name, expected) in enumerate(zip(names, CHANNELS)):
+            if name != expected:
+                raise CalibrationError(f"calibration {path}: [[channel]] {i + 1} is named {name!r}, but the DAQ's "
+                                       f"channel {i} is {expected!r} (the order is {', '.join(CHANNELS)})")
+        return calibration
 
     def engineering(self, counts: np.ndarray) -> np.ndarray:
         return self.offset + self.gain * counts.astype(float)
@@ -131,11 +165,16 @@ class Daq:
     """The DAQ: handshake, streaming with a reader thread, losses, journal, ring buffer."""
 
     def __init__(self, url: str, calibration: Calibration | None = None, *, rate_hz: int = 2000,
-                 journal: Path | None = None, port: serial.SerialBase | None = None,
+                 port: serial.SerialBase | None = None,
                  on_event: Callable[[str], None] = lambda message: None, reconnect_s: float = 10.0) -> None:
+        if port is None:
+            check_daq_address(url)
         self.url, self.rate_hz, self.on_event, self.reconnect_s = url, rate_hz, on_event, reconnect_s
         self.calibration = calibration or Calibration.from_file()
-        self.journal = Journal(journal) if journal else None
+        self.journal: Journal | None = None
+        # Bytes of the handshake, kept until a journal is attached: the session folder is
+        # made only once both links answer, and the journal must still begin at the first byte.
+        self._unjournaled: bytearray | None = bytearray()
         self.parser = FrameParser()
         self.ring = RingBuffer(4 * 5000)
         self.identity = ""
@@ -153,6 +192,13 @@ class Daq:
     def counters(self) -> LossCounters:
         return self.parser.counters
 
+    def attach_journal(self, path: Path) -> None:
+        """Journal every byte from now on into ``path``, the handshake included."""
+        self.journal = Journal(path)
+        if self._unjournaled:
+            self.journal.write(bytes(self._unjournaled))
+        self._unjournaled = None
+
     def subscribe(self, listener: Callable[[Samples], None]) -> None:
         """Call ``listener`` from the reader thread with every calibrated block (keep it quick)."""
         self._listeners.append(listener)
@@ -162,11 +208,14 @@ class Daq:
         """Open the line, stop any stream left running, identify, set the rate."""
         if self._port is None:
             self._port = self._open_port()
-        self._port.write(b"STOP\n")
-        self._drain(0.3)
-        self.identity = self.command("*IDN?")
-        while self.identity.startswith("OK STOP"):  # a late answer to the STOP above
-            self.identity = self._read_line(2.0) or ""
+        try:
+            self._port.write(b"STOP\n")
+            self._drain(0.3)
+            self.identity = self.command("*IDN?")
+            while self.identity.startswith("OK STOP"):  # a late answer to the STOP above
+                self.identity = self._read_line(2.0) or ""
+        except (serial.SerialException, OSError) as exc:
+            raise DaqError(f"DAQ at {self.url}: link lost during the handshake ({exc})") from None
         if not self.identity.startswith("DAQ4,"):
             raise DaqError(f"DAQ at {self.url}: *IDN? answered {self.identity!r}, expected 'DAQ4,…'")
         answer = self.command(f"RATE {self.rate_hz}")
@@ -177,7 +226,7 @@ class Daq:
     def _open_port(self) -> serial.SerialBase:
         try:
             return serial.serial_for_url(self.url, baudrate=BAUDRATE, timeout=0.05)
-        except (serial.SerialException, ValueError) as exc:
+        except (serial.SerialException, OSError, ValueError) as exc:
             raise DaqError(f"cannot open the DAQ at {self.url}: {exc}") from None
 
     def _drain(self, quiet_s: float) -> None:
@@ -190,12 +239,44 @@ class Daq:
                 last = time.monotonic()
 
     def command(self, text: str, timeout_s: float = 2.0) -> str:
-        """Send one command line and return its answer line."""
+        """Send one command line and return its answer line.  A link that drops during
+        the exchange is reopened (within the reconnect time), the DAQ brought back to
+        idle with STOP, and the command sent once more."""
+        try:
+            return self._exchange(text, timeout_s)
+        except (serial.SerialException, OSError) as exc:
+            lost = exc
+        if self._reopen_idle(lost):
+            try:
+                return self._exchange(text, timeout_s)
+            except (serial.SerialException, OSError) as exc:
+                lost = exc
+        raise DaqError(f"DAQ at {self.url}: link lost during {text!r} and not back ({lost})")
+
+    def _exchange(self, text: str, timeout_s: float) -> str:
         self._port.write(text.encode("ascii") + b"\n")
         line = self._read_line(timeout_s)
         if line is None:
             raise DaqError(f"DAQ at {self.url}: no answer to {text!r} within {timeout_s:g} s")
         return line
+
+    def _reopen_idle(self, exc: Exception) -> bool:
+        """Reopen the line outside a stream; True once it is open and quiet again."""
+        self.on_event(f"DAQ link lost ({exc}); reopening {self.url}")
+        deadline, delay = time.monotonic() + self.reconnect_s, 0.05
+        while time.monotonic() < deadline:
+            time.sleep(delay)
+            delay = min(2 * delay, 1.0)
+            try:
+                self._port.close()
+                self._port = self._open_port()
+                self._port.write(b"STOP\n")  # a START that got through before the drop
+                self._drain(0.3)
+            except (DaqError, serial.SerialException, OSError):
+                continue
+            self.on_event("DAQ link back")
+            return True
+        return False
 
     def _read_line(self, timeout_s: float) -> str | None:
         deadline, buf = time.monotonic() + timeout_s, b""
@@ -274,8 +355,12 @@ class Daq:
             self._deliver(self.parser.feed(data))
 
     def _journal(self, data: bytes) -> None:
-        if self.journal and data:
+        if not data:
+            return
+        if self.journal:
             self.journal.write(data)
+        elif self._unjournaled is not None and len(self._unjournaled) < 65536:
+            self._unjournaled += data
 
     def _reopen(self, exc: Exception) -> bool:
         self.on_event(f"DAQ link lost ({exc}); reopening {self.url}")

@@ -2,13 +2,15 @@
 writer, progress display, live view), in the spirit of Bluesky's documents.
 
 Inline subscribers (the session log, the dataset writer) run in the publishing
-thread because the data depend on them; every other subscriber (a terminal
-progress display, the GUI) gets its own queue and thread, so the acquisition never
-waits on it.
+thread because the data depend on them: their errors reach the publisher, and so the
+session's error boundary.  Every other subscriber (a terminal progress display, the
+GUI) gets its own queue and thread, so the acquisition never waits on it; its errors
+are logged (``rig.events``) with their traceback, and the session goes on.
 """
 
 from __future__ import annotations
 
+import logging
 import queue
 import threading
 import time
@@ -38,12 +40,14 @@ class Event:
 
 
 Subscriber = Callable[[Event], None]
+log = logging.getLogger(__name__)
 
 
 class EventBus:
     def __init__(self) -> None:
         self._inline: list[Subscriber] = []
         self._queued: list[tuple[queue.Queue, threading.Thread]] = []
+        self._inline_lock = threading.Lock()  # publishers are several threads (acquisition, links' events)
 
     def subscribe(self, fn: Subscriber, *, inline: bool = False) -> None:
         if inline:
@@ -51,12 +55,20 @@ class EventBus:
             return
         q: queue.Queue = queue.Queue()
 
+        name = getattr(fn, "__qualname__", type(fn).__qualname__)
+
         def pump() -> None:
+            failures = 0
             while (event := q.get()) is not None:
                 try:
                     fn(event)
-                except Exception:  # a broken display must not stop the session
-                    pass
+                except Exception:  # a broken display must not stop the session, but is said
+                    failures += 1
+                    if failures == 1:
+                        log.exception("event subscriber %s failed on a %r event; it gets the next events, "
+                                      "the session goes on", name, event.kind)
+            if failures > 1:
+                log.error("event subscriber %s failed on %d events in all", name, failures)
 
         thread = threading.Thread(target=pump, name="event-subscriber", daemon=True)
         thread.start()
@@ -64,8 +76,9 @@ class EventBus:
 
     def publish(self, kind: str, experiment: str | None = None, **data: Any) -> Event:
         event = Event(kind, experiment, data)
-        for fn in self._inline:
-            fn(event)
+        with self._inline_lock:
+            for fn in self._inline:
+                fn(event)
         for q, _ in self._queued:
             q.put(event)
         return event

@@ -10,13 +10,14 @@ from pathlib import Path
 
 from identify.plans import STANDARD_SET, ExperimentSpec
 from rig.config import RigConfig
+from rig.errors import BadInput
 from rig.shaker import check_waveform
 from rig.tomlfile import read_toml
 
 MOVE_SPEED_M_S = 0.05  # the controller's profile speed, for the duration estimate
 
 
-class PlanError(ValueError):
+class PlanError(BadInput):
     """A plan that cannot be run (file problems, or limit violations listed one per line)."""
 
 
@@ -37,8 +38,10 @@ class Plan:
         return replace(self, experiments=tuple(by_letter[x] for x in letters))
 
     def with_periods(self, periods: int | None) -> "Plan":
-        if not periods:
+        if periods is None:
             return self
+        if periods < 1:
+            raise PlanError(f"--periods {periods}: at least one whole period must be captured")
         return replace(self, experiments=tuple(replace(e, periods=periods) for e in self.experiments))
 
 

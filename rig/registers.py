@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from rig.errors import BadInput
 from rig.tomlfile import read_toml
 
 CONFIG_DIR = Path(__file__).parent / "config"
@@ -15,8 +16,12 @@ DEFAULT_MAP = CONFIG_DIR / "shaker-datasheet.toml"
 TABLES = ("holding", "coils", "inputs")
 
 
-class RegisterMapError(ValueError):
+class RegisterMapError(BadInput):
     """A register map file that cannot be used (names the file and the field)."""
+
+
+class RegisterValueError(BadInput):
+    """A value that does not fit its register (names the field, the value and the range)."""
 
 
 @dataclass(frozen=True)
@@ -35,7 +40,7 @@ class Field:
         counts = round(float(value) / self.scale)
         low, high = (-0x8000, 0x7FFF) if self.type == "s16" else (0, 0xFFFF)
         if not low <= counts <= high:
-            raise ValueError(f"{self.name} = {value:g} {self.unit} does not fit a {self.type} register "
+            raise RegisterValueError(f"{self.name} = {value:g} {self.unit} does not fit a {self.type} register "
                              f"(counts {counts} outside {low}…{high})")
         return counts & 0xFFFF
 

@@ -1,45 +1,66 @@
-"""A whole session: check the plan, connect, capture every experiment, store, and
-optionally identify in memory right after the last capture.
+"""A whole session, in four steps that can each be read and tested on their own:
 
-Exit status: 0 done; 1 identification did not converge; 2 bad input (plan, limits,
-files) refused before anything moved; 3 aborted (alarm, lost link) after a safe
-stop; 130 interrupted by the operator after a safe stop.
+``prepare``    every file, address, plan and argument checked; nothing written,
+               nothing sent (:class:`~rig.errors.BadInput` → exit 2);
+``connect``    both links opened and the controller's state read; a dead link or a
+               latched alarm ends here, still with nothing written (exit 3);
+``run``        the session folder, then every planned experiment.  From here on the
+               actuator may move, so *whatever* ends this step (the plan done, an
+               alarm, a lost link, Ctrl-C/SIGTERM/SIGHUP, a bug) goes through
+``tear down``  the safe stop (fade if running, STOP, hydraulics off), the session's
+               status written as it is, the links closed.
+
+The session's states form a small table, in the spirit of Bluesky's RunEngine::
+
+    idle → prepared → connected → running → stopping → complete | ended | aborted | interrupted
+                                          ↘ panicked (the safe stop itself failed; the watchdog is the last guard)
+
+Exit status: 0 every experiment captured (or skipped by ``--on-alarm skip``);
+1 identification did not converge; 2 bad input, refused before anything moved or
+was written; 3 aborted (alarm, lost link, controller or DAQ fault, a latched alarm
+at start) after the safe stop; 130 interrupted by the operator (or SIGTERM/SIGHUP)
+after the safe stop; 70 an internal error (a bug: traceback shown) after the safe stop.
 """
 
 from __future__ import annotations
 
+import shlex
 import signal
-import sys
-import time
+import threading
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import Any, Iterator
 
 from rich.console import Console
 
 from identify.dataset import Experiment
 from identify.files import atomic_write_bytes
-from identify.estimator import EstimationError
-from rig.acquisition import Acquisition, AcquisitionError, Interrupted
-from rig.config import load_rig_config
-from rig.daq import Calibration, Daq, DaqError
-from rig.events import Event, EventBus
-from rig.plans import check_plan, estimate_duration_s, load_plan
-from rig.registers import load_register_map
-from rig.session import Session, SessionLog
-from rig.shaker import AlarmError, Shaker, ShakerError
+from rig.acquisition import Acquisition, ExperimentRecord, Interrupted
+from rig.config import RigConfig, load_rig_config
+from rig.daq import Calibration, Daq, check_daq_address
+from rig.errors import RigError, RigFault
+from rig.events import EventBus
+from rig.plans import Plan, PlanError, check_plan, estimate_duration_s, load_plan
+from rig.progress import ConsoleProgress
+from rig.registers import RegisterMap, load_register_map
+from rig.session import Session, SessionError, SessionLog
+from rig.shaker import AlarmError, Shaker, ShakerAddress, ShakerError
 
-EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT, EXIT_ABORTED, EXIT_INTERRUPTED = 0, 1, 2, 3, 130
+EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT, EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED = 0, 1, 2, 3, 70, 130
+INTERRUPTING_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
 @dataclass
 class RunOptions:
     plan: str
-    shaker: str
-    daq: str
+    shaker: str | None
+    daq: str | None
     out: Path
     experiments: list[str] | None = None
     periods: int | None = None
     resume: bool = False
+    reset_alarm: bool = False               # clear an alarm latched before the session (read and logged first)
     identify: bool = False
     on_alarm: str = "abort"                 # or "skip"
     rig_config: str | None = None
@@ -52,153 +73,314 @@ class RunOptions:
     unit_serial: str = "unknown"
 
 
-class ConsoleProgress:
-    """Queued subscriber: one line per phase, settling and capture progress, and the
-    session's ETA (wall clock, scaled from the rig-time estimate of what is done)."""
+class PlanRefused(PlanError):
+    """The plan breaks the rig's limits; every violation is listed."""
 
-    def __init__(self, console: Console, estimates_s: dict[str, float]) -> None:
-        self.console, self.estimates = console, estimates_s
-        self.total, self.done, self.done_s = len(estimates_s), 0, 0.0
-        self.started = time.monotonic()
-        self._captured = 0.0
-        console.print(f"session: {self.total} experiments, about {sum(estimates_s.values()) / 60:.0f} min of rig time",
-                      highlight=False)
-
-    def _eta(self) -> str:
-        if not self.done_s:
-            return ""
-        left = (time.monotonic() - self.started) / self.done_s * (sum(self.estimates.values()) - self.done_s)
-        return f", session ETA {int(left // 60)}:{int(left % 60):02d}"
-
-    def __call__(self, e: Event) -> None:
-        if e.kind == "experiment-done":
-            self.done += 1
-            self.done_s += self.estimates.get(e.experiment or "", 0.0)
-        number = self.done if e.kind == "experiment-done" else min(self.done + 1, self.total)
-        head = f"[{number:2d}/{self.total}] {e.experiment or '':<8}"
-        if e.kind == "phase":
-            extra = "".join(f" {k}={v}" for k, v in e.data.items() if k != "phase")
-            self._captured = 0.0
-            self.console.print(f"{head} {e.data['phase']}{extra}", highlight=False)
-        elif e.kind == "progress" and e.data.get("phase") == "settling":
-            ch = e.data["change"]
-            self.console.print(f"{head}   cycle {e.data['cycles']:4d}: change stroke {ch['stroke_mm']:.3f} mm, "
-                               f"force {ch['force_N']:.1f} N, pressure {ch['pressure_bar']:.4f} bar, "
-                               f"temperature {ch['gas_temperature_C']:.3f} °C", highlight=False, style="dim")
-        elif e.kind == "progress" and e.data.get("phase") == "capturing":
-            if e.data["fraction"] >= self._captured + 0.25:
-                self._captured = e.data["fraction"]
-                self.console.print(f"{head}   captured {100 * self._captured:.0f} %", highlight=False, style="dim")
-        elif e.kind == "experiment-done":
-            flags = f" FLAGGED: {'; '.join(e.data['flags'])}" if e.data["flags"] else ""
-            self.console.print(f"{head} [green]captured[/green] {e.data['file']} ({e.data['samples']} samples, "
-                               f"{e.data['lost']} lost in window){flags}{self._eta()}", highlight=False)
-        elif e.kind in ("log", "alarm", "experiment-failed"):
-            style = "red" if e.kind != "log" else "dim"
-            self.console.print(f"{head} {e.data.get('message', '')}", style=style, highlight=False)
+    def __init__(self, source: str, problems: list[str]) -> None:
+        self.problems = problems
+        lines = "\n".join(f"  {p}" for p in problems)
+        super().__init__(f"plan refused, nothing moved ({len(problems)} violation{'s' if len(problems) > 1 else ''}"
+                         f" of the limits in {source}):\n{lines}")
 
 
-def run_session(opt: RunOptions, console: Console | None = None) -> int:
-    console = console or Console(stderr=True)
+class AlarmLatched(RigFault):
+    """The controller holds an alarm from before this session: nothing is moved until
+    someone who knows why has cleared it."""
+
+
+@dataclass
+class Prepared:
+    """Everything a session needs, checked; nothing has been written or sent yet."""
+
+    options: RunOptions
+    shaker_url: str
+    daq_url: str
+    config: RigConfig
+    calibration: Calibration
+    register_map: RegisterMap
+    plan: Plan
+    stored: Session | None                  # the session to resume, as read
+
+
+@dataclass
+class Links:
+    shaker: Shaker
+    daq: Daq
+    identity: str
+    latched_alarm: str | None                # an alarm cleared by --reset-alarm, for the record
+
+
+@dataclass
+class RunResult:
+    """How a session ended (the record of it is ``session.json``)."""
+
+    status: str                              # complete, ended: …, aborted: …, interrupted (…)
+    exit_code: int
+    session: Session
+    captured: list[Experiment] = field(default_factory=list)
+    skipped: list[str] = field(default_factory=list)
+    safe_stop_failures: list[str] = field(default_factory=list)
+    error: BaseException | None = None       # a bug, re-raised by the caller after the record is written
+
+
+# ----- prepare: check everything, write nothing ----------------------------------------------------
+def prepare(opt: RunOptions) -> Prepared:
     config = load_rig_config(opt.rig_config)
     calibration = Calibration.from_file(opt.calibration)
     register_map = load_register_map(opt.register_map)
+    stored = None
     if opt.resume:
-        session = Session.resume(opt.out)
-        plan = load_plan(session.meta["plan"]).select(session.meta["experiments"]).with_periods(session.meta["periods"])
+        stored = Session.load(opt.out)
+        if stored.meta.get("status") == "complete":
+            raise SessionError(f"{opt.out}: the session is complete; nothing to resume")
+        meta = stored.meta
+        plan = load_plan(meta["plan"]).select(meta["experiments"]).with_periods(meta["periods"])
+        shaker_url = opt.shaker or meta.get("endpoints", {}).get("shaker")
+        daq_url = opt.daq or meta.get("endpoints", {}).get("daq")
     else:
+        Session.check_new(opt.out)
         plan = load_plan(opt.plan).select(opt.experiments).with_periods(opt.periods)
+        shaker_url, daq_url = opt.shaker, opt.daq
+    if not shaker_url or not daq_url:
+        raise SessionError("--shaker and --daq are needed (a resumed session takes them from its session.json)")
+    ShakerAddress.parse(shaker_url)
+    check_daq_address(daq_url)
     problems = check_plan(plan, config)
     if problems:
-        console.print(f"[red]plan refused, nothing moved[/red] ({len(problems)} violation"
-                      f"{'s' if len(problems) > 1 else ''} of the limits in {config.source}):", highlight=False)
-        for p in problems:
-            console.print(f"  {p}", highlight=False)
-        return EXIT_BAD_INPUT
-    if not opt.resume:
-        snapshot = {"rig.toml": config.text, "daq-calibration.toml": calibration.text,
-                    "register-map.toml": register_map.text, "plan.toml" if plan.text != "standard" else "plan.txt":
-                    plan.text + "\n"}
-        session = Session.create(opt.out, plan_source=opt.plan if opt.plan == "standard" else str(Path(opt.plan).resolve()),
-                                 letters=[e.letter for e in plan.experiments], periods=opt.periods, date=opt.date,
-                                 snapshot=snapshot, unit={"serial": opt.unit_serial},
-                                 endpoints={"shaker": opt.shaker, "daq": opt.daq})
-    todo = [e for e in plan.experiments if e.letter not in session.completed()]
-
-    bus = EventBus()
-    log = SessionLog(session.path / "session.log")
-    bus.subscribe(log, inline=True)
-    estimates = {session.label(e.letter): estimate_duration_s(replace(plan, experiments=(e,)), config,
-                                                              e.static_position_mm * 1e-3) for e in todo}
-    bus.subscribe(ConsoleProgress(console, estimates))
-    if opt.resume:
-        kept = sorted(session.completed())
-        bus.publish("log", message=f"resuming: {len(kept)} experiments kept as captured ({', '.join(kept) or 'none'}), "
-                                   f"{len(todo)} to do")
-    shaker = Shaker(opt.shaker, config.limits, register_map, reconnect_s=config.reconnect_s,
-                    on_event=lambda m: bus.publish("log", message=m))
-    daq = Daq(opt.daq, calibration, rate_hz=config.daq_rate_hz, journal=session.journal_path,
-              reconnect_s=config.reconnect_s, on_event=lambda m: bus.publish("log", message=m))
-    acquisition = Acquisition(shaker, daq, config, bus)
-    previous = signal.signal(signal.SIGINT, lambda *_: acquisition.stop_requested.set())
-    status, code, captured = "complete", EXIT_OK, []
-    try:
-        try:
-            shaker.connect()
-            ident = daq.open()
-            bus.publish("session-start", message=f"shaker {opt.shaker}, DAQ {opt.daq} ({ident})")
-        except (ShakerError, DaqError) as exc:
-            console.print(f"[red]error:[/red] {exc}", highlight=False)
-            session.finish("not started")
-            return EXIT_ABORTED
-        for spec in todo:
-            label = session.label(spec.letter)
-            try:
-                record = acquisition.run_experiment(spec, label)
-            except AlarmError as exc:
-                bus.publish("alarm", label, message=str(exc))
-                acquisition.safe_stop(str(exc))
-                if opt.on_alarm == "skip":
-                    try:
-                        shaker.reset_alarm()
-                        bus.publish("experiment-failed", label, message=f"{label} skipped after the alarm")
-                        continue
-                    except ShakerError as reset_exc:
-                        bus.publish("log", label, message=f"alarm reset failed: {reset_exc}")
-                status, code = f"aborted: {exc}", EXIT_ABORTED
-                break
-            session_exp = session.write_experiment(record)
-            captured.append(session_exp)
-            bus.publish("experiment-done", label, file=session_exp.file, samples=len(record.index),
-                        lost=record.lost_samples, flags=record.flags)
-        acquisition.safe_stop("end of session" if code == EXIT_OK else status)
-    except Interrupted:
-        acquisition.safe_stop("interrupted by the operator")
-        status, code = "interrupted", EXIT_INTERRUPTED
-    except (ShakerError, DaqError, AcquisitionError) as exc:
-        bus.publish("log", message=f"aborting: {exc}")
-        acquisition.safe_stop(str(exc))
-        status, code = f"aborted: {exc}", EXIT_ABORTED
-    finally:
-        signal.signal(signal.SIGINT, previous)
-        session.finish(status)
-        bus.publish("session-end", message=status)
-        shaker.close()
-        daq.close()
-        bus.close()
-        log.close()
-    if code != EXIT_OK:
-        console.print(f"[red]session {status}[/red]; resume with --resume --out {session.path}", highlight=False)
-        return code
-    console.print(f"session complete: {session.path}", highlight=False)
+        raise PlanRefused(config.source, problems)
     if opt.identify:
-        return identify_session(session, opt, console, captured)
+        _check_identification(opt)
+    return Prepared(opt, shaker_url, daq_url, config, calibration, register_map, plan, stored)
+
+
+def _check_identification(opt: RunOptions) -> None:
+    """Model, start file and estimated names, before the rig spends an hour on data they would refuse."""
+    from identify.model import load_model
+    from identify.parameters import Parameters
+
+    if not opt.estimate:
+        raise PlanError("--estimate names no parameter")
+    model = load_model(opt.model)
+    params = Parameters.from_file(model, opt.params) if opt.params else Parameters(model)
+    params.set_estimated(opt.estimate)
+
+
+# ----- connect: both links, and the controller's state ------------------------------------------------
+def connect(prep: Prepared, on_event: Any) -> Links:
+    """Open both links.  The caller closes them (:func:`close_links`) whatever happens."""
+    opt, config = prep.options, prep.config
+    shaker = Shaker(prep.shaker_url, config.limits, prep.register_map, reconnect_s=config.reconnect_s,
+                    on_event=on_event)
+    daq = Daq(prep.daq_url, prep.calibration, rate_hz=config.daq_rate_hz, reconnect_s=config.reconnect_s,
+              on_event=on_event)
+    links = Links(shaker, daq, "", None)
+    try:
+        shaker.connect()
+        links.identity = daq.open()
+        status = shaker.status()
+        if status.state == "ALARM":
+            if not opt.reset_alarm:
+                raise AlarmLatched(
+                    f"the controller at {prep.shaker_url} holds a latched alarm: {status.alarm} (stroke "
+                    f"{status.position_m * 1e3:.2f} mm). Find out why, then clear it with "
+                    f"'python -m rig stop --reset --shaker {prep.shaker_url}' or run again with --reset-alarm")
+            links.latched_alarm = status.alarm
+            shaker.reset_alarm()
+            if shaker.status().state == "ALARM":
+                raise AlarmLatched(f"the controller at {prep.shaker_url} still holds the alarm {status.alarm} "
+                                   "after a reset: the cause is still there")
+    except BaseException:
+        close_links(links)
+        raise
+    return links
+
+
+def close_links(links: Links) -> None:
+    for close in (links.shaker.close, links.daq.close):
+        try:
+            close()
+        except Exception:  # noqa: BLE001 — closing must not hide why the session ended
+            pass
+
+
+# ----- run and tear down ------------------------------------------------------------------------------
+class SessionRunner:
+    """Runs a prepared plan on connected links; :meth:`run` always ends in the safe stop
+    and an honest status."""
+
+    def __init__(self, prep: Prepared, links: Links, bus: EventBus, console: Console) -> None:
+        self.prep, self.links, self.bus, self.console = prep, links, bus, console
+        self.state = "connected"
+        self.acquisition = Acquisition(links.shaker, links.daq, prep.config, bus)
+
+    def open_session(self) -> Session:
+        prep, opt = self.prep, self.prep.options
+        if prep.stored is not None:
+            session = prep.stored
+            session.reopen()
+        else:
+            plan = prep.plan
+            snapshot = {"rig.toml": prep.config.text, "daq-calibration.toml": prep.calibration.text,
+                        "register-map.toml": prep.register_map.text,
+                        "plan.toml" if plan.text != "standard" else "plan.txt": plan.text + "\n"}
+            session = Session.create(opt.out, plan_source=opt.plan if opt.plan == "standard" else
+                                     str(Path(opt.plan).resolve()),
+                                     letters=[e.letter for e in plan.experiments], periods=opt.periods,
+                                     date=opt.date, snapshot=snapshot, unit={"serial": opt.unit_serial},
+                                     endpoints={"shaker": prep.shaker_url, "daq": prep.daq_url})
+        self.links.daq.attach_journal(session.journal_path)
+        return session
+
+    def run(self, session: Session) -> RunResult:
+        prep, bus, acq = self.prep, self.bus, self.acquisition
+        todo = [e for e in prep.plan.experiments if e.letter not in session.completed()]
+        result = RunResult("running", EXIT_OK, session)
+        bus.publish("session-start", message=f"shaker {prep.shaker_url}, DAQ {prep.daq_url} ({self.links.identity})")
+        if self.links.latched_alarm:
+            bus.publish("log", message=f"alarm latched before the session: {self.links.latched_alarm}; "
+                                       "cleared by --reset-alarm")
+        if prep.stored is not None:
+            kept = sorted(session.completed())
+            bus.publish("log", message=f"resuming: {len(kept)} experiments kept as captured "
+                                       f"({', '.join(kept) or 'none'}), {len(todo)} to do")
+        self.state = "running"
+        reason = "end of session"
+        try:
+            with _interrupt_on_signals(acq.stop_requested) as received:
+                try:
+                    for spec in todo:
+                        self._experiment(spec, session, result)
+                except Interrupted:
+                    name = signal.Signals(received[-1]).name if received else "SIGINT"
+                    reason = f"interrupted by the operator ({name})"
+                    result.status, result.exit_code = f"interrupted ({name})", EXIT_INTERRUPTED
+                except RigError as exc:
+                    reason = str(exc)
+                    bus.publish("log", message=f"aborting: {exc}")
+                    result.status, result.exit_code = f"aborted: {exc}", EXIT_ABORTED
+                except BaseException as exc:  # a bug: the rig is stopped all the same, then it is shown
+                    reason = f"internal error: {type(exc).__name__}: {exc}"
+                    bus.publish("log", message=f"aborting on an internal error: {type(exc).__name__}: {exc}")
+                    result.status, result.exit_code, result.error = f"aborted: {reason}", EXIT_INTERNAL, exc
+                else:
+                    if result.skipped:
+                        result.status = (f"ended: {len(todo) - len(result.skipped)} of {len(todo)} experiments "
+                                         f"captured, skipped after alarms: {', '.join(result.skipped)}")
+                    else:
+                        result.status = "complete"
+                self.state = "stopping"
+                result.safe_stop_failures = acq.safe_stop(reason)
+        finally:
+            if result.status == "running":  # only a failure inside the safe stop itself gets here
+                result.status, result.exit_code = "aborted: the safe stop failed", EXIT_INTERNAL
+            if result.safe_stop_failures:
+                self.state = "panicked"
+                if result.status == "complete":
+                    result.status, result.exit_code = "aborted: the safe stop at the end failed", EXIT_ABORTED
+                result.status += ("; safe stop incomplete (" + "; ".join(result.safe_stop_failures)
+                                  + "): the controller's watchdog stops the shaker once this program has let go")
+            else:
+                self.state = result.status.split(":")[0].split(" ")[0]
+            session.finish(result.status)
+            bus.publish("session-end", message=result.status)
+        return result
+
+    def _experiment(self, spec: Any, session: Session, result: RunResult) -> None:
+        label = session.label(spec.letter)
+        try:
+            record: ExperimentRecord = self.acquisition.run_experiment(spec, label)
+        except AlarmError as exc:
+            self.bus.publish("alarm", label, message=str(exc))
+            if self.prep.options.on_alarm != "skip":
+                raise
+            failures = self.acquisition.safe_stop(str(exc))
+            if failures:
+                raise RigFault(f"{exc}; the safe stop after it failed ({'; '.join(failures)})") from None
+            try:
+                self.links.shaker.reset_alarm()
+            except ShakerError as reset_exc:
+                raise RigFault(f"{exc}; the alarm could not be reset ({reset_exc})") from None
+            result.skipped.append(label)
+            self.bus.publish("experiment-failed", label, message=f"{label} skipped after the alarm ({exc})")
+            return
+        experiment = session.write_experiment(record)
+        result.captured.append(experiment)
+        self.bus.publish("experiment-done", label, file=experiment.file, samples=len(record.index),
+                         lost=record.lost_samples, flags=record.flags)
+
+
+@contextmanager
+def _interrupt_on_signals(stop: threading.Event) -> Iterator[list[int]]:
+    """SIGINT, SIGTERM and SIGHUP ask the acquisition to stop (it then takes the safe
+    stop); the signals received are listed.  Outside the main thread (a GUI's worker)
+    the owner of the thread sets ``stop`` itself."""
+    received: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield received
+        return
+
+    def handler(signum: int, _frame: Any) -> None:
+        received.append(signum)
+        stop.set()
+
+    previous = {s: signal.signal(s, handler) for s in INTERRUPTING_SIGNALS}
+    try:
+        yield received
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+
+
+def run_session(opt: RunOptions, console: Console | None = None) -> int:
+    """``rig run``: prepare, connect, run, tear down; identification after a complete session."""
+    console = console or Console(stderr=True)
+    prep = prepare(opt)
+    bus = EventBus()
+    links = connect(prep, on_event=lambda m: bus.publish("log", message=m))
+    log: SessionLog | None = None
+    try:
+        runner = SessionRunner(prep, links, bus, console)
+        session = runner.open_session()
+        log = SessionLog(session.path / "session.log")
+        bus.subscribe(log, inline=True)
+        todo = [e for e in prep.plan.experiments if e.letter not in session.completed()]
+        estimates = {session.label(e.letter): estimate_duration_s(replace(prep.plan, experiments=(e,)), prep.config,
+                                                                  e.static_position_mm * 1e-3) for e in todo}
+        bus.subscribe(ConsoleProgress(console, estimates))
+        result = runner.run(session)
+    finally:
+        close_links(links)   # first: the links' threads publish to the log
+        bus.close()
+        if log is not None:
+            log.close()
+    if result.error is not None:
+        raise result.error
+    if result.exit_code != EXIT_OK:
+        console.print(f"[red]session {result.status}[/red]", highlight=False)
+        console.print(f"captured experiments are kept in {session.path}; to finish the session: "
+                      f"{resume_command(session, opt)}", highlight=False)
+        return result.exit_code
+    console.print(f"session {result.status}: {session.path}", highlight=False)
+    if opt.identify:
+        return identify_session(session, opt, console, result.captured)
     return EXIT_OK
+
+
+def resume_command(session: Session, opt: RunOptions) -> str:
+    """What the operator types to go on (``--reset-alarm`` only where the watchdog or an
+    alarm will be latched: the operator is told, not surprised)."""
+    args = ["python", "-m", "rig", "run", "--resume", "--out", str(session.path)]
+    if opt.identify:
+        args += ["--identify", "--model", opt.model, "--estimate", ",".join(opt.estimate)]
+        if opt.params:
+            args += ["--params", opt.params]
+    return shlex.join(args) + "  (add --reset-alarm if the controller reports a latched alarm)"
 
 
 def identify_session(session: Session, opt: RunOptions, console: Console, captured: list[Experiment]) -> int:
     """Fit the session's experiments in memory; RESULT.json and report.txt into the session."""
     from identify.dataset import read_dataset
+    from identify.errors import IdentifyError
     from identify.fit import fit_experiments
     from identify.model import load_model
     from identify.parameters import Parameters
@@ -214,29 +396,17 @@ def identify_session(session: Session, opt: RunOptions, console: Console, captur
     experiments: list[Experiment] = [in_memory.get(e["label"]) or ds.experiment(e["label"])
                                      for e in session.manifest["experiments"] if e.get("kind") == "periodic"]
     command = (f"python -m identify fit {session.path} --model {opt.model} --estimate {','.join(opt.estimate)}"
-               + (f" --params {opt.params}" if opt.params else "") + f" --output RESULT.json")
+               + (f" --params {opt.params}" if opt.params else "") + " --output RESULT.json")
     console.print(f"identifying {', '.join(opt.estimate)} ({opt.model}) on {len(experiments)} experiments; "
                   f"same as: {command}", highlight=False)
     try:
         result = fit_experiments(model, experiments, params, opt.estimate)
-    except EstimationError as exc:
-        console.print(f"[red]identification failed:[/red] {exc}", highlight=False)
+    except IdentifyError as exc:
+        console.print(f"[red]identification failed:[/red] {exc} (the captured session is complete and kept)",
+                      highlight=False)
         return EXIT_NOT_CONVERGED
     result.write_json(session.path / "RESULT.json")
     report = result.fit_report()
     atomic_write_bytes(session.path / "report.txt", (report + "\n").encode())
     print(report)
     return EXIT_OK if result.converged else EXIT_NOT_CONVERGED
-
-
-def main_run(opt: RunOptions) -> int:
-    try:
-        return run_session(opt)
-    except Exception as exc:  # noqa: BLE001 — turned into one clear line below
-        from rig.cli import known_error
-
-        message = known_error(exc)
-        if message is None:
-            raise
-        print(f"error: {message}", file=sys.stderr)
-        return EXIT_BAD_INPUT

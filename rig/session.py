@@ -12,6 +12,7 @@ from __future__ import annotations
 import datetime as _dt
 import io
 import json
+import os
 import platform
 import time
 from dataclasses import dataclass
@@ -23,13 +24,15 @@ import pandas as pd
 
 from identify.dataset import FORMAT, Experiment, csv_bytes, write_manifest
 from identify.files import atomic_write_bytes
-from rig.acquisition import COLUMNS, ExperimentRecord
+from rig.acquisition import ExperimentRecord
+from rig.daq import CHANNELS
+from rig.errors import BadInput
 from rig.events import Event
 
 SESSION_FILE = "session.json"
 
 
-class SessionError(ValueError):
+class SessionError(BadInput):
     """A session folder that cannot be created or resumed (says which and why)."""
 
 
@@ -49,12 +52,23 @@ class Session:
     meta: dict[str, Any]
     manifest: dict[str, Any]
 
+    @staticmethod
+    def check_new(path: Path) -> None:
+        """Refuse, without writing anything, a folder where a new session cannot go."""
+        path = Path(path)
+        if (path / SESSION_FILE).exists() or (path / "dataset.json").exists():
+            raise SessionError(f"{path} already holds a session: use --resume to continue it, or another --out")
+        if path.exists() and not path.is_dir():
+            raise SessionError(f"--out {path}: exists and is not a folder")
+        existing = next(p for p in (path, *path.absolute().parents) if p.exists())
+        if not os.access(existing, os.W_OK | os.X_OK):
+            raise SessionError(f"--out {path}: {existing} is not writable")
+
     @classmethod
     def create(cls, path: Path, *, plan_source: str, letters: list[str], periods: int | None, date: str | None,
                snapshot: dict[str, str], unit: dict[str, str], endpoints: dict[str, str]) -> "Session":
         path = Path(path)
-        if (path / SESSION_FILE).exists() or (path / "dataset.json").exists():
-            raise SessionError(f"{path} already holds a session: use --resume to continue it, or another --out")
+        cls.check_new(path)
         path.mkdir(parents=True, exist_ok=True)
         for name, text in snapshot.items():
             atomic_write_bytes(path / "config" / name, text.encode())
@@ -70,24 +84,30 @@ class Session:
         return session
 
     @classmethod
-    def resume(cls, path: Path) -> "Session":
+    def load(cls, path: Path) -> "Session":
+        """A stored session as it is, read only (for checks before :meth:`reopen`)."""
         path = Path(path)
         try:
             meta = json.loads((path / SESSION_FILE).read_text())
             manifest = json.loads((path / "dataset.json").read_text())
         except FileNotFoundError as exc:
             raise SessionError(f"{path}: nothing to resume ({Path(exc.filename).name} missing)") from None
-        except json.JSONDecodeError as exc:
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
             raise SessionError(f"{path}: unreadable session file ({exc})") from None
+        for key in ("plan", "experiments", "periods", "date"):
+            if key not in meta:
+                raise SessionError(f"{path / SESSION_FILE}: no {key!r}; not a session this program wrote")
         for entry in manifest.get("experiments", []):
             if not (path / entry["file"]).is_file():
                 raise SessionError(f"{path}: experiment {entry['label']} is in dataset.json but {entry['file']} "
                                    "is missing")
-        session = cls(path, meta, manifest)
-        session.meta["status"] = "running"
-        session.meta.setdefault("resumed", []).append(_dt.datetime.now().isoformat(timespec="seconds"))
-        session._save_meta()
-        return session
+        return cls(path, meta, manifest)
+
+    def reopen(self) -> None:
+        """Mark a loaded session as running again (the resume is on record)."""
+        self.meta["status"] = "running"
+        self.meta.setdefault("resumed", []).append(_dt.datetime.now().isoformat(timespec="seconds"))
+        self._save_meta()
 
     # ----- contents ----------------------------------------------------------------------
     def label(self, letter: str) -> str:
@@ -104,7 +124,7 @@ class Session:
 
     def write_experiment(self, record: ExperimentRecord) -> Experiment:
         """CSV then manifest, each atomically; returns the experiment as identify reads it."""
-        columns = {"time_s": record.time_s, **{c: record.values[:, i] for i, c in enumerate(COLUMNS)}}
+        columns = {"time_s": record.time_s, **{c: record.values[:, i] for i, c in enumerate(CHANNELS)}}
         payload = csv_bytes(columns)
         file = f"{record.label}.csv"
         atomic_write_bytes(self.path / file, payload)

@@ -11,23 +11,24 @@ from __future__ import annotations
 
 import math
 import threading
-import time
 from dataclasses import dataclass
-from typing import Callable
+from typing import Any, Callable
 from urllib.parse import urlparse
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerType
 
+from rig.clock import WALL_CLOCK, Clock
 from rig.config import Limits
+from rig.errors import AddressError, BadInput, RigFault
 from rig.registers import RegisterMap, load_register_map
 
 EXCEPTION_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                    4: "device failure", 6: "device busy"}
 
 
-class ShakerError(RuntimeError):
+class ShakerError(RigFault):
     """The controller refused a command or reported an alarm."""
 
 
@@ -48,8 +49,32 @@ class AlarmError(ShakerError):
         self.status = status
 
 
-class LimitError(ValueError):
+class LimitError(BadInput):
     """A command outside the rig's limits, refused before anything is sent."""
+
+
+@dataclass(frozen=True)
+class ShakerAddress:
+    """Where the controller is: Modbus TCP (host, port) or Modbus RTU (device path)."""
+
+    url: str
+    host: str | None = None
+    port: int | None = None
+    device: str | None = None
+
+    @classmethod
+    def parse(cls, url: str) -> "ShakerAddress":
+        """Checks the form only; whether anything answers there is :meth:`Shaker.connect`'s business."""
+        parsed = urlparse(url)
+        try:
+            port = parsed.port
+        except ValueError:
+            port = None
+        if parsed.scheme == "tcp" and parsed.hostname and port:
+            return cls(url, host=parsed.hostname, port=port)
+        if parsed.scheme == "rtu" and parsed.path:
+            return cls(url, device=parsed.path)
+        raise AddressError(f"shaker address {url!r}: expected tcp://HOST:PORT or rtu:///dev/DEVICE")
 
 
 @dataclass(frozen=True)
@@ -88,18 +113,21 @@ class Shaker:
 
     def __init__(self, url: str, limits: Limits, register_map: RegisterMap | None = None, *,
                  timeout_s: float = 1.0, reconnect_s: float = 20.0,
-                 on_event: Callable[[str], None] = lambda message: None) -> None:
-        self.url, self.limits = url, limits
+                 on_event: Callable[[str], None] = lambda message: None,
+                 client: Any = None, clock: Clock = WALL_CLOCK) -> None:
+        """``client``: a pymodbus-like client to use instead of one made from ``url``
+        (tests inject faults through it)."""
+        address = ShakerAddress.parse(url)
+        self.url, self.limits, self.clock = url, limits, clock
         self.map = register_map or load_register_map()
         self.reconnect_s, self.on_event = reconnect_s, on_event
-        parsed = urlparse(url)
-        if parsed.scheme == "tcp" and parsed.hostname and parsed.port:
-            self._client = ModbusTcpClient(parsed.hostname, port=parsed.port, timeout=timeout_s, retries=0)
-        elif parsed.scheme == "rtu" and parsed.path:
-            self._client = ModbusSerialClient(parsed.path, framer=FramerType.RTU, baudrate=115200,
+        if client is not None:
+            self._client = client
+        elif address.device:
+            self._client = ModbusSerialClient(address.device, framer=FramerType.RTU, baudrate=115200,
                                               timeout=timeout_s, retries=0)
         else:
-            raise ValueError(f"shaker address {url!r}: expected tcp://HOST:PORT or rtu:///dev/DEVICE")
+            self._client = ModbusTcpClient(address.host, port=address.port, timeout=timeout_s, retries=0)
         self._lock = threading.RLock()
         self._heartbeat_stop = threading.Event()
         self._heartbeat: threading.Thread | None = None
@@ -109,8 +137,14 @@ class Shaker:
     def connect(self, heartbeat: bool = True) -> None:
         """Open the link, write the rig's limits and watchdog, start the heartbeat."""
         with self._lock:
-            if not self._client.connect():
-                raise ShakerLinkError(f"no Modbus controller answers at {self.url}")
+            try:
+                answered = self._client.connect()
+            except OSError as exc:
+                answered, why = False, f" ({exc})"
+            else:
+                why = ""
+            if not answered:
+                raise ShakerLinkError(f"no Modbus controller answers at {self.url}{why}")
         lim = self.limits
         self._write_holding({"stroke_limit_low": lim.stroke_low_m, "stroke_limit_high": lim.stroke_high_m,
                              "force_limit": lim.force_limit_n})
@@ -180,17 +214,17 @@ class Shaker:
 
     def wait_for(self, states: set[str], timeout_s: float, poll_s: float = 0.02) -> ShakerStatus:
         """Poll until the controller is in one of ``states``; an alarm raises :class:`AlarmError`."""
-        deadline = time.monotonic() + timeout_s
+        deadline = self.clock.monotonic() + timeout_s
         while True:
             st = self.status()
             if st.state in states:
                 return st
             if st.state == "ALARM":
                 raise AlarmError(st)
-            if time.monotonic() > deadline:
+            if self.clock.monotonic() > deadline:
                 raise ShakerTimeout(f"controller still {st.state} after {timeout_s:g} s (waiting for "
-                                  f"{' or '.join(sorted(states))})")
-            time.sleep(poll_s)
+                                    f"{' or '.join(sorted(states))})")
+            self.clock.sleep(poll_s)
 
     # ----- register access ---------------------------------------------------------------
     def _read(self, table: str) -> dict[str, float]:
@@ -224,17 +258,18 @@ class Shaker:
             while True:
                 try:
                     result = getattr(self._client, method)(*args, device_id=self.map.unit_id, **kwargs)
-                except ModbusException as exc:
-                    deadline = deadline or time.monotonic() + self.reconnect_s
-                    if time.monotonic() > deadline:
+                except (ModbusException, OSError) as exc:
+                    # pymodbus reports a dead peer either way (ConnectionResetError, broken
+                    # pipe, timeouts): all of them are a lost link, never a crash.
+                    deadline = deadline or self.clock.monotonic() + self.reconnect_s
+                    if self.clock.monotonic() > deadline:
                         raise ShakerLinkError(f"Modbus link to {self.url} lost and not back within "
                                               f"{self.reconnect_s:g} s ({exc})") from None
                     if delay == 0.05:
                         self.on_event(f"Modbus link to {self.url} lost ({exc}); reconnecting")
-                    self._client.close()
-                    time.sleep(delay)
+                    self._reconnect()
+                    self.clock.sleep(delay)
                     delay = min(2 * delay, 1.0)
-                    self._client.connect()
                     continue
                 if deadline is not None:
                     self.on_event(f"Modbus link to {self.url} back")
@@ -244,11 +279,18 @@ class Shaker:
                                       f"(Modbus exception {code}: {EXCEPTION_NAMES.get(code, 'unknown')})")
                 return result.bits if method.endswith("coils") else result.registers
 
+    def _reconnect(self) -> None:
+        try:
+            self._client.close()
+            self._client.connect()
+        except OSError:
+            pass  # the next request tells whether the link is back
+
     def _heartbeat_loop(self) -> None:
         period = max(self.limits.watchdog_timeout_s / 4, 0.05)
         while not self._heartbeat_stop.wait(period):
             self._beat = (self._beat + 1) & 0xFFFF
             try:
                 self._write_holding({"heartbeat": self._beat})
-            except ShakerError as exc:
+            except Exception as exc:  # noqa: BLE001 — a dead heartbeat must be said; the watchdog then trips
                 self.on_event(f"heartbeat failed: {exc}")

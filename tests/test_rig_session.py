@@ -194,7 +194,7 @@ def test_ctrl_c_ramps_out_switches_hydraulics_off_and_leaves_consistent_files(se
     assert proc.returncode == 130, err
     assert c.read_input_registers(0, count=2, device_id=1).registers == [0, 0]   # OFF, no alarm
     c.close()
-    assert json.loads((out / "session.json").read_text())["status"] == "interrupted"
+    assert json.loads((out / "session.json").read_text())["status"] == "interrupted (SIGINT)"
     assert manifest(out)["experiments"] == []
     assert "safe stop:" not in err                     # no safe-stop step failed
 

@@ -1,0 +1,61 @@
+"""Terminal progress of a session: a queued subscriber of the session's events.
+
+One line per phase, settling and capture progress, and the session's ETA: the rig
+time announced at the start comes from the plan's per-experiment estimates; while the
+session runs, the time left is scaled by how long the finished experiments took
+against their estimates (wall clock, so a simulator's speed factor is included).
+"""
+
+from __future__ import annotations
+
+import time
+
+from rich.console import Console
+
+from rig.events import Event
+
+
+class ConsoleProgress:
+    """Queued subscriber: one line per phase, settling and capture progress, and the
+    session's ETA (wall clock, scaled from the rig-time estimate of what is done)."""
+
+    def __init__(self, console: Console, estimates_s: dict[str, float]) -> None:
+        self.console, self.estimates = console, estimates_s
+        self.total, self.done, self.done_s = len(estimates_s), 0, 0.0
+        self.started = time.monotonic()
+        self._captured = 0.0
+        console.print(f"session: {self.total} experiments, about {sum(estimates_s.values()) / 60:.0f} min of rig time",
+                      highlight=False)
+
+    def _eta(self) -> str:
+        if not self.done_s:
+            return ""
+        left = (time.monotonic() - self.started) / self.done_s * (sum(self.estimates.values()) - self.done_s)
+        return f", session ETA {int(left // 60)}:{int(left % 60):02d}"
+
+    def __call__(self, e: Event) -> None:
+        if e.kind == "experiment-done":
+            self.done += 1
+            self.done_s += self.estimates.get(e.experiment or "", 0.0)
+        number = self.done if e.kind == "experiment-done" else min(self.done + 1, self.total)
+        head = f"[{number:2d}/{self.total}] {e.experiment or '':<8}"
+        if e.kind == "phase":
+            extra = "".join(f" {k}={v}" for k, v in e.data.items() if k != "phase")
+            self._captured = 0.0
+            self.console.print(f"{head} {e.data['phase']}{extra}", highlight=False)
+        elif e.kind == "progress" and e.data.get("phase") == "settling":
+            ch = e.data["change"]
+            self.console.print(f"{head}   cycle {e.data['cycles']:4d}: change stroke {ch['stroke_mm']:.3f} mm, "
+                               f"force {ch['force_N']:.1f} N, pressure {ch['pressure_bar']:.4f} bar, "
+                               f"temperature {ch['gas_temperature_C']:.3f} °C", highlight=False, style="dim")
+        elif e.kind == "progress" and e.data.get("phase") == "capturing":
+            if e.data["fraction"] >= self._captured + 0.25:
+                self._captured = e.data["fraction"]
+                self.console.print(f"{head}   captured {100 * self._captured:.0f} %", highlight=False, style="dim")
+        elif e.kind == "experiment-done":
+            flags = f" FLAGGED: {'; '.join(e.data['flags'])}" if e.data["flags"] else ""
+            self.console.print(f"{head} [green]captured[/green] {e.data['file']} ({e.data['samples']} samples, "
+                               f"{e.data['lost']} lost in window){flags}{self._eta()}", highlight=False)
+        elif e.kind in ("log", "alarm", "experiment-failed"):
+            style = "red" if e.kind != "log" else "dim"
+            self.console.print(f"{head} {e.data.get('message', '')}", style=style, highlight=False)
