@@ -29,6 +29,7 @@ from rig.events import EventBus, Phase
 from rig.shaker import AlarmError, Shaker, ShakerTimeout
 
 POLL_S = 0.05
+QUICK_RECONNECT_S = 0.5
 
 
 class AcquisitionError(RigFault):
@@ -239,22 +240,26 @@ class Acquisition:
         that failed are returned (and logged), so that the record can say so."""
         self._enter(Phase.STOPPING, None, reason=reason)
         steps = [("DAQ stop", self.daq.stop)]
-        st = None
+        st, patience = None, self.shaker.reconnect_s
         try:
             st = self.shaker.status()
-        except Exception as exc:  # link gone: report, keep trying the rest
+        except Exception as exc:  # noqa: BLE001 — link gone: report, keep trying the rest
             self.bus.publish("log", None, message=f"safe stop: status unreadable ({exc})")
+            # The link had its whole reconnect time just now: each remaining step gets one
+            # quick try, so the record is written while the controller's watchdog takes over.
+            patience = QUICK_RECONNECT_S
         if st is not None and st.state == "RUNNING":
             steps.append(("fade out", self.shaker.fade_out))
             steps.append(("wait at static", lambda: self.shaker.wait_for({"AT_STATIC", "ALARM"}, 30.0)))
         steps += [("stop", self.shaker.stop), ("hydraulics off", lambda: self.shaker.hydraulics(False))]
         failed = []
-        for name, step in steps:
-            try:
-                step()
-            except Exception as exc:  # noqa: BLE001 — every step is tried; each failure is on record
-                failed.append(f"{name}: {exc}")
-                self.bus.publish("log", None, message=f"safe stop: {name} failed ({exc})")
+        with self.shaker.link_patience(patience):
+            for name, step in steps:
+                try:
+                    step()
+                except Exception as exc:  # noqa: BLE001 — every step is tried; each failure is on record
+                    failed.append(f"{name}: {exc}")
+                    self.bus.publish("log", None, message=f"safe stop: {name} failed ({exc})")
         self.bus.publish("log", None, message="safe stop done: stream stopped, STOP, hydraulics off" if not failed
                          else f"safe stop incomplete: {len(failed)} of {len(steps)} steps failed")
         self._enter(Phase.IDLE, None)

@@ -333,7 +333,7 @@ def _interrupt_on_signals(stop: threading.Event) -> Iterator[list[int]]:
 
 def run_session(opt: RunOptions, console: Console | None = None) -> int:
     """``rig run``: prepare, connect, run, tear down; identification after a complete session."""
-    console = console or Console(stderr=True)
+    console = console or Console(stderr=True, soft_wrap=True)  # log lines stay whole when piped
     prep = prepare(opt)
     bus = EventBus()
     links = connect(prep, on_event=lambda m: bus.publish("log", message=m))

@@ -11,8 +11,9 @@ from __future__ import annotations
 
 import math
 import threading
+from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 from urllib.parse import urlparse
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -164,6 +165,15 @@ class Shaker:
         with self._lock:
             self._client.close()
 
+    @contextmanager
+    def link_patience(self, reconnect_s: float) -> Iterator[None]:
+        """Within the block, a lost link is given ``reconnect_s`` to come back."""
+        saved, self.reconnect_s = self.reconnect_s, reconnect_s
+        try:
+            yield
+        finally:
+            self.reconnect_s = saved
+
     def __enter__(self) -> "Shaker":
         self.connect()
         return self
@@ -234,7 +244,7 @@ class Shaker:
         words = self._call(reader, first, count=last - first + 1)
         return {f.name: f.decode(words[f.address - first]) for f in fields}
 
-    def _write_holding(self, values: dict[str, float]) -> None:
+    def _write_holding(self, values: dict[str, float], patience_s: float | None = None) -> None:
         fields = sorted((self.map.field(n) for n in values), key=lambda f: f.address)
         words = {f.address: f.encode(values[f.name]) for f in fields}
         # Contiguous runs go out as one write-multiple request, so the controller checks
@@ -242,7 +252,7 @@ class Shaker:
         run: list[int] = []
         for addr in sorted(words) + [None]:
             if run and (addr is None or addr != run[-1] + 1):
-                self._call("write_registers", run[0], [words[a] for a in run],
+                self._call("write_registers", run[0], [words[a] for a in run], patience_s=patience_s,
                            what=", ".join(f"{f.name}={values[f.name]:g}" for f in fields if f.address in run))
                 run = []
             if addr is not None:
@@ -251,7 +261,10 @@ class Shaker:
     def _write_coil(self, name: str, value: bool) -> None:
         self._call("write_coil", self.map.field(name).address, bool(value), what=f"{name}={int(value)}")
 
-    def _call(self, method: str, *args, what: str = "", **kwargs):
+    def _call(self, method: str, *args, what: str = "", patience_s: float | None = None, **kwargs):
+        """One request; a lost link is reconnected for ``patience_s`` (default: the
+        reconnect time), 0 giving up at once without a word (the heartbeat's way)."""
+        patience = self.reconnect_s if patience_s is None else patience_s
         with self._lock:
             deadline = None
             delay = 0.05
@@ -261,10 +274,10 @@ class Shaker:
                 except (ModbusException, OSError) as exc:
                     # pymodbus reports a dead peer either way (ConnectionResetError, broken
                     # pipe, timeouts): all of them are a lost link, never a crash.
-                    deadline = deadline or self.clock.monotonic() + self.reconnect_s
-                    if self.clock.monotonic() > deadline:
+                    deadline = deadline or self.clock.monotonic() + patience
+                    if self.clock.monotonic() >= deadline:
                         raise ShakerLinkError(f"Modbus link to {self.url} lost and not back within "
-                                              f"{self.reconnect_s:g} s ({exc})") from None
+                                              f"{patience:g} s ({exc})") from None
                     if delay == 0.05:
                         self.on_event(f"Modbus link to {self.url} lost ({exc}); reconnecting")
                     self._reconnect()
@@ -288,9 +301,18 @@ class Shaker:
 
     def _heartbeat_loop(self) -> None:
         period = max(self.limits.watchdog_timeout_s / 4, 0.05)
+        failing = False
         while not self._heartbeat_stop.wait(period):
             self._beat = (self._beat + 1) & 0xFFFF
             try:
-                self._write_holding({"heartbeat": self._beat})
-            except Exception as exc:  # noqa: BLE001 — a dead heartbeat must be said; the watchdog then trips
-                self.on_event(f"heartbeat failed: {exc}")
+                # One try per beat: reconnecting is the business of the commands, and a
+                # beat that waited would hold the link's lock against them.
+                self._write_holding({"heartbeat": self._beat}, patience_s=0.0)
+            except Exception as exc:  # noqa: BLE001 — a failing heartbeat is said once; the watchdog then trips
+                if not failing:
+                    self.on_event(f"heartbeat failing: {exc}")
+                failing = True
+            else:
+                if failing:
+                    self.on_event("heartbeat back")
+                failing = False

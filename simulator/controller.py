@@ -161,6 +161,7 @@ class ShakerController:
         self.holding["static_position"] = round(self.initial_position_m * 1e5)
         self._segment = _Segment("hold", 0.0, self.initial_position_m)
         self._run_started_s: float | None = None
+        self.first_run_s: float | None = None   # simulated time of the first RUN (faults @run+T count from it)
         self._heartbeat_wall = self.wall_clock()
 
     # ----- register access (Modbus side) -------------------------------------------------
@@ -351,6 +352,8 @@ class ShakerController:
                                  frequency_hz=r["frequency"] * 1e-3, waveform=r["waveform"],
                                  ramp_s=r["ramp_time"] * 0.1)
         self._run_started_s = t
+        if self.first_run_s is None:
+            self.first_run_s = t
 
     def _set_hydraulics(self, on: bool) -> None:
         if on == self.hydraulics_on:

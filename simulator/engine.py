@@ -66,7 +66,9 @@ class VirtualRig:
         self._last = self._states_at_rest()
         self._servo_drift: tuple[float, float] | None = None  # (start, m/s) of a servo null drift
         self._schedule: list[_Scheduled] = sorted(
-            (_Scheduled(f.at_s if f.at_s is not None else 0.0, f) for f in self.faults), key=lambda s: s.at_s)
+            (_Scheduled(f.at_s if f.at_s is not None else 0.0, f) for f in self.faults if not f.after_run),
+            key=lambda s: s.at_s)
+        self._after_run = [f for f in self.faults if f.after_run]
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rig-engine", daemon=True)
         self._drop: SteadyState | None = None
@@ -176,6 +178,10 @@ class VirtualRig:
         self.daq.emit(counts, over)
 
     def _fire_faults(self) -> None:
+        if self._after_run and self.controller.first_run_s is not None:
+            self._schedule += [_Scheduled(self.controller.first_run_s + (f.at_s or 0.0), f) for f in self._after_run]
+            self._schedule.sort(key=lambda s: s.at_s)
+            self._after_run = []
         while self._schedule and self._schedule[0].at_s <= self.t:
             item = self._schedule.pop(0)
             self._apply(item)

@@ -1,6 +1,10 @@
 """Fault injection: what can go wrong on a rig, on demand, each logged with its
 simulated time.
 
+TIME is simulated seconds since the simulator started, or ``run+T``: T simulated
+seconds after the first RUN command, which lands a fault inside an experiment
+however long the client took to connect and move (tests on a busy machine).
+
 A fault is written ``KIND[@TIME][=VALUE]`` on the command line (``--fault`` may be
 repeated) or built with :func:`parse_fault`:
 
@@ -29,7 +33,8 @@ from typing import Callable
 KINDS = ("corrupt", "drop", "overflow", "stall", "disconnect", "modbus-down", "hydraulic-loss", "estop", "drift",
          "servo-drift")
 _TIMED = {"overflow", "stall", "disconnect", "modbus-down", "hydraulic-loss", "estop", "servo-drift"}
-_SYNTAX = re.compile(r"^(?P<kind>[a-z-]+)(?:@(?P<at>[0-9.eE+-]+))?(?:=(?P<value>[^@]+))?(?:@(?P<at2>[0-9.eE+-]+))?$")
+_TIME = r"(?:run\+)?[0-9.eE+-]+"
+_SYNTAX = re.compile(rf"^(?P<kind>[a-z-]+)(?:@(?P<at>{_TIME}))?(?:=(?P<value>[^@]+))?(?:@(?P<at2>{_TIME}))?$")
 
 
 class FaultError(ValueError):
@@ -42,9 +47,10 @@ class Fault:
     at_s: float | None = None
     value: float | None = None
     channel: int | None = None
+    after_run: bool = False   # at_s counts from the first RUN command
 
     def __str__(self) -> str:
-        when = f"@{self.at_s:g}" if self.at_s is not None else ""
+        when = f"@{'run+' if self.after_run else ''}{self.at_s:g}" if self.at_s is not None else ""
         if self.kind == "drift":
             return f"drift={self.channel}:{self.value:g}{when}"
         return f"{self.kind}{when}" + (f"={self.value:g}" if self.value is not None else "")
@@ -56,8 +62,9 @@ def parse_fault(text: str) -> Fault:
     if not m or m["kind"] not in KINDS:
         raise FaultError(f"fault {text!r}: expected KIND[@TIME][=VALUE] with KIND one of {', '.join(KINDS)}")
     kind, at_text, value_text = m["kind"], m["at"] or m["at2"], m["value"]
+    after_run = bool(at_text and at_text.startswith("run+"))
     try:
-        at = float(at_text) if at_text is not None else None
+        at = float(at_text.removeprefix("run+")) if at_text is not None else None
         if kind == "drift":
             if not value_text or ":" not in value_text:
                 raise FaultError(f"fault {text!r}: drift needs =CHANNEL:RATE")
@@ -65,7 +72,7 @@ def parse_fault(text: str) -> Fault:
             channel = int(ch)
             if not 0 <= channel <= 3:
                 raise FaultError(f"fault {text!r}: channel {channel} is not 0…3")
-            return Fault(kind, at, float(rate), channel)
+            return Fault(kind, at, float(rate), channel, after_run)
         value = float(value_text) if value_text is not None else None
     except ValueError as exc:
         if isinstance(exc, FaultError):
@@ -79,7 +86,7 @@ def parse_fault(text: str) -> Fault:
         raise FaultError(f"fault {text!r}: {kind} needs a positive =VALUE")
     if kind == "servo-drift" and not value:
         raise FaultError(f"fault {text!r}: {kind} needs a positive =VALUE")
-    return Fault(kind, at, value)
+    return Fault(kind, at, value, None, after_run)
 
 
 @dataclass

@@ -1,0 +1,102 @@
+"""Bad input to ``rig run``: one line that names the culprit, exit 2 (3 for a dead link),
+no traceback, and no session folder left behind."""
+
+from __future__ import annotations
+
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+CALIBRATION = Path(__file__).resolve().parents[1] / "rig" / "config" / "daq-calibration-datasheet.toml"
+
+
+def free_port() -> int:
+    """A loopback port nobody listens on (bound, then released)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def swapped_calibration(tmp_path: Path) -> Path:
+    """The datasheet calibration with the force and pressure tables exchanged."""
+    tables = CALIBRATION.read_text().split("[[channel]]")
+    tables[2], tables[3] = tables[3], tables[2]
+    path = tmp_path / "swapped.toml"
+    path.write_text("[[channel]]".join(tables))
+    return path
+
+
+def rig_run(tmp_path: Path, *args: str, shaker: str | None = None, daq: str | None = None):
+    out = tmp_path / "session"
+    cmd = [sys.executable, "-m", "rig", "run", "--shaker", shaker or f"tcp://127.0.0.1:{free_port()}",
+           "--daq", daq or f"socket://127.0.0.1:{free_port()}", "--out", str(out), *args]
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=60), out
+
+
+CASES = {
+    "shaker scheme": (dict(shaker="tpc://127.0.0.1:5020"), [], 2, "shaker address 'tpc://127.0.0.1:5020'"),
+    "daq scheme": (dict(daq="sokcet://127.0.0.1:5021"), [], 2, "unknown scheme 'sokcet'"),
+    "daq without port": (dict(daq="socket://127.0.0.1"), [], 2, "expected socket://HOST:PORT"),
+    "missing plan": ({}, ["--plan", "no/such/plan.toml"], 2, "plan no/such/plan.toml: cannot be read"),
+    "unknown letter": ({}, ["--experiments", "a,z"], 2, "has no experiment z"),
+    "zero periods": ({}, ["--periods", "0"], 2, "--periods: 0: must be at least 1"),
+    "negative periods": ({}, ["--periods", "-2"], 2, "--periods: -2: must be at least 1"),
+    "unknown estimate": ({}, ["--identify", "--estimate", "theta99"], 2, "no parameter 'theta99'"),
+    "dead controller": ({}, [], 3, "no Modbus controller answers at tcp://127.0.0.1:"),
+}
+
+
+@pytest.mark.parametrize("case", CASES)
+def test_bad_input_is_one_line_and_leaves_no_session(tmp_path, case):
+    addresses, args, code, message = CASES[case]
+    r, out = rig_run(tmp_path, *args, **addresses)
+    assert r.returncode == code, r.stderr
+    assert "Traceback" not in r.stderr
+    assert message in r.stderr, r.stderr
+    assert not out.exists(), sorted(p.name for p in out.iterdir())
+
+
+def test_plan_with_a_toml_error_is_refused_naming_file_and_line(tmp_path):
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[experiment]]\nlabel = "x"\nstatic_mm = 133\namplitude_mm = = 5\n')
+    r, out = rig_run(tmp_path, "--plan", str(plan))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert f"plan {plan}: not valid TOML" in r.stderr and "line 4" in r.stderr, r.stderr
+    assert not out.exists()
+
+
+def test_plan_outside_the_limits_lists_every_violation(tmp_path):
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[experiment]]\nlabel = "x"\nstatic_mm = 133\namplitude_mm = 200\nfrequency_Hz = 2\n'
+                    '[[experiment]]\nlabel = "y"\nstatic_mm = 133\namplitude_mm = 5\nfrequency_Hz = 90\n')
+    r, out = rig_run(tmp_path, "--plan", str(plan))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "plan refused, nothing moved (4 violations" in r.stderr, r.stderr
+    assert "experiment x: stroke" in r.stderr and "experiment y: frequency 90 Hz outside" in r.stderr
+    assert "experiment y: peak velocity 2.827 m/s" in r.stderr
+    assert not out.exists()
+
+
+def test_swapped_calibration_is_refused_before_anything_moves(tmp_path):
+    r, out = rig_run(tmp_path, "--calibration", str(swapped_calibration(tmp_path)))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert "[[channel]] 2 is named 'pressure_bar', but the DAQ's channel 1 is 'force_N'" in r.stderr, r.stderr
+    assert not out.exists()
+
+
+def test_dead_daq_leaves_no_session(served_rig, tmp_path):
+    sim = served_rig()
+    r, out = rig_run(tmp_path, shaker=sim.modbus_url, daq=f"socket://127.0.0.1:{free_port()}")
+    assert r.returncode == 3 and "Traceback" not in r.stderr
+    assert "cannot open the DAQ at socket://127.0.0.1:" in r.stderr, r.stderr
+    assert not out.exists()
+
+
+def test_resume_of_a_folder_without_a_session_names_it(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "rig", "run", "--resume", "--out", str(tmp_path)],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert f"{tmp_path}: nothing to resume (session.json missing)" in r.stderr, r.stderr
