@@ -238,6 +238,13 @@ class ShakerController:
             i = int(np.argmax(bad))
             return i, (Alarm.STROKE_LIMIT if stroke_bad[i] else Alarm.FORCE_LIMIT)
 
+    def trip_on_limit(self, alarm: Alarm, t: float, position_m: float, force_n: float, detail: str) -> None:
+        """Latch a limit trip that a block found, unless a client rewrote the limits or
+        reset an alarm while the block was computed (the trip would be a stale one)."""
+        with self._lock:
+            if self.trip_index(np.array([position_m]), np.array([force_n])) is not None:
+                self.trip(alarm, t, detail)
+
     def trip(self, alarm: Alarm, t: float, detail: str = "") -> None:
         """Latch an alarm: stop motion and hold the present position."""
         with self._lock:

@@ -135,7 +135,7 @@ class VirtualRig:
             i, alarm = trip
             limit = (f"force {force[-1]:.0f} N" if alarm == Alarm.FORCE_LIMIT else f"stroke {q[-1] * 1e3:.2f} mm")
             self.controller.position_m = float(q[-1])
-            self.controller.trip(alarm, t_end, limit)
+            self.controller.trip_on_limit(alarm, t_end, float(q[-1]), float(force[-1]), limit)
         self.controller.update(t_end, float(q[-1]), float(v[-1]), float(force[-1]))
         self._fire_faults()
 
