@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import threading
 from dataclasses import dataclass, field
+from typing import Any, Callable
 
 import numpy as np
 
@@ -106,7 +107,7 @@ class Acquisition:
         if rec is not None:
             rec(s)
 
-    def _enter(self, phase: Phase, label: str, **data) -> None:
+    def _enter(self, phase: Phase, label: str | None, **data: Any) -> None:
         self.phase = phase
         self.bus.publish("phase", label, phase=phase.value, **data)
 
@@ -205,6 +206,7 @@ class Acquisition:
                 break
             self.bus.publish("log", label, message=f"capture window {attempt + 1} lost {lost} samples"
                                                    + ("; capturing again" if attempt < ss.max_recaptures else ""))
+        assert best is not None  # the loop ran at least once
         a, values, present, lost, over, attempt = best
         flags = []
         if not settled:
@@ -239,7 +241,7 @@ class Acquisition:
         hydraulics off.  Each step is tried even if an earlier one fails; the steps
         that failed are returned (and logged), so that the record can say so."""
         self._enter(Phase.STOPPING, None, reason=reason)
-        steps = [("DAQ stop", self.daq.stop)]
+        steps: list[tuple[str, Callable[[], object]]] = [("DAQ stop", self.daq.stop)]
         st, patience = None, self.shaker.reconnect_s
         try:
             st = self.shaker.status()

@@ -192,6 +192,12 @@ class Daq:
     def counters(self) -> LossCounters:
         return self.parser.counters
 
+    @property
+    def _line(self) -> serial.SerialBase:
+        if self._port is None:
+            raise DaqError(f"DAQ at {self.url}: not open")
+        return self._port
+
     def attach_journal(self, path: Path) -> None:
         """Journal every byte from now on into ``path``, the handshake included."""
         self.journal = Journal(path)
@@ -209,7 +215,7 @@ class Daq:
         if self._port is None:
             self._port = self._open_port()
         try:
-            self._port.write(b"STOP\n")
+            self._line.write(b"STOP\n")
             self._drain(0.3)
             self.identity = self.command("*IDN?")
             while self.identity.startswith("OK STOP"):  # a late answer to the STOP above
@@ -233,7 +239,7 @@ class Daq:
         """Read and discard until the line has been quiet for ``quiet_s``."""
         last = time.monotonic()
         while time.monotonic() - last < quiet_s:
-            data = self._port.read(65536)
+            data = self._line.read(65536)
             if data:
                 self._journal(data)
                 last = time.monotonic()
@@ -254,7 +260,7 @@ class Daq:
         raise DaqError(f"DAQ at {self.url}: link lost during {text!r} and not back ({lost})")
 
     def _exchange(self, text: str, timeout_s: float) -> str:
-        self._port.write(text.encode("ascii") + b"\n")
+        self._line.write(text.encode("ascii") + b"\n")
         line = self._read_line(timeout_s)
         if line is None:
             raise DaqError(f"DAQ at {self.url}: no answer to {text!r} within {timeout_s:g} s")
@@ -268,9 +274,9 @@ class Daq:
             time.sleep(delay)
             delay = min(2 * delay, 1.0)
             try:
-                self._port.close()
+                self._line.close()
                 self._port = self._open_port()
-                self._port.write(b"STOP\n")  # a START that got through before the drop
+                self._line.write(b"STOP\n")  # a START that got through before the drop
                 self._drain(0.3)
             except (DaqError, serial.SerialException, OSError):
                 continue
@@ -281,7 +287,7 @@ class Daq:
     def _read_line(self, timeout_s: float) -> str | None:
         deadline, buf = time.monotonic() + timeout_s, b""
         while time.monotonic() < deadline:
-            byte = self._port.read(1)
+            byte = self._line.read(1)
             self._journal(byte)
             buf += byte
             if buf.endswith(b"\n"):
@@ -309,7 +315,7 @@ class Daq:
             return self.issued or 0
         self._stop_sent = True
         try:
-            self._port.write(b"STOP\n")
+            self._line.write(b"STOP\n")
         except (serial.SerialException, OSError) as exc:
             self.on_event(f"DAQ STOP not sent: {exc}")
         if not self._stopped.wait(timeout_s):
@@ -332,7 +338,7 @@ class Daq:
     def _reader(self) -> None:
         while self._streaming.is_set():
             try:
-                data = self._port.read(65536)
+                data = self._line.read(65536)
             except (serial.SerialException, OSError) as exc:
                 if not self._reopen(exc):
                     return
@@ -369,7 +375,7 @@ class Daq:
             time.sleep(delay)
             delay = min(2 * delay, 1.0)
             try:
-                self._port.close()
+                self._line.close()
                 self._port = self._open_port()
                 self.on_event("DAQ link back; the stream continues (the gap is counted as lost samples)")
                 return True

@@ -389,12 +389,12 @@ def identify_session(session: Session, opt: RunOptions, console: Console, captur
     model = load_model(opt.model)
     params = Parameters.from_file(model, opt.params) if opt.params else Parameters(model)
     # Experiments captured in this run are in memory already; earlier ones (resume) come from their files.
-    in_memory = {e.label: e for e in captured}
-    earlier = [e["label"] for e in session.manifest["experiments"] if e["label"] not in in_memory]
-    ds = read_dataset(session.path, model_columns(model, resolve_outputs(model, None)), earlier) \
-        if earlier else None
-    experiments: list[Experiment] = [in_memory.get(e["label"]) or ds.experiment(e["label"])
-                                     for e in session.manifest["experiments"] if e.get("kind") == "periodic"]
+    by_label = {e.label: e for e in captured}
+    earlier = [e["label"] for e in session.manifest["experiments"] if e["label"] not in by_label]
+    if earlier:
+        stored = read_dataset(session.path, model_columns(model, resolve_outputs(model, None)), earlier)
+        by_label.update((label, stored.experiment(label)) for label in earlier)
+    experiments = [by_label[e["label"]] for e in session.manifest["experiments"] if e.get("kind") == "periodic"]
     command = (f"python -m identify fit {session.path} --model {opt.model} --estimate {','.join(opt.estimate)}"
                + (f" --params {opt.params}" if opt.params else "") + " --output RESULT.json")
     console.print(f"identifying {', '.join(opt.estimate)} ({opt.model}) on {len(experiments)} experiments; "

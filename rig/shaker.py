@@ -128,6 +128,7 @@ class Shaker:
             self._client = ModbusSerialClient(address.device, framer=FramerType.RTU, baudrate=115200,
                                               timeout=timeout_s, retries=0)
         else:
+            assert address.host is not None and address.port is not None  # parse() gives one or the other
             self._client = ModbusTcpClient(address.host, port=address.port, timeout=timeout_s, retries=0)
         self._lock = threading.RLock()
         self._heartbeat_stop = threading.Event()
@@ -287,7 +288,7 @@ class Shaker:
                 if deadline is not None:
                     self.on_event(f"Modbus link to {self.url} back")
                 if result.isError():
-                    code = getattr(result, "exception_code", None)
+                    code = int(getattr(result, "exception_code", 0) or 0)
                     raise ShakerError(f"controller refused {what or method} "
                                       f"(Modbus exception {code}: {EXCEPTION_NAMES.get(code, 'unknown')})")
                 return result.bits if method.endswith("coils") else result.registers
