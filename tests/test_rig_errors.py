@@ -1,0 +1,125 @@
+"""The rig's error paths in-process, on an injected clock: lost Modbus links raised as
+OSError, subscriber failures, and the exception tree the CLI maps to exit codes."""
+
+from __future__ import annotations
+
+import logging
+import threading
+from types import SimpleNamespace
+
+import pytest
+
+from rig.config import load_rig_config
+from rig.errors import AddressError, BadInput, RigFault
+from rig.events import EventBus
+from rig.shaker import Shaker, ShakerAddress, ShakerLinkError
+
+
+class StepClock:
+    """Simulated time that passes only when somebody sleeps."""
+
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def monotonic(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
+
+
+class FlakyClient:
+    """A pymodbus-like client whose requests raise ``ConnectionResetError`` until
+    ``down_until`` (simulated seconds); the inputs table reads an idle controller."""
+
+    def __init__(self, clock: StepClock, down_until: float) -> None:
+        self.clock, self.down_until = clock, down_until
+        self.requests = 0
+
+    def connect(self) -> bool:
+        return True
+
+    def close(self) -> None:
+        pass
+
+    def _answer(self, **fields):
+        self.requests += 1
+        if self.clock.now < self.down_until:
+            raise ConnectionResetError(104, "Connection reset by peer")
+        return SimpleNamespace(isError=lambda: False, **fields)
+
+    def read_input_registers(self, address, count, device_id):
+        return self._answer(registers=[1, 0, 13300, 500, 0, 2100, 123][:count])
+
+    def write_registers(self, address, values, device_id):
+        return self._answer(registers=values)
+
+    def write_coil(self, address, value, device_id):
+        return self._answer(bits=[value])
+
+
+def shaker(clock: StepClock, client: FlakyClient, events: list[str], reconnect_s: float = 5.0) -> Shaker:
+    limits = load_rig_config().limits
+    return Shaker("tcp://127.0.0.1:1", limits, reconnect_s=reconnect_s, on_event=events.append, client=client,
+                  clock=clock)
+
+
+def test_a_connection_reset_within_the_reconnect_time_is_a_lost_and_found_link():
+    clock, events = StepClock(), []
+    client = FlakyClient(clock, down_until=2.0)
+    status = shaker(clock, client, events).status()
+    assert status.state == "IDLE" and status.position_m == pytest.approx(0.133)
+    assert events == ["Modbus link to tcp://127.0.0.1:1 lost ([Errno 104] Connection reset by peer); reconnecting",
+                      "Modbus link to tcp://127.0.0.1:1 back"]
+    assert 2.0 <= clock.now < 3.1                       # backed off, on the injected clock
+
+
+def test_a_connection_reset_beyond_the_reconnect_time_is_a_rig_fault():
+    clock, events = StepClock(), []
+    with pytest.raises(ShakerLinkError, match=r"lost and not back within 5 s \(\[Errno 104\]"):
+        shaker(clock, FlakyClient(clock, down_until=1e9), events).hydraulics(False)
+    assert isinstance(ShakerLinkError("x"), RigFault)
+    assert 5.0 <= clock.now < 6.1
+
+
+@pytest.mark.parametrize("url, ok", [("tcp://127.0.0.1:5020", True), ("rtu:///dev/ttyUSB0", True),
+                                     ("tpc://127.0.0.1:5020", False), ("tcp://127.0.0.1", False),
+                                     ("tcp://:5020", False), ("tcp://127.0.0.1:99999", False), ("", False)])
+def test_shaker_addresses_are_checked_by_form(url, ok):
+    if ok:
+        assert ShakerAddress.parse(url).url == url
+    else:
+        with pytest.raises(AddressError, match="expected tcp://HOST:PORT or rtu:///dev/DEVICE"):
+            ShakerAddress.parse(url)
+    assert issubclass(AddressError, BadInput)
+
+
+def test_a_failing_queued_subscriber_is_logged_and_the_others_still_get_every_event(caplog):
+    bus, got, done = EventBus(), [], threading.Event()
+
+    def broken(event):
+        raise RuntimeError(f"display broke on {event.kind}")
+
+    def fine(event):
+        got.append(event.kind)
+        if event.kind == "session-end":
+            done.set()
+
+    bus.subscribe(broken)
+    bus.subscribe(fine)
+    with caplog.at_level(logging.ERROR, logger="rig.events"):
+        for kind in ("session-start", "phase", "session-end"):
+            bus.publish(kind)
+        assert done.wait(10)
+        bus.close()
+    assert got == ["session-start", "phase", "session-end"]
+    first, total = caplog.records
+    assert "failed on a 'session-start' event" in first.getMessage() and "display broke" in first.exc_text
+    assert "failed on 3 events in all" in total.getMessage()
+
+
+def test_a_failing_inline_subscriber_reaches_the_publisher():
+    bus = EventBus()
+    bus.subscribe(lambda event: (_ for _ in ()).throw(OSError("disk full")), inline=True)
+    with pytest.raises(OSError, match="disk full"):
+        bus.publish("experiment-done")
