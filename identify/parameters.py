@@ -108,6 +108,10 @@ class Parameters:
             doc = json.loads(path.read_text())
         except FileNotFoundError:
             raise ParameterError(f"{path}: parameter file not found") from None
+        except OSError as exc:
+            raise ParameterError(f"{path}: cannot read the parameter file ({exc.strerror or exc})") from None
+        except UnicodeDecodeError:
+            raise ParameterError(f"{path}: not a text (UTF-8) file") from None
         except json.JSONDecodeError as exc:
             raise ParameterError(f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
         return cls.from_document(model, doc, source=str(path))

@@ -45,6 +45,7 @@ def run_serve(args: argparse.Namespace) -> int:
 
     if args.speed <= 0:
         raise ValueError(f"--speed {args.speed}: must be positive")
+    damper = load_truth(args.params, args.model)  # refused before any endpoint is opened
     faults = [parse_fault(f) for f in args.fault]
     bridge = None
     if args.modbus == "rtu:pty":
@@ -62,7 +63,7 @@ def run_serve(args: argparse.Namespace) -> int:
         daq_port = TcpPort(*_host_port(args.daq[len("tcp://"):], "--daq"))
     else:
         raise ValueError(f"--daq {args.daq!r}: expected pty or tcp://HOST:PORT")
-    rig = VirtualRig(load_truth(args.params, args.model), daq_port, speed=args.speed, seed=args.seed,
+    rig = VirtualRig(damper, daq_port, speed=args.speed, seed=args.seed,
                      faults=faults, modbus_host=host, modbus_port=port,
                      modbus_serial=bridge.server_path if bridge else None, rig_type=args.rig,
                      drop_mass_kg=args.drop_mass)

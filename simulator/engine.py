@@ -57,7 +57,10 @@ class VirtualRig:
     def __post_init__(self) -> None:
         self.t = 0.0
         self._dt = 1.0 / PHYSICS_RATE_HZ
-        self.controller = ShakerController(on_event=lambda m: self.log.record(self.t, m))
+        # The controller's position transducer reads the measured stroke; a drop rig holds
+        # the damper at q = 0 until the release.
+        rest_m = float(self.damper.measured_stroke(0.0)) if self.rig_type == "drop" else 0.0
+        self.controller = ShakerController(initial_position_m=rest_m, on_event=lambda m: self.log.record(self.t, m))
         self.plant = StreamingPlant(self.damper, self.actuator, self._dt, self.controller.position_m)
         self.sensors = SensorSet(seed=self.seed)
         self.daq = DaqDevice(self.daq_port, now=lambda: self.t, log=self.log, speed=self.speed, seed=self.seed)
@@ -119,24 +122,24 @@ class VirtualRig:
         if self._servo_drift is not None:
             t0, rate = self._servo_drift
             u = u + rate * np.maximum(t - t0, 0.0)
-        q, v, a, T = self.plant.advance(u)
-        force = self.damper.axle_force(q, v, a, T)
-        trip = self.controller.trip_index(q, force) if self.controller.hydraulics_on else None
+        stroke, v, a, T = self.plant.advance(u)
+        force = self.damper.axle_force(self.damper.internal_stroke(stroke), v, a, T)
+        trip = self.controller.trip_index(stroke, force) if self.controller.hydraulics_on else None
         if trip is not None and trip[0] + 1 < n:
             n = trip[0] + 1
             t, u, force = t[:n], u[:n], force[:n]
-            q, v, a, T = self.plant.advance(u)
+            stroke, v, a, T = self.plant.advance(u)
         self.plant.commit(n)
-        self._sample(t, q, v, a, T)
+        self._sample(t, stroke, v, a, T)
         t_end = float(t[-1])
-        self._last = (float(q[-1]), float(v[-1]), float(a[-1]), float(T[-1]))
+        self._last = (float(stroke[-1]), float(v[-1]), float(a[-1]), float(T[-1]))
         self.t = t_end
         if trip is not None:
             i, alarm = trip
-            limit = (f"force {force[-1]:.0f} N" if alarm == Alarm.FORCE_LIMIT else f"stroke {q[-1] * 1e3:.2f} mm")
-            self.controller.position_m = float(q[-1])
-            self.controller.trip_on_limit(alarm, t_end, float(q[-1]), float(force[-1]), limit)
-        self.controller.update(t_end, float(q[-1]), float(v[-1]), float(force[-1]))
+            limit = (f"force {force[-1]:.0f} N" if alarm == Alarm.FORCE_LIMIT else f"stroke {stroke[-1] * 1e3:.2f} mm")
+            self.controller.position_m = float(stroke[-1])
+            self.controller.trip_on_limit(alarm, t_end, float(stroke[-1]), float(force[-1]), limit)
+        self.controller.update(t_end, float(stroke[-1]), float(v[-1]), float(force[-1]))
         self._fire_faults()
 
     def _drop_block(self, n: int) -> None:
@@ -151,29 +154,30 @@ class VirtualRig:
             tt = ts - self._released_at if self._released_at is not None else np.full(len(ts), -1.0)
             d, rec = self.damper, self._drop
             inside = np.clip(tt, 0.0, rec.t[-1])
-            q = np.where(tt >= 0, np.interp(inside, rec.t, rec.stroke), 0.0)
+            q = np.where(tt >= 0, np.interp(inside, rec.t, rec.q), 0.0)
             v = np.where(tt >= 0, np.interp(inside, rec.t, rec.velocity), 0.0)
             T = np.where(tt >= 0, np.interp(inside, rec.t, rec.temperature), d.ambient_k)
-            si = np.vstack([q, d.damper_force(q, v, T), d.pressure(q, T), T])
+            si = np.vstack([d.measured_stroke(q), d.damper_force(q, v, T), d.pressure(q, T), T])
             counts, over = self.sensors.counts(si, ts)
             self.daq.emit(counts, over)
         released = self._released_at is not None
         tt = float(t[-1]) - (self._released_at or 0.0)
-        q = float(np.interp(min(tt, self._drop.t[-1]), self._drop.t, self._drop.stroke)) if released else 0.0
+        q = float(np.interp(min(tt, self._drop.t[-1]), self._drop.t, self._drop.q)) if released else 0.0
         if released and tt > self._drop.t[-1] and c.holding["mode"] == 2:
             c.write_holding(0, [0])  # the drop is over: IDLE, the mass resting on the damper (one drop per run)
         self.t = float(t[-1])
-        c.update(self.t, q, 0.0, 0.0)
+        c.update(self.t, float(self.damper.measured_stroke(q)), 0.0, 0.0)
         self._fire_faults()
 
-    def _sample(self, t: np.ndarray, q: np.ndarray, v: np.ndarray, a: np.ndarray, T: np.ndarray) -> None:
+    def _sample(self, t: np.ndarray, stroke: np.ndarray, v: np.ndarray, a: np.ndarray, T: np.ndarray) -> None:
         ts = self.daq.due_times(float(t[-1]))
         if not len(ts):
             return
         grid = np.concatenate(([self.t], t))
-        states = [np.interp(ts, grid, np.concatenate(([last], x))) for last, x in zip(self._last, (q, v, a, T))]
-        qs, vs, as_, Ts = states
-        si = np.vstack([qs, self.damper.axle_force(qs, vs, as_, Ts), self.damper.pressure(qs, Ts), Ts])
+        states = [np.interp(ts, grid, np.concatenate(([last], x))) for last, x in zip(self._last, (stroke, v, a, T))]
+        strokes, vs, as_, Ts = states
+        qs = self.damper.internal_stroke(strokes)
+        si = np.vstack([strokes, self.damper.axle_force(qs, vs, as_, Ts), self.damper.pressure(qs, Ts), Ts])
         counts, over = self.sensors.counts(si, ts)
         self.daq.emit(counts, over)
 

@@ -1,7 +1,10 @@
 """Physics of the virtual rig: the damper of models.md in displacement control.
 
 The shaker imposes the stroke; a servo-hydraulic actuator tracks the commanded stroke
-with a finite bandwidth (second order) and a velocity limit.  The gas temperature
+with a finite bandwidth (second order) and a velocity limit.  The controller closes its
+loop on the stroke transducer, which is also the DAQ's stroke channel: what it tracks,
+limits and reports is the measured stroke q + θ12, so the damper sits at
+q = measured − θ12 and the physics is evaluated there.  The gas temperature
 follows from the energy balance g2 integrated in time, the pressure from the gas law,
 and the axle force from g1 solved for Fe (inverse dynamics).  The equations are
 written here from models.md independently of ``identify``'s generated code, so that
@@ -10,27 +13,74 @@ identification on simulated data also checks one against the other.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 from scipy.integrate import solve_ivp
 from scipy.signal import cont2discrete, lfilter, lfilter_zi
 
+from identify.models.damper import Damper1Dof, Damper2Dof
 from identify.plans import ExperimentSpec
 
 G0 = 9.81
+DECLARATIONS = {"1dof": Damper1Dof, "2dof": Damper2Dof}
+
+
+class TruthError(ValueError):
+    """True parameters the simulator cannot represent; it refuses them rather than
+    simulate something else than they say."""
+
+
+def check_truth(theta: dict[str, float], model: str) -> None:
+    """Raise :class:`TruthError` (one line) unless every parameter of ``theta`` is one of
+    the model's and has a value the simulator honours as models.md reads it."""
+    declared = [p.name for p in DECLARATIONS[model].parameters]
+    unknown = [k for k in theta if k not in declared]
+    if unknown:
+        raise TruthError(f"unknown parameter(s) {', '.join(unknown)} for the {model} damper "
+                         f"(known: {', '.join(declared)})")
+    missing = [k for k in declared if k not in theta]
+    if missing:
+        raise TruthError(f"no value for {', '.join(missing)} of the {model} damper")
+    for name, value in theta.items():
+        if not math.isfinite(value):
+            raise TruthError(f"{name} = {value}: not a finite number")
+    for name in ("theta13", "theta14"):
+        if theta[name] != 0.0:
+            raise TruthError(f"{name} = {theta[name]:g}: no damper model uses it (models.md keeps only the number), "
+                             "so a nonzero value cannot be simulated")
+    positive = {"theta1": "the moving mass", "theta4": "the piston area",
+                "theta5": "the gas constant (absolute pressure)"}
+    if model == "2dof":
+        # With θ16 = 0 the gas is adiabatic: every start temperature is periodic, so the
+        # experiment has no steady state to simulate; θ15 divides the energy balance.
+        positive |= {"theta15": "the gas heat capacity", "theta16": "the wall heat transfer"}
+    for name, what in positive.items():
+        if not theta[name] > 0:
+            raise TruthError(f"{name} = {theta[name]:g}: {what} must be positive")
+    if not theta["theta17"] < 0:
+        raise TruthError(f"theta17 = {theta['theta17']:g}: minus the ambient temperature must be negative "
+                         "(an absolute temperature above 0 K)")
 
 
 @dataclass(frozen=True)
 class Damper:
-    """Damper parameters θ (SI, keyed theta1…theta17) and the model variant."""
+    """Damper parameters θ (SI, keyed theta1…theta17) and the model variant.
+
+    Every θ of models.md is honoured: θ1–θ11 in the forces and the gas law, θ12 between
+    the damper's q and the measured stroke, θ15–θ17 in the energy balance and ambient
+    (2-dof; the 1-dof gas is polytropic and its temperature channel reads ambient −θ17).
+    θ13/θ14 occur in no model and must be zero; see :func:`check_truth`.  The drop test
+    replaces θ1 and θ2 by the dropped mass and −g, as models.md prescribes."""
 
     theta: dict[str, float]
     model: str = "2dof"  # or "1dof": polytropic gas, no thermal state
 
     def __post_init__(self) -> None:
-        if self.model not in ("1dof", "2dof"):
+        if self.model not in DECLARATIONS:
             raise ValueError(f"unknown damper model {self.model!r}")
+        check_truth(self.theta, self.model)
 
     def __getattr__(self, name: str) -> float:
         if name.startswith("theta") and name in self.theta:
@@ -42,6 +92,14 @@ class Damper:
     @property
     def ambient_k(self) -> float:
         return -self.theta17
+
+    def measured_stroke(self, q: np.ndarray) -> np.ndarray:
+        """What the stroke transducer reads at damper stroke ``q``: ŷ = q + θ12 [m]."""
+        return q + self.theta12
+
+    def internal_stroke(self, measured_m: np.ndarray) -> np.ndarray:
+        """The damper's q at a measured stroke [m]."""
+        return measured_m - self.theta12
 
     def pressure(self, q: np.ndarray, T: np.ndarray) -> np.ndarray:
         """Absolute gas pressure [Pa]."""
@@ -66,19 +124,6 @@ class Damper:
         p = self.pressure(q, T)
         return (-self.theta16 * (1 + self.theta6 * q) * (T + self.theta17)
                 + (self.theta4 * p + self.theta11) * v) / self.theta15
-
-    def static_stroke(self, force_n: float) -> float:
-        """Stroke at rest under a constant axle force, at ambient temperature (Newton)."""
-        q = 0.0
-        for _ in range(100):
-            f = self.axle_force(q, 0.0, 0.0, self.ambient_k) - force_n
-            dq = 1e-7
-            df = (self.axle_force(q + dq, 0.0, 0.0, self.ambient_k) - self.axle_force(q, 0.0, 0.0, self.ambient_k)) / dq
-            step = f / df
-            q -= step
-            if abs(step) < 1e-13:
-                return q
-        raise RuntimeError(f"no static stroke found for {force_n} N")
 
 
 @dataclass(frozen=True)
@@ -107,8 +152,8 @@ def waveform_harmonics(waveform: str) -> tuple[np.ndarray, np.ndarray]:
 
 
 def steady_stroke(spec: ExperimentSpec, actuator: Actuator, t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Actual stroke, velocity and acceleration in the periodic steady state of a
-    commanded waveform (phase zero at t = 0), SI."""
+    """Actual (measured) stroke, velocity and acceleration in the periodic steady state
+    of a commanded waveform (phase zero at t = 0), SI."""
     k, b = waveform_harmonics(spec.waveform)
     amp = spec.amplitude_mm * 1e-3
     w = 2 * np.pi * spec.frequency_hz * k
@@ -123,10 +168,11 @@ def steady_stroke(spec: ExperimentSpec, actuator: Actuator, t: np.ndarray) -> tu
 
 @dataclass
 class SteadyState:
-    """Noise-free signals of a periodic steady state (SI)."""
+    """Noise-free signals of a periodic steady state or a drop (SI)."""
 
     t: np.ndarray
-    stroke: np.ndarray
+    q: np.ndarray           # the damper's stroke coordinate
+    stroke: np.ndarray      # measured stroke q + θ12, what the transducer reads
     velocity: np.ndarray
     acceleration: np.ndarray
     temperature: np.ndarray
@@ -144,8 +190,8 @@ def periodic_steady_state(damper: Damper, actuator: Actuator, spec: ExperimentSp
     period = spec.period_s
 
     def rhs(time, T):
-        q, v, _ = steady_stroke(spec, actuator, np.atleast_1d(time))
-        return damper.temperature_rate(q, v, T)
+        stroke, v, _ = steady_stroke(spec, actuator, np.atleast_1d(time))
+        return damper.temperature_rate(damper.internal_stroke(stroke), v, T)
 
     T = np.full(len(t), damper.ambient_k)
     if damper.model == "2dof":
@@ -164,15 +210,21 @@ def periodic_steady_state(damper: Damper, actuator: Actuator, spec: ExperimentSp
         t0 = np.floor(t[0] / period) * period
         sol = solve_ivp(rhs, (t0, t[-1]), [x1], method="DOP853", rtol=1e-11, atol=1e-10, dense_output=True)
         T = sol.sol(t)[0]
-    q, v, a = steady_stroke(spec, actuator, t)
+    stroke, v, a = steady_stroke(spec, actuator, t)
     if np.max(np.abs(v)) > actuator.velocity_limit_m_s:
         raise ValueError(f"experiment {spec.letter}: peak velocity {np.max(np.abs(v)):.3f} m/s exceeds the "
                          f"actuator's limit {actuator.velocity_limit_m_s} m/s")
-    return SteadyState(t, q, v, a, T, damper.pressure(q, T), damper.axle_force(q, v, a, T))
+    q = damper.internal_stroke(stroke)
+    volume = 1 + damper.theta6 * q  # relative gas volume; the gas laws mean nothing at or below zero
+    if np.min(volume) <= 0:
+        raise ValueError(f"experiment {spec.letter}: the gas volume 1 + θ6·q vanishes within the stroke "
+                         f"(θ6 = {damper.theta6:g} 1/m, q up to {np.max(q) * 1e3:.1f} mm)")
+    return SteadyState(t, q, stroke, v, a, T, damper.pressure(q, T), damper.axle_force(q, v, a, T))
 
 
 def drop_test(damper: Damper, mass_kg: float, velocity_m_s: float, t: np.ndarray) -> SteadyState:
-    """Drop test of models.md: θ1 = M, θ2 = −g, Fe = 0, released at q = 0, T = ambient.
+    """Drop test of models.md: θ1 = M, θ2 = −g, Fe = 0, released at q = 0, T = ambient;
+    the stroke channel reads q + θ12.
 
     ``axle_force`` is the damper force F_d, which the ground load cell reads."""
     theta = dict(damper.theta, theta1=mass_kg, theta2=-G0)
@@ -187,11 +239,14 @@ def drop_test(damper: Damper, mass_kg: float, velocity_m_s: float, t: np.ndarray
                     rtol=1e-9, atol=[1e-10, 1e-9, 1e-7], dense_output=True, max_step=0.01)
     q, v, T = sol.sol(t)
     a = np.gradient(v, t)
-    return SteadyState(t, q, v, a, T, d.pressure(q, T), d.damper_force(q, v, T))
+    return SteadyState(t, q, d.measured_stroke(q), v, a, T, d.pressure(q, T), d.damper_force(q, v, T))
 
 
 class StreamingPlant:
     """The actuator and damper advanced block by block in simulated time.
+
+    The actuator's stroke, setpoints and ``position_m`` are measured strokes (the
+    controller's transducer); the gas sees the damper's q = measured − θ12.
 
     The actuator is discretised exactly for a first-order-hold setpoint (so that the
     acceleration, which enters the axle force through θ1, is continuous); the gas
@@ -212,34 +267,34 @@ class StreamingPlant:
         self._zq = lfilter_zi(*self._q_filter) * position_m
         self._zv = lfilter_zi(*self._v_filter) * position_m
         self.temperature_k = damper.ambient_k
-        self._last = (position_m, 0.0)  # stroke and velocity at the last step taken
+        self._last = (position_m, 0.0)  # measured stroke and velocity at the last step taken
         self._pending: tuple = (0, None, None, None, None, None)
 
     def advance(self, setpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Stroke, velocity, acceleration and temperature at the next ``len(setpoint)``
-        steps, the setpoint being sampled at those steps.  Nothing is committed until
-        :meth:`commit` (a block cut short by a trip is recomputed)."""
-        q, zq = lfilter(*self._q_filter, setpoint, zi=self._zq)
+        """Measured stroke, velocity, acceleration and temperature at the next
+        ``len(setpoint)`` steps, the setpoint being sampled at those steps.  Nothing is
+        committed until :meth:`commit` (a block cut short by a trip is recomputed)."""
+        stroke, zq = lfilter(*self._q_filter, setpoint, zi=self._zq)
         v, zv = lfilter(*self._v_filter, setpoint, zi=self._zv)
-        a = self._wa**2 * (setpoint - q) - 2 * self._zeta * self._wa * v
-        T = self._temperature(q, v)
-        self._pending = (len(setpoint), zq, zv, q, v, T)
-        return q, v, a, T
+        a = self._wa**2 * (setpoint - stroke) - 2 * self._zeta * self._wa * v
+        T = self._temperature(stroke, v)
+        self._pending = (len(setpoint), zq, zv, stroke, v, T)
+        return stroke, v, a, T
 
     def commit(self, n: int) -> None:
         """Keep the first ``n`` steps of the last :meth:`advance`."""
-        length, zq, zv, q, v, T = self._pending
+        length, zq, zv, stroke, v, T = self._pending
         if n != length:
             raise ValueError("commit a whole block; recompute a shorter one with advance()")
         self._zq, self._zv, self.temperature_k = zq, zv, float(T[-1])
-        self._last = (float(q[-1]), float(v[-1]))
+        self._last = (float(stroke[-1]), float(v[-1]))
 
-    def _temperature(self, q: np.ndarray, v: np.ndarray) -> np.ndarray:
+    def _temperature(self, stroke: np.ndarray, v: np.ndarray) -> np.ndarray:
         d = self.damper
         if d.model == "1dof":
-            return np.full(q.shape, self.temperature_k)
+            return np.full(stroke.shape, self.temperature_k)
         # dT/dt = -c·(T - Ta) + w(T), c = θ16(1+θ6q)/θ15, w = (θ4 p(q,T) + θ11)·v/θ15.
-        qq = np.concatenate(([self._last[0]], q))
+        qq = d.internal_stroke(np.concatenate(([self._last[0]], stroke)))
         vv = np.concatenate(([self._last[1]], v))
         c = d.theta16 * (1 + d.theta6 * qq) / d.theta15
         cbar = 0.5 * (c[1:] + c[:-1])

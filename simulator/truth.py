@@ -6,15 +6,20 @@ from pathlib import Path
 
 from identify.model import load_model
 from identify.parameters import Parameters
-from simulator.physics import Damper
+from simulator.physics import Damper, TruthError
 
 
 def load_truth(path: str | Path | None = None, model: str = "2dof") -> Damper:
     """Damper with the parameters of ``path`` (START.json, RESULT.json or flat JSON);
-    missing parameters, or all of them without a file, take the nominal column."""
+    missing parameters, or all of them without a file, take the nominal column.  A file
+    the simulator cannot honour raises ParameterError or TruthError (both ValueError),
+    one line naming the file."""
     compiled = load_model(model)
     params = Parameters.from_file(compiled, path) if path else Parameters(compiled)
-    return Damper(params.as_dict(), model)
+    try:
+        return Damper(params.as_dict(), model)
+    except TruthError as exc:
+        raise TruthError(f"{path}: {exc}") from None
 
 
 def truth_document(damper: Damper) -> dict:

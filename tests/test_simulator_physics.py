@@ -96,6 +96,6 @@ def test_drop_test_settles_to_the_static_equilibrium_as_the_gas_cools():
     from scipy.optimize import brentq
     q_static = brentq(lambda q: d.theta4 * dm.pressure(q, d.ambient_k) + d.theta11 - 350 * 9.81, 0.0, 0.3)
     assert s.temperature[-1] == pytest.approx(d.ambient_k, abs=0.05)
-    assert s.stroke[-1] == pytest.approx(q_static, abs=2e-4)
-    assert abs(s.stroke[t.searchsorted(2.0)] - q_static) > 1e-3   # warm gas first, then it cools and sinks
+    assert s.q[-1] == pytest.approx(q_static, abs=2e-4)
+    assert abs(s.q[t.searchsorted(2.0)] - q_static) > 1e-3   # warm gas first, then it cools and sinks
     assert np.max(np.abs(s.velocity)) > 0.1  # a real drop, not a creep
