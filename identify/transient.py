@@ -123,7 +123,7 @@ class TransientSimulator:
 
 
 def drop_test(model: CompiledModel, theta: np.ndarray, mass_kg: float, velocity_m_s: float, t: np.ndarray) -> Trajectory:
-    """The drop test of models.md: θ1 = M, θ2 = −9.81, Fe = 0, released at q = 0 with
+    """The drop test of docs/models.md: θ1 = M, θ2 = −9.81, Fe = 0, released at q = 0 with
     velocity v0, gas at ambient temperature (the model's static guess)."""
     names = model.parameter_names
     if "theta1" not in names or "theta2" not in names:

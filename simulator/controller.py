@@ -47,7 +47,7 @@ class Mode(IntEnum):
     RUN = 2
 
 
-# Datasheet addresses (rig-interfaces.md §1).
+# Datasheet addresses (docs/rig-interfaces.md §1).
 HOLDING = ("mode", "waveform", "static_position", "amplitude", "frequency", "ramp_time",
            "stroke_limit_low", "stroke_limit_high", "force_limit", "watchdog_timeout", "heartbeat")
 SIGNED_HOLDING = {"static_position", "stroke_limit_low", "stroke_limit_high"}

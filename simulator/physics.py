@@ -1,10 +1,10 @@
-"""Physics of the virtual rig: the damper of models.md in displacement control.
+"""Physics of the virtual rig: the damper of docs/models.md in displacement control.
 
 The shaker imposes the stroke; a servo-hydraulic actuator tracks the commanded stroke
 with a finite bandwidth (second order) and a velocity limit.  The gas temperature
 follows from the energy balance g2 integrated in time, the pressure from the gas law,
 and the axle force from g1 solved for Fe (inverse dynamics).  The equations are
-written here from models.md independently of ``identify``'s generated code, so that
+written here from docs/models.md independently of ``identify``'s generated code, so that
 identification on simulated data also checks one against the other.
 """
 
@@ -172,7 +172,7 @@ def periodic_steady_state(damper: Damper, actuator: Actuator, spec: ExperimentSp
 
 
 def drop_test(damper: Damper, mass_kg: float, velocity_m_s: float, t: np.ndarray) -> SteadyState:
-    """Drop test of models.md: θ1 = M, θ2 = −g, Fe = 0, released at q = 0, T = ambient.
+    """Drop test of docs/models.md: θ1 = M, θ2 = −g, Fe = 0, released at q = 0, T = ambient.
 
     ``axle_force`` is the damper force F_d, which the ground load cell reads."""
     theta = dict(damper.theta, theta1=mass_kg, theta2=-G0)

@@ -1,4 +1,4 @@
-"""Every malformed-dataset case of dataset-format.md: exit 2, one line naming file and place."""
+"""Every malformed-dataset case of docs/dataset-format.md: exit 2, one line naming file and place."""
 
 from __future__ import annotations
 
