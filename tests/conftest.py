@@ -6,12 +6,25 @@ import os
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")  # before any Qt import: CI has no display
 
+import shutil
 from pathlib import Path
 
 import pytest
 
 # Kept in the repository (see its PROVENANCE.md) so that a bare clone runs every test.
 SILVERBOX = Path(__file__).resolve().parent / "data" / "silverbox"
+
+
+def require_program(name: str) -> str:
+    """Path of an outside program a test drives.  Where it is missing the test is
+    skipped on a developer's machine but fails under CI (``CI`` set), which installs
+    it (.ci/run): a test that CI skips silently checks nothing."""
+    path = shutil.which(name)
+    if path:
+        return path
+    if os.environ.get("CI", "").lower() not in ("", "0", "false"):
+        pytest.fail(f"{name} is not installed; under CI this test must run (.ci/run installs it)")
+    pytest.skip(f"{name} is not installed")
 
 
 @pytest.fixture(scope="session")

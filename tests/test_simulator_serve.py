@@ -1,11 +1,10 @@
 """The virtual rig seen from outside: a plain pymodbus client by the datasheet's raw
-addresses, mbpoll where installed, and a small independent DAQ decoder (sync,
+addresses, mbpoll (required under CI), and a small independent DAQ decoder (sync,
 CRC-16/MODBUS, sequence) on TCP and on a pseudo-terminal.  No project code on the
 client side."""
 
 from __future__ import annotations
 
-import shutil
 import socket
 import struct
 import subprocess
@@ -16,6 +15,8 @@ import numpy as np
 import pytest
 import serial
 from pymodbus.client import ModbusTcpClient
+
+from tests.conftest import require_program
 
 CRC = crcmod.predefined.mkCrcFun("modbus")
 OFF, IDLE, MOVING, AT_STATIC, RUNNING, ALARM = range(6)
@@ -124,16 +125,16 @@ def test_every_trip_is_seen_as_alarm_with_its_code(served_rig, fault, setup, ala
     c.close()
 
 
-@pytest.mark.skipif(not shutil.which("mbpoll"), reason="mbpoll not installed")
 def test_mbpoll_reads_the_controller(served_rig):
+    mbpoll = require_program("mbpoll")
     rig = served_rig()
-    out = subprocess.run(["mbpoll", "-m", "tcp", "-a", "1", "-t", "3", "-r", "0", "-c", "7", "-1", "-0",
+    out = subprocess.run([mbpoll, "-m", "tcp", "-a", "1", "-t", "3", "-r", "0", "-c", "7", "-1", "-0",
                           "-p", str(rig.port), rig.host], capture_output=True, text=True, timeout=20)
     assert out.returncode == 0, out.stdout + out.stderr
     values = dict(line.split(":") for line in out.stdout.splitlines() if line.startswith("["))
     assert int(values["[0]"]) == OFF and int(values["[6]"]) == 123   # state, firmware
     # a write from mbpoll: hydraulics on (coil 0), then the state reads IDLE
-    out = subprocess.run(["mbpoll", "-m", "tcp", "-a", "1", "-t", "0", "-r", "0", "-0", "-1",
+    out = subprocess.run([mbpoll, "-m", "tcp", "-a", "1", "-t", "0", "-r", "0", "-0", "-1",
                           "-p", str(rig.port), rig.host, "1"], capture_output=True, text=True, timeout=20)
     assert out.returncode == 0, out.stdout + out.stderr
     c = client(rig)
