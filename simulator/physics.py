@@ -67,19 +67,6 @@ class Damper:
         return (-self.theta16 * (1 + self.theta6 * q) * (T + self.theta17)
                 + (self.theta4 * p + self.theta11) * v) / self.theta15
 
-    def static_stroke(self, force_n: float) -> float:
-        """Stroke at rest under a constant axle force, at ambient temperature (Newton)."""
-        q = 0.0
-        for _ in range(100):
-            f = self.axle_force(q, 0.0, 0.0, self.ambient_k) - force_n
-            dq = 1e-7
-            df = (self.axle_force(q + dq, 0.0, 0.0, self.ambient_k) - self.axle_force(q, 0.0, 0.0, self.ambient_k)) / dq
-            step = f / df
-            q -= step
-            if abs(step) < 1e-13:
-                return q
-        raise RuntimeError(f"no static stroke found for {force_n} N")
-
 
 @dataclass(frozen=True)
 class Actuator:
