@@ -7,7 +7,9 @@ import os
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")  # before any Qt import: CI has no display
 
 import shutil
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -49,7 +51,8 @@ class ServedRig:
         cmd = [sys.executable, "-m", "simulator", "serve", "--modbus", "127.0.0.1:0", "--daq", daq,
                "--speed", str(speed), *args]
         self.proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-        endpoints = {}
+        assert self.proc.stdout is not None and self.proc.stderr is not None  # pipes: PIPE above
+        endpoints: dict[str, str] = {}
         while len(endpoints) < 2:
             line = self.proc.stdout.readline()
             if not line:
@@ -82,11 +85,11 @@ class ServedRig:
 
 
 @pytest.fixture
-def served_rig():
+def served_rig() -> Iterator[Callable[..., ServedRig]]:
     """Factory: ``served_rig(*serve_args, daq=..., speed=...)``; all stopped at teardown."""
     rigs: list[ServedRig] = []
 
-    def start(*args: str, **kwargs) -> ServedRig:
+    def start(*args: str, **kwargs: Any) -> ServedRig:
         rig = ServedRig(*args, **kwargs)
         rigs.append(rig)
         return rig
