@@ -47,7 +47,8 @@ def main() -> int:
     sample = [brute_force("a"), brute_force("j")]
     baseline = np.mean(sample) * 14
     print("generate: standard set, 14 experiments x 3 periods at 2 kHz")
-    print(f"  simulator generate (periodic shooting):      {ours:6.1f} s   (target < 30 s: {'met' if ours < 30 else 'NOT met'})")
+    print(f"  simulator generate (periodic shooting):      {ours:6.1f} s   "
+          f"(target < 30 s: {'met' if ours < 30 else 'NOT met'})")
     print(f"  baseline: time integration from rest, 120 s: {baseline:6.1f} s   (2 experiments timed, x 7)")
     return 0
 

@@ -20,7 +20,8 @@ def start_simulator(speed: float, seed: int, truth: str | None) -> tuple[subproc
     cmd = [sys.executable, "-m", "simulator", "serve", "--modbus", "127.0.0.1:0", "--daq", "tcp://127.0.0.1:0",
            "--speed", str(speed), "--seed", str(seed)] + (["--params", truth] if truth else [])
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
-    endpoints = {}
+    assert proc.stdout is not None  # a pipe: stdout=PIPE
+    endpoints: dict[str, str] = {}
     while len(endpoints) < 2:
         line = proc.stdout.readline()
         if not line:

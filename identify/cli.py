@@ -14,10 +14,10 @@ from pathlib import Path
 import numpy as np
 
 from identify.dataset import csv_bytes, read_dataset, read_manifest
-from identify.errors import ComputationError, InputError
-from identify.files import atomic_write_bytes
 from identify.differentiation import SCHEMES, Grid
+from identify.errors import ComputationError, InputError
 from identify.estimator import EstimationError
+from identify.files import atomic_write_bytes
 from identify.fit import fit_experiments
 from identify.model import CompiledModel, load_model
 from identify.parameters import Parameters
@@ -37,10 +37,11 @@ def _csv_list(text: str | None) -> list[str] | None:
     return [x.strip() for x in text.split(",") if x.strip()] if text else None
 
 
-def _labels(dataset_labels: list[str], wanted: list[str] | None) -> list[str] | None:
-    """Experiment labels from full labels or their final letters (``a`` for ``920713a``)."""
+def _labels(dataset_labels: list[str], wanted: list[str] | None) -> list[str]:
+    """Experiment labels from full labels or their final letters (``a`` for ``920713a``);
+    empty when none are wanted."""
     if not wanted:
-        return None
+        return []
     out = []
     for w in wanted:
         if w in dataset_labels:
@@ -180,6 +181,7 @@ def run_predict(args: argparse.Namespace) -> int:
         traj = drop_test(model, theta, mass, v0, t - t[0])
         for i, name in enumerate(model.output_names):
             cols[name] = d.outputs[name].from_si(traj.outputs[i])
+        assert exp.data is not None  # read_dataset loaded the chosen experiment
         for name in model.output_names:
             if name in exp.data.columns:
                 rms = float(np.sqrt(np.mean((cols[name] - exp.column(name)) ** 2)))
@@ -231,7 +233,7 @@ def run_compare(args: argparse.Namespace) -> int:
     for col in ("experiment", "f [Hz]", "1-dof", "2-dof"):
         table.add_column(col, justify="right" if col != "experiment" else "left")
     rows, rms = [], {}
-    for e1, e2 in zip(fits["1dof"].experiments, fits["2dof"].experiments):
+    for e1, e2 in zip(fits["1dof"].experiments, fits["2dof"].experiments, strict=True):
         (m1, s1), (m2, s2) = e1.stats(column), e2.stats(column)
         table.add_row(e1.label, f"{e1.frequency_hz:g}", f"{m1:+.4f} ± {2 * s1:.4f}", f"{m2:+.4f} ± {2 * s2:.4f}")
         rows.append({"label": e1.label, "frequency_Hz": e1.frequency_hz, "1dof": {"mean": m1, "std": s1},

@@ -1,4 +1,4 @@
-"""The dataset interchange format (``shared/spec/dataset-format.md``, version 1).
+"""The dataset interchange format (``docs/dataset-format.md``, version 1).
 
 :func:`read_dataset` validates every rule of the format and raises :class:`DatasetError`
 naming the file, the row or column, and what is wrong.  Manifest keys the code does not
@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Iterable
+from typing import Any
 
 import numpy as np
 import pandas as pd

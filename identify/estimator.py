@@ -25,8 +25,8 @@ measurement noise; residuals beyond it (model error) are flagged, not hidden in 
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 
@@ -107,7 +107,7 @@ class Estimator:
         return states + start.state_sensitivities[a] @ (theta - start.theta)[self.index]
 
     def _add_sensitivities(self, ev: _Evaluation) -> None:
-        for sol, d in zip(ev.solutions, self.data):
+        for sol, d in zip(ev.solutions, self.data, strict=True):
             dX, dY = self.solver.sensitivities(sol, d.theta(ev.theta), self.index, self.output_idx)
             ev.state_sensitivities.append(dX)
             ev.sensitivities.append(dY)
@@ -135,7 +135,7 @@ class Estimator:
         k = len(self.index)
         A = np.zeros((k, k))
         g = np.zeros(k)
-        for a, (S, r) in enumerate(zip(ev.sensitivities, ev.residuals)):
+        for a, (S, r) in enumerate(zip(ev.sensitivities, ev.residuals, strict=True)):
             wa = 1.0 / v[a]  # (n_outputs,)
             Sw = S * wa[:, None, None]
             A += np.einsum("onk,onl->kl", Sw, S)
@@ -151,7 +151,7 @@ class Estimator:
         converges only linearly when channels compete (model error, offsets)."""
         k = len(self.index)
         C = np.zeros((k, k))
-        for a, (S, r) in enumerate(zip(ev.sensitivities, ev.residuals)):
+        for a, (S, r) in enumerate(zip(ev.sensitivities, ev.residuals, strict=True)):
             b = np.einsum("onk,on->ok", S, r) / v[a][:, None]  # (n_out, k)
             C += 2.0 / r.shape[1] * b.T @ b
         return C
@@ -226,7 +226,7 @@ class Estimator:
                 self.progress(it, history[-1], theta[self.index])
             if np.all(np.abs(lam * step) <= self.step_tolerance * np.maximum(sigma, 1e-300)):
                 converged = True
-                message = "converged (last step below {:g} standard deviations)".format(self.step_tolerance)
+                message = f"converged (last step below {self.step_tolerance:g} standard deviations)"
                 break
             if 0.0 <= predicted < CHI2_TOLERANCE and objective_before - trial_objective < CHI2_TOLERANCE:
                 converged = True  # the same judgement as above, for a step the line search took
@@ -271,9 +271,9 @@ class Estimator:
             return A_inv, notes
         k = len(self.index)
         B = np.zeros((k, k))
-        excess = []
+        excess_rows = []
         rng = np.random.default_rng(0)  # probes of the input-noise response: deterministic reports
-        for a, (d, sol, S, r) in enumerate(zip(self.data, ev.solutions, ev.sensitivities, ev.residuals)):
+        for a, (d, sol, S) in enumerate(zip(self.data, ev.solutions, ev.sensitivities, strict=True)):
             Sw = S / v[a][:, None, None]  # (n_out, n, k)
             B += np.einsum("onk,o,onl->kl", Sw, d.grid_variance, Sw)
             th = d.theta(ev.theta)
@@ -285,8 +285,8 @@ class Estimator:
             z *= np.sqrt(d.input_grid_variance)[:, None, None]
             Hz = self.solver.input_response(sol, th, self.output_idx, z)
             explained = d.grid_variance + np.mean(Hz**2, axis=(1, 2))
-            excess.append(v[a] / explained)
-        excess = np.array(excess)  # (n_experiments, n_outputs)
+            excess_rows.append(v[a] / explained)
+        excess = np.array(excess_rows)  # (n_experiments, n_outputs)
         for b, o in enumerate(self.outputs):
             x = float(np.sqrt(excess[:, b].max()))
             if x > MODEL_ERROR_RATIO:

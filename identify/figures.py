@@ -24,7 +24,7 @@ def write_figures(result: FitResult, folder: Path) -> list[Path]:
     rows = int(np.ceil(len(exps) / cols))
     for out in result.outputs:
         fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.4 * rows), squeeze=False)
-        for ax, e in zip(axes.ravel(), exps):
+        for ax, e in zip(axes.ravel(), exps, strict=False):  # the grid may have spare cells
             tau = np.arange(len(e.measured[out])) / len(e.measured[out])
             ax.plot(tau, e.measured[out], ".", ms=1.5, label="measured")
             ax.plot(tau, e.predicted[out], "-", lw=1, label="model")

@@ -3,7 +3,7 @@ in memory by the rig right after its last capture (so both give the same numbers
 
 from __future__ import annotations
 
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

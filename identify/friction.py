@@ -85,6 +85,12 @@ def _velocity(q: np.ndarray, frequency_hz: float) -> np.ndarray:
     return np.fft.irfft(1j * k * Q, len(q))
 
 
+def _reversal_residual(x: np.ndarray, s: np.ndarray, v: np.ndarray, force: np.ndarray) -> np.ndarray:
+    """Smooth quadratic in the normalised time s plus amp·arctan(sharp·v), minus the force."""
+    a, b, c, amp, sharp = x
+    return a + b * s + c * s**2 + amp * np.arctan(sharp * v) - force
+
+
 def reversals(folded: FoldedRecord, stroke_col: str = "stroke_mm", force_col: str = "force_N",
               pressure_col: str = "pressure_bar") -> list[Reversal]:
     """The friction amplitude and sharpness at each velocity reversal of a folded period."""
@@ -104,12 +110,7 @@ def reversals(folded: FoldedRecord, stroke_col: str = "stroke_mm", force_col: st
         s = np.arange(-w, w + 1) / w
         jump = (ff[-3:].mean() - ff[:3].mean()) * np.sign(vv[-1])
         x0 = [ff.mean(), 0.0, 0.0, max(jump / np.pi, 1.0), 1.0 / MIN_SPEED_M_S]
-
-        def resid(x):
-            a, b, c, amp, sharp = x
-            return a + b * s + c * s**2 + amp * np.arctan(sharp * vv) - ff
-
-        fit = least_squares(resid, x0, x_scale=[abs(ff.mean()) + 1, 10, 10, 10, 1e3],
+        fit = least_squares(_reversal_residual, x0, args=(s, vv, ff), x_scale=[abs(ff.mean()) + 1, 10, 10, 10, 1e3],
                             bounds=([-np.inf, -np.inf, -np.inf, 0, 10], np.inf))
         out.append(Reversal(float(i / n), float(p[i]), float(fit.x[3]), float(fit.x[4])))
     return out

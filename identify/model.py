@@ -16,10 +16,11 @@ import importlib.util
 import inspect
 import os
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType, SimpleNamespace
-from typing import Any, Callable, ClassVar
+from typing import Any, ClassVar
 
 import numpy as np
 
@@ -158,7 +159,7 @@ class CompiledModel:
         return np.array([p.nominal for p in self.parameter_specs], dtype=float)
 
     def static_guess(self, theta: np.ndarray) -> np.ndarray:
-        guess = self.declaration.static_guess(dict(zip(self.parameter_names, theta)))
+        guess = self.declaration.static_guess(dict(zip(self.parameter_names, theta, strict=True)))
         return np.array([guess.get(s, 0.0) for s in self.state_names], dtype=float)
 
 
@@ -212,7 +213,7 @@ def _function_source(name: str, entries: list[tuple[tuple[int, ...], Any]], shap
     repl, reduced = sp.cse(exprs, symbols=sp.numbered_symbols("_c"), optimizations="basic")
     for sym, e in repl:
         lines.append(f"    {sym} = {printer.doprint(e)}")
-    for (idx, _), e in zip(entries, reduced):
+    for (idx, _), e in zip(entries, reduced, strict=True):
         arr, *pos = idx
         lines.append(f"    _o{arr}[{', '.join(map(str, pos))}] = {printer.doprint(e)}")
     outs = ", ".join(f"_o{k}" for k in range(len(shapes)))
@@ -242,10 +243,8 @@ def generate_source(decl: ModelDeclaration) -> str:
         if stray:
             raise ModelError(f"model {decl.name!r}: unknown symbols {sorted(map(str, stray))} in {e}")
 
-    orders = []
-    for x, dx, ddx in zip(xs, dxs, ddxs):
-        used = set().union(*(e.free_symbols for e in g))
-        orders.append(2 if ddx in used else 1 if dx in used else 0)
+    used = set().union(*(e.free_symbols for e in g))
+    orders = [2 if ddx in used else 1 if dx in used else 0 for dx, ddx in zip(dxs, ddxs, strict=True)]
 
     class _Printer(NumPyPrinter):
         # np.sign(0) = 0 is the right derivative of x|x| at 0; keep numpy's names short.

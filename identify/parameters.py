@@ -9,9 +9,10 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import numpy as np
 
@@ -77,7 +78,7 @@ class Parameters:
         return np.array([p.value for p in self._items], dtype=float)
 
     def set_vector(self, values: np.ndarray) -> None:
-        for p, v in zip(self._items, values):
+        for p, v in zip(self._items, values, strict=True):
             p.value = float(v)
 
     def varying(self) -> list[str]:
@@ -89,7 +90,7 @@ class Parameters:
         for i, p in enumerate(self._items):
             p.vary = i in idx
 
-    def copy(self) -> "Parameters":
+    def copy(self) -> Parameters:
         new = Parameters.__new__(Parameters)
         new.model_name = self.model_name
         new._items = [Parameter(**vars(p)) for p in self._items]
@@ -101,7 +102,7 @@ class Parameters:
 
     # ----------------------------------------------------------------------------------
     @classmethod
-    def from_file(cls, model: CompiledModel, path: str | Path) -> "Parameters":
+    def from_file(cls, model: CompiledModel, path: str | Path) -> Parameters:
         """Load START.json, RESULT.json or a flat ``{name: value}`` object."""
         path = Path(path)
         try:
@@ -117,7 +118,7 @@ class Parameters:
         return cls.from_document(model, doc, source=str(path))
 
     @classmethod
-    def from_document(cls, model: CompiledModel, doc: Any, source: str = "parameters") -> "Parameters":
+    def from_document(cls, model: CompiledModel, doc: Any, source: str = "parameters") -> Parameters:
         if not isinstance(doc, dict):
             raise ParameterError(f"{source}: expected a JSON object")
         declared = doc.get("model")

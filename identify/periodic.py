@@ -61,7 +61,7 @@ class PeriodicSolver:
         x = m.static_guess(theta)
         zero = np.zeros_like(x)
         scales = m.state_scales
-        for it in range(100):
+        for it in range(100):  # noqa: B007 - the count goes into the error raised after the loop
             g = m.residual(x, zero, zero, inputs, theta)
             gx = m.residual_jacobian(x, zero, zero, inputs, theta)[0]
             try:
@@ -87,7 +87,8 @@ class PeriodicSolver:
     def _equation_weights(self, jac: tuple[np.ndarray, np.ndarray, np.ndarray], f: float) -> np.ndarray:
         gx, gdx, gddx = jac
         w = 2 * np.pi * f
-        size = (np.abs(gx).mean(-1) + w * np.abs(gdx).mean(-1) + w * w * np.abs(gddx).mean(-1)) @ self.model.state_scales
+        size = ((np.abs(gx).mean(-1) + w * np.abs(gdx).mean(-1) + w * w * np.abs(gddx).mean(-1))
+                @ self.model.state_scales)
         return 1.0 / np.maximum(size, 1e-300)
 
     def solve(self, inputs: np.ndarray, frequency_hz: float, theta: np.ndarray,
@@ -201,7 +202,8 @@ class PeriodicSolver:
         mu = mu[np.argsort(-np.abs(mu))]
         return mu[:sum(m.orders)]
 
-    def input_response(self, sol: PeriodicSolution, theta: np.ndarray, outputs: list[int], du: np.ndarray) -> np.ndarray:
+    def input_response(self, sol: PeriodicSolution, theta: np.ndarray, outputs: list[int],
+                       du: np.ndarray) -> np.ndarray:
         """Output perturbations (len(outputs), n, k) caused by input perturbations du
         (n_inputs, n, k): dŷ/du applied to k vectors (how input noise reaches the outputs)."""
         m = self.model

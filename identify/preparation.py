@@ -49,7 +49,8 @@ def resolve_outputs(model: CompiledModel, requested: list[str] | None) -> list[s
     return outputs
 
 
-def prepare_periodic(model: CompiledModel, experiments: list[Experiment], n: int, outputs: list[str]) -> list[PeriodicData]:
+def prepare_periodic(model: CompiledModel, experiments: list[Experiment], n: int,
+                     outputs: list[str]) -> list[PeriodicData]:
     """Fold each periodic experiment's input and output columns onto the n-point grid."""
     d = model.declaration
     prepared = []

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -69,7 +70,7 @@ class FitResult:
               experiments: list[ExperimentFit], converged: bool, iterations: int, message: str,
               objective_history: list[float], elapsed_s: float, n_grid: int, scheme: str,
               singular_values: np.ndarray, sensitivity_matrix: np.ndarray,
-              notes: list[str] = ()) -> "FitResult":
+              notes: Sequence[str] = ()) -> FitResult:
         n_par = len(estimated)
         variances = {}
         for o in outputs:
@@ -78,8 +79,8 @@ class FitResult:
             variances[o] = float(np.sum(r**2) / max(r.size - n_par / len(outputs), 1.0))
         result = cls(
             model=model.name, params=params, estimated=estimated,
-            std={nm: float(s) for nm, s in zip(estimated, std)}, correlation=correlation, covariance=covariance,
-            outputs=outputs,
+            std={nm: float(s) for nm, s in zip(estimated, std, strict=True)}, correlation=correlation,
+            covariance=covariance, outputs=outputs,
             channel_variances=variances, experiments=experiments, converged=converged, iterations=iterations,
             message=message, objective_history=objective_history, elapsed_s=elapsed_s, n_grid=n_grid,
             scheme=scheme, singular_values=singular_values,
@@ -134,7 +135,8 @@ class FitResult:
             experiments[e.label] = {
                 "residual_mean": mean, "residual_std": std, "channel": primary,
                 "frequency_Hz": e.frequency_hz, "newton_iterations": e.newton_iterations,
-                "channels": {o: dict(zip(("residual_mean", "residual_std"), e.stats(o))) for o in self.outputs},
+                "channels": {o: dict(zip(("residual_mean", "residual_std"), e.stats(o), strict=True))
+                             for o in self.outputs},
             }
             if e.floquet is not None:
                 experiments[e.label]["floquet_max_multiplier"] = float(np.abs(e.floquet[0]))
@@ -184,7 +186,8 @@ class FitResult:
                 init_s = f"(init = {init:.6g})" if init is not None else ""
                 prior = self.priors.get(p.name)
                 prior_s = f"prior std {prior:.3g}" if prior else "prior std 50 %"
-                lines.append(f"    {p.name:8s} {p.alias:18s} {p.value: .8g} +/- {s:.3g} {rel} {p.unit} {init_s}, {prior_s}")
+                lines.append(f"    {p.name:8s} {p.alias:18s} {p.value: .8g} +/- {s:.3g} {rel} {p.unit} "
+                             f"{init_s}, {prior_s}")
         fixed = [p for p in self.params if p.name not in self.estimated]
         if fixed:
             lines.append("    fixed: " + ", ".join(f"{p.name}={p.value:.6g}" for p in fixed))

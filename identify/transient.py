@@ -8,8 +8,8 @@ for a stiff-capable integrator (Radau by default: the friction law is steep).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 
@@ -91,7 +91,7 @@ class TransientSimulator:
                 dy[idx] = DDX[j]
         return dy
 
-    def run(self, x0: np.ndarray, dx0: np.ndarray, inputs: Callable[[float], np.ndarray], t: np.ndarray,
+    def run(self, x0: np.ndarray, dx0: np.ndarray, inputs: Callable[[float | np.ndarray], np.ndarray], t: np.ndarray,
             method: str = "Radau", rtol: float = 1e-8) -> Trajectory:
         """Integrate from states ``x0`` and first derivatives ``dx0`` (used for order-2
         states) and sample at times ``t`` (starting at t[0]).  ``inputs(t)`` takes a time
@@ -123,8 +123,9 @@ class TransientSimulator:
         return Trajectory(t, X, DX, DDX, U, out)
 
 
-def drop_test(model: CompiledModel, theta: np.ndarray, mass_kg: float, velocity_m_s: float, t: np.ndarray) -> Trajectory:
-    """The drop test of models.md: θ1 = M, θ2 = −9.81, Fe = 0, released at q = 0 with
+def drop_test(model: CompiledModel, theta: np.ndarray, mass_kg: float, velocity_m_s: float,
+              t: np.ndarray) -> Trajectory:
+    """The drop test of docs/models.md: θ1 = M, θ2 = −9.81, Fe = 0, released at q = 0 with
     velocity v0, gas at ambient temperature (the model's static guess)."""
     names = model.parameter_names
     if "theta1" not in names or "theta2" not in names:

@@ -16,8 +16,9 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -181,7 +182,7 @@ class Acquisition:
             if prev_means is not None:
                 change = np.abs(means - prev_means)
                 self.bus.publish("progress", label, phase=Phase.SETTLING.value, cycles=cycles,
-                                 change={c: float(x) for c, x in zip(CHANNELS, change)})
+                                 change={c: float(x) for c, x in zip(CHANNELS, change, strict=True)})
                 if cycles >= ss.min_cycles and np.all(change < thresholds):
                     settled = True
                     break

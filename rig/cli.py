@@ -80,8 +80,8 @@ def cmd_status(args: argparse.Namespace) -> int:
         st = shaker.status()
     finally:
         shaker.close()
-    print(f"state {st.state}  alarm {st.alarm}  position {st.position_m * 1e3:.2f} mm  force {st.force_n / 1e3:.2f} kN  "
-          f"cycles {st.cycles}  supply {st.hydraulic_pressure_pa / 1e5:.0f} bar")
+    print(f"state {st.state}  alarm {st.alarm}  position {st.position_m * 1e3:.2f} mm  "
+          f"force {st.force_n / 1e3:.2f} kN  cycles {st.cycles}  supply {st.hydraulic_pressure_pa / 1e5:.0f} bar")
     return EXIT_OK if st.state != "ALARM" else EXIT_ABORTED
 
 
@@ -143,7 +143,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
             t.add_column(col)
         _, values = daq.ring.latest(max(args.rate // 10, 1))
         mean = values.mean(axis=0) if len(values) else [float("nan")] * 4
-        for name, unit, v in zip(daq.calibration.names, daq.calibration.units, mean):
+        for name, unit, v in zip(daq.calibration.names, daq.calibration.units, mean, strict=True):
             t.add_row(name, f"{v:10.3f}", unit)
         c = daq.counters
         t.caption = (f"received {daq.parser.received}  lost {c.lost_samples}  overflow flags {c.overflow_flags}  "

@@ -16,9 +16,9 @@ import os
 import re
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import serial
@@ -71,7 +71,7 @@ class Calibration:
     text: str = ""
 
     @classmethod
-    def from_file(cls, path: str | Path | None = None) -> "Calibration":
+    def from_file(cls, path: str | Path | None = None) -> Calibration:
         path = Path(path) if path else DEFAULT_CALIBRATION
         text, doc = read_toml(path, CalibrationError, "calibration ")
         try:
@@ -89,7 +89,7 @@ class Calibration:
             raise CalibrationError(f"calibration {path}: {exc}") from None
         # The tables are applied to the frame's channels by position: a file whose tables
         # were reordered would silently give stroke the pressure's gain and label it so.
-        for i, (name, expected) in enumerate(zip(names, CHANNELS)):
+        for i, (name, expected) in enumerate(zip(names, CHANNELS, strict=True)):
             if name != expected:
                 raise CalibrationError(f"calibration {path}: [[channel]] {i + 1} is named {name!r}, but the DAQ's "
                                        f"channel {i} is {expected!r} (the order is {', '.join(CHANNELS)})")

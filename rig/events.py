@@ -14,12 +14,13 @@ import logging
 import queue
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from enum import Enum
-from typing import Any, Callable
+from enum import StrEnum
+from typing import Any
 
 
-class Phase(str, Enum):
+class Phase(StrEnum):
     IDLE = "idle"
     MOVING = "moving"
     SETTLING = "settling"

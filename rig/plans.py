@@ -27,7 +27,7 @@ class Plan:
     experiments: tuple[ExperimentSpec, ...]
     text: str = ""
 
-    def select(self, letters: list[str] | None) -> "Plan":
+    def select(self, letters: list[str] | None) -> Plan:
         if not letters:
             return self
         by_letter = {e.letter: e for e in self.experiments}
@@ -37,7 +37,7 @@ class Plan:
                             f"(letters: {', '.join(by_letter)})")
         return replace(self, experiments=tuple(by_letter[x] for x in letters))
 
-    def with_periods(self, periods: int | None) -> "Plan":
+    def with_periods(self, periods: int | None) -> Plan:
         if periods is None:
             return self
         if periods < 1:

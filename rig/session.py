@@ -66,7 +66,7 @@ class Session:
 
     @classmethod
     def create(cls, path: Path, *, plan_source: str, letters: list[str], periods: int | None, date: str | None,
-               snapshot: dict[str, str], unit: dict[str, str], endpoints: dict[str, str]) -> "Session":
+               snapshot: dict[str, str], unit: dict[str, str], endpoints: dict[str, str]) -> Session:
         path = Path(path)
         cls.check_new(path)
         path.mkdir(parents=True, exist_ok=True)
@@ -84,7 +84,7 @@ class Session:
         return session
 
     @classmethod
-    def load(cls, path: Path) -> "Session":
+    def load(cls, path: Path) -> Session:
         """A stored session as it is, read only (for checks before :meth:`reopen`)."""
         path = Path(path)
         try:
@@ -162,8 +162,8 @@ class SessionLog:
         stamp = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(event.time))
         details = " ".join(f"{k}={v}" for k, v in event.data.items() if k != "message")
         text = event.data.get("message", "")
-        self._file.write(f"{stamp} {event.kind:<18} {event.experiment or '-':<10} {text}{' ' if text and details else ''}"
-                         f"{details}\n")
+        gap = " " if text and details else ""
+        self._file.write(f"{stamp} {event.kind:<18} {event.experiment or '-':<10} {text}{gap}{details}\n")
         self._file.flush()
 
     def close(self) -> None:

@@ -11,9 +11,10 @@ from __future__ import annotations
 
 import math
 import threading
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator
+from typing import Any
 from urllib.parse import urlparse
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -44,7 +45,7 @@ class ShakerTimeout(ShakerError):
 class AlarmError(ShakerError):
     """The controller tripped (state ALARM)."""
 
-    def __init__(self, status: "ShakerStatus") -> None:
+    def __init__(self, status: ShakerStatus) -> None:
         super().__init__(f"shaker alarm: {status.alarm} (stroke {status.position_m * 1e3:.2f} mm, "
                          f"force {status.force_n / 1e3:.2f} kN)")
         self.status = status
@@ -64,7 +65,7 @@ class ShakerAddress:
     device: str | None = None
 
     @classmethod
-    def parse(cls, url: str) -> "ShakerAddress":
+    def parse(cls, url: str) -> ShakerAddress:
         """Checks the form only; whether anything answers there is :meth:`Shaker.connect`'s business."""
         parsed = urlparse(url)
         try:
@@ -175,7 +176,7 @@ class Shaker:
         finally:
             self.reconnect_s = saved
 
-    def __enter__(self) -> "Shaker":
+    def __enter__(self) -> Shaker:
         self.connect()
         return self
 

@@ -40,7 +40,7 @@ def _host_port(text: str, option: str) -> tuple[str, int]:
 
 
 def run_serve(args: argparse.Namespace) -> int:
-    from simulator.daq import PtyPort, TcpPort
+    from simulator.daq import Port, PtyPort, TcpPort
     from simulator.engine import VirtualRig
 
     if args.speed <= 0:
@@ -55,6 +55,7 @@ def run_serve(args: argparse.Namespace) -> int:
         host, port = "", 0
     else:
         host, port = _host_port(args.modbus, "--modbus")
+    daq_port: Port
     if args.daq == "pty":
         daq_port = PtyPort()
         if any(f.kind == "disconnect" for f in faults):

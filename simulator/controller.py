@@ -16,9 +16,9 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import IntEnum
-from typing import Callable
 
 import numpy as np
 
@@ -47,7 +47,7 @@ class Mode(IntEnum):
     RUN = 2
 
 
-# Datasheet addresses (rig-interfaces.md §1).
+# Datasheet addresses (docs/rig-interfaces.md §1).
 HOLDING = ("mode", "waveform", "static_position", "amplitude", "frequency", "ramp_time",
            "stroke_limit_low", "stroke_limit_high", "force_limit", "watchdog_timeout", "heartbeat")
 SIGNED_HOLDING = {"static_position", "stroke_limit_low", "stroke_limit_high"}
@@ -189,7 +189,7 @@ class ShakerController:
         with self._lock:
             names = self._names(HOLDING, address, len(values))
             proposed = dict(self.holding)
-            for name, raw in zip(names, values):
+            for name, raw in zip(names, values, strict=True):
                 proposed[name] = to_signed(raw) if name in SIGNED_HOLDING else int(raw)
             self._check(proposed, mode_written="mode" in names)
             old_mode = self.holding["mode"]
@@ -202,7 +202,7 @@ class ShakerController:
     def write_coils(self, address: int, values: list[bool]) -> None:
         with self._lock:
             names = self._names(COILS, address, len(values))
-            for name, value in zip(names, values):
+            for name, value in zip(names, values, strict=True):
                 if name == "hydraulics_on":
                     self._set_hydraulics(bool(value))
                 elif value:

@@ -21,7 +21,8 @@ import select
 import socket
 import threading
 import tty
-from typing import Callable, Protocol
+from collections.abc import Callable
+from typing import Protocol
 
 import crcmod.predefined
 import numpy as np

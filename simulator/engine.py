@@ -115,7 +115,7 @@ class VirtualRig:
 
     def _block(self, n: int) -> None:
         if self._drop is not None:
-            self._drop_block(n)
+            self._drop_block(n, self._drop)
             return
         t = self.t + self._dt * np.arange(1, n + 1)
         u = self.controller.setpoint(t)
@@ -142,8 +142,9 @@ class VirtualRig:
         self.controller.update(t_end, float(stroke[-1]), float(v[-1]), float(force[-1]))
         self._fire_faults()
 
-    def _drop_block(self, n: int) -> None:
-        """Drop rig: RUN releases the mass; the load cell under the axle reads the damper force."""
+    def _drop_block(self, n: int, rec: SteadyState) -> None:
+        """Drop rig: RUN releases the mass; the load cell under the axle reads the damper force.
+        ``rec`` is the whole drop, integrated once."""
         t = self.t + self._dt * np.arange(1, n + 1)
         c = self.controller
         if self._released_at is None and c.holding["mode"] == 2 and c.hydraulics_on:
@@ -151,22 +152,22 @@ class VirtualRig:
             self.log.record(self.t, f"drop: {self.drop_mass_kg:g} kg released at q = 0")
         ts = self.daq.due_times(float(t[-1]))
         if len(ts):
-            tt = ts - self._released_at if self._released_at is not None else np.full(len(ts), -1.0)
-            d, rec = self.damper, self._drop
-            inside = np.clip(tt, 0.0, rec.t[-1])
-            q = np.where(tt >= 0, np.interp(inside, rec.t, rec.q), 0.0)
-            v = np.where(tt >= 0, np.interp(inside, rec.t, rec.velocity), 0.0)
-            T = np.where(tt >= 0, np.interp(inside, rec.t, rec.temperature), d.ambient_k)
+            since = ts - self._released_at if self._released_at is not None else np.full(len(ts), -1.0)
+            d = self.damper
+            inside = np.clip(since, 0.0, rec.t[-1])
+            q = np.where(since >= 0, np.interp(inside, rec.t, rec.q), 0.0)
+            v = np.where(since >= 0, np.interp(inside, rec.t, rec.velocity), 0.0)
+            T = np.where(since >= 0, np.interp(inside, rec.t, rec.temperature), d.ambient_k)
             si = np.vstack([d.measured_stroke(q), d.damper_force(q, v, T), d.pressure(q, T), T])
             counts, over = self.sensors.counts(si, ts)
             self.daq.emit(counts, over)
         released = self._released_at is not None
         tt = float(t[-1]) - (self._released_at or 0.0)
-        q = float(np.interp(min(tt, self._drop.t[-1]), self._drop.t, self._drop.q)) if released else 0.0
-        if released and tt > self._drop.t[-1] and c.holding["mode"] == 2:
+        q_m = float(np.interp(min(tt, rec.t[-1]), rec.t, rec.q)) if released else 0.0
+        if released and tt > rec.t[-1] and c.holding["mode"] == 2:
             c.write_holding(0, [0])  # the drop is over: IDLE, the mass resting on the damper (one drop per run)
         self.t = float(t[-1])
-        c.update(self.t, float(self.damper.measured_stroke(q)), 0.0, 0.0)
+        c.update(self.t, float(self.damper.measured_stroke(q_m)), 0.0, 0.0)
         self._fire_faults()
 
     def _sample(self, t: np.ndarray, stroke: np.ndarray, v: np.ndarray, a: np.ndarray, T: np.ndarray) -> None:
@@ -174,7 +175,8 @@ class VirtualRig:
         if not len(ts):
             return
         grid = np.concatenate(([self.t], t))
-        states = [np.interp(ts, grid, np.concatenate(([last], x))) for last, x in zip(self._last, (stroke, v, a, T))]
+        states = [np.interp(ts, grid, np.concatenate(([last], x)))
+                  for last, x in zip(self._last, (stroke, v, a, T), strict=True)]
         strokes, vs, as_, Ts = states
         qs = self.damper.internal_stroke(strokes)
         si = np.vstack([strokes, self.damper.axle_force(qs, vs, as_, Ts), self.damper.pressure(qs, Ts), Ts])
@@ -196,6 +198,7 @@ class VirtualRig:
 
     def _apply(self, item: _Scheduled) -> None:
         f, t = item.fault, self.t
+        value = f.value or 0.0  # parse_fault gives a value to every kind that reads one below
         if item.action == "end":
             if f.kind == "modbus-down":
                 self.modbus.start()
@@ -205,36 +208,37 @@ class VirtualRig:
                 self.log.record(t, "fault end: hydraulic supply restored")
             return
         if f.kind == "corrupt":
-            self.daq.corrupt_probability = f.value
-            self.log.record(t, f"fault: DAQ byte corruption, probability {f.value:g} per byte")
+            self.daq.corrupt_probability = value
+            self.log.record(t, f"fault: DAQ byte corruption, probability {value:g} per byte")
         elif f.kind == "drop":
-            self.daq.drop_probability = f.value
-            self.log.record(t, f"fault: DAQ frames dropped on the line, probability {f.value:g}")
+            self.daq.drop_probability = value
+            self.log.record(t, f"fault: DAQ frames dropped on the line, probability {value:g}")
         elif f.kind == "overflow":
-            self.daq.overflow_burst(int(f.value))
-            self.log.record(t, f"fault: DAQ-internal overflow, {int(f.value)} samples lost")
+            self.daq.overflow_burst(int(value))
+            self.log.record(t, f"fault: DAQ-internal overflow, {int(value)} samples lost")
         elif f.kind == "stall":
-            self.daq.stall(t + f.value)
-            self.log.record(t, f"fault: serial line stalls for {f.value:g} s")
+            self.daq.stall(t + value)
+            self.log.record(t, f"fault: serial line stalls for {value:g} s")
         elif f.kind == "disconnect":
             self.daq.port.disconnect()
             self.log.record(t, "fault: DAQ link disconnected")
         elif f.kind == "modbus-down":
             self.modbus.stop()
-            self.log.record(t, f"fault: Modbus server gone for {f.value:g} s")
-            self._later(t + f.value, f)
+            self.log.record(t, f"fault: Modbus server gone for {value:g} s")
+            self._later(t + value, f)
         elif f.kind == "hydraulic-loss":
             self.controller.supply_lost = True
             self.log.record(t, "fault: hydraulic supply pressure lost")
-            if f.value:
-                self._later(t + f.value, f)
+            if value:
+                self._later(t + value, f)
         elif f.kind == "estop":
             self.log.record(t, "fault: emergency stop pressed")
             self.controller.emergency_stop(t)
         elif f.kind == "servo-drift":
-            self._servo_drift = (t, f.value * 1e-3)
-            self.log.record(t, f"fault: servo valve null drifts, actuator creeps {f.value:g} mm/s")
+            self._servo_drift = (t, value * 1e-3)
+            self.log.record(t, f"fault: servo valve null drifts, actuator creeps {value:g} mm/s")
         elif f.kind == "drift":
-            self.sensors.drift_per_s[f.channel] = f.value
+            assert f.channel is not None  # parse_fault sets it for every drift
+            self.sensors.drift_per_s[f.channel] = value
             self.sensors.drift_start_s[f.channel] = t
-            self.log.record(t, f"fault: channel {f.channel} drifts {f.value:g} units/s")
+            self.log.record(t, f"fault: channel {f.channel} drifts {value:g} units/s")

@@ -27,8 +27,8 @@ from __future__ import annotations
 
 import re
 import sys
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 KINDS = ("corrupt", "drop", "overflow", "stall", "disconnect", "modbus-down", "hydraulic-loss", "estop", "drift",
          "servo-drift")

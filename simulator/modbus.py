@@ -49,7 +49,8 @@ class ControllerContext(ModbusServerContext):
             return ExcCodes.ILLEGAL_ADDRESS
         return ExcCodes.ILLEGAL_ADDRESS
 
-    async def async_setValues(self, device_id: int, func_code: int, address: int, values: Sequence[int] | Sequence[bool]):
+    async def async_setValues(self, device_id: int, func_code: int, address: int,
+                              values: Sequence[int] | Sequence[bool]):
         table = _WRITE.get(func_code)
         try:
             if table == "coils":
@@ -113,7 +114,8 @@ class ModbusEndpoint:
             self._server = ModbusTcpServer(self.context, address=(self.host, self.port))
         await self._server.serve_forever(background=True)
         if not self.serial_port and self.port == 0:
-            self.port = self._server.transport.sockets[0].getsockname()[1]
+            # pymodbus types a listener's transport as BaseTransport; a TCP one is an asyncio.Server.
+            self.port = self._server.transport.sockets[0].getsockname()[1]  # type: ignore[attr-defined]
 
     async def _down(self) -> None:
         server, self._server = self._server, None

@@ -1,4 +1,4 @@
-"""Physics of the virtual rig: the damper of models.md in displacement control.
+"""Physics of the virtual rig: the damper of docs/models.md in displacement control.
 
 The shaker imposes the stroke; a servo-hydraulic actuator tracks the commanded stroke
 with a finite bandwidth (second order) and a velocity limit.  The controller closes its
@@ -7,7 +7,7 @@ limits and reports is the measured stroke q + θ12, so the damper sits at
 q = measured − θ12 and the physics is evaluated there.  The gas temperature
 follows from the energy balance g2 integrated in time, the pressure from the gas law,
 and the axle force from g1 solved for Fe (inverse dynamics).  The equations are
-written here from models.md independently of ``identify``'s generated code, so that
+written here from docs/models.md independently of ``identify``'s generated code, so that
 identification on simulated data also checks one against the other.
 """
 
@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from scipy.integrate import solve_ivp
@@ -23,6 +24,7 @@ from scipy.signal import cont2discrete, lfilter, lfilter_zi
 from identify.models.damper import Damper1Dof, Damper2Dof
 from identify.plans import ExperimentSpec
 
+FloatOrArray = TypeVar("FloatOrArray", float, np.ndarray)
 G0 = 9.81
 DECLARATIONS = {"1dof": Damper1Dof, "2dof": Damper2Dof}
 
@@ -93,11 +95,11 @@ class Damper:
     def ambient_k(self) -> float:
         return -self.theta17
 
-    def measured_stroke(self, q: np.ndarray) -> np.ndarray:
+    def measured_stroke(self, q: FloatOrArray) -> FloatOrArray:
         """What the stroke transducer reads at damper stroke ``q``: ŷ = q + θ12 [m]."""
         return q + self.theta12
 
-    def internal_stroke(self, measured_m: np.ndarray) -> np.ndarray:
+    def internal_stroke(self, measured_m: FloatOrArray) -> FloatOrArray:
         """The damper's q at a measured stroke [m]."""
         return measured_m - self.theta12
 
@@ -223,7 +225,7 @@ def periodic_steady_state(damper: Damper, actuator: Actuator, spec: ExperimentSp
 
 
 def drop_test(damper: Damper, mass_kg: float, velocity_m_s: float, t: np.ndarray) -> SteadyState:
-    """Drop test of models.md: θ1 = M, θ2 = −g, Fe = 0, released at q = 0, T = ambient;
+    """Drop test of docs/models.md: θ1 = M, θ2 = −g, Fe = 0, released at q = 0, T = ambient;
     the stroke channel reads q + θ12.
 
     ``axle_force`` is the damper force F_d, which the ground load cell reads."""

@@ -1,4 +1,4 @@
-"""Every malformed-dataset case of dataset-format.md: exit 2, one line naming file and place."""
+"""Every malformed-dataset case of docs/dataset-format.md: exit 2, one line naming file and place."""
 
 from __future__ import annotations
 
@@ -37,7 +37,8 @@ CASES = {
     "missing frequency": (dict(csv=HEADER + GOOD_ROWS, entry={"label": "x1", "kind": "periodic", "file": "x1.csv"}),
                           ["dataset.json", "x1", "frequency_Hz"]),
     "file not found": (dict(csv=None), ["x1.csv", "not found"]),
-    "shorter than one period": (dict(csv=HEADER + "0,1,2,3\n0.1,1,2,3\n0.2,1,2,3\n"), ["x1.csv", "less than one period"]),
+    "shorter than one period": (dict(csv=HEADER + "0,1,2,3\n0.1,1,2,3\n0.2,1,2,3\n"),
+                                ["x1.csv", "less than one period"]),
     "non-uniform sampling": (dict(csv=HEADER + GOOD_ROWS.replace("\n1.0,", "\n1.05,", 1)), ["x1.csv", "not uniform"]),
     "broken JSON": (dict(csv=None, manifest_text="{\"format\": "), ["dataset.json", "not valid JSON"]),
     "wrong format": (dict(csv=None, manifest_text=json.dumps({"format": "other/2", "experiments": []})),

@@ -149,4 +149,4 @@ def test_reported_standard_deviations_are_calibrated_over_noise_realisations(tmp
         values.append([result.value(k) for k in estimate])
         stds.append([result.std[k] for k in estimate])
     ratio = np.std(values, axis=0, ddof=1) / np.mean(stds, axis=0)
-    assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), dict(zip(estimate, ratio))
+    assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), dict(zip(estimate, ratio, strict=True))

@@ -104,7 +104,8 @@ class ExpectedSerial:
     (bytes) becomes readable."""
 
     def __init__(self, script: list[tuple[bytes, bytes]]) -> None:
-        self.script, self.pending, self.errors = list(script), b"", []
+        self.script, self.pending = list(script), b""
+        self.errors: list[str] = []
         self.lock = threading.Lock()
 
     def write(self, data: bytes) -> int:
@@ -172,7 +173,7 @@ def test_frame_parser_is_independent_of_how_bytes_are_cut():
     ref = whole.feed(stream)
     parts = FrameParser()
     cuts = np.sort(rng.integers(0, len(stream), 500))
-    blocks = [parts.feed(stream[a:b]) for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(stream)])]
+    blocks = [parts.feed(stream[a:b]) for a, b in zip(np.r_[0, cuts], np.r_[cuts, len(stream)], strict=True)]
     index = np.concatenate([b.index for b in blocks])
     assert np.array_equal(index, ref.index) and np.array_equal(index, np.arange(70000))  # across the wrap
     assert parts.counters.lost_samples == whole.counters.lost_samples == 0

@@ -1,4 +1,4 @@
-"""The emulated signals obey models.md: the streaming plant behind the protocols, run
+"""The emulated signals obey docs/models.md: the streaming plant behind the protocols, run
 in-process on the simulated clock (no wall-clock pacing)."""
 
 from __future__ import annotations

@@ -1,21 +1,23 @@
 """The virtual rig seen from outside: a plain pymodbus client by the datasheet's raw
-addresses, mbpoll where installed, and a small independent DAQ decoder (sync,
+addresses, mbpoll (required under CI), and a small independent DAQ decoder (sync,
 CRC-16/MODBUS, sequence) on TCP and on a pseudo-terminal.  No project code on the
 client side."""
 
 from __future__ import annotations
 
-import shutil
 import socket
 import struct
 import subprocess
 import time
+from itertools import pairwise
 
 import crcmod.predefined
 import numpy as np
 import pytest
 import serial
 from pymodbus.client import ModbusTcpClient
+
+from tests.conftest import require_program
 
 CRC = crcmod.predefined.mkCrcFun("modbus")
 OFF, IDLE, MOVING, AT_STATIC, RUNNING, ALARM = range(6)
@@ -28,7 +30,7 @@ def client(rig) -> ModbusTcpClient:
 
 
 def inputs(c: ModbusTcpClient) -> list[int]:
-    return c.read_input_registers(0, count=7, device_id=1).registers
+    return list(c.read_input_registers(0, count=7, device_id=1).registers)
 
 
 def wait_state(c: ModbusTcpClient, state: int, timeout_s: float = 20.0) -> list[int]:
@@ -124,21 +126,26 @@ def test_every_trip_is_seen_as_alarm_with_its_code(served_rig, fault, setup, ala
     c.close()
 
 
-@pytest.mark.skipif(not shutil.which("mbpoll"), reason="mbpoll not installed")
 def test_mbpoll_reads_the_controller(served_rig):
+    mbpoll = require_program("mbpoll")
     rig = served_rig()
-    out = subprocess.run(["mbpoll", "-m", "tcp", "-a", "1", "-t", "3", "-r", "0", "-c", "7", "-1", "-0",
+    out = subprocess.run([mbpoll, "-m", "tcp", "-a", "1", "-t", "3", "-r", "0", "-c", "7", "-1", "-0",
                           "-p", str(rig.port), rig.host], capture_output=True, text=True, timeout=20)
     assert out.returncode == 0, out.stdout + out.stderr
     values = dict(line.split(":") for line in out.stdout.splitlines() if line.startswith("["))
     assert int(values["[0]"]) == OFF and int(values["[6]"]) == 123   # state, firmware
     # a write from mbpoll: hydraulics on (coil 0), then the state reads IDLE
-    out = subprocess.run(["mbpoll", "-m", "tcp", "-a", "1", "-t", "0", "-r", "0", "-0", "-1",
+    out = subprocess.run([mbpoll, "-m", "tcp", "-a", "1", "-t", "0", "-r", "0", "-0", "-1",
                           "-p", str(rig.port), rig.host, "1"], capture_output=True, text=True, timeout=20)
     assert out.returncode == 0, out.stdout + out.stderr
     c = client(rig)
     wait_state(c, IDLE)
     c.close()
+
+
+def frame_at(stream: bytes, i: int) -> bool:
+    """A sync word at i that starts a frame whose CRC matches."""
+    return stream[i:i + 2] == b"\xa5\x5a" and CRC(stream[i + 2:i + 14]) == struct.unpack("<H", stream[i + 14:i + 16])[0]
 
 
 def decode(stream: bytes) -> tuple[list[int], int]:
@@ -211,7 +218,7 @@ def test_daq_stream_decoded_independently(served_rig, transport):
     assert bad == 0
     assert len(seqs) == issued > 20000  # 2 kHz at 20x for about a second
     assert seqs[0] == 0
-    assert all((b - a) & 0xFFFF == 1 for a, b in zip(seqs, seqs[1:]))
+    assert all((b - a) & 0xFFFF == 1 for a, b in pairwise(seqs))
 
 
 def read_stream(sock: socket.socket, seconds: float) -> list[tuple[float, bytes]]:
@@ -245,7 +252,7 @@ def test_serial_stall_delays_frames_without_losing_them(served_rig):
     arrivals = [t for t, _ in chunks]
     assert max(np.diff(arrivals)) > 0.7                  # the line went quiet
     seqs, bad = decode(b"".join(d for _, d in chunks).split(b"OK\n", 2)[-1])
-    assert bad == 0 and all((b - a) & 0xFFFF == 1 for a, b in zip(seqs, seqs[1:]))   # and nothing was lost
+    assert bad == 0 and all((b - a) & 0xFFFF == 1 for a, b in pairwise(seqs))   # and nothing was lost
     sock.close()
 
 
@@ -274,7 +281,7 @@ def test_sensor_drift_moves_the_channel(served_rig):
     counts = []
     i = 0
     while i + 16 <= len(stream):
-        if stream[i:i + 2] == b"\xa5\x5a" and CRC(stream[i + 2:i + 14]) == struct.unpack("<H", stream[i + 14:i + 16])[0]:
+        if frame_at(stream, i):
             counts.append(struct.unpack("<4h", stream[i + 4:i + 12])[3])
             i += 16
         else:
@@ -309,8 +316,7 @@ def test_drop_rig_releases_the_mass_and_the_damper_settles(served_rig):
     stream = b"".join(d for _, d in read_stream(sock, 2.6)).split(b"OK\n", 1)[-1]   # 130 simulated seconds
     sock.sendall(b"STOP\n")
     sock.close()
-    frames = [struct.unpack("<4h", stream[i + 4:i + 12]) for i in range(len(stream) - 15)
-              if stream[i:i + 2] == b"\xa5\x5a" and CRC(stream[i + 2:i + 14]) == struct.unpack("<H", stream[i + 14:i + 16])[0]]
+    frames = [struct.unpack("<4h", stream[i + 4:i + 12]) for i in range(len(stream) - 15) if frame_at(stream, i)]
     counts = np.array(frames, dtype=float)
     stroke, force = 140 + 0.005 * counts[:, 0], counts[:, 1]
     temperature = 50 + 0.005 * counts[:, 3]

@@ -1,1 +1,1 @@
-"""Built-in model declarations: the damper models of models.md and a Duffing example."""
+"""Built-in model declarations: the damper models of docs/models.md and a Duffing example."""

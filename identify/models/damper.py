@@ -1,4 +1,4 @@
-"""The oleo-pneumatic damper models of ``shared/spec/models.md`` (paper eq. 21–24).
+"""The oleo-pneumatic damper models of ``docs/models.md`` (paper eq. 21–24).
 
 Inputs and outputs map to the damper dataset columns: the axle force is the input,
 stroke, absolute gas pressure and gas temperature are outputs; ``force_N`` as an output
