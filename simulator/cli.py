@@ -2,6 +2,10 @@
 
 ``serve`` runs the rig behind its two real interfaces (Modbus controller, serial DAQ);
 ``generate`` writes a dataset in the interchange format without the protocol loop.
+
+Exit status: 0 done (``serve``: stopped by SIGINT/SIGTERM); 2 bad input (an option, a
+truth file, a fault or an endpoint; one line naming it).  Anything else is a bug and
+shows its traceback.
 """
 
 from __future__ import annotations
@@ -12,16 +16,17 @@ import sys
 import threading
 import time
 
-from identify.parameters import ParameterError
+from identify.errors import InputError
 from identify.plans import STANDARD_SET, select
-from simulator.faults import FaultError, parse_fault
+from simulator.errors import SimulatorError, UsageError
+from simulator.faults import parse_fault
 from simulator.generate import generate
 from simulator.truth import load_truth
 
 
 def run_generate(args: argparse.Namespace) -> int:
     if args.plan != "standard":
-        raise ValueError(f"--plan {args.plan!r}: only the built-in 'standard' plan is available here")
+        raise UsageError(f"--plan {args.plan!r}: only the built-in 'standard' plan is available here")
     letters = [x.strip() for x in args.experiments.split(",")] if args.experiments else None
     plan = select(STANDARD_SET, letters)
     t0 = time.perf_counter()
@@ -35,7 +40,7 @@ def run_generate(args: argparse.Namespace) -> int:
 def _host_port(text: str, option: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
     if not sep or not port.isdigit():
-        raise ValueError(f"{option} {text!r}: expected HOST:PORT")
+        raise UsageError(f"{option} {text!r}: expected HOST:PORT")
     return host or "127.0.0.1", int(port)
 
 
@@ -44,7 +49,7 @@ def run_serve(args: argparse.Namespace) -> int:
     from simulator.engine import VirtualRig
 
     if args.speed <= 0:
-        raise ValueError(f"--speed {args.speed}: must be positive")
+        raise UsageError(f"--speed {args.speed}: must be positive")
     damper = load_truth(args.params, args.model)  # refused before any endpoint is opened
     faults = [parse_fault(f) for f in args.fault]
     bridge = None
@@ -59,11 +64,11 @@ def run_serve(args: argparse.Namespace) -> int:
     if args.daq == "pty":
         daq_port = PtyPort()
         if any(f.kind == "disconnect" for f in faults):
-            raise ValueError("--fault disconnect needs the TCP DAQ (a pseudo-terminal cannot be unplugged)")
+            raise UsageError("--fault disconnect needs the TCP DAQ (a pseudo-terminal cannot be unplugged)")
     elif args.daq.startswith("tcp://"):
         daq_port = TcpPort(*_host_port(args.daq[len("tcp://"):], "--daq"))
     else:
-        raise ValueError(f"--daq {args.daq!r}: expected pty or tcp://HOST:PORT")
+        raise UsageError(f"--daq {args.daq!r}: expected pty or tcp://HOST:PORT")
     rig = VirtualRig(damper, daq_port, speed=args.speed, seed=args.seed,
                      faults=faults, modbus_host=host, modbus_port=port,
                      modbus_serial=bridge.server_path if bridge else None, rig_type=args.rig,
@@ -75,7 +80,7 @@ def run_serve(args: argparse.Namespace) -> int:
         rig.start()
     except OSError as exc:
         daq_port.close()
-        raise ValueError(f"cannot open the Modbus endpoint {host}:{port}: {exc.strerror or exc}") from None
+        raise UsageError(f"cannot open the Modbus endpoint {host}:{port}: {exc.strerror or exc}") from None
     print(f"modbus {f'rtu://{bridge.client_path}' if bridge else rig.modbus.url}", flush=True)
     print(f"daq {daq_port.url}", flush=True)
     try:
@@ -132,6 +137,6 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.func(args)
-    except (ParameterError, FaultError, KeyError, ValueError) as exc:
-        print(f"error: {exc.args[0] if isinstance(exc, KeyError) else exc}", file=sys.stderr)
+    except (SimulatorError, InputError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
         return 2

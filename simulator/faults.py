@@ -30,6 +30,8 @@ import sys
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from simulator.errors import SimulatorError
+
 KINDS = ("corrupt", "drop", "overflow", "stall", "disconnect", "modbus-down", "hydraulic-loss", "estop", "drift",
          "servo-drift")
 _TIMED = {"overflow", "stall", "disconnect", "modbus-down", "hydraulic-loss", "estop", "servo-drift"}
@@ -37,7 +39,7 @@ _TIME = r"(?:run\+)?[0-9.eE+-]+"
 _SYNTAX = re.compile(rf"^(?P<kind>[a-z-]+)(?:@(?P<at>{_TIME}))?(?:=(?P<value>[^@]+))?(?:@(?P<at2>{_TIME}))?$")
 
 
-class FaultError(ValueError):
+class FaultError(SimulatorError, ValueError):
     """A fault specification that cannot be understood."""
 
 

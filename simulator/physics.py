@@ -23,13 +23,14 @@ from scipy.signal import cont2discrete, lfilter, lfilter_zi
 
 from identify.models.damper import Damper1Dof, Damper2Dof
 from identify.plans import ExperimentSpec
+from simulator.errors import SimulatorError
 
 FloatOrArray = TypeVar("FloatOrArray", float, np.ndarray)
 G0 = 9.81
 DECLARATIONS = {"1dof": Damper1Dof, "2dof": Damper2Dof}
 
 
-class TruthError(ValueError):
+class TruthError(SimulatorError, ValueError):
     """True parameters the simulator cannot represent; it refuses them rather than
     simulate something else than they say."""
 
