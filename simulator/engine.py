@@ -175,6 +175,12 @@ class VirtualRig:
         counts, over = self.sensors.counts(si, ts)
         self.daq.emit(counts, over)
 
+    def inject(self, fault: Fault) -> None:
+        """Apply ``fault`` now (its time is ignored): a client driving simulated time
+        itself times faults against what it does, e.g. a phase of the acquisition.
+        Not for ``modbus-down``: its end starts the Modbus server."""
+        self._apply(_Scheduled(self.t, fault))
+
     def _fire_faults(self) -> None:
         while self._schedule and self._schedule[0].at_s <= self.t:
             item = self._schedule.pop(0)
