@@ -10,6 +10,7 @@ import errno
 import json
 import math
 import re
+import signal
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -208,8 +209,16 @@ def test_with_on_alarm_skip_the_next_experiment_is_captured(vrig, tmp_path):
 
 def test_ctrl_c_fades_out_and_switches_the_hydraulics_off(vrig, tmp_path):
     runner, session = vrig.open_session(tmp_path / "s", ["j"])
-    vrig.when("settling", 3.0, runner.acquisition.stop_requested.set)
-    result = runner.run(session)
+    # A real SIGINT, raised in this (the main) thread: the session's own handler must turn it into a
+    # stop request; one that reached the handler outside the session would be a miss, not a crash of pytest.
+    vrig.when("settling", 3.0, lambda: signal.raise_signal(signal.SIGINT))
+    missed: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: missed.append(signum))
+    try:
+        result = runner.run(session)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert missed == []
 
     assert (result.status, result.exit_code, result.safe_stop_failures) == \
         ("interrupted (SIGINT)", EXIT_INTERRUPTED, [])
