@@ -212,7 +212,9 @@ class SessionRunner:
     def __init__(self, prep: Prepared, links: Links, bus: EventBus, console: Console) -> None:
         self.prep, self.links, self.bus, self.console = prep, links, bus, console
         self.state = "connected"
-        self.acquisition = Acquisition(links.shaker, links.daq, prep.config, bus)
+        # One time line for the rig: the acquisition waits on the shaker's clock (the wall
+        # clock, or a simulated one when a test drives an in-process simulator).
+        self.acquisition = Acquisition(links.shaker, links.daq, prep.config, bus, links.shaker.clock)
 
     def open_session(self) -> Session:
         prep, opt = self.prep, self.prep.options

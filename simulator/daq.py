@@ -202,6 +202,8 @@ class DaqDevice:
         self._rng = np.random.default_rng(seed + 7919)
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
+        self._sent = threading.Condition(self._lock)   # the writer handed a chunk to the link
+        self._sending = False                          # a chunk left the FIFO and is being written
         self._out = bytearray()
         self._t_start = 0.0
         self._next_k = 0
@@ -246,6 +248,14 @@ class DaqDevice:
     def stall(self, until_s: float) -> None:
         with self._lock:
             self._stall_until_s = until_s
+
+    def wait_sent(self, timeout_s: float) -> bool:
+        """Wait until every byte emitted so far has been written to the link (or the link
+        stalls); False on timeout.  For clients that drive simulated time themselves and
+        must know that the stream up to now is on the line, not still in the FIFO."""
+        with self._sent:
+            return self._sent.wait_for(
+                lambda: not self._sending and (not self._out or self._now() < self._stall_until_s), timeout_s)
 
     # ----- engine side -------------------------------------------------------------------
     def due_times(self, t_end: float) -> np.ndarray:
@@ -359,8 +369,12 @@ class DaqDevice:
                     self._cond.wait(timeout=0.02)
                 chunk = bytes(self._out[:65536])
                 del self._out[:65536]
+                self._sending = bool(chunk)
             if chunk:
                 try:
                     self.port.write(chunk)
                 except OSError:
                     pass
+                with self._sent:
+                    self._sending = False
+                    self._sent.notify_all()

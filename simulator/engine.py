@@ -183,6 +183,12 @@ class VirtualRig:
         counts, over = self.sensors.counts(si, ts)
         self.daq.emit(counts, over)
 
+    def inject(self, fault: Fault) -> None:
+        """Apply ``fault`` now (its time is ignored): a client driving simulated time
+        itself times faults against what it does, e.g. a phase of the acquisition.
+        Not for ``modbus-down``: its end starts the Modbus server."""
+        self._apply(_Scheduled(self.t, fault))
+
     def _fire_faults(self) -> None:
         if self._after_run and self.controller.first_run_s is not None:
             self._schedule += [_Scheduled(self.controller.first_run_s + (f.at_s or 0.0), f) for f in self._after_run]

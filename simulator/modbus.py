@@ -100,6 +100,9 @@ class ModbusEndpoint:
             asyncio.run_coroutine_threadsafe(self._down(), self._loop).result(timeout=10)
 
     def close(self) -> None:
+        if not self._thread.is_alive():  # never started (a rig driven in-process): nothing serves
+            self._loop.close()
+            return
         self.stop()
         self._loop.call_soon_threadsafe(self._loop.stop)
         self._thread.join(timeout=5)

@@ -1,0 +1,284 @@
+"""The acquisition state machine and the session's error boundary, deterministically:
+the rig package's drivers against the virtual rig in this process, on simulated time
+(tests/virtual_rig_inprocess.py).  Faults, Ctrl-C and link outages are timed in
+simulated seconds after a phase begins, so each lands where it is meant to whatever
+the machine's load, and every run is the same."""
+
+from __future__ import annotations
+
+import errno
+import json
+import math
+import re
+import signal
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from identify.plans import STANDARD_SET
+from rig.acquisition import Acquisition, ExperimentRecord, Recorder
+from rig.config import DEFAULT_RIG_CONFIG
+from rig.daq import CHANNELS
+from rig.run import EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK
+from rig.shaker import AlarmError
+from simulator.controller import Alarm, State
+from tests.virtual_rig_inprocess import SHAKER_URL, InProcessRig
+
+J, N = (next(s for s in STANDARD_SET if s.letter == x) for x in "jn")   # 2 Hz: short experiments
+SAFE_STOP_DONE = "safe stop done: stream stopped, STOP, hydraulics off"
+RESET = f"[Errno {errno.ECONNRESET}] Connection reset by peer"     # what the in-process client raises
+LINK_LOST = f"Modbus link to {SHAKER_URL} lost ({RESET}); reconnecting"
+LINK_GONE = f"Modbus link to {SHAKER_URL} lost and not back within 3 s ({RESET})"
+# Steady-state criteria loose enough that j settles after about half a minute of simulated
+# time (the default ones take 150 s); a Modbus link may be away 3 s.
+TEST_CONFIG = {"force_N = 5.0": "force_N = 50.0", "pressure_bar = 0.0005": "pressure_bar = 0.1",
+               "gas_temperature_C = 0.003": "gas_temperature_C = 3.0", "max_cycles = 1500": "max_cycles = 200",
+               "reconnect_s = 20.0": "reconnect_s = 3.0"}
+
+
+@pytest.fixture
+def rig_config(tmp_path: Path) -> Path:
+    text = DEFAULT_RIG_CONFIG.read_text()
+    for old, new in TEST_CONFIG.items():
+        assert old in text, f"{DEFAULT_RIG_CONFIG} no longer has {old!r}"
+        text = text.replace(old, new)
+    path = tmp_path / "rig.toml"
+    path.write_text(text)
+    return path
+
+
+@pytest.fixture
+def vrig(rig_config: Path) -> Iterator[InProcessRig]:
+    rig = InProcessRig(rig_config)
+    rig.connect()
+    yield rig
+    rig.close()
+
+
+def acquisition(vrig: InProcessRig) -> Acquisition:
+    return Acquisition(vrig.shaker, vrig.daq, vrig.config, vrig.bus, vrig.clock)
+
+
+def fault_time(vrig: InProcessRig, message: str) -> float:
+    (t,) = [t for t, m in vrig.fault_log.entries if m == message]
+    return t
+
+
+def first_phase(vrig: InProcessRig, phase: str, experiment: str | None) -> float:
+    return next(t for t, e, p in vrig.phases() if (e, p) == (experiment, phase))
+
+
+def session_meta(out: Path) -> tuple[dict, dict]:
+    return json.loads((out / "session.json").read_text()), json.loads((out / "dataset.json").read_text())
+
+
+def assert_at_rest(vrig: InProcessRig, alarm: Alarm = Alarm.NONE) -> None:
+    c = vrig.sim.controller
+    assert (c.state, c.alarm, c.hydraulics_on) == (State.ALARM if alarm else State.OFF, alarm, False)
+    assert not vrig.sim.daq.streaming
+
+
+# ----- the state machine ----------------------------------------------------------------------------------
+def test_settles_then_captures_the_planned_whole_periods(vrig):
+    record = acquisition(vrig).run_experiment(J, "261122j")
+
+    assert [(e, p) for _, e, p in vrig.phases()] == \
+        [("261122j", p) for p in ("moving", "settling", "capturing", "stopping", "idle")]
+    # settled at the first comparison whose changes were all below the thresholds
+    ss = vrig.config.steady_state
+    progress = [e.data for _, e in vrig.events if e.kind == "progress" and e.data["phase"] == "settling"]
+    below = [all(p["change"][c] < ss.thresholds[c] for c in CHANNELS) for p in progress]
+    assert len(below) >= 2 and below[-1] and not any(below[:-1])
+    assert record.settled and record.settle_cycles == progress[-1]["cycles"] >= 20
+    assert f"steady state after {record.settle_cycles} cycles" in vrig.messages()
+    # the window: 3 whole periods right after the last settling block, nothing lost
+    rate, spp = 2000, 1000
+    start = math.ceil((ss.ramp_time_s + 0.5) * rate)
+    assert np.array_equal(record.index, start + record.settle_cycles * spp + np.arange(3 * spp))
+    assert (record.lost_samples, record.stream_lost, record.recaptures, record.flags) == (0, 0, 0, [])
+    stroke = record.values[:, 0]
+    assert stroke.min() == pytest.approx(133 - 10, abs=0.3) and stroke.max() == pytest.approx(133 + 10, abs=0.3)
+    # the fade-out took the ramp time before the shaker was stopped at its static position
+    assert first_phase(vrig, "idle", "261122j") - first_phase(vrig, "stopping", "261122j") >= ss.ramp_time_s
+    c = vrig.sim.controller
+    assert (c.state, c.alarm) == (State.IDLE, Alarm.NONE) and c.position_m == pytest.approx(0.133, abs=1e-4)
+
+
+def run_n_alone(rig_config: Path) -> tuple[ExperimentRecord, list[tuple[float, str | None, str]]]:
+    rig = InProcessRig(rig_config)
+    try:
+        rig.connect()
+        return acquisition(rig).run_experiment(N, "261122n"), rig.phases()
+    finally:
+        rig.close()
+
+
+def test_a_run_is_the_same_whatever_the_load(rig_config):
+    quiet, phases_quiet = run_n_alone(rig_config)
+    stop = threading.Event()
+
+    def compete() -> None:                              # takes the interpreter from the rig's threads
+        while not stop.is_set():
+            sum(range(10_000))
+
+    hog = threading.Thread(target=compete)
+    hog.start()
+    try:
+        loaded, phases_loaded = run_n_alone(rig_config)
+    finally:
+        stop.set()
+        hog.join()
+    assert phases_loaded == phases_quiet                # every transition at the same simulated time
+    assert np.array_equal(loaded.index, quiet.index) and np.array_equal(loaded.values, quiet.values)
+
+
+def test_samples_lost_in_the_capture_window_are_captured_again(vrig):
+    vrig.when("capturing", 0.5, lambda: vrig.inject("overflow=300"))
+    record = acquisition(vrig).run_experiment(J, "261122j")
+
+    assert "capture window 1 lost 300 samples; capturing again" in vrig.messages()
+    assert (record.recaptures, record.lost_samples, record.stream_lost, record.flags) == (1, 0, 300, [])
+    first_window = math.ceil(2.5 * 2000) + record.settle_cycles * 1000
+    assert np.array_equal(record.index, first_window + 3000 + np.arange(3000))   # the second window, whole
+    assert vrig.sim.daq.lost["overflow"] == 300
+
+
+def test_a_window_that_keeps_losing_samples_is_kept_and_flagged(vrig):
+    vrig.when("capturing", 0.0, lambda: vrig.inject("drop=0.01"))
+    record = acquisition(vrig).run_experiment(J, "261122j")
+
+    assert record.recaptures == vrig.config.steady_state.max_recaptures == 2
+    assert record.lost_samples > 0 and len(record.index) == 3000 - record.lost_samples
+    assert record.flags == [f"{record.lost_samples} samples lost in the captured window (rows absent; best of 3 "
+                            "windows)"]
+    windows = [re.sub(r"lost \d+ samples", "lost N samples", m) for m in vrig.messages()
+               if m.startswith("capture window ")]
+    assert windows == ["capture window 1 lost N samples; capturing again",
+                       "capture window 2 lost N samples; capturing again", "capture window 3 lost N samples"]
+
+
+def test_an_estop_while_settling_raises_the_alarm_at_the_next_status_poll(vrig):
+    acq = acquisition(vrig)
+    vrig.when("settling", 3.0, lambda: vrig.inject("estop"))
+    with pytest.raises(AlarmError, match=r"^shaker alarm: emergency stop \(stroke 1[23]\d\.\d\d mm"):
+        acq.run_experiment(J, "261122j")
+    assert [p for _, _, p in vrig.phases()] == ["moving", "settling"]
+    assert not vrig.sim.daq.streaming                  # the stream is stopped on the way out
+    assert acq.safe_stop("alarm") == []
+    assert_at_rest(vrig, Alarm.EMERGENCY_STOP)
+
+
+# ----- the session's error boundary -------------------------------------------------------------------------
+def test_an_alarm_aborts_the_session_after_the_safe_stop(vrig, tmp_path):
+    runner, session = vrig.open_session(tmp_path / "s", ["j", "n"])
+    vrig.when("settling", 3.0, lambda: vrig.inject("estop"))
+    result = runner.run(session)
+
+    (alarm,) = vrig.messages("alarm")
+    assert alarm.startswith("shaker alarm: emergency stop (")
+    assert (result.status, result.exit_code, result.error) == (f"aborted: {alarm}", EXIT_ABORTED, None)
+    # seen at the next status poll (every 0.2 s), and the safe stop began at once
+    assert 0 <= round(first_phase(vrig, "stopping", None) - fault_time(vrig, "fault: emergency stop pressed"), 6) \
+        <= 0.25
+    assert SAFE_STOP_DONE in (tmp_path / "s" / "session.log").read_text()
+    assert_at_rest(vrig, Alarm.EMERGENCY_STOP)
+    meta, manifest = session_meta(tmp_path / "s")
+    assert meta["status"] == result.status and manifest["experiments"] == []
+    assert "261122n" not in {e for _, e, _ in vrig.phases()}
+
+
+def test_with_on_alarm_skip_the_next_experiment_is_captured(vrig, tmp_path):
+    runner, session = vrig.open_session(tmp_path / "s", ["j", "n"], on_alarm="skip")
+    vrig.when("settling", 3.0, lambda: vrig.inject("estop"), experiment="261122j")
+    result = runner.run(session)
+
+    assert (result.status, result.exit_code) == \
+        ("ended: 1 of 2 experiments captured, skipped after alarms: 261122j", EXIT_OK)
+    (alarm,) = vrig.messages("alarm")
+    assert vrig.messages("experiment-failed") == [f"261122j skipped after the alarm ({alarm})"]
+    assert [m for _, m in vrig.fault_log.entries if "reset" in m] == ["alarm emergency_stop reset"]
+    meta, manifest = session_meta(tmp_path / "s")
+    assert meta["status"] == result.status
+    assert [(e["label"], e["steady_state"], e["lost_samples"]) for e in manifest["experiments"]] == \
+        [("261122n", True, 0)]
+    assert_at_rest(vrig)
+
+
+def test_ctrl_c_fades_out_and_switches_the_hydraulics_off(vrig, tmp_path):
+    runner, session = vrig.open_session(tmp_path / "s", ["j"])
+    # A real SIGINT, raised in this (the main) thread: the session's own handler must turn it into a
+    # stop request; one that reached the handler outside the session would be a miss, not a crash of pytest.
+    vrig.when("settling", 3.0, lambda: signal.raise_signal(signal.SIGINT))
+    missed: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: missed.append(signum))
+    try:
+        result = runner.run(session)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert missed == []
+
+    assert (result.status, result.exit_code, result.safe_stop_failures) == \
+        ("interrupted (SIGINT)", EXIT_INTERRUPTED, [])
+    asked = first_phase(vrig, "settling", "261122j") + 3.0
+    stopping, idle = first_phase(vrig, "stopping", None), first_phase(vrig, "idle", None)
+    assert 0 <= round(stopping - asked, 6) <= 0.05       # honoured at the next poll
+    assert idle - stopping >= vrig.config.steady_state.ramp_time_s   # faded out, not dropped
+    assert vrig.messages("alarm") == [] and vrig.messages()[-1] == SAFE_STOP_DONE
+    assert_at_rest(vrig)
+    meta, manifest = session_meta(tmp_path / "s")
+    assert meta["status"] == "interrupted (SIGINT)" and manifest["experiments"] == []
+
+
+def test_a_modbus_link_back_within_the_reconnect_time_is_ridden_through(vrig, tmp_path):
+    runner, session = vrig.open_session(tmp_path / "s", ["j"])
+    vrig.when("settling", 3.0, lambda: vrig.client.cut(1.0))   # shorter than the watchdog's 2 s, too
+    result = runner.run(session)
+
+    assert (result.status, result.exit_code) == ("complete", EXIT_OK)
+    log = vrig.messages()
+    assert log.count(LINK_LOST) == 1 and log.count(f"Modbus link to {SHAKER_URL} back") == 1
+    assert log.index(LINK_LOST) < log.index(f"Modbus link to {SHAKER_URL} back")
+    _, manifest = session_meta(tmp_path / "s")
+    assert [(e["steady_state"], e["lost_samples"], e["stream_lost_samples"]) for e in manifest["experiments"]] == \
+        [(True, 0, 0)]
+    assert_at_rest(vrig)
+
+
+def test_a_modbus_link_gone_for_good_aborts_and_the_watchdog_stops_the_shaker(vrig, tmp_path):
+    runner, session = vrig.open_session(tmp_path / "s", ["j"])
+    vrig.when("settling", 3.0, lambda: vrig.client.cut(600.0))
+    result = runner.run(session)
+
+    assert result.exit_code == EXIT_ABORTED
+    assert result.safe_stop_failures == [f"stop: {LINK_GONE}", f"hydraulics off: {LINK_GONE}"]
+    assert result.status == (f"aborted: {LINK_GONE}; safe stop incomplete (stop: {LINK_GONE}; hydraulics off: "
+                             f"{LINK_GONE}): the controller's watchdog stops the shaker once this program has let go")
+    log = vrig.messages()
+    assert f"safe stop: status unreadable ({LINK_GONE})" in log and log[-1] == \
+        "safe stop incomplete: 2 of 3 steps failed"
+    assert not vrig.sim.daq.streaming                  # the DAQ, on its own link, was stopped
+    c = vrig.sim.controller
+    assert (c.state, c.alarm) == (State.ALARM, Alarm.WATCHDOG)   # no heartbeat got through
+    assert session_meta(tmp_path / "s")[0]["status"] == result.status
+
+
+def test_a_bug_in_the_acquisition_still_ends_in_the_safe_stop(vrig, tmp_path, monkeypatch):
+    def broken_window(self: Recorder, a: int, b: int) -> None:
+        raise TypeError("injected bug")
+
+    monkeypatch.setattr(Recorder, "window", broken_window)   # first called once the first block is in
+    runner, session = vrig.open_session(tmp_path / "s", ["j"])
+    result = runner.run(session)
+
+    assert (result.status, result.exit_code) == ("aborted: internal error: TypeError: injected bug", EXIT_INTERNAL)
+    assert isinstance(result.error, TypeError) and str(result.error) == "injected bug"
+    assert [p for _, _, p in vrig.phases()] == ["moving", "settling", "stopping", "idle"]
+    stopping, idle = first_phase(vrig, "stopping", None), first_phase(vrig, "idle", None)
+    assert idle - stopping >= vrig.config.steady_state.ramp_time_s    # it was running: faded out
+    log = (tmp_path / "s" / "session.log").read_text()
+    assert "aborting on an internal error: TypeError: injected bug" in log and SAFE_STOP_DONE in log
+    assert_at_rest(vrig)
+    assert session_meta(tmp_path / "s")[0]["status"] == result.status

@@ -1,0 +1,365 @@
+"""The virtual rig in the test's own process, on a simulated clock: deterministic tests
+of the acquisition with no subprocess, no socket, no engine thread and no real sleep.
+
+    rig.shaker ── InProcessModbusClient ──▶ simulator.modbus.ControllerContext ──▶ ShakerController
+    rig.daq    ── SerialLine.host ══ SerialLine.device ──▶ simulator.daq.DaqDevice
+    every wait of the rig (rig.clock.Clock) ── SimClock.sleep(dt) ──▶ VirtualRig.step_to(t + dt)
+
+Only the thread that drives the session (the test's) moves simulated time.  After each
+step the clock waits until the DAQ device has put on the line what it emitted and the
+rig's DAQ reader has consumed it and waits for more: when the acquisition looks at its
+samples, they are exactly those of the simulated time up to now.  Timed actions
+(faults, Ctrl-C, link outages, the watchdog's heartbeat) run in that same thread at
+given simulated times, so a run is the same whatever the machine's load.
+"""
+
+from __future__ import annotations
+
+import errno
+import heapq
+import io
+import itertools
+import math
+import threading
+from collections.abc import Callable, Coroutine, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from pymodbus.constants import ExcCodes
+from rich.console import Console
+
+from rig.config import load_rig_config
+from rig.daq import Calibration, Daq
+from rig.events import Event, EventBus
+from rig.registers import load_register_map
+from rig.run import Links, RunOptions, SessionRunner, prepare
+from rig.session import Session, SessionLog
+from rig.shaker import Shaker
+from simulator.controller import ShakerController
+from simulator.engine import PHYSICS_RATE_HZ, VirtualRig
+from simulator.faults import FaultLog, parse_fault
+from simulator.modbus import ControllerContext
+from simulator.truth import load_truth
+
+SHAKER_URL = "tcp://virtual-rig:502"      # only named in messages: nothing listens there
+DAQ_URL = "socket://virtual-rig:4001"
+READ_POLL_S = 0.05      # a read with nothing to read gives up after this (wall) time, like pyserial in rig.daq
+HANG_S = 10.0           # wall time after which a wait in the harness is a failure, never a delay
+MAX_STEP_S = 0.25       # simulated time per step: bounds what the DAQ's FIFO must hold between two drains
+_HALF_STEP_S = 0.5 / PHYSICS_RATE_HZ
+
+
+# ----- the DAQ's serial line ---------------------------------------------------------------------------
+class SerialLine:
+    """A serial line in memory: :attr:`host` is what rig.daq reads and writes (pyserial's
+    read/write/close), :attr:`device` the simulator's :class:`simulator.daq.Port`."""
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition()
+        self._to_host = bytearray()
+        self._to_device = bytearray()
+        self._host_waiting = 0          # host reads blocked on an empty line
+        self.host = _HostEnd(self)
+        self.device = _DeviceEnd(self)
+
+    def wait_host_caught_up(self, timeout_s: float) -> bool:
+        """Wait until the host has read all that was sent to it and waits for more: its
+        reader thread has handled what it read (it only reads again once it has)."""
+        with self._cond:
+            return self._cond.wait_for(lambda: not self._to_host and self._host_waiting > 0, timeout_s)
+
+
+class _HostEnd:
+    """pyserial as rig.daq uses it: ``read(size)`` returns what has arrived, waiting up to
+    :data:`READ_POLL_S` for the first byte."""
+
+    def __init__(self, line: SerialLine) -> None:
+        self._line = line
+
+    def read(self, size: int = 1) -> bytes:
+        line = self._line
+        with line._cond:
+            if not line._to_host:
+                line._host_waiting += 1
+                line._cond.notify_all()
+                line._cond.wait_for(lambda: bool(line._to_host), READ_POLL_S)
+                line._host_waiting -= 1
+            data = bytes(line._to_host[:size])
+            del line._to_host[:size]
+        return data
+
+    def write(self, data: bytes) -> int:
+        with self._line._cond:
+            self._line._to_device += data
+            self._line._cond.notify_all()
+        return len(data)
+
+    def close(self) -> None:
+        pass  # nothing to release
+
+
+class _DeviceEnd:
+    """The simulator's side of the line (:class:`simulator.daq.Port`)."""
+
+    url = "memory://daq"
+
+    def __init__(self, line: SerialLine) -> None:
+        self._line = line
+
+    def read(self, timeout_s: float) -> bytes:
+        line = self._line
+        with line._cond:
+            line._cond.wait_for(lambda: bool(line._to_device), timeout_s)
+            data = bytes(line._to_device)
+            line._to_device.clear()
+        return data
+
+    def write(self, data: bytes) -> None:
+        with self._line._cond:
+            self._line._to_host += data
+            self._line._cond.notify_all()
+
+    def disconnect(self) -> None:
+        # rig.daq reopens a lost line by its URL, which an in-memory line does not have.
+        raise NotImplementedError("the in-memory DAQ line cannot be unplugged; use simulator serve for disconnects")
+
+    def close(self) -> None:
+        pass
+
+
+# ----- the controller's Modbus link --------------------------------------------------------------------
+@dataclass
+class ModbusResponse:
+    """The parts of a pymodbus response that rig.shaker reads."""
+
+    registers: list[int] = field(default_factory=list)
+    bits: list[bool] = field(default_factory=list)
+    exception_code: int | None = None
+
+    def isError(self) -> bool:  # noqa: N802 — pymodbus's name
+        return self.exception_code is not None
+
+
+def _complete(coroutine: Coroutine[Any, Any, Any]) -> Any:
+    """Run a coroutine that never awaits (the server context's methods) to its result."""
+    try:
+        coroutine.send(None)
+    except StopIteration as done:
+        return done.value
+    coroutine.close()
+    raise RuntimeError("ControllerContext awaited: it no longer answers synchronously")
+
+
+class InProcessModbusClient:
+    """The calls rig.shaker makes of a pymodbus client, answered in the caller's thread by
+    the simulator's own server context (the same tables and exceptions as ``simulator
+    serve``: 2 for an address outside the map, 3 for a write the controller refuses).
+
+    :meth:`cut` takes the link away for a while of simulated time: every request then
+    raises ``ConnectionResetError``, as a client on a dead TCP peer does."""
+
+    def __init__(self, controller: ShakerController, clock: "SimClock") -> None:
+        self._context = ControllerContext(controller)
+        self._clock = clock
+        self._outages: list[tuple[float, float]] = []
+
+    def cut(self, duration_s: float) -> None:
+        """No answer from now on for ``duration_s`` of simulated time."""
+        t = self._clock.monotonic()
+        self._outages.append((t, t + duration_s))
+
+    @property
+    def link_up(self) -> bool:
+        t = self._clock.monotonic()
+        return not any(a <= t < b for a, b in self._outages)
+
+    def connect(self) -> bool:
+        return self.link_up
+
+    def close(self) -> None:
+        pass
+
+    def read_input_registers(self, address: int, *, count: int = 1, device_id: int = 1) -> ModbusResponse:
+        return self._read(4, address, count, device_id)
+
+    def read_holding_registers(self, address: int, *, count: int = 1, device_id: int = 1) -> ModbusResponse:
+        return self._read(3, address, count, device_id)
+
+    def write_registers(self, address: int, values: Sequence[int], *, device_id: int = 1) -> ModbusResponse:
+        return self._write(16, address, list(values), device_id)
+
+    def write_coil(self, address: int, value: bool, *, device_id: int = 1) -> ModbusResponse:
+        return self._write(5, address, [value], device_id)
+
+    def _read(self, func_code: int, address: int, count: int, device_id: int) -> ModbusResponse:
+        self._check_link()
+        values = _complete(self._context.async_getValues(device_id, func_code, address, count))
+        if isinstance(values, ExcCodes):
+            return ModbusResponse(exception_code=int(values))
+        return ModbusResponse(registers=list(values))
+
+    def _write(self, func_code: int, address: int, values: list, device_id: int) -> ModbusResponse:
+        self._check_link()
+        code = _complete(self._context.async_setValues(device_id, func_code, address, values))
+        if code is not None:
+            return ModbusResponse(exception_code=int(code))
+        return ModbusResponse(bits=[bool(v) for v in values] if func_code == 5 else [])
+
+    def _check_link(self) -> None:
+        if not self.link_up:
+            raise ConnectionResetError(errno.ECONNRESET, "Connection reset by peer")
+
+
+# ----- simulated time ----------------------------------------------------------------------------------
+class SimClock:
+    """:class:`rig.clock.Clock` on the virtual rig's simulated time.
+
+    ``sleep(dt)`` advances the rig by ``dt`` in steps of at most :data:`MAX_STEP_S`,
+    stopping at each timed action, and after each step waits until the rig's DAQ reader
+    has consumed the stream so far.  Only the thread that made the clock may sleep on it:
+    a second thread moving time would make runs depend on scheduling."""
+
+    def __init__(self, sim: VirtualRig, line: SerialLine) -> None:
+        self.sim, self.line = sim, line
+        self._owner = threading.current_thread()
+        self._actions: list[tuple[float, int, Callable[[], None]]] = []
+        self._order = itertools.count()     # actions due at the same time run in the order given
+
+    def monotonic(self) -> float:
+        return self.sim.t
+
+    def at(self, t_s: float, action: Callable[[], None]) -> None:
+        """Run ``action`` (in the driving thread) once simulated time reaches ``t_s``."""
+        heapq.heappush(self._actions, (t_s, next(self._order), action))
+
+    def after(self, delay_s: float, action: Callable[[], None]) -> None:
+        self.at(self.sim.t + delay_s, action)
+
+    def every(self, period_s: float, action: Callable[[], None]) -> None:
+        def repeat() -> None:
+            action()
+            self.after(period_s, repeat)
+
+        self.after(period_s, repeat)
+
+    def sleep(self, seconds: float) -> None:
+        if threading.current_thread() is not self._owner:
+            raise RuntimeError(f"{threading.current_thread().name} slept on the simulated clock: only the thread "
+                               "driving the session may move simulated time")
+        target = self.sim.t + seconds
+        while True:
+            due = min(target, self.sim.t + MAX_STEP_S, self._actions[0][0] if self._actions else math.inf)
+            self.sim.step_to(due)
+            self._catch_up()
+            while self._actions and self._actions[0][0] <= self.sim.t + _HALF_STEP_S:
+                heapq.heappop(self._actions)[2]()
+            if self.sim.t + _HALF_STEP_S >= target:
+                return
+
+    def _catch_up(self) -> None:
+        """While the DAQ streams: wait until what it emitted is on the line and read."""
+        if not self.sim.daq.streaming:
+            return
+        if not (self.sim.daq.wait_sent(HANG_S) and self.line.wait_host_caught_up(HANG_S)):
+            raise RuntimeError(f"the rig's DAQ reader did not take the stream within {HANG_S:g} s of wall time "
+                               f"(simulated t = {self.sim.t:.3f} s)")
+
+
+# ----- the whole rig -----------------------------------------------------------------------------------
+class InProcessRig:
+    """A virtual rig and the rig package's drivers joined in memory, on one simulated clock.
+
+    ``events`` holds every event published on ``bus`` with the simulated time it was
+    published at.  The watchdog runs on simulated time too; the harness feeds it the
+    heartbeat rig.shaker's thread would send (that thread waits on the wall clock), and
+    the heartbeat gets through only while the Modbus link is up."""
+
+    def __init__(self, rig_config: Path) -> None:
+        self.rig_config = rig_config
+        self.config = load_rig_config(rig_config)
+        self.fault_log = FaultLog(sink=lambda line: None)
+        self.line = SerialLine()
+        self.sim = VirtualRig(load_truth(), self.line.device, log=self.fault_log)
+        self.clock = SimClock(self.sim, self.line)
+        self.sim.controller.wall_clock = self.clock.monotonic
+        self.client = InProcessModbusClient(self.sim.controller, self.clock)
+        self.bus = EventBus()
+        self.events: list[tuple[float, Event]] = []
+        self.bus.subscribe(lambda e: self.events.append((self.clock.monotonic(), e)), inline=True)
+        self.register_map = load_register_map()
+        self.shaker = Shaker(SHAKER_URL, self.config.limits, self.register_map, reconnect_s=self.config.reconnect_s,
+                             on_event=self._log, client=self.client, clock=self.clock)
+        self.daq = Daq(DAQ_URL, Calibration.from_file(), rate_hz=self.config.daq_rate_hz, port=self.line.host,
+                       reconnect_s=self.config.reconnect_s, on_event=self._log)
+        self.identity = ""
+        self._beat = 0
+        self._session_log: SessionLog | None = None
+
+    def _log(self, message: str) -> None:
+        self.bus.publish("log", message=message)
+
+    def connect(self) -> None:
+        """What rig.run.connect does, with the heartbeat on simulated time."""
+        self.sim.daq.start()
+        self.shaker.connect(heartbeat=False)
+        timeout = self.config.limits.watchdog_timeout_s
+        watchdog = self.register_map.field("watchdog_timeout")
+        self.client.write_registers(watchdog.address, [watchdog.encode(timeout)], device_id=self.register_map.unit_id)
+        self.clock.every(max(timeout / 4, 0.05), self._heartbeat)
+        self.identity = self.daq.open()
+
+    def _heartbeat(self) -> None:
+        self._beat = (self._beat + 1) & 0xFFFF
+        try:
+            self.client.write_registers(self.register_map.field("heartbeat").address, [self._beat],
+                                        device_id=self.register_map.unit_id)
+        except ConnectionResetError:
+            pass  # lost with the link: the watchdog is there for exactly that
+
+    def inject(self, fault: str) -> None:
+        """A simulator fault (``KIND[=VALUE]``, see simulator.faults), applied now.  A Modbus
+        outage is :meth:`InProcessModbusClient.cut` (modbus-down would start a real server)."""
+        self.sim.inject(parse_fault(f"{fault}@{self.sim.t}"))
+
+    def when(self, phase: str, after_s: float, action: Callable[[], None], experiment: str | None = None) -> None:
+        """Run ``action`` ``after_s`` simulated seconds after the acquisition first enters
+        ``phase`` (of ``experiment``, or of any)."""
+        armed = True
+
+        def watch(event: Event) -> None:
+            nonlocal armed
+            if armed and event.kind == "phase" and event.data.get("phase") == phase and \
+                    experiment in (None, event.experiment):
+                armed = False
+                self.clock.after(after_s, action)
+
+        self.bus.subscribe(watch, inline=True)
+
+    def phases(self) -> list[tuple[float, str | None, str]]:
+        """(simulated time, experiment, phase) of every phase entered."""
+        return [(t, e.experiment, e.data["phase"]) for t, e in self.events if e.kind == "phase"]
+
+    def messages(self, kind: str = "log") -> list[str]:
+        return [e.data.get("message", "") for _, e in self.events if e.kind == kind]
+
+    def open_session(self, out: Path, letters: list[str], on_alarm: str = "abort") -> tuple[SessionRunner, Session]:
+        """``rig run`` from ``prepare`` on, with these links: the runner and its session
+        folder, whose log records the bus; ``runner.run(session)`` does the rest."""
+        prep = prepare(RunOptions(plan="standard", shaker=SHAKER_URL, daq=DAQ_URL, out=out, experiments=letters,
+                                  on_alarm=on_alarm, rig_config=str(self.rig_config), date="261122"))
+        runner = SessionRunner(prep, Links(self.shaker, self.daq, self.identity, None), self.bus,
+                               Console(file=io.StringIO()))
+        session = runner.open_session()
+        self._session_log = SessionLog(session.path / "session.log")
+        self.bus.subscribe(self._session_log, inline=True)
+        return runner, session
+
+    def close(self) -> None:
+        """Links first (their threads publish), then the bus and the log, then the simulator."""
+        self.shaker.close()
+        self.daq.close()
+        self.bus.close()
+        if self._session_log is not None:
+            self._session_log.close()
+        self.sim.close()
