@@ -19,6 +19,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 import serial
@@ -34,6 +35,16 @@ BAUDRATE = 460800
 _STOP_ANSWER = re.compile(rb"OK STOP (\d+)\n")
 # The datasheet's channel order of the frames; the dataset columns carry these names.
 CHANNELS = ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")
+
+
+class SerialLine(Protocol):
+    """What the driver needs of a line: pyserial's ports have it, and so do test doubles."""
+
+    def read(self, size: int = 1) -> bytes: ...
+
+    def write(self, data: bytes) -> int | None: ...
+
+    def close(self) -> None: ...
 
 
 class DaqError(RigFault):
@@ -165,7 +176,7 @@ class Daq:
     """The DAQ: handshake, streaming with a reader thread, losses, journal, ring buffer."""
 
     def __init__(self, url: str, calibration: Calibration | None = None, *, rate_hz: int = 2000,
-                 port: serial.SerialBase | None = None,
+                 port: SerialLine | None = None,
                  on_event: Callable[[str], None] = lambda message: None, reconnect_s: float = 10.0) -> None:
         if port is None:
             check_daq_address(url)
@@ -193,7 +204,7 @@ class Daq:
         return self.parser.counters
 
     @property
-    def _line(self) -> serial.SerialBase:
+    def _line(self) -> SerialLine:
         if self._port is None:
             raise DaqError(f"DAQ at {self.url}: not open")
         return self._port
@@ -229,7 +240,7 @@ class Daq:
             raise DaqError(f"DAQ at {self.url}: RATE {self.rate_hz} answered {answer!r}")
         return self.identity
 
-    def _open_port(self) -> serial.SerialBase:
+    def _open_port(self) -> SerialLine:
         try:
             return serial.serial_for_url(self.url, baudrate=BAUDRATE, timeout=0.05)
         except (serial.SerialException, OSError, ValueError) as exc:

@@ -159,7 +159,7 @@ class InProcessModbusClient:
     :meth:`cut` takes the link away for a while of simulated time: every request then
     raises ``ConnectionResetError``, as a client on a dead TCP peer does."""
 
-    def __init__(self, controller: ShakerController, clock: "SimClock") -> None:
+    def __init__(self, controller: ShakerController, clock: SimClock) -> None:
         self._context = ControllerContext(controller)
         self._clock = clock
         self._outages: list[tuple[float, float]] = []
