@@ -36,14 +36,16 @@ MOVE_PEAK_SPEED_M_S = 0.05     # the controller's half-cosine profile for moves 
 DAQ_LAG_S = 0.5                # the acquisition skips ramp + this before its first block
 PAUSE_S = 1.0                  # at rest between experiments: commands, handshakes, writing the data
 
-# Period maps: RK4 steps per period and the Chebyshev grid of start temperatures.
-# The map is nearly affine in the start temperature (the slope varies by ~1e-5 over
-# hundreds of kelvin), so a low degree is exact to far below the thresholds.
-STEPS_PER_PERIOD = 32
+# RK4 steps per period of the fastest waveform (start temperatures within ~0.005 K of
+# a 256-step solution), and the Chebyshev grid of start temperatures for the period
+# maps, which are nearly affine (the slope varies by ~1e-5 over hundreds of kelvin):
+# a low degree is exact to far below the thresholds.
+STEPS_PER_PERIOD = 16
 CHEBYSHEV_DEGREE = 6
 # Around ambient: adiabatic compression over the whole stroke about doubles the gas
 # temperature; beyond the span the nearly affine series still extrapolates closely.
 GRID_SPAN_K = (-150.0, 600.0)
+MOVE_STEPS = 16               # the half-cosine move is smooth: within 1e-4 K of 256 steps
 
 
 @dataclass(frozen=True)
@@ -129,6 +131,8 @@ def _rk4(rate: Callable[[np.ndarray, np.ndarray], np.ndarray], T: np.ndarray, du
 
     Returns the end values, or with ``nodes`` every step's values stacked first."""
     h = np.asarray(duration_s, dtype=float) / steps
+    if not nodes and not h.any():
+        return T                  # e.g. no fade-out before the first experiment
     out = [T] if nodes else None
     for k in range(steps):
         t = k * h
@@ -147,6 +151,8 @@ def _waveform(waveform: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, np.n
     controller's sine and triangle; the triangle's kinks carry no acceleration here)."""
     s, c = np.sin(phase), np.cos(phase)
     tri = waveform == "triangle"
+    if not tri.any():
+        return s, c, -s
     w = np.where(tri, (2 / np.pi) * np.arcsin(np.clip(s, -1, 1)), s)
     dw = np.where(tri, (2 / np.pi) * np.sign(c), c)
     ddw = np.where(tri, 0.0, -s)
@@ -284,11 +290,12 @@ def _lead_in(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria
     # for which prev = -1 only fills the row).
     prev_runs = _Runs(*(x[prev] for x in (runs.static_m, runs.amplitude_m, runs.frequency_hz, runs.waveform)))
 
+    # The envelope's rate jumps at the ends of a ramp, so each ramp is a segment of its
+    # own: RK4 keeps its order only where the stroke velocity is smooth.
     def fade(t, T):
-        env = np.clip(1 - t / ramp, 0.0, 1.0)
-        return gas.temperature_rate(*prev_runs.stroke(t0_s + t, env, np.where(env > 0, -1 / ramp, 0.0)), T)
+        return gas.temperature_rate(*prev_runs.stroke(t0_s + t, 1 - t / ramp, -1 / ramp), T)
 
-    T = _rk4(fade, T, np.where(first, 0.0, ramp), max(8, math.ceil(ramp * cycles_per_s * STEPS_PER_PERIOD)))
+    T = _rk4(fade, T, np.where(first, 0.0, ramp), _steps(ramp, cycles_per_s))
 
     def rest(t, T):
         return gas.temperature_rate(prev_static, 0.0, 0.0, T)
@@ -307,13 +314,22 @@ def _lead_in(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria
         a = distance * 0.5 * omega**2 * np.cos(omega * t)
         return gas.temperature_rate(q, v, a, T)
 
-    T = _rk4(move, T, duration, 64)
+    T = _rk4(move, T, duration, MOVE_STEPS)
 
     def ramp_in(t, T):
-        env = np.clip(t / ramp, 0.0, 1.0)
-        return gas.temperature_rate(*runs.stroke(t, env, np.where(env < 1, 1 / ramp, 0.0)), T)
+        return gas.temperature_rate(*runs.stroke(t, t / ramp, 1 / ramp), T)
 
-    return _rk4(ramp_in, T, t0_s, max(8, math.ceil(t0_s * cycles_per_s * STEPS_PER_PERIOD)))
+    T = _rk4(ramp_in, T, ramp, _steps(ramp, cycles_per_s))
+
+    def until_first_block(t, T):
+        return gas.temperature_rate(*runs.stroke(ramp + t, 1.0, 0.0), T)
+
+    return _rk4(until_first_block, T, t0_s - ramp, _steps(t0_s - ramp, cycles_per_s))
+
+
+def _steps(duration_s: float, frequency_hz: float) -> int:
+    """RK4 steps for a segment of the waveform: STEPS_PER_PERIOD of the fastest one."""
+    return max(4, math.ceil(duration_s * frequency_hz * STEPS_PER_PERIOD))
 
 
 def _apply_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray, thresholds: np.ndarray,
@@ -336,9 +352,10 @@ def _apply_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray,
         if not ends.any():
             continue
         block = block_sum[ends] / m[ends, None]
-        ratio = np.abs(block - previous[ends]) / thresholds
-        worst[ends] = np.nan_to_num(ratio, nan=np.inf)
-        passed = (cycle >= criteria.min_cycles) & np.all(ratio < 1, axis=1)   # NaN (first block) fails
+        change = np.abs(block - previous[ends])                  # NaN at the first block: fails below
+        passed = (cycle >= criteria.min_cycles) & np.all(change < thresholds, axis=1)
+        worst[ends] = np.divide(change, thresholds, out=np.full_like(change, np.inf),
+                                where=(thresholds > 0) & ~np.isnan(change))
         idx = np.flatnonzero(ends)
         done = idx[passed | (cycle >= last[idx])]
         cycles[done], settled[idx[passed]] = cycle, True
