@@ -8,6 +8,9 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Sequence
+
+import numpy as np
 
 from identify.parameters import Parameters
 from identify.plans import STANDARD_SET, ExperimentSpec
@@ -102,20 +105,22 @@ class ExperimentDuration:
 
 def estimate_experiment_durations(plan: Plan, config: RigConfig, start_position_m: float = 0.0,
                                   params: Parameters | None = None, *, start_temperature_k: float | None = None,
-                                  pause_s: float = PAUSE_S) -> list[ExperimentDuration]:
+                                  pause_s: float | Sequence[float] = PAUSE_S) -> list[ExperimentDuration]:
     """Per experiment, in plan order, the rig time it will take when the plan runs from
     the damper resting at ``start_position_m`` (and ``start_temperature_k``, default
     ambient).  ``params``: the damper's parameters for the settling prediction
-    (default: the 2-dof model's nominal values)."""
+    (default: the 2-dof model's nominal values); ``pause_s``: the rig's time at rest
+    before each experiment (one for all, or one per experiment)."""
     ss, rate = config.steady_state, config.daq_rate_hz
     settling = predict_settling(plan.experiments, ss, rate, params, start_position_m=start_position_m,
                                 start_temperature_k=start_temperature_k, pause_s=pause_s)
+    pauses = np.broadcast_to(np.asarray(pause_s, dtype=float), len(plan.experiments))
     out, position = [], start_position_m
-    for e, s in zip(plan.experiments, settling):
+    for e, s, pause in zip(plan.experiments, settling, pauses):
         static = e.static_position_mm * 1e-3
         samples_per_period = rate / e.frequency_hz
         # Blocks and the capture are whole samples, as the acquisition cuts them.
-        out.append(ExperimentDuration(e.letter, pause_s, move_duration_s(static - position), first_block_s(ss, rate),
+        out.append(ExperimentDuration(e.letter, float(pause), move_duration_s(static - position), first_block_s(ss, rate),
                                       s.cycles, round(s.cycles * samples_per_period) / rate,
                                       math.ceil(e.periods * samples_per_period) / rate, ss.ramp_time_s))
         position = static
