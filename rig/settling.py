@@ -40,7 +40,7 @@ PAUSE_S = 1.0                  # at rest between experiments: commands, handshak
 # a 256-step solution), and the Chebyshev grid of start temperatures for the period
 # maps, which are nearly affine (the slope varies by ~1e-5 over hundreds of kelvin):
 # a low degree is exact to far below the thresholds.
-STEPS_PER_PERIOD = 16
+STEPS_PER_PERIOD = 16        # even: the cycle means use Simpson's rule
 CHEBYSHEV_DEGREE = 6
 # Around ambient: adiabatic compression over the whole stroke about doubles the gas
 # temperature; beyond the span the nearly affine series still extrapolates closely.
@@ -100,7 +100,7 @@ class GasThermalModel:
         self.has_thermal_state = "T" in names and "q" in names
         if self.has_thermal_state:
             self._iq, self._iT = names.index("q"), names.index("T")
-        self.ambient_k = -params["theta17"].value if "theta17" in params else 293.15
+            self.ambient_k = -params["ambient"].value
         decl = self.model.declaration
         self.channels = tuple(self.model.output_names)
         self._to_engineering = [decl.outputs[c].from_si for c in self.channels]
@@ -279,14 +279,15 @@ def _lead_in(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria
 
     The previous experiment ends its capture at the first block's phase (whole cycles
     later) in its periodic state; it fades out over the ramp time, rests ``pause_s``,
-    the controller moves to the new static position, and the new waveform ramps in."""
+    the controller moves to the new static position, and the new waveform ramps in.
+    Before the first experiment the damper rests at the start position and temperature."""
     n = len(runs.static_m)
     ramp = criteria.ramp_time_s
     prev = np.r_[-1, np.arange(n - 1)]
     first = prev < 0
     prev_static = np.where(first, start_position_m, runs.static_m[prev])
     T = np.where(first, start_temperature_k, period_map.fixed_point_k[prev])
-    cycles_per_s = runs.frequency_hz.max()
+    fastest_hz = runs.frequency_hz.max()
 
     # Fade-out of the previous waveform (of zero duration before the first experiment,
     # for which prev = -1 only fills the row).
@@ -297,7 +298,7 @@ def _lead_in(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria
     def fade(t, T):
         return gas.temperature_rate(*prev_runs.stroke(t0_s + t, 1 - t / ramp, -1 / ramp), T)
 
-    T = _rk4(fade, T, np.where(first, 0.0, ramp), _steps(ramp, cycles_per_s))
+    T = _rk4(fade, T, np.where(first, 0.0, ramp), _steps(ramp, fastest_hz))
 
     def rest(t, T):
         return gas.temperature_rate(prev_static, 0.0, 0.0, T)
@@ -321,12 +322,12 @@ def _lead_in(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria
     def ramp_in(t, T):
         return gas.temperature_rate(*runs.stroke(t, t / ramp, 1 / ramp), T)
 
-    T = _rk4(ramp_in, T, ramp, _steps(ramp, cycles_per_s))
+    T = _rk4(ramp_in, T, ramp, _steps(ramp, fastest_hz))
 
     def until_first_block(t, T):
         return gas.temperature_rate(*runs.stroke(ramp + t, 1.0, 0.0), T)
 
-    return _rk4(until_first_block, T, t0_s - ramp, _steps(t0_s - ramp, cycles_per_s))
+    return _rk4(until_first_block, T, t0_s - ramp, _steps(t0_s - ramp, fastest_hz))
 
 
 def _steps(duration_s: float, frequency_hz: float) -> int:
@@ -341,7 +342,6 @@ def _apply_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray,
     n = len(T_start)
     last = np.array([_last_block_cycles(criteria, int(k)) for k in m])
     cycles, settled = last.copy(), np.zeros(n, dtype=bool)
-    limiting = np.zeros(n, dtype=int)
     open_ = np.ones(n, dtype=bool)
     T = T_start.copy()
     block_sum = np.zeros((n, len(thresholds)))
@@ -365,5 +365,4 @@ def _apply_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray,
         previous[ends], block_sum[ends] = block, 0.0
         if not open_.any():
             break
-    limiting[:] = np.argmax(worst, axis=1)
-    return cycles, settled, limiting
+    return cycles, settled, np.argmax(worst, axis=1)
