@@ -168,3 +168,16 @@ def test_damper_parameters_change_the_prediction():
     nominal = estimate_experiment_durations(plan, CONFIG)[1].settle_cycles
     faster = estimate_experiment_durations(plan, CONFIG, params=params)[1].settle_cycles
     assert faster == pytest.approx(nominal / 4, rel=0.25)
+
+
+def test_a_long_pause_lets_the_gas_cool_as_in_the_simulated_physics():
+    """With the simulator accelerated, the software's pauses last tens of rig seconds;
+    the gas relaxes toward ambient meanwhile, and h (after g) settles sooner."""
+    g, h = select(STANDARD_SET, ["g", "h"])
+    ss, rate = CONFIG.steady_state, CONFIG.daq_rate_hz
+    short = predict_settling([g, h], ss, rate, pause_s=PAUSE_S)[1]
+    long = predict_settling([g, h], ss, rate, pause_s=[PAUSE_S, 40.0])[1]
+    assert long.cycles <= short.cycles - 2 * long.block_cycles
+    rig = ReferenceRig()
+    rig.run(g, PAUSE_S)
+    assert abs(rig.run(h, 40.0).settle_cycles - long.cycles) <= long.block_cycles
