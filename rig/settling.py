@@ -36,11 +36,13 @@ MOVE_PEAK_SPEED_M_S = 0.05     # the controller's half-cosine profile for moves 
 DAQ_LAG_S = 0.5                # the acquisition skips ramp + this before its first block
 PAUSE_S = 1.0                  # at rest between experiments: commands, handshakes, writing the data
 
-# RK4 steps per period of the fastest waveform (start temperatures within ~0.005 K of
-# a 256-step solution), and the Chebyshev grid of start temperatures for the period
-# maps, which are nearly affine (the slope varies by ~1e-5 over hundreds of kelvin):
-# a low degree is exact to far below the thresholds.
-STEPS_PER_PERIOD = 16        # even: the cycle means use Simpson's rule
+# RK4 steps per half period of a waveform, integrated between the triangle's kinks
+# (start temperatures within ~0.003 K of ten times as many steps), and the Chebyshev
+# grid of start temperatures for the period maps, which are nearly affine (the slope
+# varies by ~1e-5 over hundreds of kelvin): a low degree is exact far below the
+# thresholds.
+STEPS_PER_HALF_PERIOD = 12   # even: the cycle means use Simpson's rule
+INSIDE = 1e-9                # of a step: where a stage or node on a kink is taken, into the step
 CHEBYSHEV_DEGREE = 6
 # Around ambient: adiabatic compression over the whole stroke about doubles the gas
 # temperature; beyond the span the nearly affine series still extrapolates closely.
@@ -126,25 +128,52 @@ class GasThermalModel:
         return np.stack([conv(row) for conv, row in zip(self._to_engineering, y)])
 
 
-def _rk4(rate: Callable[[np.ndarray, np.ndarray], np.ndarray], T: np.ndarray, duration_s: np.ndarray,
-         steps: int, nodes: bool = False) -> np.ndarray:
+Rate = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def _rk4(rate: Rate, T: np.ndarray, duration_s: np.ndarray, steps: int, nodes: bool = False) -> np.ndarray:
     """Integrate dT/dt = rate(t, T) over [0, duration] per row (time shape broadcasts to T).
 
-    Returns the end values, or with ``nodes`` every step's values stacked first."""
+    Returns the end values, or with ``nodes`` every step's values stacked first.  The
+    first and last stages are taken just inside the step, so that a kink of the stroke
+    on a step boundary is seen from the step's side."""
     h = np.asarray(duration_s, dtype=float) / steps
     if not nodes and not h.any():
         return T                  # e.g. no fade-out before the first experiment
+    inside = INSIDE * h
     out = [T] if nodes else None
     for k in range(steps):
         t = k * h
-        k1 = rate(t, T)
+        k1 = rate(t + inside, T)
         k2 = rate(t + h / 2, T + h / 2 * k1)
         k3 = rate(t + h / 2, T + h / 2 * k2)
-        k4 = rate(t + h, T + h * k3)
+        k4 = rate(t + h - inside, T + h * k3)
         T = T + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
         if nodes:
             out.append(T)
     return np.stack(out) if nodes else T
+
+
+def _between_kinks(t_from_s: np.ndarray, duration_s: np.ndarray,
+                   frequency_hz: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """[t_from, t_from + duration] (time since RUN, per row) cut where a triangle has its
+    kinks, a quarter period after RUN and every half period on: the pieces' (start, end),
+    rows with fewer pieces padded with empty ones.  RK4 keeps its order only where the
+    stroke velocity is smooth; a sine is cut the same way, harmlessly."""
+    half = 0.5 / frequency_hz
+    end = t_from_s + duration_s
+    first_kink = half * (np.floor(t_from_s / half - 0.5) + 1.5)          # the first after t_from
+    kinks = int(np.max(np.ceil(np.maximum(end - first_kink, 0.0) / half)))
+    cuts = [t_from_s + 0 * end] + [np.clip(first_kink + j * half, t_from_s, end) for j in range(kinks)] + [end]
+    return list(zip(cuts[:-1], cuts[1:]))
+
+
+def _rk4_waveform(rate: Rate, T: np.ndarray, t_from_s: np.ndarray, duration_s: np.ndarray,
+                  frequency_hz: np.ndarray) -> np.ndarray:
+    """:func:`_rk4` over a stretch of a waveform (``rate`` takes the time since RUN)."""
+    for a, b in _between_kinks(t_from_s, duration_s, frequency_hz):
+        T = _rk4(lambda t, T, a=a: rate(a + t, T), T, b - a, STEPS_PER_HALF_PERIOD)
+    return T
 
 
 def _waveform(waveform: np.ndarray, phase: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -231,26 +260,34 @@ class _PeriodMap:
     def __init__(self, gas: GasThermalModel, runs: _Runs, t0_s: float) -> None:
         n = len(runs.static_m)
         self.lo_k, self.hi_k = gas.ambient_k + GRID_SPAN_K[0], gas.ambient_k + GRID_SPAN_K[1]
-        nodes = chebyshev.chebpts1(CHEBYSHEV_DEGREE + 1)
-        T0 = np.tile(self._from_unit(nodes), (n, 1))                      # (E, G)
+        grid = chebyshev.chebpts1(CHEBYSHEV_DEGREE + 1)
+        T0 = np.tile(self._from_unit(grid), (n, 1))                       # (E, G)
         period = 1.0 / runs.frequency_hz[:, None]
         col = np.s_[:, None]
         one = np.ones((n, 1))
 
         def rate(t, T):
-            return gas.temperature_rate(*runs.stroke(t0_s + t, one, 0.0 * one, col), T)
+            return gas.temperature_rate(*runs.stroke(t, one, 0.0 * one, col), T)
 
-        steps = STEPS_PER_PERIOD
-        T = _rk4(rate, T0, period, steps, nodes=True)                    # (steps+1, E, G)
-        t = np.arange(steps + 1)[:, None, None] * (period / steps)[None]
-        q, v, a = runs.stroke(t0_s + t, 1.0, 0.0, np.s_[None, :, None])
-        y = gas.outputs(*np.broadcast_arrays(q, v, a, T))                # (C, steps+1, E, G)
-        # Simpson's rule over the period (steps is even): the cycle means of the channels.
-        w = np.ones(steps + 1)
-        w[1:-1:2], w[2:-1:2] = 4, 2
-        means = np.tensordot(y, w / w.sum(), axes=([1], [0]))           # (C, E, G)
-        self.end = chebyshev.chebfit(nodes, T[-1].T, CHEBYSHEV_DEGREE)   # (D+1, E)
-        self.means = np.stack([chebyshev.chebfit(nodes, mc.T, CHEBYSHEV_DEGREE) for mc in means], axis=-1)
+        # One period from the first block's phase, piece by piece between the kinks; the
+        # cycle means by Simpson's rule on each piece's steps.
+        steps = STEPS_PER_HALF_PERIOD
+        simpson = np.ones(steps + 1)
+        simpson[1:-1:2], simpson[2:-1:2] = 4, 2
+        T, integral = T0, 0.0
+        for a, b in _between_kinks(np.full((n, 1), t0_s), period, runs.frequency_hz[:, None]):
+            nodes = _rk4(lambda t, T, a=a: rate(a + t, T), T, b - a, steps, nodes=True)   # (steps+1, E, G)
+            h = (b - a) / steps
+            t = a + np.arange(steps + 1)[:, None, None] * h[None]
+            t[0] += INSIDE * h                                           # the piece's side of a kink
+            t[-1] -= INSIDE * h
+            q, v, acc = runs.stroke(t, 1.0, 0.0, np.s_[None, :, None])
+            y = gas.outputs(*np.broadcast_arrays(q, v, acc, nodes))     # (C, steps+1, E, G)
+            integral = integral + np.tensordot(y, simpson, axes=([1], [0])) * (h / 3)
+            T = nodes[-1]
+        means = integral / period                                       # (C, E, G)
+        self.end = chebyshev.chebfit(grid, T.T, CHEBYSHEV_DEGREE)        # (D+1, E)
+        self.means = np.stack([chebyshev.chebfit(grid, mc.T, CHEBYSHEV_DEGREE) for mc in means], axis=-1)
         slope = chebyshev.chebder(self.end) * 2 / (self.hi_k - self.lo_k)
         # The map is a contraction with a nearly constant slope: a few Newton steps find T*.
         Ts = np.full(n, gas.ambient_k)
@@ -287,18 +324,17 @@ def _lead_in(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria
     first = prev < 0
     prev_static = np.where(first, start_position_m, runs.static_m[prev])
     T = np.where(first, start_temperature_k, period_map.fixed_point_k[prev])
-    fastest_hz = runs.frequency_hz.max()
 
     # Fade-out of the previous waveform (of zero duration before the first experiment,
     # for which prev = -1 only fills the row).
     prev_runs = _Runs(*(x[prev] for x in (runs.static_m, runs.amplitude_m, runs.frequency_hz, runs.waveform)))
 
-    # The envelope's rate jumps at the ends of a ramp, so each ramp is a segment of its
+    # The envelope's rate jumps at the ends of a ramp, so each ramp is a stretch of its
     # own: RK4 keeps its order only where the stroke velocity is smooth.
     def fade(t, T):
-        return gas.temperature_rate(*prev_runs.stroke(t0_s + t, 1 - t / ramp, -1 / ramp), T)
+        return gas.temperature_rate(*prev_runs.stroke(t, 1 - (t - t0_s) / ramp, -1 / ramp), T)
 
-    T = _rk4(fade, T, np.where(first, 0.0, ramp), _steps(ramp, fastest_hz))
+    T = _rk4_waveform(fade, T, np.full(n, t0_s), np.where(first, 0.0, ramp), prev_runs.frequency_hz)
 
     def rest(t, T):
         return gas.temperature_rate(prev_static, 0.0, 0.0, T)
@@ -322,17 +358,12 @@ def _lead_in(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria
     def ramp_in(t, T):
         return gas.temperature_rate(*runs.stroke(t, t / ramp, 1 / ramp), T)
 
-    T = _rk4(ramp_in, T, ramp, _steps(ramp, fastest_hz))
+    T = _rk4_waveform(ramp_in, T, np.zeros(n), np.full(n, ramp), runs.frequency_hz)
 
     def until_first_block(t, T):
-        return gas.temperature_rate(*runs.stroke(ramp + t, 1.0, 0.0), T)
+        return gas.temperature_rate(*runs.stroke(t, 1.0, 0.0), T)
 
-    return _rk4(until_first_block, T, t0_s - ramp, _steps(t0_s - ramp, fastest_hz))
-
-
-def _steps(duration_s: float, frequency_hz: float) -> int:
-    """RK4 steps for a segment of the waveform: STEPS_PER_PERIOD of the fastest one."""
-    return max(4, math.ceil(duration_s * frequency_hz * STEPS_PER_PERIOD))
+    return _rk4_waveform(until_first_block, T, np.full(n, ramp), np.full(n, t0_s - ramp), runs.frequency_hz)
 
 
 def _apply_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray, thresholds: np.ndarray,
