@@ -1,20 +1,24 @@
 """Experiment plans: the standard set built in, or a TOML file; checked against the
 rig's limits before anything moves (every violation listed), with an estimated
-duration."""
+duration: the controller's moves and ramps, the acquisition's waits and blocks, and
+the thermal settling predicted from the damper model (:mod:`rig.settling`)."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 
+import numpy as np
+
+from identify.parameters import Parameters
 from identify.plans import STANDARD_SET, ExperimentSpec
 from rig.config import RigConfig
 from rig.errors import BadInput
+from rig.settling import PAUSE_S, first_block_s, move_duration_s, predict_settling
 from rig.shaker import check_waveform
 from rig.tomlfile import read_toml
-
-MOVE_SPEED_M_S = 0.05  # the controller's profile speed, for the duration estimate
 
 
 class PlanError(BadInput):
@@ -84,13 +88,49 @@ def check_plan(plan: Plan, config: RigConfig) -> list[str]:
     return problems
 
 
-def estimate_duration_s(plan: Plan, config: RigConfig, start_position_m: float = 0.0) -> float:
-    """Rough simulated-time estimate: moves, ramps, settling (the minimum), capture."""
-    ss, total, position = config.steady_state, 0.0, start_position_m
-    for e in plan.experiments:
+@dataclass(frozen=True)
+class ExperimentDuration:
+    """Rig time of one experiment of a plan, phase by phase [s]."""
+
+    letter: str
+    pause_s: float        # at rest before it: commands, handshakes, writing the previous data
+    move_s: float         # to its static position (the controller's profile)
+    lead_in_s: float      # RUN to the first comparison block (amplitude ramp + the acquisition's wait)
+    settle_cycles: int    # predicted by rig.settling
+    settle_s: float       # the comparison blocks until the criterion passes
+    capture_s: float      # the captured periods
+    fade_s: float         # the waveform faded out to the static position
+
+    @property
+    def total_s(self) -> float:
+        return self.pause_s + self.move_s + self.lead_in_s + self.settle_s + self.capture_s + self.fade_s
+
+
+def estimate_experiment_durations(plan: Plan, config: RigConfig, start_position_m: float = 0.0,
+                                  params: Parameters | None = None, *, start_temperature_k: float | None = None,
+                                  pause_s: float | Sequence[float] = PAUSE_S) -> list[ExperimentDuration]:
+    """Per experiment, in plan order, the rig time it will take when the plan runs from
+    the damper resting at ``start_position_m`` (and ``start_temperature_k``, default
+    ambient).  ``params``: the damper's parameters for the settling prediction
+    (default: the 2-dof model's nominal values); ``pause_s``: the rig's time at rest
+    before each experiment (one for all, or one per experiment)."""
+    ss, rate = config.steady_state, config.daq_rate_hz
+    settling = predict_settling(plan.experiments, ss, rate, params, start_position_m=start_position_m,
+                                start_temperature_k=start_temperature_k, pause_s=pause_s)
+    pauses = np.broadcast_to(np.asarray(pause_s, dtype=float), len(plan.experiments))
+    out, position = [], start_position_m
+    for e, s, pause in zip(plan.experiments, settling, pauses, strict=True):
         static = e.static_position_mm * 1e-3
-        total += math.pi * abs(static - position) / (2 * MOVE_SPEED_M_S) + 2 * ss.ramp_time_s
-        settle_cycles = max(ss.min_cycles, 2 * math.ceil(ss.block_s * e.frequency_hz))
-        total += (settle_cycles + e.periods) / e.frequency_hz
+        samples_per_period = rate / e.frequency_hz
+        # Blocks and the capture are whole samples, as the acquisition cuts them.
+        out.append(ExperimentDuration(e.letter, float(pause), move_duration_s(static - position),
+                                      first_block_s(ss, rate), s.cycles, round(s.cycles * samples_per_period) / rate,
+                                      math.ceil(e.periods * samples_per_period) / rate, ss.ramp_time_s))
         position = static
-    return total
+    return out
+
+
+def estimate_duration_s(plan: Plan, config: RigConfig, start_position_m: float = 0.0,
+                        params: Parameters | None = None) -> float:
+    """Rig time of the whole plan [s] (see :func:`estimate_experiment_durations`)."""
+    return sum(d.total_s for d in estimate_experiment_durations(plan, config, start_position_m, params))

@@ -34,7 +34,7 @@ class ConsoleProgress:
         return f", session ETA {int(left // 60)}:{int(left % 60):02d}"
 
     def __call__(self, e: Event) -> None:
-        if e.kind == "experiment-done":
+        if e.kind in ("experiment-done", "experiment-failed"):
             self.done += 1
             self.done_s += self.estimates.get(e.experiment or "", 0.0)
         number = self.done if e.kind == "experiment-done" else min(self.done + 1, self.total)
@@ -56,6 +56,10 @@ class ConsoleProgress:
             flags = f" FLAGGED: {'; '.join(e.data['flags'])}" if e.data["flags"] else ""
             self.console.print(f"{head} [green]captured[/green] {e.data['file']} ({e.data['samples']} samples, "
                                f"{e.data['lost']} lost in window){flags}{self._eta()}", highlight=False)
+        elif e.kind == "session-end":
+            took = time.monotonic() - self.started
+            self.console.print(f"session took {int(took // 60)}:{int(took % 60):02d} (wall clock; announced "
+                               f"{sum(self.estimates.values()) / 60:.0f} min of rig time)", highlight=False)
         elif e.kind in ("log", "alarm", "experiment-failed"):
             style = "red" if e.kind != "log" else "dim"
             self.console.print(f"{head} {e.data.get('message', '')}", style=style, highlight=False)

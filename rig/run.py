@@ -42,7 +42,7 @@ from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq, check_daq_address
 from rig.errors import RigError, RigFault
 from rig.events import EventBus
-from rig.plans import Plan, PlanError, check_plan, estimate_duration_s, load_plan
+from rig.plans import Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
 from rig.progress import ConsoleProgress
 from rig.registers import RegisterMap, load_register_map
 from rig.session import Session, SessionError, SessionLog
@@ -109,6 +109,7 @@ class Links:
     daq: Daq
     identity: str
     latched_alarm: str | None                # an alarm cleared by --reset-alarm, for the record
+    start_position_m: float = 0.0            # where the actuator stood when the session connected
 
 
 @dataclass
@@ -179,6 +180,7 @@ def connect(prep: Prepared, on_event: Any) -> Links:
         shaker.connect()
         links.identity = daq.open()
         status = shaker.status()
+        links.start_position_m = status.position_m
         if status.state == "ALARM":
             if not opt.reset_alarm:
                 raise AlarmLatched(
@@ -346,9 +348,9 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
         session = runner.open_session()
         log = SessionLog(session.path / "session.log")
         bus.subscribe(log, inline=True)
-        todo = [e for e in prep.plan.experiments if e.letter not in session.completed()]
-        estimates = {session.label(e.letter): estimate_duration_s(replace(prep.plan, experiments=(e,)), prep.config,
-                                                                  e.static_position_mm * 1e-3) for e in todo}
+        estimates = session_estimates_s(prep, session, links.start_position_m)
+        # On record, so that the estimate can be checked against what the session took.
+        session.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
         bus.subscribe(ConsoleProgress(console, estimates))
         result = runner.run(session)
     finally:
@@ -367,6 +369,16 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
     if opt.identify:
         return identify_session(session, opt, console, result.captured)
     return EXIT_OK
+
+
+def session_estimates_s(prep: Prepared, session: Session, start_position_m: float) -> dict[str, float]:
+    """Rig time per experiment still to do, in plan order: each starts where the one
+    before it leaves the actuator and the gas (rig.settling), which is what makes the
+    standard session's settling, most of its time, predictable.  The damper is taken
+    as nominal: an identification's start file is a guess meant to be off."""
+    todo = tuple(e for e in prep.plan.experiments if e.letter not in session.completed())
+    durations = estimate_experiment_durations(replace(prep.plan, experiments=todo), prep.config, start_position_m)
+    return {session.label(d.letter): d.total_s for d in durations}
 
 
 def resume_command(session: Session, opt: RunOptions) -> str:

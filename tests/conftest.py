@@ -75,6 +75,14 @@ class ServedRig:
             assert self.proc.returncode == 0, self.stderr
         return self.stderr
 
+    def rig_time_s(self) -> float:
+        """Simulated seconds from the first 'hydraulics on' to the last 'hydraulics off' (after stop)."""
+        import re
+
+        marks = re.findall(r"\[sim t=\s*([0-9.]+) s\] hydraulics (on|off)", self.stderr)
+        assert marks and marks[0][1] == "on" and marks[-1][1] == "off", self.stderr[-2000:]
+        return float(marks[-1][0]) - float(marks[0][0])
+
     def lost_frames(self) -> int:
         """The simulator's own count of DAQ frames lost to injected faults (after stop)."""
         import re

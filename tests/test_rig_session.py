@@ -69,6 +69,9 @@ def test_standard_plan_over_modbus_and_serial_recovers_the_truth(served_rig, tmp
     assert r.returncode == 0, r.stderr[-3000:]
     result = json.loads((out / "RESULT.json").read_text())
     assert result["converged"] and len(result["experiments"]) == 14
+    sim.stop()
+    announced = json.loads((out / "session.json").read_text())["estimated_rig_time_s"]
+    assert announced == pytest.approx(sim.rig_time_s(), rel=0.2)   # the ETA the operator was given
     for k, tol in TOLERANCE.items():
         assert abs(result["parameters"][k]["value"] / NOMINAL[k] - 1) < tol, (k, result["parameters"][k])
 
