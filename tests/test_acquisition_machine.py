@@ -214,7 +214,7 @@ def test_ctrl_c_fades_out_and_switches_the_hydraulics_off(vrig, tmp_path):
     # A real SIGINT, raised in this (the main) thread: the session's own handler must turn it into a
     # stop request; one that reached the handler outside the session would be a miss, not a crash of pytest.
     vrig.when("settling", 3.0, lambda: signal.raise_signal(signal.SIGINT))
-    missed: list[int] = []
+    missed = []
     previous = signal.signal(signal.SIGINT, lambda signum, frame: missed.append(signum))
     try:
         result = runner.run(session)
