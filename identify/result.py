@@ -7,7 +7,7 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -15,9 +15,22 @@ from identify.files import atomic_write_bytes
 from identify.model import CompiledModel
 from identify.parameters import Parameters
 
+if TYPE_CHECKING:
+    import pandas as pd
+
 RELATIVE_STD_WARNING = 0.10  # a parameter known to worse than 10 % is flagged
 CONDITION_WARNING = 1e6  # of the weighted, parameter-scaled sensitivity matrix
 CORRELATION_REPORT = 0.5
+
+
+@dataclass(frozen=True)
+class ParameterEstimate:
+    name: str
+    alias: str
+    unit: str
+    value: float
+    std: float
+    estimated: bool
 
 
 @dataclass
@@ -110,6 +123,25 @@ class FitResult:
     # ----------------------------------------------------------------------------------
     def value(self, name: str) -> float:
         return self.params[name].value
+
+    @property
+    def parameters(self) -> dict[str, ParameterEstimate]:
+        """Every parameter by name: value, std (NaN where it was held fixed), unit."""
+        return {p.name: ParameterEstimate(p.name, p.alias, p.unit, p.value, self.std.get(p.name, math.nan),
+                                          p.name in self.estimated) for p in self.params}
+
+    def to_frame(self) -> pd.DataFrame:
+        """The parameters as a table (index: name), for notebooks and scripts."""
+        import pandas as pd  # the fit itself needs no pandas
+
+        rows = [vars(p) for p in self.parameters.values()]
+        frame = pd.DataFrame(rows).set_index("name")
+        frame["relative_std"] = frame["std"] / frame["value"].abs()
+        return frame
+
+    def report(self) -> str:
+        """The readable report (as ``identify report`` prints it)."""
+        return self.fit_report()
 
     def relative_std(self, name: str) -> float:
         return self.std[name] / abs(self.value(name))

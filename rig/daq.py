@@ -177,7 +177,7 @@ class Daq:
 
     def __init__(self, url: str, calibration: Calibration | None = None, *, rate_hz: int = 2000,
                  port: SerialLine | None = None,
-                 on_event: Callable[[str], None] = lambda message: None, reconnect_s: float = 10.0) -> None:
+                 on_event: Callable[[str], object] = lambda message: None, reconnect_s: float = 10.0) -> None:
         if port is None:
             check_daq_address(url)
         self.url, self.rate_hz, self.on_event, self.reconnect_s = url, rate_hz, on_event, reconnect_s

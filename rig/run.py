@@ -27,11 +27,11 @@ from __future__ import annotations
 import shlex
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from rich.console import Console
 
@@ -47,6 +47,9 @@ from rig.progress import ConsoleProgress
 from rig.registers import RegisterMap, load_register_map
 from rig.session import Session, SessionError, SessionLog
 from rig.shaker import AlarmError, Shaker, ShakerAddress, ShakerError
+
+if TYPE_CHECKING:
+    from identify.result import FitResult
 
 EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT, EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED = 0, 1, 2, 3, 70, 130
 INTERRUPTING_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -168,13 +171,18 @@ def _check_identification(opt: RunOptions) -> None:
 
 
 # ----- connect: both links, and the controller's state ------------------------------------------------
-def connect(prep: Prepared, on_event: Any) -> Links:
-    """Open both links.  The caller closes them (:func:`close_links`) whatever happens."""
-    opt, config = prep.options, prep.config
-    shaker = Shaker(prep.shaker_url, config.limits, prep.register_map, reconnect_s=config.reconnect_s,
-                    on_event=on_event)
-    daq = Daq(prep.daq_url, prep.calibration, rate_hz=config.daq_rate_hz, reconnect_s=config.reconnect_s,
-              on_event=on_event)
+def connect(prep: Prepared, on_event: Callable[[str], object]) -> Links:
+    """Open both links for a prepared session.  The caller closes them (:func:`close_links`)."""
+    return open_links(prep.shaker_url, prep.daq_url, prep.config, prep.calibration, prep.register_map,
+                      reset_alarm=prep.options.reset_alarm, on_event=on_event)
+
+
+def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Calibration,
+               register_map: RegisterMap, *, reset_alarm: bool, on_event: Callable[[str], object]) -> Links:
+    """Open the controller and the DAQ and read the controller's state; a latched alarm
+    is refused unless ``reset_alarm``.  On any failure both links are closed again."""
+    shaker = Shaker(shaker_url, config.limits, register_map, reconnect_s=config.reconnect_s, on_event=on_event)
+    daq = Daq(daq_url, calibration, rate_hz=config.daq_rate_hz, reconnect_s=config.reconnect_s, on_event=on_event)
     links = Links(shaker, daq, "", None)
     try:
         shaker.connect()
@@ -182,15 +190,15 @@ def connect(prep: Prepared, on_event: Any) -> Links:
         status = shaker.status()
         links.start_position_m = status.position_m
         if status.state == "ALARM":
-            if not opt.reset_alarm:
+            if not reset_alarm:
                 raise AlarmLatched(
-                    f"the controller at {prep.shaker_url} holds a latched alarm: {status.alarm} (stroke "
+                    f"the controller at {shaker_url} holds a latched alarm: {status.alarm} (stroke "
                     f"{status.position_m * 1e3:.2f} mm). Find out why, then clear it with "
-                    f"'python -m rig stop --reset --shaker {prep.shaker_url}' or run again with --reset-alarm")
+                    f"'python -m rig stop --reset --shaker {shaker_url}' or run again with --reset-alarm")
             links.latched_alarm = status.alarm
             shaker.reset_alarm()
             if shaker.status().state == "ALARM":
-                raise AlarmLatched(f"the controller at {prep.shaker_url} still holds the alarm {status.alarm} "
+                raise AlarmLatched(f"the controller at {shaker_url} still holds the alarm {status.alarm} "
                                    "after a reset: the cause is still there")
     except BaseException:
         close_links(links)
@@ -392,36 +400,43 @@ def resume_command(session: Session, opt: RunOptions) -> str:
     return shlex.join(args) + "  (add --reset-alarm if the controller reports a latched alarm)"
 
 
-def identify_session(session: Session, opt: RunOptions, console: Console, captured: list[Experiment]) -> int:
-    """Fit the session's experiments in memory; RESULT.json and report.txt into the session."""
+def fit_session(session: Session, model_name: str, params_file: str | Path | None, estimate: list[str],
+                captured: list[Experiment]) -> FitResult:
+    """Fit the session's periodic experiments: those captured in this run from memory,
+    earlier ones (a resumed session) from their files; RESULT.json and report.txt are
+    written into the session.  The numbers equal ``python -m identify fit`` on the folder."""
     from identify.dataset import read_dataset
-    from identify.errors import IdentifyError
     from identify.fit import fit_experiments
     from identify.model import load_model
     from identify.parameters import Parameters
     from identify.preparation import model_columns, resolve_outputs
 
-    model = load_model(opt.model)
-    params = Parameters.from_file(model, opt.params) if opt.params else Parameters(model)
-    # Experiments captured in this run are in memory already; earlier ones (resume) come from their files.
+    model = load_model(model_name)
+    params = Parameters.from_file(model, params_file) if params_file else Parameters(model)
     by_label = {e.label: e for e in captured}
     earlier = [e["label"] for e in session.manifest["experiments"] if e["label"] not in by_label]
     if earlier:
         stored = read_dataset(session.path, model_columns(model, resolve_outputs(model, None)), earlier)
         by_label.update((label, stored.experiment(label)) for label in earlier)
     experiments = [by_label[e["label"]] for e in session.manifest["experiments"] if e.get("kind") == "periodic"]
+    result = fit_experiments(model, experiments, params, estimate)
+    result.write_json(session.path / "RESULT.json")
+    atomic_write_bytes(session.path / "report.txt", (result.fit_report() + "\n").encode())
+    return result
+
+
+def identify_session(session: Session, opt: RunOptions, console: Console, captured: list[Experiment]) -> int:
+    """``rig run --identify``: fit in memory right after the capture, print the report."""
+    from identify.errors import IdentifyError
+
     command = (f"python -m identify fit {session.path} --model {opt.model} --estimate {','.join(opt.estimate)}"
                + (f" --params {opt.params}" if opt.params else "") + " --output RESULT.json")
-    console.print(f"identifying {', '.join(opt.estimate)} ({opt.model}) on {len(experiments)} experiments; "
-                  f"same as: {command}", highlight=False)
+    console.print(f"identifying {', '.join(opt.estimate)} ({opt.model}); same as: {command}", highlight=False)
     try:
-        result = fit_experiments(model, experiments, params, opt.estimate)
+        result = fit_session(session, opt.model, opt.params, opt.estimate, captured)
     except IdentifyError as exc:
         console.print(f"[red]identification failed:[/red] {exc} (the captured session is complete and kept)",
                       highlight=False)
         return EXIT_NOT_CONVERGED
-    result.write_json(session.path / "RESULT.json")
-    report = result.fit_report()
-    atomic_write_bytes(session.path / "report.txt", (report + "\n").encode())
-    print(report)
+    print(result.fit_report())
     return EXIT_OK if result.converged else EXIT_NOT_CONVERGED

@@ -115,7 +115,7 @@ class Shaker:
 
     def __init__(self, url: str, limits: Limits, register_map: RegisterMap | None = None, *,
                  timeout_s: float = 1.0, reconnect_s: float = 20.0,
-                 on_event: Callable[[str], None] = lambda message: None,
+                 on_event: Callable[[str], object] = lambda message: None,
                  client: Any = None, clock: Clock = WALL_CLOCK) -> None:
         """``client``: a pymodbus-like client to use instead of one made from ``url``
         (tests inject faults through it)."""

@@ -87,8 +87,8 @@ def test_swapped_calibration_is_refused_before_anything_moves(tmp_path):
     assert not out.exists()
 
 
-def test_dead_daq_leaves_no_session(served_rig, tmp_path):
-    sim = served_rig()
+def test_dead_daq_leaves_no_session(virtual_rig, tmp_path):
+    sim = virtual_rig()
     r, out = rig_run(tmp_path, shaker=sim.modbus_url, daq=f"socket://127.0.0.1:{free_port()}")
     assert r.returncode == 3 and "Traceback" not in r.stderr
     assert "cannot open the DAQ at socket://127.0.0.1:" in r.stderr, r.stderr

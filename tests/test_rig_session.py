@@ -36,8 +36,8 @@ def manifest(out: Path) -> dict:
     return json.loads((out / "dataset.json").read_text())
 
 
-def test_session_files_and_identify_from_files_gives_the_same_numbers(served_rig, tmp_path):
-    sim = served_rig()
+def test_session_files_and_identify_from_files_gives_the_same_numbers(virtual_rig, tmp_path):
+    sim = virtual_rig()
     out = tmp_path / "session"
     r = run_rig(sim, out, "--experiments", "j,n,l", "--identify", "--params", str(START))
     assert r.returncode == 0, r.stderr[-3000:]
@@ -62,8 +62,8 @@ def test_session_files_and_identify_from_files_gives_the_same_numbers(served_rig
 
 
 @pytest.mark.slow
-def test_standard_plan_over_modbus_and_serial_recovers_the_truth(served_rig, tmp_path):
-    sim = served_rig("--seed", "5")
+def test_standard_plan_over_modbus_and_serial_recovers_the_truth(virtual_rig, tmp_path):
+    sim = virtual_rig(seed=5)
     out = tmp_path / "standard"
     r = run_rig(sim, out, "--identify", "--params", str(START), timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
@@ -76,8 +76,8 @@ def test_standard_plan_over_modbus_and_serial_recovers_the_truth(served_rig, tmp
         assert abs(result["parameters"][k]["value"] / NOMINAL[k] - 1) < tol, (k, result["parameters"][k])
 
 
-def test_line_faults_are_counted_exactly_and_the_capture_recaptured_or_flagged(served_rig, tmp_path):
-    sim = served_rig("--fault", "corrupt=1e-4", "--fault", "drop=1e-3", "--fault", "overflow@run+5=500")
+def test_line_faults_are_counted_exactly_and_the_capture_recaptured_or_flagged(virtual_rig, tmp_path):
+    sim = virtual_rig(faults=["corrupt=1e-4", "drop=1e-3", "overflow@run+5=500"])
     out = tmp_path / "faults"
     r = run_rig(sim, out, "--experiments", "j")
     assert r.returncode == 0, r.stderr[-3000:]
@@ -94,8 +94,8 @@ def test_line_faults_are_counted_exactly_and_the_capture_recaptured_or_flagged(s
     assert f.returncode == 0, f.stderr
 
 
-def test_modbus_link_lost_mid_session_reconnects_and_continues(served_rig, tmp_path):
-    sim = served_rig("--fault", "modbus-down@run+10=25")   # 0.5 s of wall time at 50x, below the 2 s watchdog
+def test_modbus_link_lost_mid_session_reconnects_and_continues(virtual_rig, tmp_path):
+    sim = virtual_rig(faults=["modbus-down@run+10=25"])   # 0.5 s of wall time at 50x, below the 2 s watchdog
     out = tmp_path / "link"
     r = run_rig(sim, out, "--experiments", "j")
     assert r.returncode == 0, r.stderr[-3000:]
@@ -106,8 +106,8 @@ def test_modbus_link_lost_mid_session_reconnects_and_continues(served_rig, tmp_p
 
 
 @pytest.mark.slow
-def test_killed_mid_experiment_resume_finishes_and_keeps_earlier_files(served_rig, tmp_path):
-    sim = served_rig()
+def test_killed_mid_experiment_resume_finishes_and_keeps_earlier_files(virtual_rig, tmp_path):
+    sim = virtual_rig()
     out = tmp_path / "killed"
     proc = subprocess.Popen(rig_cmd(sim, out, "--experiments", "j,n"), stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL)
@@ -159,10 +159,10 @@ def test_killed_mid_experiment_resume_finishes_and_keeps_earlier_files(served_ri
     assert len(data) == 3000
 
 
-def test_an_alarm_ends_the_command_with_exit_3_after_the_safe_stop(served_rig, tmp_path):
+def test_an_alarm_ends_the_command_with_exit_3_after_the_safe_stop(virtual_rig, tmp_path):
     """The command line's view; the policies themselves are tested in-process
     (tests/test_acquisition_machine.py)."""
-    sim = served_rig("--fault", "estop@run+10")
+    sim = virtual_rig(faults=["estop@run+10"])
     out = tmp_path / "abort"
     r = run_rig(sim, out, "--experiments", "j,n")
     assert r.returncode == 3, r.stderr[-3000:]
@@ -173,8 +173,8 @@ def test_an_alarm_ends_the_command_with_exit_3_after_the_safe_stop(served_rig, t
     assert manifest(out)["experiments"] == []
 
 
-def test_ctrl_c_ramps_out_switches_hydraulics_off_and_leaves_consistent_files(served_rig, tmp_path):
-    sim = served_rig()
+def test_ctrl_c_ramps_out_switches_hydraulics_off_and_leaves_consistent_files(virtual_rig, tmp_path):
+    sim = virtual_rig()
     out = tmp_path / "interrupted"
     proc = subprocess.Popen(rig_cmd(sim, out, "--experiments", "j"), stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE, text=True)
@@ -193,8 +193,8 @@ def test_ctrl_c_ramps_out_switches_hydraulics_off_and_leaves_consistent_files(se
     assert "safe stop:" not in err                     # no safe-stop step failed
 
 
-def test_daq_link_dropped_mid_experiment_is_reopened_and_the_gap_counted(served_rig, tmp_path):
-    sim = served_rig("--fault", "disconnect@run+10")
+def test_daq_link_dropped_mid_experiment_is_reopened_and_the_gap_counted(virtual_rig, tmp_path):
+    sim = virtual_rig(faults=["disconnect@run+10"])
     out = tmp_path / "daqlink"
     r = run_rig(sim, out, "--experiments", "j")
     assert r.returncode == 0, r.stderr[-3000:]
@@ -204,8 +204,8 @@ def test_daq_link_dropped_mid_experiment_is_reopened_and_the_gap_counted(served_
     assert entry["stream_lost_samples"] > 0 and entry["lost_samples"] == 0
 
 
-def test_manual_commands_and_monitor(served_rig):
-    sim = served_rig()
+def test_manual_commands_and_monitor(virtual_rig):
+    sim = virtual_rig()
 
     def rig(*args: str) -> subprocess.CompletedProcess:
         return subprocess.run([sys.executable, "-m", "rig", *args], capture_output=True, text=True, timeout=60)

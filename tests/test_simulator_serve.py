@@ -47,8 +47,8 @@ def s16(word: int) -> int:
     return word - 0x10000 if word >= 0x8000 else word
 
 
-def test_modbus_map_state_machine_and_cycles(served_rig):
-    rig = served_rig()
+def test_modbus_map_state_machine_and_cycles(virtual_rig):
+    rig = virtual_rig()
     c = client(rig)
     regs = inputs(c)
     assert regs[0] == OFF and regs[1] == 0 and regs[6] == 123
@@ -71,8 +71,8 @@ def test_modbus_map_state_machine_and_cycles(served_rig):
     c.close()
 
 
-def test_out_of_range_writes_get_exception_3_and_change_nothing(served_rig):
-    rig = served_rig()
+def test_out_of_range_writes_get_exception_3_and_change_nothing(virtual_rig):
+    rig = virtual_rig()
     c = client(rig)
     before = c.read_holding_registers(0, count=11, device_id=1).registers
     bad = [(2, [30000]),                       # static position 300 mm > 270 mm limit
@@ -104,8 +104,8 @@ def test_out_of_range_writes_get_exception_3_and_change_nothing(served_rig):
     (None, "watchdog", 4),                           # watchdog
     ("estop@2", None, 5),                            # emergency stop
 ])
-def test_every_trip_is_seen_as_alarm_with_its_code(served_rig, fault, setup, alarm):
-    rig = served_rig(*(["--fault", fault] if fault else []))
+def test_every_trip_is_seen_as_alarm_with_its_code(virtual_rig, fault, setup, alarm):
+    rig = virtual_rig(faults=[fault] if fault else [])
     c = client(rig)
     c.write_coil(0, True, device_id=1)
     if setup == "force":
@@ -126,9 +126,9 @@ def test_every_trip_is_seen_as_alarm_with_its_code(served_rig, fault, setup, ala
     c.close()
 
 
-def test_mbpoll_reads_the_controller(served_rig):
+def test_mbpoll_reads_the_controller(virtual_rig):
     mbpoll = require_program("mbpoll")
-    rig = served_rig()
+    rig = virtual_rig()
     out = subprocess.run([mbpoll, "-m", "tcp", "-a", "1", "-t", "3", "-r", "0", "-c", "7", "-1", "-0",
                           "-p", str(rig.port), rig.host], capture_output=True, text=True, timeout=20)
     assert out.returncode == 0, out.stdout + out.stderr
@@ -192,8 +192,8 @@ def stream_once(write, read_chunk, seconds: float) -> tuple[list[int], int, int]
 
 
 @pytest.mark.parametrize("transport", ["tcp", "pty"])
-def test_daq_stream_decoded_independently(served_rig, transport):
-    rig = served_rig(daq="tcp://127.0.0.1:0" if transport == "tcp" else "pty", speed=20)
+def test_daq_stream_decoded_independently(virtual_rig, transport):
+    rig = virtual_rig(daq=transport, speed=20)
     if transport == "tcp":
         host, port = rig.daq_url.removeprefix("socket://").rsplit(":", 1)
         sock = socket.create_connection((host, int(port)))
@@ -244,8 +244,8 @@ def daq_socket(rig) -> socket.socket:
     return sock
 
 
-def test_serial_stall_delays_frames_without_losing_them(served_rig):
-    rig = served_rig("--fault", "stall@20=50")           # 1 s of wall time at 50x
+def test_serial_stall_delays_frames_without_losing_them(virtual_rig):
+    rig = virtual_rig(faults=["stall@20=50"])           # 1 s of wall time at 50x
     sock = daq_socket(rig)
     sock.sendall(b"RATE 500\nSTART\n")
     chunks = read_stream(sock, 3.0)
@@ -256,8 +256,8 @@ def test_serial_stall_delays_frames_without_losing_them(served_rig):
     sock.close()
 
 
-def test_disconnect_drops_the_link_and_a_new_connection_gets_the_stream(served_rig):
-    rig = served_rig("--fault", "disconnect@20")
+def test_disconnect_drops_the_link_and_a_new_connection_gets_the_stream(virtual_rig):
+    rig = virtual_rig(faults=["disconnect@20"])
     sock = daq_socket(rig)
     sock.sendall(b"RATE 500\nSTART\n")
     t0 = time.monotonic()
@@ -272,8 +272,8 @@ def test_disconnect_drops_the_link_and_a_new_connection_gets_the_stream(served_r
     assert "fault: DAQ link disconnected" in rig.stop()
 
 
-def test_sensor_drift_moves_the_channel(served_rig):
-    rig = served_rig("--fault", "drift=3:0.1@30")        # temperature channel, +0.1 degC per simulated second
+def test_sensor_drift_moves_the_channel(virtual_rig):
+    rig = virtual_rig(faults=["drift=3:0.1@30"])        # temperature channel, +0.1 degC per simulated second
     sock = daq_socket(rig)
     sock.sendall(b"RATE 500\nSTART\n")
     stream = b"".join(d for _, d in read_stream(sock, 2.0)).split(b"OK\n", 1)[-1]
@@ -291,11 +291,11 @@ def test_sensor_drift_moves_the_channel(served_rig):
     sock.close()
 
 
-def test_modbus_rtu_on_a_pseudo_terminal(served_rig):
+def test_modbus_rtu_on_a_pseudo_terminal(virtual_rig):
     from pymodbus.client import ModbusSerialClient
     from pymodbus.framer import FramerType
 
-    rig = served_rig("--modbus", "rtu:pty")
+    rig = virtual_rig(modbus="rtu")
     assert rig.modbus_url.startswith("rtu:///dev/")
     c = ModbusSerialClient(rig.modbus_url.removeprefix("rtu://"), framer=FramerType.RTU, baudrate=115200, timeout=2)
     assert c.connect()
@@ -305,8 +305,8 @@ def test_modbus_rtu_on_a_pseudo_terminal(served_rig):
     c.close()
 
 
-def test_drop_rig_releases_the_mass_and_the_damper_settles(served_rig):
-    rig = served_rig("--rig", "drop", speed=50)
+def test_drop_rig_releases_the_mass_and_the_damper_settles(virtual_rig):
+    rig = virtual_rig(rig="drop", speed=50)
     c = client(rig)
     c.write_coil(0, True, device_id=1)
     sock = daq_socket(rig)

@@ -16,7 +16,7 @@ START_FACTORS = {"theta4": 1.2, "theta6": 0.75, "theta16": 1.3}   # where the fi
 
 
 @pytest.mark.slow
-def test_a_served_truth_with_a_stroke_offset_is_captured_and_identified(served_rig, tmp_path):
+def test_a_served_truth_with_a_stroke_offset_is_captured_and_identified(virtual_rig, tmp_path):
     truth = random_truth("2dof", SEEDS[2])
     assert abs(truth["theta12"]) >= 0.5e-3
     truth_file = tmp_path / "TRUTH.json"
@@ -25,7 +25,7 @@ def test_a_served_truth_with_a_stroke_offset_is_captured_and_identified(served_r
     start.write_text(json.dumps({"model": "2dof", "parameters": {
         k: v * START_FACTORS.get(k, 1.0) for k, v in truth.items()}}))
 
-    sim = served_rig("--params", str(truth_file), "--seed", "11")
+    sim = virtual_rig(params=truth_file, seed=11)
     out = tmp_path / "session"
     r = run_rig(sim, out, "--experiments", "j,n,l", "--identify", "--params", str(start))
     assert r.returncode == 0, r.stderr[-3000:]

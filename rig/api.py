@@ -1,0 +1,211 @@
+"""The scripting API: the lab procedure in Python, on the machinery of ``rig run``.
+
+    import rig
+
+    with rig.open(shaker="tcp://127.0.0.1:5020", daq="socket://127.0.0.1:5021") as r:
+        print(r.status())
+        session = r.run_plan("standard", experiments=["j", "n"], out="sessions/unit-17")
+        result = session.identify(estimate=["theta4", "theta6", "theta16"])
+        print(result.report())
+
+Nothing here runs a subprocess: a :class:`Rig` holds the same two links as ``rig run``
+and a session goes through the same prepare / run / safe stop
+(:mod:`rig.run`), so a scripted session is on disk what a command-line session is.
+Leaving the ``with`` block, whatever the reason, ends in the safe stop.  Errors are
+those of :mod:`rig.errors`; a session that did not complete raises
+:class:`SessionFailed` after its safe stop, with the session attached for a resume.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+from rich.console import Console
+
+from identify.dataset import Experiment
+from rig.acquisition import Acquisition
+from rig.config import RigConfig, load_rig_config
+from rig.daq import Calibration
+from rig.errors import RigFault
+from rig.events import Event, EventBus
+from rig.progress import ConsoleProgress
+from rig.registers import RegisterMap, load_register_map
+from rig.run import (
+    EXIT_OK,
+    Links,
+    RunOptions,
+    RunResult,
+    SessionRunner,
+    close_links,
+    fit_session,
+    open_links,
+    prepare,
+    session_estimates_s,
+)
+from rig.session import Session as SessionFolder
+from rig.session import SessionLog
+from rig.shaker import ShakerStatus
+
+if TYPE_CHECKING:
+    from identify.result import FitResult
+
+log = logging.getLogger(__name__)
+
+
+class SessionFailed(RigFault):
+    """A session ended short of complete (aborted, interrupted); the rig was safely stopped
+    and what was captured is kept: ``.session`` says how far it got."""
+
+    def __init__(self, session: Session) -> None:
+        super().__init__(f"session {session.status} ({session.dataset_dir})")
+        self.session = session
+
+
+class Session:
+    """A planned session on a :class:`Rig`: subscribe to its events, run it, identify."""
+
+    def __init__(self, rig: Rig, options: RunOptions, progress: bool) -> None:
+        self._rig, self._options, self._progress = rig, options, progress
+        self._prepared = prepare(options)
+        self._subscribers: list[Callable[[Event], None]] = []
+        self._folder: SessionFolder | None = None
+        self._result: RunResult | None = None
+
+    def subscribe(self, callback: Callable[[Event], None]) -> None:
+        """``callback(event)`` for every event of the session, from a thread of its own
+        (the acquisition never waits on it)."""
+        self._subscribers.append(callback)
+
+    def run(self) -> Session:
+        """Capture every planned experiment; returns when the session has ended."""
+        if self._result is not None:
+            raise RuntimeError("this session has run; plan a new one (or resume it with resume=True)")
+        links = self._rig._links
+        bus = EventBus()
+        for callback in self._subscribers:
+            bus.subscribe(callback)
+        runner = SessionRunner(self._prepared, links, bus, self._rig._console)
+        self._folder = folder = runner.open_session()
+        session_log = SessionLog(folder.path / "session.log")
+        bus.subscribe(session_log, inline=True)
+        if self._progress:
+            estimates = session_estimates_s(self._prepared, folder, links.shaker.status().position_m)
+            folder.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
+            bus.subscribe(ConsoleProgress(self._rig._console, estimates))
+        self._rig._bus = bus
+        try:
+            self._result = result = runner.run(folder)
+        finally:
+            self._rig._bus = None
+            bus.close()
+            session_log.close()
+        if result.error is not None:
+            raise result.error
+        if result.exit_code != EXIT_OK:
+            raise SessionFailed(self)
+        return self
+
+    @property
+    def status(self) -> str:
+        """``planned``, then what ``session.json`` says: complete, ended: …, aborted: …"""
+        return self._folder.meta["status"] if self._folder is not None else "planned"
+
+    @property
+    def dataset_dir(self) -> Path:
+        return Path(self._options.out)
+
+    @property
+    def experiments(self) -> list[dict[str, Any]]:
+        """The captured experiments as ``dataset.json`` lists them (label, file, settle cycles, …)."""
+        return list(self._folder.manifest["experiments"]) if self._folder is not None else []
+
+    def identify(self, model: str = "2dof", estimate: Sequence[str] = ("theta4", "theta6", "theta16"),
+                 params: str | Path | None = None) -> FitResult:
+        """Fit the captured experiments (the same :class:`~identify.result.FitResult` as
+        ``identify.fit``); RESULT.json and report.txt go into the session folder."""
+        if self._folder is None:
+            raise RuntimeError("nothing captured yet: run() the session first")
+        captured: list[Experiment] = self._result.captured if self._result is not None else []
+        return fit_session(self._folder, model, params, list(estimate), captured)
+
+
+class Rig:
+    """A connected rig: the controller and the DAQ, as ``rig run`` holds them."""
+
+    def __init__(self, shaker: str, daq: str, *, rig_config: str | None = None, calibration: str | None = None,
+                 register_map: str | None = None, reset_alarm: bool = False, console: Console | None = None) -> None:
+        self._rig_config, self._calibration, self._register_map = rig_config, calibration, register_map
+        self.shaker_url, self.daq_url = shaker, daq
+        self.config: RigConfig = load_rig_config(rig_config)
+        calibration_table = Calibration.from_file(calibration)
+        registers: RegisterMap = load_register_map(register_map)
+        self._console = console or Console(stderr=True, soft_wrap=True)
+        self._bus: EventBus | None = None   # the running session's, for the links' messages
+        self._links: Links = open_links(shaker, daq, self.config, calibration_table, registers,
+                                        reset_alarm=reset_alarm, on_event=self._link_event)
+        self._idle_bus = EventBus()
+        self._stopper = Acquisition(self._links.shaker, self._links.daq, self.config, self._idle_bus)
+
+    def _link_event(self, message: str) -> None:
+        bus = self._bus
+        if bus is not None:
+            bus.publish("log", message=message)
+        else:
+            log.warning("%s", message)
+
+    # ----- the lab procedure ---------------------------------------------------------------------
+    def status(self) -> ShakerStatus:
+        return self._links.shaker.status()
+
+    def move(self, position_mm: float, wait_s: float = 60.0) -> ShakerStatus:
+        """Hydraulics on and move to a static position; returns once there."""
+        shaker = self._links.shaker
+        if shaker.status().state == "OFF":
+            shaker.hydraulics(True)
+        shaker.move_to(position_mm * 1e-3)
+        return shaker.wait_for({"AT_STATIC"}, timeout_s=wait_s)
+
+    def plan(self, plan: str | Path = "standard", *, out: str | Path, experiments: Sequence[str] | None = None,
+             periods: int | None = None, on_alarm: str = "abort", date: str | None = None, unit: str = "unknown",
+             resume: bool = False, progress: bool = True) -> Session:
+        """A session checked and ready to :meth:`Session.run` (nothing written yet)."""
+        options = RunOptions(plan=str(plan), shaker=self.shaker_url, daq=self.daq_url, out=Path(out),
+                             experiments=list(experiments) if experiments else None, periods=periods, resume=resume,
+                             on_alarm=on_alarm, date=date, unit_serial=unit, rig_config=self._rig_config,
+                             calibration=self._calibration, register_map=self._register_map)
+        return Session(self, options, progress)
+
+    def run_plan(self, plan: str | Path = "standard", *, out: str | Path, experiments: Sequence[str] | None = None,
+                 periods: int | None = None, **options: Any) -> Session:
+        """:meth:`plan` and run it: returns once the session is complete."""
+        return self.plan(plan, out=out, experiments=experiments, periods=periods, **options).run()
+
+    def stop(self) -> list[str]:
+        """The safe stop: fade out if running, STOP, hydraulics off; the steps that failed."""
+        return self._stopper.safe_stop("stop requested by the script")
+
+    # ----- lifetime ------------------------------------------------------------------------------
+    def close(self) -> None:
+        """The safe stop, then both links closed."""
+        try:
+            failures = self.stop()
+            if failures:
+                log.error("safe stop incomplete (%s): the controller's watchdog stops the shaker",
+                          "; ".join(failures))
+        finally:
+            close_links(self._links)
+            self._idle_bus.close()
+
+    def __enter__(self) -> Rig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open(shaker: str, daq: str, **options: Any) -> Rig:  # noqa: A001 — rig.open() reads like the procedure
+    """Connect to the rig's controller and DAQ (see :class:`Rig`)."""
+    return Rig(shaker, daq, **options)
