@@ -9,6 +9,12 @@ import numpy as np
 from identify.result import FitResult
 
 
+def axis_label(column: str) -> str:
+    """``stroke_mm`` → ``stroke [mm]``: dataset columns carry their unit after the last underscore."""
+    name, _, unit = column.rpartition("_")
+    return f"{name.replace('_', ' ')} [{'°C' if unit == 'C' else unit}]" if name else column
+
+
 def write_figures(result: FitResult, folder: Path) -> list[Path]:
     """Write ``fit_<output>.png`` (measured vs predicted over the phase of each experiment)
     and ``residuals.png`` (mean ± 2σ of the primary output per experiment)."""
@@ -29,6 +35,8 @@ def write_figures(result: FitResult, folder: Path) -> list[Path]:
             ax.plot(tau, e.measured[out], ".", ms=1.5, label="measured")
             ax.plot(tau, e.predicted[out], "-", lw=1, label="model")
             ax.set_title(f"{e.label} ({e.frequency_hz:g} Hz)", fontsize=8)
+            ax.set_xlabel("phase of the period [-]", fontsize=7)
+            ax.set_ylabel(axis_label(out), fontsize=7)
             ax.tick_params(labelsize=7)
         for ax in axes.ravel()[len(exps):]:
             ax.axis("off")
@@ -46,7 +54,7 @@ def write_figures(result: FitResult, folder: Path) -> list[Path]:
     ax.errorbar(x, stats[:, 0], yerr=2 * stats[:, 1], fmt="o", capsize=3)
     ax.axhline(0, color="k", lw=0.5)
     ax.set_xticks(x, [e.label for e in exps], rotation=60, fontsize=7)
-    ax.set_ylabel(f"residual {primary} (mean ± 2σ)")
+    ax.set_ylabel(f"residual {axis_label(primary)}, mean ± 2σ")
     fig.tight_layout()
     path = folder / "residuals.png"
     fig.savefig(path, dpi=110)

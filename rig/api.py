@@ -19,9 +19,10 @@ those of :mod:`rig.errors`; a session that did not complete raises
 from __future__ import annotations
 
 import logging
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Literal
 
 from rich.console import Console
 
@@ -31,7 +32,7 @@ from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration
 from rig.errors import RigFault
 from rig.events import Event, EventBus
-from rig.progress import ConsoleProgress
+from rig.progress import ConsoleProgress, ProgressBar
 from rig.registers import RegisterMap, load_register_map
 from rig.run import (
     EXIT_OK,
@@ -53,6 +54,12 @@ if TYPE_CHECKING:
     from identify.result import FitResult
 
 log = logging.getLogger(__name__)
+Progress = Literal["auto", "bar", "lines"] | bool
+
+
+def _in_notebook() -> bool:
+    """A Jupyter kernel, where terminal lines would be noise and a bar is what one expects."""
+    return "ipykernel" in sys.modules
 
 
 class SessionFailed(RigFault):
@@ -67,7 +74,7 @@ class SessionFailed(RigFault):
 class Session:
     """A planned session on a :class:`Rig`: subscribe to its events, run it, identify."""
 
-    def __init__(self, rig: Rig, options: RunOptions, progress: bool) -> None:
+    def __init__(self, rig: Rig, options: RunOptions, progress: Progress) -> None:
         self._rig, self._options, self._progress = rig, options, progress
         self._prepared = prepare(options)
         self._subscribers: list[Callable[[Event], None]] = []
@@ -91,9 +98,11 @@ class Session:
         self._folder = folder = runner.open_session()
         session_log = SessionLog(folder.path / "session.log")
         bus.subscribe(session_log, inline=True)
-        if self._progress:
-            estimates = session_estimates_s(self._prepared, folder, links.shaker.status().position_m)
-            folder.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
+        estimates = session_estimates_s(self._prepared, folder, links.shaker.status().position_m)
+        folder.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
+        if self._progress == "bar" or (self._progress == "auto" and _in_notebook()):
+            bus.subscribe(ProgressBar(estimates))
+        elif self._progress:
             bus.subscribe(ConsoleProgress(self._rig._console, estimates))
         self._rig._bus = bus
         try:
@@ -170,8 +179,9 @@ class Rig:
 
     def plan(self, plan: str | Path = "standard", *, out: str | Path, experiments: Sequence[str] | None = None,
              periods: int | None = None, on_alarm: str = "abort", date: str | None = None, unit: str = "unknown",
-             resume: bool = False, progress: bool = True) -> Session:
-        """A session checked and ready to :meth:`Session.run` (nothing written yet)."""
+             resume: bool = False, progress: Progress = "auto") -> Session:
+        """A session checked and ready to :meth:`Session.run` (nothing written yet).
+        ``progress``: "auto" (a bar in notebooks, lines in a terminal), "bar", "lines" or False."""
         options = RunOptions(plan=str(plan), shaker=self.shaker_url, daq=self.daq_url, out=Path(out),
                              experiments=list(experiments) if experiments else None, periods=periods, resume=resume,
                              on_alarm=on_alarm, date=date, unit_serial=unit, rig_config=self._rig_config,

@@ -63,3 +63,27 @@ class ConsoleProgress:
         elif e.kind in ("log", "alarm", "experiment-failed"):
             style = "red" if e.kind != "log" else "dim"
             self.console.print(f"{head} {e.data.get('message', '')}", style=style, highlight=False)
+
+
+class ProgressBar:
+    """Queued subscriber for notebooks: one bar over the session's rig time (a widget in
+    Jupyter, text elsewhere), advancing as experiments end and naming the running one."""
+
+    def __init__(self, estimates_s: dict[str, float]) -> None:
+        from tqdm.auto import tqdm  # only notebooks and scripts that ask for the bar load it
+
+        self.estimates = estimates_s
+        self.bar = tqdm(total=round(sum(estimates_s.values())), unit="s", desc="session",
+                        bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} s of rig time")
+
+    def __call__(self, e: Event) -> None:
+        if e.kind == "phase" and e.experiment:
+            extra = f" {e.data['cycles']} cycles" if "cycles" in e.data else ""
+            self.bar.set_description(f"{e.experiment} {e.data['phase']}{extra}")
+        elif e.kind in ("experiment-done", "experiment-failed"):
+            self.bar.update(round(self.estimates.get(e.experiment or "", 0.0)))
+        elif e.kind == "session-end":
+            self.bar.set_description(str(e.data.get("message", "ended")))
+            if e.data.get("message") == "complete":
+                self.bar.update(self.bar.total - self.bar.n)
+            self.bar.close()
