@@ -65,10 +65,16 @@ class ExperimentRecord:
 
 
 class Recorder:
-    """Samples of the running experiment, addressed by their index (a lost sample is a hole)."""
+    """Samples of the running experiment, addressed by their index (a lost sample is a
+    hole).  Only samples from :meth:`forget_before`'s index on are kept: the settling
+    blocks and capture windows are read in order, so memory stays bounded by a block
+    plus the capture windows however long an experiment settles (a 0.04 Hz experiment
+    held for 1500 cycles would otherwise keep 75 million samples)."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
+        self.base = 0                      # index of the first sample held
+        self.keep_from = 0                 # samples below this are no longer needed
         self.values = np.zeros((0, 4))
         self.present = np.zeros(0, dtype=bool)
         self.over = np.zeros(0, dtype=bool)
@@ -77,20 +83,41 @@ class Recorder:
     def __call__(self, s: Samples) -> None:
         with self._lock:
             top = int(s.index[-1]) + 1
-            if top > len(self.present):
-                cap = max(top, 2 * len(self.present), 65536)
-                grow = cap - len(self.present)
-                self.values = np.concatenate((self.values, np.zeros((grow, 4))))
-                self.present = np.concatenate((self.present, np.zeros(grow, dtype=bool)))
-                self.over = np.concatenate((self.over, np.zeros(grow, dtype=bool)))
-            self.values[s.index] = s.values
-            self.present[s.index] = True
-            self.over[s.index] = (s.flags & 1).astype(bool)
+            if top - self.base > len(self.present):
+                self._make_room(top)
+            keep = s.index >= self.base    # a late block of an already forgotten stretch
+            at = s.index[keep] - self.base
+            self.values[at] = s.values[keep]
+            self.present[at] = True
+            self.over[at] = (s.flags[keep] & 1).astype(bool)
             self.end = max(self.end, top)
+
+    def _make_room(self, top: int) -> None:
+        """Drop what is forgotten and, where that is not enough, double the capacity."""
+        drop = max(self.keep_from - self.base, 0)
+        base, held = self.base + drop, len(self.present)
+        size = held if top - base <= held else max(top - base, 2 * held, 65536)
+        values, present, over = np.zeros((size, 4)), np.zeros(size, dtype=bool), np.zeros(size, dtype=bool)
+        kept = held - drop
+        values[:kept], present[:kept], over[:kept] = self.values[drop:], self.present[drop:], self.over[drop:]
+        self.base, self.values, self.present, self.over = base, values, present, over
 
     def window(self, a: int, b: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         with self._lock:
-            return self.values[a:b].copy(), self.present[a:b].copy(), self.over[a:b].copy()
+            if a < self.base:
+                raise ValueError(f"samples {a}…{self.base - 1} were forgotten")
+            i, j = a - self.base, b - self.base
+            return self.values[i:j].copy(), self.present[i:j].copy(), self.over[i:j].copy()
+
+    def forget_before(self, index: int) -> None:
+        """Samples below ``index`` will not be read again (their memory is reused)."""
+        with self._lock:
+            self.keep_from = max(self.keep_from, index)
+
+    @property
+    def held(self) -> int:
+        """Samples of memory in use (for the bound's test)."""
+        return len(self.present)
 
 
 class Acquisition:
@@ -177,6 +204,7 @@ class Acquisition:
             b = start + int(round((block + 1) * m * spp))
             self._wait_samples(rec, b, label)
             values, present, _ = rec.window(a, b)
+            rec.forget_before(b)
             means = values[present].mean(axis=0) if present.any() else np.full(4, np.nan)
             cycles = (block + 1) * m
             if prev_means is not None:
@@ -200,6 +228,7 @@ class Acquisition:
             a = b + attempt * n  # windows follow the last settling block back to back
             self._wait_samples(rec, a + n, label, capture=(a, n))
             values, present, over = rec.window(a, a + n)
+            rec.forget_before(a + n)
             lost = int(np.count_nonzero(~present))
             if best is None or lost < best[3]:
                 best = (a, values, present, lost, over, attempt)

@@ -123,3 +123,27 @@ def test_a_failing_inline_subscriber_reaches_the_publisher():
     bus.subscribe(lambda event: (_ for _ in ()).throw(OSError("disk full")), inline=True)
     with pytest.raises(OSError, match="disk full"):
         bus.publish("experiment-done")
+
+
+def test_the_recorder_holds_a_bounded_stretch_however_long_the_stream():
+    import numpy as np
+
+    from rig.acquisition import Recorder
+    from rig.daq import Samples
+
+    rec, block = Recorder(), 10_000
+    for k in range(300):                                 # 3 million samples, read block by block
+        index = np.arange(k * block, (k + 1) * block)
+        rec(Samples(index, np.column_stack([index, -index, index, -index]).astype(float),
+                    np.zeros(block, dtype=np.uint8)))
+        if k:
+            values, present, _ = rec.window((k - 1) * block, k * block)
+            assert present.all() and values[0, 0] == (k - 1) * block and values[-1, 1] == -(k * block - 1)
+            rec.forget_before(k * block)
+    assert rec.end == 300 * block and rec.held <= 4 * 65536
+    with pytest.raises(ValueError, match="were forgotten"):
+        rec.window(0, 10)
+    # A late block of a forgotten stretch is ignored; the holes of a lost sample stay holes.
+    rec(Samples(np.array([5, 3 * 10**6 + 7]), np.ones((2, 4)), np.zeros(2, dtype=np.uint8)))
+    _, present, _ = rec.window(3 * 10**6, 3 * 10**6 + 8)
+    assert present.tolist() == [False] * 7 + [True]
