@@ -31,6 +31,11 @@ from rig.events import EventBus, Phase
 from rig.shaker import AlarmError, Shaker, ShakerTimeout
 
 POLL_S = 0.05
+# Block means with lost samples (see block_means): harmonics of the excitation fitted
+# beside the mean (the damper's force carries a few: v|v| and the friction's arctan),
+# and the share of a block that may be missing before its mean is not trusted.
+HARMONICS_IN_BLOCK_MEAN = 12
+MAX_LOST_IN_BLOCK = 0.2
 QUICK_RECONNECT_S = 0.5
 
 
@@ -120,6 +125,25 @@ class Recorder:
         return len(self.present)
 
 
+def block_means(values: np.ndarray, present: np.ndarray, phase_rad: np.ndarray) -> np.ndarray | None:
+    """The channels' means over a block of whole cycles, or None when too much is missing.
+
+    With every sample there, the plain mean.  With holes, the plain mean of what is left
+    scatters with the periodic signal itself (its std × √(lost/N)), enough to keep a
+    settled experiment from passing the criterion for tens of cycles; so the mean is
+    taken as the constant term of a least-squares fit of the excitation's harmonics,
+    which the holes do not bias."""
+    if present.all():
+        return values.mean(axis=0)
+    if np.count_nonzero(~present) > MAX_LOST_IN_BLOCK * len(present):
+        return None
+    k = np.arange(1, HARMONICS_IN_BLOCK_MEAN + 1)
+    phase = np.outer(phase_rad[present], k)
+    design = np.column_stack([np.ones(len(phase)), np.cos(phase), np.sin(phase)])
+    coefficients, *_ = np.linalg.lstsq(design, values[present], rcond=None)
+    return coefficients[0]
+
+
 class Acquisition:
     """Runs experiments on a connected shaker and DAQ, publishing events on ``bus``."""
 
@@ -205,9 +229,14 @@ class Acquisition:
             self._wait_samples(rec, b, label)
             values, present, _ = rec.window(a, b)
             rec.forget_before(b)
-            means = values[present].mean(axis=0) if present.any() else np.full(4, np.nan)
+            means = block_means(values, present, 2 * np.pi * np.arange(a, b) / spp)
             cycles = (block + 1) * m
-            if prev_means is not None:
+            if means is None:
+                # Too much of the block is missing to know its mean: it can neither pass
+                # nor count as the reference of the next comparison.
+                self.bus.publish("log", label, message=f"settling block ending at cycle {cycles}: "
+                                                       f"{np.count_nonzero(~present)} samples lost, not compared")
+            elif prev_means is not None:
                 change = np.abs(means - prev_means)
                 self.bus.publish("progress", label, phase=Phase.SETTLING.value, cycles=cycles,
                                  change={c: float(x) for c, x in zip(CHANNELS, change, strict=True)})

@@ -13,6 +13,7 @@ import re
 import signal
 import threading
 from collections.abc import Iterator
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -285,3 +286,28 @@ def test_a_bug_in_the_acquisition_still_ends_in_the_safe_stop(vrig, tmp_path, mo
     assert "aborting on an internal error: TypeError: injected bug" in log and SAFE_STOP_DONE in log
     assert_at_rest(vrig)
     assert session_meta(tmp_path / "s")[0]["status"] == result.status
+
+
+@pytest.mark.slow
+def test_lost_samples_do_not_stretch_settling(tmp_path):
+    """Line faults while settling: the criterion must neither pass early nor, because the
+    holes make the plain block means scatter, keep waiting (a took 109 cycles instead of 8)."""
+    from identify.plans import STANDARD_SET, select
+    from rig.config import DEFAULT_RIG_CONFIG
+
+    def settle_cycles(faults: list[str]) -> tuple[int, int]:
+        rig = InProcessRig(DEFAULT_RIG_CONFIG)        # the real criterion, not the tests' relaxed one
+        rig.connect()
+        try:
+            for fault in faults:
+                rig.when("settling", 0.0, partial(rig.inject, fault))
+            (spec,) = select(STANDARD_SET, ["a"])
+            record = acquisition(rig).run_experiment(spec, "261122a")
+            return record.settle_cycles, record.stream_lost
+        finally:
+            rig.close()
+
+    clean, none_lost = settle_cycles([])
+    faulted, lost = settle_cycles(["corrupt=0.001", "drop=0.0005"])
+    assert none_lost == 0 and lost > 5000
+    assert clean <= faulted <= 1.2 * clean, (clean, faulted)

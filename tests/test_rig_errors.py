@@ -147,3 +147,27 @@ def test_the_recorder_holds_a_bounded_stretch_however_long_the_stream():
     rec(Samples(np.array([5, 3 * 10**6 + 7]), np.ones((2, 4)), np.zeros(2, dtype=np.uint8)))
     _, present, _ = rec.window(3 * 10**6, 3 * 10**6 + 8)
     assert present.tolist() == [False] * 7 + [True]
+
+
+def test_block_means_with_holes_are_those_of_the_whole_block():
+    import numpy as np
+
+    from rig.acquisition import MAX_LOST_IN_BLOCK, block_means
+
+    spp, cycles = 50_000, 1                              # a 0.04 Hz cycle at 2 kHz
+    phase = 2 * np.pi * np.arange(spp * cycles) / spp
+    signal = np.column_stack([133 + 127 * np.sin(phase + 0.3), 800 * np.sin(phase) * np.abs(np.sin(phase)),
+                              9 + np.cos(phase), 20 + 0 * phase])
+    whole = block_means(signal, np.ones(len(phase), dtype=bool), phase)
+    holes = np.random.default_rng(1).random(len(phase)) < 0.016  # 1.6 % lost, as with corrupt + drop
+    plain = signal[~holes].mean(axis=0)
+    fitted = block_means(signal, ~holes, phase)
+    assert fitted is not None and whole is not None
+    # The plain mean of what is left misses by far more than the stroke threshold (0.02 mm)...
+    assert abs(plain[0] - whole[0]) > 0.02 or abs(plain[1] - whole[1]) > 5.0
+    # ... the harmonic fit misses by less than a hundredth of each channel's threshold.
+    thresholds = np.array(list(load_rig_config().steady_state.thresholds.values()))
+    assert np.all(np.abs(fitted - whole) < 0.01 * thresholds), fitted - whole
+    stalled = np.ones(len(phase), dtype=bool)
+    stalled[: int((MAX_LOST_IN_BLOCK + 0.01) * len(phase))] = False
+    assert block_means(signal, stalled, phase) is None
