@@ -27,12 +27,13 @@ from __future__ import annotations
 import shlex
 import signal
 import threading
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
+import numpy as np
 from rich.console import Console
 
 from identify.dataset import Experiment
@@ -47,6 +48,9 @@ from rig.progress import ConsoleProgress
 from rig.registers import RegisterMap, load_register_map
 from rig.session import Session, SessionError, SessionLog
 from rig.shaker import AlarmError, Shaker, ShakerAddress, ShakerError
+
+if TYPE_CHECKING:  # the numerics are imported when a fit runs, not with the command line
+    from identify.result import FitResult
 
 EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT, EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED = 0, 1, 2, 3, 70, 130
 INTERRUPTING_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
@@ -382,8 +386,27 @@ def resume_command(session: Session, opt: RunOptions) -> str:
 
 def identify_session(session: Session, opt: RunOptions, console: Console, captured: list[Experiment]) -> int:
     """Fit the session's experiments in memory; RESULT.json and report.txt into the session."""
-    from identify.dataset import read_dataset
     from identify.errors import IdentifyError
+
+    command = (f"python -m identify fit {session.path} --model {opt.model} --estimate {','.join(opt.estimate)}"
+               + (f" --params {opt.params}" if opt.params else "") + " --output RESULT.json")
+    console.print(f"identifying {', '.join(opt.estimate)} ({opt.model}) on the session's periodic experiments; "
+                  f"same as: {command}", highlight=False)
+    try:
+        result = fit_session(session, opt, captured)
+    except IdentifyError as exc:
+        console.print(f"[red]identification failed:[/red] {exc} (the captured session is complete and kept)",
+                      highlight=False)
+        return EXIT_NOT_CONVERGED
+    print(result.fit_report())
+    return EXIT_OK if result.converged else EXIT_NOT_CONVERGED
+
+
+def fit_session(session: Session, opt: RunOptions, captured: list[Experiment],
+                progress: Callable[[int, float, np.ndarray], None] | None = None) -> FitResult:
+    """The fit behind :func:`identify_session` (the GUI calls it for the result and its
+    progress): writes RESULT.json and report.txt; raises identify's errors."""
+    from identify.dataset import read_dataset
     from identify.fit import fit_experiments
     from identify.model import load_model
     from identify.parameters import Parameters
@@ -398,18 +421,7 @@ def identify_session(session: Session, opt: RunOptions, console: Console, captur
         stored = read_dataset(session.path, model_columns(model, resolve_outputs(model, None)), earlier)
         by_label.update((label, stored.experiment(label)) for label in earlier)
     experiments = [by_label[e["label"]] for e in session.manifest["experiments"] if e.get("kind") == "periodic"]
-    command = (f"python -m identify fit {session.path} --model {opt.model} --estimate {','.join(opt.estimate)}"
-               + (f" --params {opt.params}" if opt.params else "") + " --output RESULT.json")
-    console.print(f"identifying {', '.join(opt.estimate)} ({opt.model}) on {len(experiments)} experiments; "
-                  f"same as: {command}", highlight=False)
-    try:
-        result = fit_experiments(model, experiments, params, opt.estimate)
-    except IdentifyError as exc:
-        console.print(f"[red]identification failed:[/red] {exc} (the captured session is complete and kept)",
-                      highlight=False)
-        return EXIT_NOT_CONVERGED
+    result = fit_experiments(model, experiments, params, opt.estimate, progress=progress)
     result.write_json(session.path / "RESULT.json")
-    report = result.fit_report()
-    atomic_write_bytes(session.path / "report.txt", (report + "\n").encode())
-    print(report)
-    return EXIT_OK if result.converged else EXIT_NOT_CONVERGED
+    atomic_write_bytes(session.path / "report.txt", (result.fit_report() + "\n").encode())
+    return result
