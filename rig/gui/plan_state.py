@@ -37,15 +37,15 @@ class ExperimentRow:
 
     def status_text(self) -> str:
         if self.status == "settling":
-            return f"settling {self.cycles}"
+            return f"settling {self.cycles}" if self.cycles else "settling"
         if self.status == "capturing":
             return f"capturing {100 * self.fraction:.0f} %"
         return self.status + (f" ({self.note})" if self.note else "")
 
 
 class PlanProgress:
-    def __init__(self, plan: Plan, config: RigConfig, date: str, speed: float = 1.0, done: set[str] = frozenset(),
-                 clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(self, plan: Plan, config: RigConfig, date: str, speed: float = 1.0,
+                 done: frozenset[str] | set[str] = frozenset(), clock: Callable[[], float] = time.monotonic) -> None:
         self.clock, self.speed = clock, speed
         self.rows = [ExperimentRow(e, f"{date}{e.letter}",
                                    estimate_duration_s(replace(plan, experiments=(e,)), config,
