@@ -96,10 +96,11 @@ class PlanProgress:
 
     def wall_per_rig_s(self) -> float:
         """Wall seconds per estimated rig second, from the experiments done in this run."""
-        timed = [r for r in self.rows if r.status == "done" and r.started is not None and r.finished is not None]
-        estimate = sum(r.estimate_s for r in timed)
+        timed = [(r.finished - r.started, r.estimate_s) for r in self.rows
+                 if r.status == "done" and r.started is not None and r.finished is not None]
+        estimate = sum(e for _, e in timed)
         if estimate > 0:
-            return sum(r.finished - r.started for r in timed if r.finished and r.started) / estimate
+            return sum(took for took, _ in timed) / estimate
         return 1.0 / self.speed
 
     def left_s(self, row: ExperimentRow) -> float:
