@@ -19,7 +19,7 @@ from rig.gui.plotting import labelled
 UNITS = {"stroke_mm": "mm", "pressure_bar": "bar", "gas_temperature_C": "°C", "force_N": "N"}
 NAMES = {"stroke_mm": "stroke", "pressure_bar": "gas pressure", "gas_temperature_C": "gas temperature",
          "force_N": "force"}
-PARAMETER_COLUMNS = ("parameter", "alias", "value", "± std", "% std", "unit", "start")
+PARAMETER_COLUMNS = ("parameter", "value", "± std", "% std", "unit", "start")
 
 
 def fill_parameter_table(table: QtWidgets.QTableWidget, doc: dict[str, Any]) -> list[str]:
@@ -30,12 +30,13 @@ def fill_parameter_table(table: QtWidgets.QTableWidget, doc: dict[str, Any]) -> 
     for i, (name, p) in enumerate(params.items()):
         value, std = p["value"], p.get("std")
         rel = abs(std / value) if std is not None and value else math.nan
-        cells = (name, p.get("alias", ""), f"{value:.6g}", "–" if std is None else f"{std:.3g}",
+        title = f"{name} ({p['alias']})" if p.get("alias") else name
+        cells = (title, f"{value:.6g}", "–" if std is None else f"{std:.3g}",
                  "–" if math.isnan(rel) else f"{100 * rel:.3g} %", p.get("unit", ""),
                  "" if p.get("initial") is None else f"{p['initial']:.6g}")
         for j, text in enumerate(cells):
             item = QtWidgets.QTableWidgetItem(text)
-            if j in (2, 3, 4, 6):
+            if j in (1, 2, 3, 5):
                 item.setTextAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
             if rel > RELATIVE_STD_WARNING:
                 item.setBackground(QtGui.QColor("#ffe0b2"))
@@ -101,8 +102,10 @@ class FitView(QtWidgets.QWidget):
         self.notes.setAlignment(QtCore.Qt.AlignmentFlag.AlignTop | QtCore.Qt.AlignmentFlag.AlignLeft)
         self.compare_table = QtWidgets.QTableWidget(0, 4)
         self.compare_table.setObjectName("comparisonTable")
-        self.compare_table.setHorizontalHeaderLabels(["experiment", "f [Hz]", "1-dof stroke residual [mm]",
-                                                      "2-dof stroke residual [mm]"])
+        self.compare_table.setHorizontalHeaderLabels(["experiment", "f [Hz]", "1-dof [mm]", "2-dof [mm]"])
+        self.compare_label = QtWidgets.QLabel("")
+        self.compare_label.setObjectName("comparisonLabel")
+        self.compare_label.setWordWrap(True)
         self.compare_table.verticalHeader().setVisible(False)
         self.compare_table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.Stretch)
         self.compare_table.setVisible(False)
@@ -115,6 +118,7 @@ class FitView(QtWidgets.QWidget):
         side.addWidget(QtWidgets.QLabel("Estimated parameters"))
         side.addWidget(self.table, 2)
         side.addWidget(self.notes, 1)
+        side.addWidget(self.compare_label)
         side.addWidget(self.compare_table, 2)
         side.addWidget(self.verdict)
         side_box = QtWidgets.QWidget()
@@ -129,6 +133,7 @@ class FitView(QtWidgets.QWidget):
         split.addWidget(side_box)
         split.setStretchFactor(0, 1)
         split.setStretchFactor(1, 1)
+        split.setSizes([520, 540])         # the parameter table's six columns need about half
         layout = QtWidgets.QVBoxLayout(self)
         layout.addLayout(head)
         layout.addWidget(split, 1)
@@ -140,6 +145,7 @@ class FitView(QtWidgets.QWidget):
     def show_result(self, title: str, result: FitResult, folder: Path) -> None:
         self.result, self.folder, self.comparison = result, folder, None
         self.compare_table.setVisible(False)
+        self.compare_label.setText("")
         self.progress.setText("")
         self._header(title, result.to_document())
         self.compare_button.setEnabled(True)
@@ -154,6 +160,7 @@ class FitView(QtWidgets.QWidget):
         """A stored RESULT.json: the table and warnings (the curves need a re-fit)."""
         self.result, self.comparison = None, None
         self.compare_table.setVisible(False)
+        self.compare_label.setText("")
         self.experiment.clear()
         self.plots.clear()
         self._header(title + " (stored result; re-fit to see the curves)", doc)
@@ -177,8 +184,11 @@ class FitView(QtWidgets.QWidget):
                                       f"{m2:+.4f} ± {2 * s2:.4f}")):
                 self.compare_table.setItem(i, j, QtWidgets.QTableWidgetItem(text))
         self.compare_table.setVisible(True)
-        self.progress.setText(f"compared: stroke residual std 1-dof {math.sqrt(one.channel_variances['stroke_mm']):.4f}"
-                              f" mm, 2-dof {math.sqrt(two.channel_variances['stroke_mm']):.4f} mm")
+        self.progress.setText("")
+        self.compare_label.setText(
+            f"1-dof (θ5, θ6, θ7) against 2-dof, both fitted to the stroke: residual mean ± 2σ per experiment; "
+            f"residual std 1-dof {math.sqrt(one.channel_variances['stroke_mm']):.4f} mm, "
+            f"2-dof {math.sqrt(two.channel_variances['stroke_mm']):.4f} mm")
         self._draw()
 
     def _draw(self) -> None:
@@ -193,7 +203,7 @@ class FitView(QtWidgets.QWidget):
             t = np.arange(n) / (n * e.frequency_hz)
             unit = UNITS.get(out, "")
             p = labelled(self.plots.addPlot(row=0, col=col), f"{NAMES.get(out, out)} [{unit}]",
-                         "time in the period [s]", f"{e.label}: {NAMES.get(out, out)}, one period")
+                         "time in the period [s]", f"{e.label}: {NAMES.get(out, out)}")
             p.addLegend(offset=(5, 5))
             p.plot(t, e.measured[out], pen=None, symbol="o", symbolSize=3, symbolPen=None,
                    symbolBrush=(31, 119, 180, 110), name="measured (folded)")
@@ -204,7 +214,7 @@ class FitView(QtWidgets.QWidget):
                 p.plot(t, e1.predicted[out], pen=pg.mkPen("#2ca02c", width=2, style=QtCore.Qt.PenStyle.DashLine),
                        name="model 1dof").setZValue(11)
             r = labelled(self.plots.addPlot(row=1, col=col), f"residual [{unit}]", "time in the period [s]",
-                         "residual (measured − model) and ±2σ noise band")
+                         "measured − model, ±2σ band")
             sigma = math.sqrt(result.channel_variances[out])
             upper = r.plot(t[[0, -1]], [2 * sigma, 2 * sigma], pen=pg.mkPen("#9e9e9e", width=1))
             lower = r.plot(t[[0, -1]], [-2 * sigma, -2 * sigma], pen=pg.mkPen("#9e9e9e", width=1))

@@ -178,17 +178,15 @@ class LiveView(QtWidgets.QWidget):
 
     def _refresh_loops(self) -> None:
         f = self.frequency_hz
-        cycles = self.cycles_box.value()
-        if f:
-            n = analysis.last_cycles(self.history.n, self.rate_hz, f, cycles)
-            whole = round(n * f / self.rate_hz)
-        else:
-            n, whole = int(min(self.history.n, 2 * self.rate_hz)), 0
+        n = analysis.last_cycles(self.history.n, self.rate_hz, f, self.cycles_box.value()) if f else 0
         _, v = self.history.latest(n / self.rate_hz)
-        if len(v) < 3:
+        if not f or len(v) < 3:
+            # Without a running excitation a "loop" is the transducers' noise: nothing to read in it.
             self.loop.setData([], [])
             self.fv.setData([], [])
+            self.energy.setText("Energy dissipated per cycle: – (no whole cycle of a running excitation yet)")
             return
+        whole = round(n * f / self.rate_hz)
         stroke_m, force_n = v[:, 0] * 1e-3, v[:, 1]
         velocity = analysis.velocity_m_s(stroke_m, self.rate_hz, f)
         step = max(1, len(v) // LOOP_POINTS)
@@ -196,8 +194,7 @@ class LiveView(QtWidgets.QWidget):
         self.fv.setData(velocity[::step], force_n[::step] * 1e-3)
         energy = analysis.loop_energy_j(stroke_m, force_n, whole)
         self.energy.setText(f"Energy dissipated per cycle: {energy:.1f} J (mean of the last {whole} cycles at "
-                            f"{f:g} Hz)" if whole else "Energy dissipated per cycle: – (no whole cycle of a known "
-                            "excitation in view)")
+                            f"{f:g} Hz)")
 
     def show_health(self, snap: Snapshot) -> None:
         rate = 0.0

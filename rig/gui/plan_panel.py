@@ -59,6 +59,7 @@ class SteadyStateView(QtWidgets.QGroupBox):
             bar = QtWidgets.QProgressBar()
             bar.setRange(0, 300)              # change ÷ threshold up to 3, in hundredths
             bar.setFormat("–")
+            bar.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
             self.bars.append(bar)
             self.table.setCellWidget(i, 2, bar)
         layout.addWidget(self.table)
@@ -144,7 +145,7 @@ class PlanPanel(QtWidgets.QWidget):
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         header = self.table.horizontalHeader()
         header.setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
-        header.setStretchLastSection(True)
+        header.setSectionResizeMode(4, QtWidgets.QHeaderView.ResizeMode.Stretch)
         self.eta = QtWidgets.QLabel("")
         self.eta.setObjectName("sessionEta")
         self.steady = SteadyStateView(config)

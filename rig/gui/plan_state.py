@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 from identify.plans import ExperimentSpec
 from rig.config import RigConfig
 from rig.events import Event
+from rig.gui.analysis import predicted_cycles_left
 from rig.plans import Plan, estimate_duration_s
 
 ACTIVE = ("moving", "settling", "capturing", "stopping")
@@ -46,7 +47,7 @@ class ExperimentRow:
 class PlanProgress:
     def __init__(self, plan: Plan, config: RigConfig, date: str, speed: float = 1.0,
                  done: frozenset[str] | set[str] = frozenset(), clock: Callable[[], float] = time.monotonic) -> None:
-        self.clock, self.speed = clock, speed
+        self.clock, self.speed, self.config = clock, speed, config
         self.rows = [ExperimentRow(e, f"{date}{e.letter}",
                                    estimate_duration_s(replace(plan, experiments=(e,)), config,
                                                        e.static_position_mm * 1e-3))
@@ -109,8 +110,22 @@ class PlanProgress:
         if row.status == "pending":
             return row.estimate_s * scale
         if row.status in ACTIVE and row.started is not None:
+            rest = self._rig_s_left(row)
+            if rest is not None:
+                return rest * scale
             return max(row.estimate_s * scale - (self.clock() - row.started), 0.0)
         return 0.0 if row.status == "done" else math.nan
+
+    def _rig_s_left(self, row: ExperimentRow) -> float | None:
+        """Rig time left from where the experiment is: the settling prediction (or the
+        capture's fraction), the capture, the fade out; None when not known."""
+        ss, f, periods = self.config.steady_state, row.spec.frequency_hz, row.spec.periods
+        if row.status == "capturing":
+            return (1 - row.fraction) * periods / f + ss.ramp_time_s
+        if row.status == "settling" and row.settling:
+            left = predicted_cycles_left(row.settling, ss.thresholds, ss.min_cycles, ss.max_cycles)
+            return None if left is None else (left + periods) / f + ss.ramp_time_s
+        return None
 
     def session_left_s(self) -> float:
         if self.ended is not None:
