@@ -63,3 +63,14 @@ def test_plan_rows_follow_the_events_and_the_eta_scales_with_what_was_measured()
     progress.apply(Event("phase", "261122n", {"phase": "settling"}))
     progress.apply(Event("session-end", None, {"message": "interrupted (SIGINT)"}))
     assert n.status == "interrupted" and progress.session_left_s() == 0.0
+
+
+def test_peak_decimation_keeps_the_extremes_in_time_order():
+    t = np.arange(20000) / 2000.0
+    y = np.sin(2 * np.pi * t)
+    y[12345] = 5.0                                          # a spike
+    td, yd = analysis.peak_decimate(t, y, 1000)
+    assert len(td) == 2000 and np.all(np.diff(td) > 0)
+    assert yd.max() == 5.0 and math.isclose(yd.min(), y.min())
+    short_t, short_y = analysis.peak_decimate(t[:1500], y[:1500], 1000)    # under 2 samples a bucket: as is
+    assert np.array_equal(short_t, t[:1500]) and np.array_equal(short_y, y[:1500])

@@ -13,7 +13,8 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from identify.result import CORRELATION_REPORT, RELATIVE_STD_WARNING, FitResult
+from identify.result import CORRELATION_REPORT, RELATIVE_STD_WARNING
+from rig.gui.fits import FitSummary
 from rig.gui.plotting import labelled
 
 UNITS = {"stroke_mm": "mm", "pressure_bar": "bar", "gas_temperature_C": "°C", "force_N": "N"}
@@ -67,8 +68,8 @@ class FitView(QtWidgets.QWidget):
 
     def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
-        self.result: FitResult | None = None
-        self.comparison: dict[str, FitResult] | None = None
+        self.result: FitSummary | None = None
+        self.comparison: dict[str, FitSummary] | None = None
         self.folder: Path | None = None
 
         head = QtWidgets.QHBoxLayout()
@@ -142,12 +143,12 @@ class FitView(QtWidgets.QWidget):
     def show_progress(self, title: str, iteration: int, objective: float) -> None:
         self.progress.setText(f"{title}: iteration {iteration}, objective {objective:.6g}")
 
-    def show_result(self, title: str, result: FitResult, folder: Path) -> None:
+    def show_result(self, title: str, result: FitSummary, folder: Path) -> None:
         self.result, self.folder, self.comparison = result, folder, None
         self.compare_table.setVisible(False)
         self.compare_label.setText("")
         self.progress.setText("")
-        self._header(title, result.to_document())
+        self._header(title, result.document)
         self.compare_button.setEnabled(True)
         self.experiment.blockSignals(True)
         self.experiment.clear()
@@ -174,7 +175,7 @@ class FitView(QtWidgets.QWidget):
         self.notes.setText("Warnings:\n• " + "\n• ".join(warnings) if warnings else "No warnings.")
         self.notes.setStyleSheet("color: #8a4b00" if warnings else "")
 
-    def show_comparison(self, results: dict[str, FitResult]) -> None:
+    def show_comparison(self, results: dict[str, FitSummary]) -> None:
         self.comparison = results
         one, two = results["1dof"], results["2dof"]
         self.compare_table.setRowCount(len(one.experiments))

@@ -26,6 +26,7 @@ HISTORY_S = 60.0
 TRACES = (("stroke", "mm", 1.0, "#1f77b4"), ("force", "kN", 1e-3, "#d62728"),
           ("gas pressure (abs.)", "bar", 1.0, "#2ca02c"), ("gas temperature", "°C", 1.0, "#9467bd"))
 LOOP_POINTS = 4000                  # a loop is drawn with at most this many points
+TRACE_BUCKETS = 1000                # a trace: min and max of at most this many buckets (wider than the plot)
 
 
 class LiveHistory:
@@ -90,13 +91,14 @@ class LiveHistory:
 
 def _plot(layout: pg.GraphicsLayoutWidget, row: int, col: int, title: str | None, left: str, bottom: str,
           **kw: object) -> pg.PlotItem:
-    return labelled(layout.addPlot(row=row, col=col, **kw), left, bottom, title)
+    return labelled(layout.addPlot(row=row, col=col, **kw), left, bottom, title, grid=False)
 
 
 def _curve(plot: pg.PlotItem, colour: str) -> pg.PlotDataItem:
+    # Decimated here (analysis.peak_decimate), in numpy, before pyqtgraph sees the data:
+    # cheaper than its own downsampling, which runs in Python at every paint.
     curve = plot.plot(pen=pg.mkPen(colour, width=1), skipFiniteCheck=True)
     curve.setClipToView(True)       # plot(clipToView=True) raises in pyqtgraph 0.14
-    curve.setDownsampling(auto=True, method="peak")
     return curve
 
 
@@ -128,6 +130,9 @@ class LiveView(QtWidgets.QWidget):
         bar.addSpacing(20)
         self.health = QtWidgets.QLabel("DAQ: not streaming")
         self.health.setObjectName("daqHealth")
+        # Text that changes 4 times a second must not change the layout: a plot area resized
+        # by a pixel is a full re-layout and redraw of every plot.
+        self.health.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Preferred)
         bar.addWidget(self.health, 1)
 
         self.layout_widget = pg.GraphicsLayoutWidget()
@@ -155,6 +160,7 @@ class LiveView(QtWidgets.QWidget):
         self.layout_widget.ci.layout.setColumnStretchFactor(1, 2)
         self.energy = QtWidgets.QLabel("Energy dissipated per cycle: –")
         self.energy.setObjectName("loopEnergy")
+        self.energy.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Preferred)
 
         layout = QtWidgets.QVBoxLayout(self)
         layout.setContentsMargins(4, 4, 4, 4)
@@ -172,7 +178,7 @@ class LiveView(QtWidgets.QWidget):
             return False
         t, v = self.history.latest(self.window_s)
         for curve, (_, _, scale, _), column in zip(self.traces, TRACES, v.T, strict=True):
-            curve.setData(t, column * scale if scale != 1.0 else column)
+            curve.setData(*analysis.peak_decimate(t, column * scale if scale != 1.0 else column, TRACE_BUCKETS))
         self._refresh_loops()
         return True
 

@@ -81,7 +81,9 @@ class SteadyStateView(QtWidgets.QGroupBox):
             bar.setValue(int(min(ratio, 3.0) * 100))
             bar.setFormat(f"{ratio:.2f}")
             colour = "#43a047" if ratio < 1 else "#fb8c00"
-            bar.setStyleSheet(f"QProgressBar::chunk {{ background: {colour}; }}")
+            if bar.property("colour") != colour:     # a style sheet is costly to apply: only on a change
+                bar.setProperty("colour", colour)
+                bar.setStyleSheet(f"QProgressBar::chunk {{ background: {colour}; }}")
         left = analysis.predicted_cycles_left(row.settling, ss.thresholds, ss.min_cycles, ss.max_cycles)
         self.cycles.setText(f"{row.label}: {cycles} settling cycles so far (min {ss.min_cycles}, max {ss.max_cycles}); "
                             f"predicted cycles left: {'?' if left is None else left}")

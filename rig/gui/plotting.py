@@ -9,13 +9,14 @@ import pyqtgraph as pg
 pg.setConfigOptions(background="w", foreground="k", antialias=False)
 
 
-def labelled(plot: pg.PlotItem, left: str, bottom: str, title: str | None = None) -> pg.PlotItem:
+def labelled(plot: pg.PlotItem, left: str, bottom: str, title: str | None = None, grid: bool = True) -> pg.PlotItem:
     for side, text in (("left", left), ("bottom", bottom)):
         axis = plot.getAxis(side)
         axis.enableAutoSIPrefix(False)
         plot.setLabel(side, text)
     if title:
         plot.setTitle(title, size="10pt")
-    plot.showGrid(x=True, y=True, alpha=0.25)
+    if grid:    # a translucent grid is blended over the whole plot at every redraw: not in live plots
+        plot.showGrid(x=True, y=True, alpha=0.25)
     plot.setMenuEnabled(False)
     return plot

@@ -8,7 +8,8 @@ Threads:
 ``rig-command``   manual commands, connecting, reconnecting after a session (one at a time)
 ``rig-status``    reads the controller's status and the DAQ's counters, 4 times a second
 ``rig-session``   prepare → connect → :class:`rig.run.SessionRunner` → tear down, as ``rig run``
-``fit``           identification and re-fits (one at a time)
+``fit``           identification and re-fits, one at a time, each in a process of its own
+                  (:mod:`rig.gui.fits`: a fit in this process would stall the window)
 ``e-stop``        one per press: mode STOP and hydraulics off, never queued behind the others
 
 Outside a session the console holds its own links: the controller with its watchdog
@@ -28,17 +29,16 @@ from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 from rich.console import Console
 
 from identify.errors import IdentifyError, InputError
-from identify.result import FitResult
 from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq
 from rig.errors import BadInput, RigError
 from rig.events import EventBus
 from rig.gui import fits
+from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
 from rig.registers import RegisterMap, load_register_map
 from rig.run import (
@@ -49,7 +49,6 @@ from rig.run import (
     SessionRunner,
     close_links,
     connect,
-    fit_session,
     prepare,
 )
 from rig.session import SessionLog
@@ -110,13 +109,13 @@ class FitProgress:
 @dataclass(frozen=True)
 class FitDone:
     title: str
-    result: FitResult
+    result: FitSummary
     folder: Path
 
 
 @dataclass(frozen=True)
 class ComparisonDone:
-    results: dict[str, FitResult]
+    results: dict[str, FitSummary]
     folder: Path
 
 
@@ -152,7 +151,8 @@ class Station:
         self._abort = threading.Event()
         self._closed = threading.Event()
         self._commands = ThreadPoolExecutor(1, "rig-command")
-        self._fits = ThreadPoolExecutor(1, "fit")
+        self._fits = FitRunner(lambda title, it, objective: post(FitProgress(title, it, objective)),
+                               lambda title, text: post(Notice(f"{title} failed: {text}", "error")))
         self._session: threading.Thread | None = None
         self._poller = threading.Thread(target=self._poll, name="rig-status", daemon=True)
         self._poller.start()
@@ -388,33 +388,21 @@ class Station:
         return not self.session_running
 
     # ----- fits -------------------------------------------------------------------------------------------
-    def _progress(self, title: str) -> Callable[[int, float, Any], None]:
-        return lambda it, objective, _values: self.post(FitProgress(title, it, objective))
-
-    def identify(self, result: RunResult, opt: RunOptions) -> Future:
+    def identify(self, result: RunResult, opt: RunOptions) -> None:
         title = f"identification {opt.model} of {result.session.path.name}"
-        session, captured = result.session, result.captured
+        folder = result.session.path
+        self._fits.submit(title, fits.session_fit, (result.session, opt, result.captured),
+                          lambda summary: self.post(FitDone(title, summary, folder)))
 
-        def job() -> None:
-            fit = fit_session(session, opt, captured, self._progress(title))
-            self.post(FitDone(title, fit, session.path))
-        return self._fits.submit(self._job, title, job)
-
-    def refit(self, folder: Path, settings: IdentifySettings) -> Future:
+    def refit(self, folder: Path, settings: IdentifySettings) -> None:
         title = f"re-fit {settings.model} of {folder.name}"
+        self._fits.submit(title, fits.refit, (folder, settings.model, settings.params, list(settings.estimate)),
+                          lambda summary: self.post(FitDone(title, summary, folder)))
 
-        def job() -> None:
-            fit = fits.refit(folder, settings.model, settings.params, settings.estimate, None, self._progress(title))
-            self.post(FitDone(title, fit, folder))
-        return self._fits.submit(self._job, title, job)
-
-    def compare(self, folder: Path, settings: IdentifySettings) -> Future:
+    def compare(self, folder: Path, settings: IdentifySettings) -> None:
         title = f"1-dof vs 2-dof on {folder.name}"
-
-        def job() -> None:
-            results = fits.compare_models(folder, settings.estimate, settings.params, self._progress(title))
-            self.post(ComparisonDone(results, folder))
-        return self._fits.submit(self._job, title, job)
+        self._fits.submit(title, fits.compare_models, (folder, list(settings.estimate), settings.params),
+                          lambda results: self.post(ComparisonDone(results, folder)))
 
     # ----- plumbing ---------------------------------------------------------------------------------------
     def _job(self, what: str, fn: Callable[[], None]) -> None:
@@ -452,7 +440,7 @@ class Station:
         self._closed.set()
         self._commands.submit(self._release)
         self._commands.shutdown(wait=True)
-        self._fits.shutdown(wait=True, cancel_futures=True)
+        self._fits.close()
         self._poller.join(timeout=2)
 
 
