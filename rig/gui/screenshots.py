@@ -17,7 +17,7 @@ from pathlib import Path
 
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
-from PySide6 import QtWidgets  # noqa: E402
+from PySide6 import QtCore, QtWidgets  # noqa: E402
 
 from rig.gui.main_window import MainWindow, application  # noqa: E402
 
@@ -70,7 +70,7 @@ def main() -> int:
     settle_view(1.0)
     settling = shoot(window, out / "settling.png")
     if args.readme:
-        window.grab().scaledToWidth(1200).save(args.readme)
+        window.grab().scaledToWidth(1200, QtCore.Qt.TransformationMode.SmoothTransformation).save(args.readme)
         print(f"wrote {args.readme}")
     wait("capturing", lambda: status_of(window, 1) == "capturing")
     settle_view(0.1)
