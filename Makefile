@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo lint test test-fast bench clean
+.PHONY: demo gui screenshots lint test test-fast bench clean
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' || \
@@ -19,6 +19,14 @@ $(STAMP): pyproject.toml
 # identification, parameters beside the simulator's truth (examples/demo.py).
 demo: $(STAMP)
 	$(BIN)/python examples/demo.py --out out/demo-session
+
+# The operator's console on the virtual rig at 1x (python -m rig gui --help for a real rig).
+gui: $(STAMP)
+	$(BIN)/python -m rig gui --simulate --speed 1
+
+# PNGs of the console's main views from a session on the virtual rig (offscreen).
+screenshots: $(STAMP)
+	QT_QPA_PLATFORM=offscreen $(BIN)/python -m rig.gui.screenshots --out out/screenshots
 
 # Static checks (configured in pyproject.toml), run before the tests: a finding fails
 # `make test` as a failing test would.

@@ -170,6 +170,9 @@ class Acquisition:
     def run_experiment(self, spec: ExperimentSpec, label: str) -> ExperimentRecord:
         """Capture one experiment; raises :class:`AlarmError`, :class:`Interrupted`,
         :class:`AcquisitionError` or a link error, leaving the shaker to :meth:`safe_stop`."""
+        # A stop asked between experiments (an operator's E-STOP switched the hydraulics off)
+        # must not be answered by switching them on again for the next one.
+        self._check_stop()
         ss = self.config.steady_state
         static, amp = spec.static_position_mm * 1e-3, spec.amplitude_mm * 1e-3
         self._enter(Phase.MOVING, label, target_mm=spec.static_position_mm)

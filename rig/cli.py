@@ -5,6 +5,7 @@
 ``move``     hydraulics on and move to a static position
 ``stop``     stop motion, fade out or switch the hydraulics off; reset a latched alarm
 ``monitor``  live channel values and loss counters in the terminal
+``gui``      the operator's console: live view, manual control, plans, fits, sessions
 
 Exit status (every command): 0 done; 1 identification did not converge (``run
 --identify``); 2 bad input (a file, address or argument; one line naming it, and
@@ -162,6 +163,12 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_gui(args: argparse.Namespace) -> int:
+    from rig.gui.main_window import run_gui  # Qt is loaded for this command only
+
+    return run_gui(args)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m rig", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -217,6 +224,21 @@ def build_parser() -> argparse.ArgumentParser:
     mon.add_argument("--rate", type=int, default=1000)
     mon.add_argument("--duration", type=float, help="seconds (default: until Ctrl-C)")
     mon.set_defaults(func=cmd_monitor)
+
+    gui = sub.add_parser("gui", help="the operator's console (live view, manual control, plans, fits)")
+    common(gui, shaker_required=False)
+    gui.add_argument("--daq", help="device path, socket://HOST:PORT or any pyserial URL")
+    gui.add_argument("--simulate", action="store_true",
+                     help="start the virtual rig (python -m simulator serve) on free loopback ports and use it")
+    gui.add_argument("--speed", type=float, default=1.0, help="--simulate: simulated seconds per wall second")
+    gui.add_argument("--params", help="--simulate: the simulated damper's true parameters (TRUTH.json)")
+    gui.add_argument("--fault", action="append", default=[], metavar="KIND[@T][=V]",
+                     help="--simulate: a fault to inject (repeatable; see python -m simulator serve --help)")
+    gui.add_argument("--plan", default="standard", help="standard or PLAN.toml")
+    gui.add_argument("--experiments", help="comma-separated letters of the plan (default: all)")
+    gui.add_argument("--out", default="sessions", help="folder in which new session folders are made")
+    gui.add_argument("--calibration", help="DAQ calibration TOML of this rig")
+    gui.set_defaults(func=cmd_gui)
     return parser
 
 

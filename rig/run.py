@@ -33,6 +33,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
 from rich.console import Console
 
 from identify.dataset import Experiment
@@ -48,7 +49,7 @@ from rig.registers import RegisterMap, load_register_map
 from rig.session import Session, SessionError, SessionLog
 from rig.shaker import AlarmError, Shaker, ShakerAddress, ShakerError
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # the numerics are imported when a fit runs, not with the command line
     from identify.result import FitResult
 
 EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT, EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED = 0, 1, 2, 3, 70, 130
@@ -401,10 +402,12 @@ def resume_command(session: Session, opt: RunOptions) -> str:
 
 
 def fit_session(session: Session, model_name: str, params_file: str | Path | None, estimate: list[str],
-                captured: list[Experiment]) -> FitResult:
+                captured: list[Experiment],
+                progress: Callable[[int, float, np.ndarray], None] | None = None) -> FitResult:
     """Fit the session's periodic experiments: those captured in this run from memory,
     earlier ones (a resumed session) from their files; RESULT.json and report.txt are
-    written into the session.  The numbers equal ``python -m identify fit`` on the folder."""
+    written into the session.  The numbers equal ``python -m identify fit`` on the folder;
+    ``progress`` follows the estimator's iterations (the GUI's fit view)."""
     from identify.dataset import read_dataset
     from identify.fit import fit_experiments
     from identify.model import load_model
@@ -419,7 +422,7 @@ def fit_session(session: Session, model_name: str, params_file: str | Path | Non
         stored = read_dataset(session.path, model_columns(model, resolve_outputs(model, None)), earlier)
         by_label.update((label, stored.experiment(label)) for label in earlier)
     experiments = [by_label[e["label"]] for e in session.manifest["experiments"] if e.get("kind") == "periodic"]
-    result = fit_experiments(model, experiments, params, estimate)
+    result = fit_experiments(model, experiments, params, estimate, progress=progress)
     result.write_json(session.path / "RESULT.json")
     atomic_write_bytes(session.path / "report.txt", (result.fit_report() + "\n").encode())
     return result
@@ -431,7 +434,8 @@ def identify_session(session: Session, opt: RunOptions, console: Console, captur
 
     command = (f"python -m identify fit {session.path} --model {opt.model} --estimate {','.join(opt.estimate)}"
                + (f" --params {opt.params}" if opt.params else "") + " --output RESULT.json")
-    console.print(f"identifying {', '.join(opt.estimate)} ({opt.model}); same as: {command}", highlight=False)
+    console.print(f"identifying {', '.join(opt.estimate)} ({opt.model}) on the session's periodic experiments; "
+                  f"same as: {command}", highlight=False)
     try:
         result = fit_session(session, opt.model, opt.params, opt.estimate, captured)
     except IdentifyError as exc:

@@ -1,0 +1,193 @@
+"""The operator console's live view and event loop, offscreen.
+
+1. Render rate: the live view redrawn as fast as it goes with 4 channels x 10 s at
+   2 kHz (80,000 points) plus the work loop and force-velocity plots, new samples
+   arriving between redraws; the achieved redraws per second and the process's CPU
+   share.  Target: at least 30 redraws/s.
+2. Event-loop latency: how late a 10 ms QTimer fires in the console's GUI thread while
+   a session runs on the simulator at 20x (live view shown) and identification of the
+   standard set (14 experiments, 2-dof) runs again and again on the fit thread.
+   Target: p99 at most 50 ms.
+
+    python benchmarks/bench_gui.py [--seconds 10]
+
+The last line reads ``render: N fps, event-loop p99 M ms``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import cast
+
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import numpy as np  # noqa: E402
+from PySide6 import QtCore  # noqa: E402
+
+from rig.daq import Daq, RingBuffer  # noqa: E402
+from rig.gui.main_window import MainWindow, application  # noqa: E402
+
+RATE = 2000.0
+
+
+class FakeDaq:
+    """What the live view reads of a DAQ: its ring buffer."""
+
+    def __init__(self) -> None:
+        self.ring = RingBuffer(int(10 * RATE))
+        self.next = 0
+
+    def produce(self, n: int) -> None:
+        idx = np.arange(self.next, self.next + n)
+        t = idx / RATE
+        w = 2 * np.pi * 2.0 * t
+        values = np.column_stack((133 + 10 * np.sin(w), 4500 + 500 * np.sin(w + 0.3) + 50 * np.sign(np.cos(w)),
+                                  9.7 + 0.5 * np.sin(w), 30 + 5 * np.sin(w - 0.5)))
+        values += np.random.default_rng(self.next).normal(0, 0.01, values.shape)
+        self.ring.append(idx, values)
+        self.next += n
+
+
+def render_rate(seconds: float) -> tuple[float, float]:
+    window = MainWindow.from_args(["--out", tempfile.mkdtemp()])
+    window.timer.stop()                          # the benchmark draws itself, as fast as it can
+    window.show()
+    live = window.live
+    live.frequency_hz = 2.0
+    daq = FakeDaq()
+    daq.produce(int(10 * RATE))
+    app = application()
+    app.processEvents()
+    frames, t0, c0 = 0, time.monotonic(), time.process_time()
+    last = t0
+    while time.monotonic() - t0 < seconds:
+        now = time.monotonic()
+        daq.produce(max(1, int((now - last) * RATE)))   # real time: 2 kHz keeps arriving
+        last = now
+        live.refresh(cast(Daq, daq))
+        live.layout_widget.repaint()             # a full, synchronous render of all six plots
+        app.processEvents()
+        frames += 1
+    wall, cpu = time.monotonic() - t0, time.process_time() - c0
+    t, v = live.history.latest(live.window_s)
+    assert len(t) == 10 * RATE and v.shape == (10 * RATE, 4)   # every sample of the window went into the plot
+    window.close()
+    return frames / wall, cpu / wall
+
+
+def idle_latency(seconds: float) -> np.ndarray:
+    """The same probe in an empty event loop: what this machine gives right now (other
+    programs' load included), as the baseline of the figure below."""
+    late: list[float] = []
+    probe = QtCore.QTimer()
+    probe.setSingleShot(True)
+    probe.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
+    due = [time.monotonic() + 0.01]
+
+    def tick() -> None:
+        now = time.monotonic()
+        late.append(now - due[0])
+        due[0] = now + 0.01
+        probe.start(10)
+    probe.timeout.connect(tick)
+    probe.start(10)
+    loop = QtCore.QEventLoop()
+    QtCore.QTimer.singleShot(int(seconds * 1000), loop.quit)
+    loop.exec()
+    probe.stop()
+    return np.array(late) * 1e3
+
+
+def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, int, float]:
+    from identify.plans import STANDARD_SET
+    from rig.gui.station import FitDone, IdentifySettings
+    from simulator.generate import generate
+    from simulator.truth import load_truth
+
+    dataset = Path(tempfile.mkdtemp()) / "standard"
+    generate(dataset, list(STANDARD_SET), load_truth(), periods=3, rate_hz=RATE, seed=7, date="261122")
+    window = MainWindow.from_args(["--simulate", "--speed", "20", "--experiments", "j,h", "--out",
+                                   tempfile.mkdtemp()])
+    window.show()
+    app = application()
+    while window.status is None:
+        app.processEvents()
+        time.sleep(0.01)
+    fits = {"done": 0}
+    original = window._handle
+
+    def handle(item: object) -> None:
+        if isinstance(item, FitDone) and item.folder == dataset:
+            # The load is the fit running, one after the other; showing each result (once, at
+            # the end of a real fit) is not part of it.
+            fits["done"] += 1
+            window.station.refit(dataset, IdentifySettings())
+            return
+        original(item)
+    window._handle = handle  # type: ignore[method-assign]
+    window.plan.identify.setChecked(False)
+    window.run_plan()
+    if fit:
+        window.station.refit(dataset, IdentifySettings())
+    late: list[float] = []
+    period_ms = 10
+    due = [time.monotonic() + period_ms / 1e3]
+
+    probe = QtCore.QTimer()
+    probe.setSingleShot(True)
+    probe.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
+
+    def tick() -> None:
+        now = time.monotonic()
+        late.append(now - due[0])
+        due[0] = now + period_ms / 1e3
+        probe.start(period_ms)
+    probe.timeout.connect(tick)
+    probe.start(period_ms)
+    t0, c0 = time.monotonic(), time.process_time()
+    loop = QtCore.QEventLoop()              # the window's own event loop, as in the application
+    check = QtCore.QTimer()
+    check.timeout.connect(lambda: loop.quit() if not window.station.session_running and window.plan.progress
+                          and time.monotonic() - t0 > seconds_min else None)
+    check.start(100)
+    loop.exec()
+    check.stop()
+    probe.stop()
+    wall, cpu = time.monotonic() - t0, time.process_time() - c0
+    status = window.plan.progress.ended if window.plan.progress else None
+    window.close()
+    while window.isVisible():
+        app.processEvents(QtCore.QEventLoop.ProcessEventsFlag.WaitForMoreEvents, 50)
+    print(f"  session at 20x: {status}; {fits['done']} fits of the standard set finished meanwhile; "
+          f"{wall:.1f} s, GUI process CPU {100 * cpu / wall:.0f} % of one core")
+    return np.array(late) * 1e3, fits["done"], wall
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--seconds", type=float, default=10.0)
+    parser.add_argument("--no-fit", action="store_true", help="the session alone (to tell what costs the latency)")
+    parser.add_argument("--latency-only", action="store_true")
+    args = parser.parse_args()
+    application()
+    fps, cpu = render_rate(args.seconds) if not args.latency_only else (float("nan"), float("nan"))
+    print(f"render: {fps:.1f} redraws/s of 4 x 10 s at 2 kHz + loops; GUI process CPU {100 * cpu:.0f} % of one core")
+    idle = idle_latency(min(args.seconds, 5.0))
+    print(f"baseline, an empty event loop: late by p50 {np.percentile(idle, 50):.1f} ms, p99 "
+          f"{np.percentile(idle, 99):.1f} ms; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
+    late_ms, fits, _ = loop_latency(args.seconds, fit=not args.no_fit)
+    p50, p99, worst = np.percentile(late_ms, [50, 99, 100])
+    print(f"event loop (10 ms timer, {len(late_ms)} samples): late by p50 {p50:.1f} ms, p99 {p99:.1f} ms, "
+          f"max {worst:.1f} ms")
+    print(f"render: {fps:.0f} fps, event-loop p99 {p99:.0f} ms")
+    return 0 if fps >= 30 and p99 <= 50 and (fits >= 1 or args.no_fit) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

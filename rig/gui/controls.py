@@ -1,0 +1,129 @@
+"""The controller's state as last read, and manual control: hydraulics, a static
+position, a manual sine and a (fading) stop.  Every command is checked against the
+rig's limits by :class:`~rig.gui.station.Station` before anything is written; a refusal
+is shown here with its reasons and nothing is sent."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+from PySide6 import QtWidgets
+
+from rig.gui.station import Snapshot, Station
+from rig.shaker import ShakerStatus
+
+STATE_COLOURS = {"OFF": "#666666", "IDLE": "#1f77b4", "MOVING": "#ff7f0e", "AT_STATIC": "#1f77b4",
+                 "RUNNING": "#2ca02c", "ALARM": "#b00020"}
+
+
+class ControllerPanel(QtWidgets.QGroupBox):
+    def __init__(self, watchdog_s: float, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__("Controller", parent)
+        self.watchdog_s = watchdog_s
+        form = QtWidgets.QFormLayout(self)
+        self.fields: dict[str, QtWidgets.QLabel] = {}
+        for key, title in (("state", "State"), ("alarm", "Alarm"), ("position", "Position"), ("force", "Force"),
+                           ("cycles", "Cycles"), ("supply", "Hydraulic pressure"), ("watchdog", "Watchdog")):
+            label = QtWidgets.QLabel("–")
+            label.setObjectName(f"controller_{key}")
+            self.fields[key] = label
+            form.addRow(title, label)
+
+    def show_snapshot(self, snap: Snapshot) -> None:
+        f = self.fields
+        st = snap.status
+        if st is None:
+            f["state"].setText(f"no answer ({snap.error})" if snap.error else "not connected")
+            f["state"].setStyleSheet("color: #b00020; font-weight: bold" if snap.error else "")
+            return
+        f["state"].setText(st.state)
+        f["state"].setStyleSheet(f"color: {STATE_COLOURS.get(st.state, '#000')}; font-weight: bold")
+        f["alarm"].setText(st.alarm)
+        f["alarm"].setStyleSheet("color: #b00020; font-weight: bold" if st.state == "ALARM" else "")
+        f["position"].setText(f"{st.position_m * 1e3:.2f} mm")
+        f["force"].setText(f"{st.force_n / 1e3:.2f} kN")
+        f["cycles"].setText(str(st.cycles))
+        f["supply"].setText(f"{st.hydraulic_pressure_pa / 1e5:.0f} bar")
+        f["watchdog"].setText(f"{self.watchdog_s:g} s, fed by this program" if snap.heartbeat_ok
+                              else "HEARTBEAT FAILING: the controller will trip")
+        f["watchdog"].setStyleSheet("" if snap.heartbeat_ok else "color: #b00020; font-weight: bold")
+
+
+def _spin(low: float, high: float, value: float, suffix: str, decimals: int = 2) -> QtWidgets.QDoubleSpinBox:
+    box = QtWidgets.QDoubleSpinBox()
+    # The operator may type anything the box can hold: the rig's limits are checked on the
+    # command, with reasons, rather than silently clamped here.
+    box.setRange(low, high)
+    box.setDecimals(decimals)
+    box.setValue(value)
+    box.setSuffix(f" {suffix}")
+    return box
+
+
+class ManualPanel(QtWidgets.QGroupBox):
+    def __init__(self, station: Station, status: Callable[[], ShakerStatus | None],
+                 parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__("Manual control", parent)
+        self.station, self.status = station, status
+        lim = station.config.limits
+        layout = QtWidgets.QVBoxLayout(self)
+
+        hyd = QtWidgets.QHBoxLayout()
+        self.hyd_on = QtWidgets.QPushButton("Hydraulics ON")
+        self.hyd_on.setObjectName("hydraulicsOnButton")
+        self.hyd_off = QtWidgets.QPushButton("Hydraulics OFF")
+        self.hyd_off.setObjectName("hydraulicsOffButton")
+        self.hyd_on.clicked.connect(lambda: self._do(station.hydraulics(True, self.status())))
+        self.hyd_off.clicked.connect(lambda: self._do(station.hydraulics(False, self.status())))
+        hyd.addWidget(self.hyd_on)
+        hyd.addWidget(self.hyd_off)
+        layout.addLayout(hyd)
+
+        move = QtWidgets.QHBoxLayout()
+        self.position = _spin(-300, 300, 133.0, "mm")
+        self.position.setObjectName("positionBox")
+        self.move_button = QtWidgets.QPushButton("Move")
+        self.move_button.setObjectName("moveButton")
+        self.move_button.clicked.connect(self.request_move)
+        move.addWidget(QtWidgets.QLabel("Static position"))
+        move.addWidget(self.position, 1)
+        move.addWidget(self.move_button)
+        layout.addLayout(move)
+
+        sine = QtWidgets.QGridLayout()
+        self.sine_static = _spin(-300, 300, 133.0, "mm")
+        self.sine_amplitude = _spin(0, 300, 10.0, "mm")
+        self.sine_frequency = _spin(0, 100, 1.0, "Hz", 3)
+        for row, (title, box) in enumerate((("Static", self.sine_static), ("Amplitude", self.sine_amplitude),
+                                            ("Frequency", self.sine_frequency))):
+            sine.addWidget(QtWidgets.QLabel(title), row, 0)
+            sine.addWidget(box, row, 1)
+        self.sine_button = QtWidgets.QPushButton("Start sine")
+        self.sine_button.setObjectName("sineButton")
+        self.sine_button.clicked.connect(self.request_sine)
+        sine.addWidget(self.sine_button, 0, 2, 3, 1)
+        layout.addLayout(sine)
+        limits = QtWidgets.QLabel(f"Limits: stroke {lim.stroke_low_m * 1e3:g}…{lim.stroke_high_m * 1e3:g} mm, "
+                                  f"≤ {lim.max_frequency_hz:g} Hz, peak velocity ≤ {lim.max_velocity_m_s:g} m/s")
+        limits.setWordWrap(True)
+        layout.addWidget(limits)
+
+        self.stop_button = QtWidgets.QPushButton("Stop (fade out)")
+        self.stop_button.setObjectName("stopButton")
+        self.stop_button.clicked.connect(lambda: self._do(station.fade_stop(self.status())))
+        layout.addWidget(self.stop_button)
+        self.refusal = QtWidgets.QLabel("")
+        self.refusal.setObjectName("refusalLabel")
+        self.refusal.setWordWrap(True)
+        self.refusal.setStyleSheet("color: #b00020")
+        layout.addWidget(self.refusal)
+
+    def request_move(self) -> None:
+        self._do(self.station.move(self.position.value() * 1e-3, self.status()))
+
+    def request_sine(self) -> None:
+        self._do(self.station.sine(self.sine_static.value() * 1e-3, self.sine_amplitude.value() * 1e-3,
+                                   self.sine_frequency.value(), self.status()))
+
+    def _do(self, problems: list[str]) -> None:
+        self.refusal.setText("Refused, nothing sent: " + "; ".join(problems) if problems else "")

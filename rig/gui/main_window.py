@@ -1,0 +1,404 @@
+"""The operator's main window: connection, alarm banner and E-STOP along the top; the
+controller's state, the plan runner and manual control on the left; the live view,
+the fit view and the session browser on the right; the session's log along the bottom.
+
+The window is one more subscriber of the session's events: everything the rig side
+(:class:`~rig.gui.station.Station`) has to say arrives in a queue that a timer drains
+in the GUI thread, which also redraws the live plots from the DAQ's ring buffer, at
+most :data:`REDRAW_HZ` times a second.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import queue
+import signal
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+from PySide6 import QtCore, QtGui, QtWidgets
+
+from rig.errors import BadInput
+from rig.events import Event
+from rig.gui.browser import SessionBrowser
+from rig.gui.controls import ControllerPanel, ManualPanel
+from rig.gui.fit_view import FitView
+from rig.gui.live import LiveView
+from rig.gui.plan_panel import PlanPanel
+from rig.gui.simulated import SimulatedRig
+from rig.gui.station import (
+    ComparisonDone,
+    EstopDone,
+    FitDone,
+    FitProgress,
+    IdentifySettings,
+    LinkState,
+    Notice,
+    SessionClosed,
+    SessionOpened,
+    Snapshot,
+    Station,
+    session_options,
+)
+from rig.run import RunOptions
+from rig.shaker import ShakerStatus
+
+REDRAW_HZ = 30
+DRAIN_MAX = 5000                 # records taken from the queue per tick, so a flood cannot freeze the window
+LOGGED_EVENTS = ("session-start", "phase", "experiment-done", "experiment-failed", "alarm", "log", "session-end")
+ESTOP_KEYS = ("Esc", "F12")
+
+
+def application() -> QtWidgets.QApplication:
+    app = QtWidgets.QApplication.instance()
+    if isinstance(app, QtWidgets.QApplication):
+        return app
+    return QtWidgets.QApplication(sys.argv[:1])
+
+
+class MainWindow(QtWidgets.QMainWindow):
+    def __init__(self, args: argparse.Namespace) -> None:
+        super().__init__()
+        if args.simulate and (args.shaker or args.daq):
+            raise BadInput("gui: either --simulate or --shaker/--daq, not both")
+        self.simulated: SimulatedRig | None = None
+        shaker, daq = args.shaker, args.daq
+        if args.simulate:
+            self.simulated = SimulatedRig(args.speed, args.params, list(args.fault))
+            self.simulated.start()
+            shaker, daq = self.simulated.modbus_url, self.simulated.daq_url
+        self.queue: queue.Queue[object] = queue.Queue()
+        try:
+            self.station = Station(shaker, daq, self.queue.put, rig_config=args.rig_config,
+                                   calibration=args.calibration, register_map=args.register_map,
+                                   speed=args.speed if args.simulate else 1.0)
+        except BaseException:
+            if self.simulated:
+                self.simulated.stop()
+            raise
+        self.status: ShakerStatus | None = None
+        self.estop_text: str | None = None          # latched until the operator resets
+        self._closing = False
+        self._last_redraw = 0.0
+        self._last_table = 0.0
+        self.setWindowTitle("Damper rig — operator console" + (" — SIMULATED RIG" if self.simulated else ""))
+        self._build(args, shaker, daq)
+        self.timer = QtCore.QTimer(self)
+        self.timer.timeout.connect(self._tick)
+        self.timer.start(int(1000 / REDRAW_HZ))
+        if shaker and daq:
+            self.connect_rig()
+
+    @classmethod
+    def from_args(cls, argv: Sequence[str]) -> MainWindow:
+        """The window for the command line's arguments (``gui`` itself may be left out),
+        not shown, no event loop run."""
+        from rig.cli import build_parser
+
+        argv = list(argv)
+        args = build_parser().parse_args(argv if argv[:1] == ["gui"] else ["gui", *argv])
+        application()
+        return cls(args)
+
+    # ----- layout ----------------------------------------------------------------------------------
+    def _build(self, args: argparse.Namespace, shaker: str | None, daq: str | None) -> None:
+        top = QtWidgets.QHBoxLayout()
+        self.shaker_edit = QtWidgets.QLineEdit(shaker or "")
+        self.shaker_edit.setPlaceholderText("tcp://HOST:PORT or rtu:///dev/DEVICE")
+        self.daq_edit = QtWidgets.QLineEdit(daq or "")
+        self.daq_edit.setPlaceholderText("/dev/ttyUSB0 or socket://HOST:PORT")
+        self.connect_button = QtWidgets.QPushButton("Connect")
+        self.connect_button.setObjectName("connectButton")
+        self.connect_button.clicked.connect(self._toggle_connection)
+        self.link_label = QtWidgets.QLabel("not connected")
+        self.link_label.setObjectName("linkLabel")
+        for w in (QtWidgets.QLabel("Controller"), self.shaker_edit, QtWidgets.QLabel("DAQ"), self.daq_edit,
+                  self.connect_button):
+            top.addWidget(w)
+        self.estop_button = QtWidgets.QPushButton("E-STOP\n(" + " / ".join(ESTOP_KEYS) + ")")
+        self.estop_button.setObjectName("estopButton")
+        self.estop_button.setMinimumSize(150, 64)
+        self.estop_button.setStyleSheet("QPushButton { background: #d50000; color: white; font-size: 18pt; "
+                                        "font-weight: bold; border: 3px solid #7f0000; border-radius: 8px; }"
+                                        "QPushButton:pressed { background: #7f0000; }")
+        self.estop_button.clicked.connect(self.estop)
+        for key in ESTOP_KEYS:
+            shortcut = QtGui.QShortcut(QtGui.QKeySequence(key), self)
+            shortcut.setContext(QtCore.Qt.ShortcutContext.ApplicationShortcut)
+            shortcut.activated.connect(self.estop)
+
+        self.banner = QtWidgets.QLabel("No alarm")
+        self.banner.setObjectName("alarmBanner")
+        self.banner.setMinimumHeight(34)
+        self.banner.setWordWrap(True)
+        self.reset_button = QtWidgets.QPushButton("Reset…")
+        self.reset_button.setObjectName("resetButton")
+        self.reset_button.setToolTip("clear a latched trip (asks for confirmation)")
+        self.reset_button.clicked.connect(lambda: self.reset_alarm(confirm=True))
+        banner_row = QtWidgets.QHBoxLayout()
+        banner_row.addWidget(self.banner, 1)
+        banner_row.addWidget(self.reset_button)
+        self.sim_label = QtWidgets.QLabel(self.simulated.describe() if self.simulated else "")
+        self.sim_label.setObjectName("simulatedLabel")
+        self.sim_label.setStyleSheet("background: #fff3cd; color: #7a5200; font-weight: bold; padding: 3px")
+        self.sim_label.setVisible(self.simulated is not None)
+
+        head = QtWidgets.QVBoxLayout()
+        head.addLayout(top)
+        head.addWidget(self.link_label)
+        head.addWidget(self.sim_label)
+        head.addLayout(banner_row)
+        header = QtWidgets.QHBoxLayout()
+        header.addLayout(head, 1)
+        header.addWidget(self.estop_button)
+
+        st = self.station
+        self.controller = ControllerPanel(st.config.limits.watchdog_timeout_s)
+        self.plan = PlanPanel(st.config, args.plan, args.experiments, Path(args.out))
+        self.plan.runRequested.connect(self.run_plan)
+        self.plan.abortRequested.connect(self.abort)
+        self.plan.resumeRequested.connect(self.resume)
+        self.manual = ManualPanel(st, lambda: self.status)
+        self.left_tabs = QtWidgets.QTabWidget()
+        self.left_tabs.addTab(self.plan, "Plan")
+        manual_page = QtWidgets.QWidget()
+        manual_layout = QtWidgets.QVBoxLayout(manual_page)
+        manual_layout.addWidget(self.manual)
+        manual_layout.addStretch(1)
+        self.left_tabs.addTab(manual_page, "Manual")
+        left = QtWidgets.QWidget()
+        left_layout = QtWidgets.QVBoxLayout(left)
+        left_layout.setContentsMargins(0, 0, 0, 0)
+        left_layout.addWidget(self.controller)
+        left_layout.addWidget(self.left_tabs, 1)
+
+        self.live = LiveView(st.config.daq_rate_hz)
+        self.fit_view = FitView()
+        self.fit_view.compareRequested.connect(self.compare)
+        self.browser = SessionBrowser(Path(args.out))
+        self.browser.refitRequested.connect(self.refit)
+        self.browser.resumeRequested.connect(self.resume)
+        self.tabs = QtWidgets.QTabWidget()
+        self.tabs.setObjectName("mainTabs")
+        self.tabs.addTab(self.live, "Live")
+        self.tabs.addTab(self.fit_view, "Fit")
+        self.tabs.addTab(self.browser, "Sessions")
+
+        self.log = QtWidgets.QPlainTextEdit()
+        self.log.setObjectName("logView")
+        self.log.setReadOnly(True)
+        self.log.setMaximumBlockCount(5000)
+        self.log.setFixedHeight(110)
+
+        split = QtWidgets.QSplitter()
+        split.addWidget(left)
+        split.addWidget(self.tabs)
+        split.setStretchFactor(0, 0)
+        split.setStretchFactor(1, 1)
+        split.setSizes([520, 1080])
+        central = QtWidgets.QWidget()
+        layout = QtWidgets.QVBoxLayout(central)
+        layout.addLayout(header)
+        layout.addWidget(split, 1)
+        layout.addWidget(self.log)
+        self.setCentralWidget(central)
+        self.resize(1600, 1000)
+        self._show_banner()
+
+    # ----- operator actions ------------------------------------------------------------------------
+    def connect_rig(self) -> None:
+        self.link_label.setText("connecting…")
+        self.station.connect(self.shaker_edit.text().strip() or None, self.daq_edit.text().strip() or None)
+
+    def _toggle_connection(self) -> None:
+        if self.station.shaker is not None:
+            self.station.disconnect()
+        else:
+            self.connect_rig()
+
+    def estop(self) -> None:
+        self.station.estop()
+        self.estop_text = f"E-STOP at {_dt.datetime.now():%H:%M:%S}: STOP and hydraulics off sent"
+        self._say("E-STOP pressed", "error")
+        self._show_banner()
+
+    def reset_alarm(self, confirm: bool = True) -> None:
+        if confirm:
+            what = self.estop_text or (f"alarm: {self.status.alarm}" if self.status else "alarm")
+            answer = QtWidgets.QMessageBox.question(
+                self, "Reset the trip?", f"{what}\n\nReset only once the cause is known and the rig is safe. Reset?")
+            if answer != QtWidgets.QMessageBox.StandardButton.Yes:
+                return
+        self.estop_text = None
+        if self.status is not None and self.status.state == "ALARM":
+            self.manual._do(self.station.reset_alarm())
+        self._show_banner()
+
+    def run_plan(self) -> None:
+        identify = IdentifySettings() if self.plan.identify.isChecked() else None
+        opt = session_options(self.plan.plan.text().strip() or "standard", self.station.shaker_url,
+                              self.station.daq_url, Path(self.plan.folder.text().strip()), self.plan.letters(),
+                              self.station, identify)
+        self._start(opt, identify)
+
+    def resume(self, folder: str) -> None:
+        identify = IdentifySettings() if self.plan.identify.isChecked() else None
+        opt = session_options("standard", self.station.shaker_url, self.station.daq_url, Path(folder), None,
+                              self.station, identify, resume=True)
+        self._start(opt, identify)
+
+    def _start(self, opt: RunOptions, identify: IdentifySettings | None) -> None:
+        if self.station.run_plan(opt, identify):
+            self.plan.set_running(True)
+            self._say(f"session {'resumed' if opt.resume else 'starting'}: {opt.out}")
+
+    def abort(self) -> None:
+        self.station.abort()
+        self._say("Abort: safe stop requested (fade out, STOP, hydraulics off)")
+
+    def refit(self, folder: Path, settings: IdentifySettings) -> None:
+        self.fit_view.progress.setText(f"re-fitting {settings.model}…")
+        self.station.refit(folder, settings)
+        self.tabs.setCurrentWidget(self.fit_view)
+
+    def compare(self) -> None:
+        result, folder = self.fit_view.result, self.fit_view.folder
+        if folder is None:
+            return
+        estimate = result.estimated if result is not None and result.model == "2dof" else IdentifySettings().estimate
+        self.fit_view.progress.setText("fitting 1-dof and 2-dof to the stroke…")
+        self.station.compare(folder, IdentifySettings("2dof", None, list(estimate)))
+
+    # ----- what the rig says -----------------------------------------------------------------------
+    def _tick(self) -> None:
+        for _ in range(DRAIN_MAX):
+            try:
+                item = self.queue.get_nowait()
+            except queue.Empty:
+                break
+            self._handle(item)
+        now = time.monotonic()
+        if self.tabs.currentWidget() is self.live and now - self._last_redraw >= 0.9 / REDRAW_HZ:
+            self.live.frequency_hz = self._excitation_hz()
+            if self.live.refresh(self.station.live_daq()):
+                self._last_redraw = now
+        if now - self._last_table >= 0.5:
+            self._last_table = now
+            self.plan.refresh()
+
+    def _excitation_hz(self) -> float | None:
+        progress = self.plan.progress
+        current = progress.current if progress is not None and self.station.session_running else None
+        if current is not None:
+            return current.spec.frequency_hz
+        if self.status is not None and self.status.state == "RUNNING":
+            return self.station.manual_frequency_hz
+        return None
+
+    def _handle(self, item: object) -> None:
+        if isinstance(item, Event):
+            self.plan.apply(item)
+            if item.kind in LOGGED_EVENTS:
+                self._log_event(item)
+        elif isinstance(item, Snapshot):
+            self.status = item.status
+            self.controller.show_snapshot(item)
+            self.live.show_health(item)
+            self._show_banner(item.error)
+        elif isinstance(item, Notice):
+            self._say(item.text, item.level)
+        elif isinstance(item, LinkState):
+            self.link_label.setText(("connected: " if item.connected else "") + item.text)
+            self.connect_button.setText("Disconnect" if item.connected else "Connect")
+            if not item.connected:
+                self.status = None
+        elif isinstance(item, SessionOpened):
+            self.plan.show_progress(item.progress)
+            self.plan.set_running(True)
+            self.tabs.setCurrentWidget(self.live)
+            self._say(f"session folder {item.path}")
+        elif isinstance(item, SessionClosed):
+            self.plan.set_running(False)
+            self.plan.new_folder()
+            self._say(item.text, "info" if item.result is not None and item.result.exit_code == 0 else "error")
+            if item.result is None:
+                self.plan.eta.setText(item.text.splitlines()[0])
+            if self._closing:
+                QtCore.QTimer.singleShot(0, self.close)
+        elif isinstance(item, FitProgress):
+            self.fit_view.show_progress(item.title, item.iteration, item.objective)
+        elif isinstance(item, FitDone):
+            self.fit_view.show_result(item.title, item.result, item.folder)
+            self.tabs.setCurrentWidget(self.fit_view)
+            self._say(f"{item.title}: {'converged' if item.result.converged else 'NOT converged'}")
+        elif isinstance(item, ComparisonDone):
+            self.fit_view.show_comparison(item.results)
+        elif isinstance(item, EstopDone):
+            took = f"{item.elapsed_s * 1e3:.0f} ms"
+            if item.failures:
+                self.estop_text = f"E-STOP INCOMPLETE ({took}): {'; '.join(item.failures)}"
+                self._say(self.estop_text, "error")
+            else:
+                self._say(f"E-STOP done in {took}: STOP and hydraulics off written")
+            self._show_banner()
+
+    def _show_banner(self, link_error: str | None = None) -> None:
+        st = self.status
+        if self.estop_text:
+            text, colour = self.estop_text + " — Reset… when safe", "#d50000"
+        elif st is not None and st.state == "ALARM":
+            text, colour = f"ALARM: {st.alarm} — the controller holds the position; find the cause, then Reset…", \
+                "#d50000"
+        elif link_error:
+            text, colour = f"Controller not answering: {link_error}", "#e65100"
+        else:
+            text, colour = "No alarm", "#2e7d32"
+        self.banner.setText(text)
+        alarm = colour == "#d50000"
+        self.banner.setStyleSheet(f"background: {colour if alarm else 'transparent'}; color: "
+                                  f"{'white' if alarm else colour}; font-size: {'14pt' if alarm else '10pt'}; "
+                                  "font-weight: bold; padding: 4px")
+        self.reset_button.setEnabled(alarm)
+
+    def _log_event(self, e: Event) -> None:
+        details = " ".join(f"{k}={v}" for k, v in e.data.items() if k not in ("message", "phase", "change"))
+        text = " ".join(x for x in (e.experiment or "", e.kind if e.kind != "phase" else e.data["phase"],
+                                    str(e.data.get("message", "")), details) if x)
+        self._say(text, "error" if e.kind in ("alarm", "experiment-failed") else "info",
+                  time.strftime("%H:%M:%S", time.localtime(e.time)))
+
+    def _say(self, text: str, level: str = "info", stamp: str | None = None) -> None:
+        stamp = stamp or time.strftime("%H:%M:%S")
+        colour = {"refused": "#b00020", "error": "#b00020"}.get(level, "#000000")
+        escaped = text.replace("&", "&amp;").replace("<", "&lt;").replace("\n", "<br>")
+        self.log.appendHtml(f'<span style="color:{colour}">{stamp} {escaped}</span>')
+
+    # ----- closing: a safe stop first --------------------------------------------------------------
+    def closeEvent(self, event: QtGui.QCloseEvent) -> None:
+        if self.station.session_running:
+            event.ignore()
+            if not self._closing:
+                self._closing = True
+                self.station.closing = True
+                self.station.abort("the window was closed")
+                self._say("closing: safe stop of the running session first; the window closes after it")
+            return
+        self.timer.stop()
+        self.station.close()
+        if self.simulated is not None:
+            self.simulated.stop()
+        event.accept()
+
+
+def run_gui(args: argparse.Namespace) -> int:
+    app = application()
+    window = MainWindow(args)
+    # Ctrl-C or SIGTERM in the terminal close the window, which is a safe stop; the
+    # window's timer gives Python the chance to run the handler.
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: window.close())
+    window.show()
+    return app.exec()

@@ -1,0 +1,244 @@
+"""The plan runner: which plan and experiments, where the session goes, identification
+after it; the table of experiments with their state and time left; Run, Abort (a safe
+stop) and Resume; and the steady-state indicator of the experiment settling now."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+from pathlib import Path
+
+from PySide6 import QtCore, QtGui, QtWidgets
+
+from rig.config import RigConfig
+from rig.daq import CHANNELS
+from rig.events import Event
+from rig.gui import analysis
+from rig.gui.plan_state import ExperimentRow, PlanProgress
+from rig.plans import load_plan
+
+STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "skipped": "#ffe0b2", "interrupted": "#ffe0b2",
+                  "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb", "stopping": "#e3f2fd"}
+UNITS = {"stroke_mm": "mm", "force_N": "N", "pressure_bar": "bar", "gas_temperature_C": "°C"}
+TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "time\nleft")
+
+
+def _clock(seconds: float) -> str:
+    if math.isnan(seconds):
+        return "–"
+    s = int(round(seconds))
+    return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+
+
+def _item(table: QtWidgets.QTableWidget, row: int, col: int) -> QtWidgets.QTableWidgetItem:
+    item = table.item(row, col)
+    assert item is not None  # every cell is filled when the table is laid out
+    return item
+
+
+class SteadyStateView(QtWidgets.QGroupBox):
+    """Per channel the cycle-to-cycle change of the mean against its threshold, the
+    settling cycles so far and the cycles predicted to be left."""
+
+    def __init__(self, config: RigConfig, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__("Steady state", parent)
+        self.config = config
+        layout = QtWidgets.QVBoxLayout(self)
+        self.table = QtWidgets.QTableWidget(len(CHANNELS), 3)
+        self.table.setObjectName("steadyStateTable")
+        self.table.setHorizontalHeaderLabels(["change / cycle", "threshold", "÷ threshold"])
+        self.table.setVerticalHeaderLabels(["stroke", "force", "pressure", "temperature"])
+        self.table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.Stretch)
+        self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.table.setFixedHeight(150)
+        self.bars: list[QtWidgets.QProgressBar] = []
+        ss = config.steady_state
+        for i, c in enumerate(CHANNELS):
+            self.table.setItem(i, 0, QtWidgets.QTableWidgetItem("–"))
+            self.table.setItem(i, 1, QtWidgets.QTableWidgetItem(f"{ss.thresholds[c]:g} {UNITS[c]}"))
+            bar = QtWidgets.QProgressBar()
+            bar.setRange(0, 300)              # change ÷ threshold up to 3, in hundredths
+            bar.setFormat("–")
+            bar.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
+            self.bars.append(bar)
+            self.table.setCellWidget(i, 2, bar)
+        layout.addWidget(self.table)
+        self.cycles = QtWidgets.QLabel("Settling: –")
+        self.cycles.setWordWrap(True)
+        self.cycles.setObjectName("settleCycles")
+        layout.addWidget(self.cycles)
+
+    def show_row(self, row: ExperimentRow | None) -> None:
+        if row is None or not row.settling:
+            return
+        ss = self.config.steady_state
+        cycles, change = row.settling[-1]
+        for i, c in enumerate(CHANNELS):
+            x, limit = change.get(c, math.nan), ss.thresholds[c]
+            _item(self.table, i, 0).setText(f"{x:.3g} {UNITS[c]}")
+            ratio = x / limit
+            bar = self.bars[i]
+            bar.setValue(int(min(ratio, 3.0) * 100))
+            bar.setFormat(f"{ratio:.2f}")
+            colour = "#43a047" if ratio < 1 else "#fb8c00"
+            if bar.property("colour") != colour:     # a style sheet is costly to apply: only on a change
+                bar.setProperty("colour", colour)
+                bar.setStyleSheet(f"QProgressBar::chunk {{ background: {colour}; }}")
+        left = analysis.predicted_cycles_left(row.settling, ss.thresholds, ss.min_cycles, ss.max_cycles)
+        self.cycles.setText(f"{row.label}: {cycles} settling cycles so far (min {ss.min_cycles}, max {ss.max_cycles}); "
+                            f"predicted cycles left: {'?' if left is None else left}")
+
+
+class PlanPanel(QtWidgets.QWidget):
+    runRequested = QtCore.Signal()
+    resumeRequested = QtCore.Signal(str)
+    abortRequested = QtCore.Signal()
+
+    def __init__(self, config: RigConfig, plan: str, experiments: str | None, out: Path,
+                 parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.config, self.out = config, out
+        self.progress: PlanProgress | None = None
+        self._rows: list[ExperimentRow] = []
+        form = QtWidgets.QFormLayout()
+        plan_row = QtWidgets.QHBoxLayout()
+        self.plan = QtWidgets.QLineEdit(plan)
+        self.plan.setObjectName("planEdit")
+        self.plan.setToolTip("standard, or a plan TOML file")
+        browse = QtWidgets.QPushButton("…")
+        browse.setFixedWidth(30)
+        browse.clicked.connect(self._browse_plan)
+        plan_row.addWidget(self.plan, 1)
+        plan_row.addWidget(browse)
+        form.addRow("Plan", plan_row)
+        self.experiments = QtWidgets.QLineEdit(experiments or "")
+        self.experiments.setObjectName("experimentsEdit")
+        self.experiments.setPlaceholderText("all (or letters: a,h,j)")
+        self.experiments.editingFinished.connect(self.preview)
+        self.plan.editingFinished.connect(self.preview)
+        form.addRow("Experiments", self.experiments)
+        self.folder = QtWidgets.QLineEdit()
+        self.folder.setObjectName("sessionFolderEdit")
+        form.addRow("Session folder", self.folder)
+        self.identify = QtWidgets.QCheckBox("Identify after the capture (2-dof: θ4, θ6, θ16)")
+        self.identify.setObjectName("identifyBox")
+        self.identify.setChecked(True)
+        form.addRow("", self.identify)
+
+        buttons = QtWidgets.QHBoxLayout()
+        self.run_button = QtWidgets.QPushButton("Run plan")
+        self.run_button.setObjectName("runPlanButton")
+        self.run_button.clicked.connect(self.runRequested)
+        self.abort_button = QtWidgets.QPushButton("Abort (safe stop)")
+        self.abort_button.setObjectName("abortButton")
+        self.abort_button.setEnabled(False)
+        self.abort_button.clicked.connect(self.abortRequested)
+        self.resume_button = QtWidgets.QPushButton("Resume…")
+        self.resume_button.setObjectName("resumeButton")
+        self.resume_button.setToolTip("continue an interrupted session folder")
+        self.resume_button.clicked.connect(self._browse_resume)
+        for b in (self.run_button, self.abort_button, self.resume_button):
+            buttons.addWidget(b)
+
+        self.table = QtWidgets.QTableWidget(0, len(TABLE_COLUMNS))
+        self.table.setObjectName("experimentTable")
+        self.table.setHorizontalHeaderLabels(TABLE_COLUMNS)
+        self.table.verticalHeader().setVisible(False)
+        self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        header = self.table.horizontalHeader()
+        header.setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+        header.setSectionResizeMode(4, QtWidgets.QHeaderView.ResizeMode.Stretch)
+        self.eta = QtWidgets.QLabel("")
+        self.eta.setObjectName("sessionEta")
+        self.steady = SteadyStateView(config)
+
+        layout = QtWidgets.QVBoxLayout(self)
+        layout.setContentsMargins(0, 0, 0, 0)
+        layout.addLayout(form)
+        layout.addLayout(buttons)
+        layout.addWidget(self.table, 1)
+        layout.addWidget(self.eta)
+        layout.addWidget(self.steady)
+        self.new_folder()
+        self.preview()
+
+    # ----- choosing --------------------------------------------------------------------------------
+    def letters(self) -> list[str] | None:
+        return [x.strip() for x in self.experiments.text().split(",") if x.strip()] or None
+
+    def new_folder(self) -> None:
+        stamp = _dt.datetime.now().strftime("%y%m%d-%H%M%S")
+        self.folder.setText(str(self.out / f"session-{stamp}"))
+
+    def _browse_plan(self) -> None:
+        path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Plan", "", "Plan (*.toml)")
+        if path:
+            self.plan.setText(path)
+            self.preview()
+
+    def _browse_resume(self) -> None:
+        path = QtWidgets.QFileDialog.getExistingDirectory(self, "Session folder to resume", str(self.out))
+        if path:
+            self.resumeRequested.emit(path)
+
+    def preview(self) -> None:
+        """The chosen plan's experiments, all pending, before anything runs."""
+        if self.progress is not None and self.progress.ended is None:
+            return
+        try:
+            plan = load_plan(self.plan.text().strip() or "standard").select(self.letters())
+        except Exception as exc:  # noqa: BLE001 — the plan is checked again, with its reasons, on Run
+            self.eta.setText(f"plan: {exc}")
+            return
+        self.show_progress(PlanProgress(plan, self.config, "", 1.0))
+        self.progress = None
+        self.eta.setText(f"{len(plan.experiments)} experiments, about "
+                         f"{_clock(sum(r.estimate_s for r in self._rows))} of rig time")
+
+    # ----- running ---------------------------------------------------------------------------------
+    def set_running(self, running: bool) -> None:
+        self.run_button.setEnabled(not running)
+        self.resume_button.setEnabled(not running)
+        self.abort_button.setEnabled(running)
+        for w in (self.plan, self.experiments, self.folder, self.identify):
+            w.setEnabled(not running)
+
+    def show_progress(self, progress: PlanProgress) -> None:
+        self.progress = progress
+        self._rows = progress.rows
+        self.table.setRowCount(len(progress.rows))
+        for i, r in enumerate(progress.rows):
+            cells = (r.label or r.spec.letter, f"{r.spec.static_position_mm:g}", f"{r.spec.amplitude_mm:g}",
+                     f"{r.spec.frequency_hz:g}")
+            for j, text in enumerate(cells):
+                item = QtWidgets.QTableWidgetItem(text)
+                if j:
+                    item.setTextAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
+                self.table.setItem(i, j, item)
+            self.table.setItem(i, 4, QtWidgets.QTableWidgetItem(""))
+            self.table.setItem(i, 5, QtWidgets.QTableWidgetItem(""))
+        self.refresh()
+
+    def apply(self, event: Event) -> None:
+        if self.progress is None:
+            return
+        row = self.progress.apply(event)
+        if row is not None and event.kind == "progress" and event.data.get("phase") == "settling":
+            self.steady.show_row(row)
+
+    def refresh(self) -> None:
+        """Statuses and times left (called on the window's timer)."""
+        progress = self.progress
+        if progress is None:
+            return
+        for i, r in enumerate(progress.rows):
+            status = _item(self.table, i, 4)
+            status.setText(r.status_text())
+            status.setBackground(QtGui.QColor(STATUS_COLOURS.get(r.status, "#ffffff")))
+            _item(self.table, i, 5).setText(_clock(progress.left_s(r)) if r.status != "done" else "")
+        if progress.ended is not None:
+            self.eta.setText(f"Session {progress.ended}")
+        else:
+            current = progress.current
+            self.eta.setText(f"Session: about {_clock(progress.session_left_s())} left"
+                             + (f"; {current.label}: {_clock(progress.left_s(current))}" if current else ""))

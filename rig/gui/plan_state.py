@@ -1,0 +1,134 @@
+"""A session's experiments as the plan table shows them, kept from the bus's events
+(no Qt here): pending, moving, settling n, capturing %, done, failed/skipped, and the
+time left per experiment and for the session.
+
+Times left come from :func:`rig.plans.estimate_duration_s` (rig time), turned into
+wall time by the simulator's speed at first and, once experiments are done, by how
+long they actually took against their estimates (as the terminal's progress does).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field, replace
+
+from identify.plans import ExperimentSpec
+from rig.config import RigConfig
+from rig.events import Event
+from rig.gui.analysis import predicted_cycles_left
+from rig.plans import Plan, estimate_duration_s
+
+ACTIVE = ("moving", "settling", "capturing", "stopping")
+
+
+@dataclass
+class ExperimentRow:
+    spec: ExperimentSpec
+    label: str
+    estimate_s: float                      # rig time
+    status: str = "pending"                # pending, moving, settling, capturing, stopping, done, failed, skipped
+    cycles: int = 0
+    fraction: float = 0.0
+    note: str = ""
+    started: float | None = None           # wall clock (monotonic)
+    finished: float | None = None
+    settling: list[tuple[int, dict[str, float]]] = field(default_factory=list)
+
+    def status_text(self) -> str:
+        if self.status == "settling":
+            return f"settling {self.cycles}" if self.cycles else "settling"
+        if self.status == "capturing":
+            return f"capturing {100 * self.fraction:.0f} %"
+        return self.status + (f" ({self.note})" if self.note else "")
+
+
+class PlanProgress:
+    def __init__(self, plan: Plan, config: RigConfig, date: str, speed: float = 1.0,
+                 done: frozenset[str] | set[str] = frozenset(), clock: Callable[[], float] = time.monotonic) -> None:
+        self.clock, self.speed, self.config = clock, speed, config
+        self.rows = [ExperimentRow(e, f"{date}{e.letter}",
+                                   estimate_duration_s(replace(plan, experiments=(e,)), config,
+                                                       e.static_position_mm * 1e-3))
+                     for e in plan.experiments]
+        for row in self.rows:
+            if row.spec.letter in done:
+                row.status, row.note = "done", "earlier"
+        self.by_label = {r.label: r for r in self.rows}
+        self.ended: str | None = None
+
+    @property
+    def current(self) -> ExperimentRow | None:
+        return next((r for r in self.rows if r.status in ACTIVE), None)
+
+    def apply(self, e: Event) -> ExperimentRow | None:
+        """Take one event; returns the row it changed."""
+        if e.kind == "session-end":
+            self.ended = str(e.data.get("message", ""))
+            for r in self.rows:
+                if r.status in ACTIVE:
+                    r.status = "interrupted" if self.ended.startswith("interrupted") else "failed"
+                    r.finished = self.clock()
+            return None
+        row = self.by_label.get(e.experiment or "")
+        if row is None:
+            return None
+        if e.kind == "phase":
+            phase = str(e.data["phase"])
+            if phase in ACTIVE:
+                if row.started is None:
+                    row.started = self.clock()
+                row.status = phase
+        elif e.kind == "progress" and e.data.get("phase") == "settling":
+            row.status, row.cycles = "settling", int(e.data["cycles"])
+            row.settling.append((row.cycles, dict(e.data["change"])))
+        elif e.kind == "progress" and e.data.get("phase") == "capturing":
+            row.status, row.fraction = "capturing", float(e.data["fraction"])
+        elif e.kind == "experiment-done":
+            row.status, row.finished = "done", self.clock()
+            if e.data.get("flags"):
+                row.note = "flagged"
+        elif e.kind == "experiment-failed":
+            row.status, row.finished, row.note = "skipped", self.clock(), "after an alarm"
+        elif e.kind == "alarm":
+            row.note = "alarm"
+        return row
+
+    def wall_per_rig_s(self) -> float:
+        """Wall seconds per estimated rig second, from the experiments done in this run."""
+        timed = [(r.finished - r.started, r.estimate_s) for r in self.rows
+                 if r.status == "done" and r.started is not None and r.finished is not None]
+        estimate = sum(e for _, e in timed)
+        if estimate > 0:
+            return sum(took for took, _ in timed) / estimate
+        return 1.0 / self.speed
+
+    def left_s(self, row: ExperimentRow) -> float:
+        """Wall seconds left for one experiment (0 when done, nan when it ended otherwise)."""
+        scale = self.wall_per_rig_s()
+        if row.status == "pending":
+            return row.estimate_s * scale
+        if row.status in ACTIVE and row.started is not None:
+            rest = self._rig_s_left(row)
+            if rest is not None:
+                return rest * scale
+            return max(row.estimate_s * scale - (self.clock() - row.started), 0.0)
+        return 0.0 if row.status == "done" else math.nan
+
+    def _rig_s_left(self, row: ExperimentRow) -> float | None:
+        """Rig time left from where the experiment is: the settling prediction (or the
+        capture's fraction), the capture, the fade out; None when not known."""
+        ss, f, periods = self.config.steady_state, row.spec.frequency_hz, row.spec.periods
+        if row.status == "capturing":
+            return (1 - row.fraction) * periods / f + ss.ramp_time_s
+        if row.status == "settling" and row.settling:
+            left = predicted_cycles_left(row.settling, ss.thresholds, ss.min_cycles, ss.max_cycles)
+            return None if left is None else (left + periods) / f + ss.ramp_time_s
+        return None
+
+    def session_left_s(self) -> float:
+        if self.ended is not None:
+            return 0.0
+        left = [self.left_s(r) for r in self.rows if r.status == "pending" or r.status in ACTIVE]
+        return sum(x for x in left if not math.isnan(x))

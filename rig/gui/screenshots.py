@@ -1,0 +1,113 @@
+"""``make screenshots``: the console's main views as PNG files, from a real session on the
+simulated rig (offscreen): settling, capturing, the fit view with the 1-dof/2-dof
+comparison, an alarm (an e-stop trip during a manual sine), the session browser.
+
+    python -m rig.gui.screenshots [--out out/screenshots] [--speed 20] [--readme docs/gui.png]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
+
+from PySide6 import QtCore, QtWidgets  # noqa: E402
+
+from rig.gui.main_window import MainWindow, application  # noqa: E402
+
+
+def wait(what: str, condition: Callable[[], bool], timeout_s: float = 120.0) -> None:
+    app = application()
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            raise SystemExit(f"screenshots: timed out waiting for {what}")
+        app.processEvents()
+        time.sleep(0.005)
+
+
+def settle_view(seconds: float) -> None:
+    """Let the window's timer draw for a moment."""
+    end = time.monotonic() + seconds
+    wait("the view", lambda: time.monotonic() > end)
+
+
+def shoot(window: MainWindow, path: Path) -> Path:
+    window.grab().save(str(path))
+    print(f"wrote {path}")
+    return path
+
+
+def status_of(window: MainWindow, row: int) -> str:
+    progress = window.plan.progress
+    return progress.rows[row].status if progress is not None else ""
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--out", default="out/screenshots")
+    parser.add_argument("--speed", type=float, default=20.0)
+    parser.add_argument("--readme", help="also write a 1200-px-wide copy of the settling view here")
+    args = parser.parse_args()
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    sessions = Path(tempfile.mkdtemp(prefix="gui-screenshots-"))
+    application()
+
+    window = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--experiments", "j,h",
+                                   "--out", str(sessions)])
+    window.show()
+    wait("the connection", lambda: window.status is not None)
+    folder = Path(window.plan.folder.text())
+    window.run_plan()
+    wait("settling", lambda: window.plan.progress is not None and window.plan.progress.rows[0].cycles >= 40)
+    settle_view(1.0)
+    settling = shoot(window, out / "settling.png")
+    if args.readme:
+        window.grab().scaledToWidth(1200, QtCore.Qt.TransformationMode.SmoothTransformation).save(args.readme)
+        print(f"wrote {args.readme}")
+    wait("capturing", lambda: status_of(window, 1) == "capturing")
+    settle_view(0.1)
+    shoot(window, out / "capturing.png")
+    wait("the fit", lambda: window.fit_view.result is not None, 300)
+    window.compare()
+    wait("the comparison", lambda: window.fit_view.comparison is not None, 300)
+    settle_view(0.5)
+    shoot(window, out / "fit.png")
+    window.tabs.setCurrentWidget(window.browser)
+    window.browser.open_folder(folder)
+    settle_view(0.5)
+    shoot(window, out / "browser.png")
+    window.close()
+    wait("the window to close", lambda: not window.isVisible(), 60)
+
+    # An alarm: the e-stop trips 10 s (simulated) into a manual sine.
+    alarm = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--fault", "estop@run+10",
+                                  "--out", str(sessions)])
+    alarm.show()
+    alarm.left_tabs.setCurrentIndex(1)
+    wait("the connection", lambda: alarm.status is not None)
+    alarm.manual.hyd_on.click()
+    wait("hydraulics on", lambda: alarm.status is not None and alarm.status.state == "IDLE")
+    alarm.manual.sine_static.setValue(133.0)
+    alarm.manual.sine_amplitude.setValue(20.0)
+    alarm.manual.sine_frequency.setValue(1.0)
+    alarm.manual.sine_button.click()
+    wait("the trip", lambda: alarm.status is not None and alarm.status.state == "ALARM", 60)
+    settle_view(1.0)
+    shoot(alarm, out / "alarm.png")
+    alarm.close()
+    wait("the window to close", lambda: not alarm.isVisible(), 60)
+    print(f"sessions of this run: {sessions}; first view {settling}")
+    return 0
+
+
+if __name__ == "__main__":
+    QtWidgets.QApplication.setApplicationName("damper-rig")
+    sys.exit(main())

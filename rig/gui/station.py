@@ -1,0 +1,457 @@
+"""The rig side of the operator's console (no Qt here): the links, the manual commands,
+the session runner, the fits and the E-STOP, each on its own thread.  Whatever happens
+is *posted* as a small record into a queue that the window drains on its own timer, so
+that the GUI thread never talks to the rig, and the rig never waits on the GUI.
+
+Threads:
+
+``rig-command``   manual commands, connecting, reconnecting after a session (one at a time)
+``rig-status``    reads the controller's status and the DAQ's counters, 4 times a second
+``rig-session``   prepare → connect → :class:`rig.run.SessionRunner` → tear down, as ``rig run``
+``fit``           identification and re-fits, one at a time, each in a process of its own
+                  (:mod:`rig.gui.fits`: a fit in this process would stall the window)
+``e-stop``        one per press: mode STOP and hydraulics off, never queued behind the others
+
+Outside a session the console holds its own links: the controller with its watchdog
+fed (if this program dies, the controller trips and holds), and the DAQ streaming for
+the live view.  A session opens its links afresh exactly as ``rig run`` does (its
+journal starts with the handshake), so the console lets go of its links first (the DAQ
+takes one client at a time) and takes them back after the safe stop.
+"""
+
+from __future__ import annotations
+
+import io
+import threading
+import time
+import traceback
+from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from rich.console import Console
+
+from identify.errors import IdentifyError, InputError
+from rig.config import RigConfig, load_rig_config
+from rig.daq import Calibration, Daq
+from rig.errors import BadInput, RigError
+from rig.events import EventBus
+from rig.gui import fits
+from rig.gui.fits import FitRunner, FitSummary
+from rig.gui.plan_state import PlanProgress
+from rig.registers import RegisterMap, load_register_map
+from rig.run import (
+    EXIT_OK,
+    Links,
+    RunOptions,
+    RunResult,
+    SessionRunner,
+    close_links,
+    connect,
+    prepare,
+)
+from rig.session import SessionLog
+from rig.shaker import Shaker, ShakerStatus, check_waveform
+
+STATUS_PERIOD_S = 0.25
+CONSOLE_RECONNECT_S = 2.0
+
+
+# ----- what is posted to the window ---------------------------------------------------------------------
+@dataclass(frozen=True)
+class Snapshot:
+    """The controller and the DAQ as last read (status None: not connected or unreadable)."""
+
+    status: ShakerStatus | None
+    error: str | None
+    received: int = 0
+    lost: int = 0
+    crc_errors: int = 0
+    over_range: int = 0
+    overflow_flags: int = 0
+    heartbeat_ok: bool = True
+    time: float = field(default_factory=time.monotonic)
+
+
+@dataclass(frozen=True)
+class Notice:
+    text: str
+    level: str = "info"                    # info, refused, error
+
+
+@dataclass(frozen=True)
+class LinkState:
+    connected: bool
+    text: str
+
+
+@dataclass(frozen=True)
+class SessionOpened:
+    path: Path
+    progress: PlanProgress
+    options: RunOptions
+
+
+@dataclass(frozen=True)
+class SessionClosed:
+    result: RunResult | None               # None: refused or failed before the session folder existed
+    text: str
+
+
+@dataclass(frozen=True)
+class FitProgress:
+    title: str
+    iteration: int
+    objective: float
+
+
+@dataclass(frozen=True)
+class FitDone:
+    title: str
+    result: FitSummary
+    folder: Path
+
+
+@dataclass(frozen=True)
+class ComparisonDone:
+    results: dict[str, FitSummary]
+    folder: Path
+
+
+@dataclass(frozen=True)
+class EstopDone:
+    failures: list[str]
+    elapsed_s: float
+
+
+@dataclass(frozen=True)
+class IdentifySettings:
+    model: str = "2dof"
+    params: str | None = None
+    estimate: list[str] = field(default_factory=lambda: ["theta4", "theta6", "theta16"])
+
+
+class Station:
+    def __init__(self, shaker_url: str | None, daq_url: str | None, post: Callable[[object], None], *,
+                 rig_config: str | None = None, calibration: str | None = None, register_map: str | None = None,
+                 speed: float = 1.0) -> None:
+        self.shaker_url, self.daq_url, self.post, self.speed = shaker_url, daq_url, post, speed
+        self.config_files = {"rig_config": rig_config, "calibration": calibration, "register_map": register_map}
+        self.config: RigConfig = load_rig_config(rig_config)
+        self.calibration = Calibration.from_file(calibration)
+        self.register_map: RegisterMap = load_register_map(register_map)
+        self.shaker: Shaker | None = None           # the console's links (outside sessions)
+        self.daq: Daq | None = None
+        self.runner: SessionRunner | None = None    # the session's, while one runs
+        self.manual_frequency_hz: float | None = None
+        self.heartbeat_ok = True
+        self.closing = False                         # the window is closing: no links taken back
+        self._was_connected = False
+        self._abort = threading.Event()
+        self._closed = threading.Event()
+        self._commands = ThreadPoolExecutor(1, "rig-command")
+        self._fits = FitRunner(lambda title, it, objective: post(FitProgress(title, it, objective)),
+                               lambda title, text: post(Notice(f"{title} failed: {text}", "error")))
+        self._session: threading.Thread | None = None
+        self._poller = threading.Thread(target=self._poll, name="rig-status", daemon=True)
+        self._poller.start()
+
+    # ----- state ----------------------------------------------------------------------------------------
+    @property
+    def connected(self) -> bool:
+        return self.shaker is not None or self.runner is not None
+
+    @property
+    def session_running(self) -> bool:
+        return self._session is not None and self._session.is_alive()
+
+    def active_shaker(self) -> Shaker | None:
+        runner = self.runner
+        return runner.links.shaker if runner is not None else self.shaker
+
+    def live_daq(self) -> Daq | None:
+        runner = self.runner
+        return runner.links.daq if runner is not None else self.daq
+
+    # ----- links ----------------------------------------------------------------------------------------
+    def connect(self, shaker_url: str | None = None, daq_url: str | None = None) -> Future:
+        self.shaker_url, self.daq_url = shaker_url or self.shaker_url, daq_url or self.daq_url
+        return self._commands.submit(self._job, "connect", self._connect)
+
+    def _connect(self) -> None:
+        if self.shaker is not None:
+            return
+        if not self.shaker_url or not self.daq_url:
+            raise BadInput("give the controller's and the DAQ's addresses (--shaker, --daq) or --simulate")
+        shaker = Shaker(self.shaker_url, self.config.limits, self.register_map, reconnect_s=CONSOLE_RECONNECT_S,
+                        on_event=self._link_event)
+        daq = Daq(self.daq_url, self.calibration, rate_hz=self.config.daq_rate_hz, reconnect_s=CONSOLE_RECONNECT_S,
+                  on_event=self._link_event)
+        try:
+            shaker.connect()        # limits written, watchdog on and fed: if this program dies, the rig holds
+            identity = daq.open()
+            daq.start()             # the live view streams whenever no session does
+        except BaseException:
+            close_links(Links(shaker, daq, "", None))
+            raise
+        self.shaker, self.daq = shaker, daq
+        self.post(LinkState(True, f"controller {self.shaker_url}, DAQ {self.daq_url} ({identity})"))
+
+    def _release(self) -> None:
+        shaker, daq = self.shaker, self.daq
+        self.shaker = self.daq = None
+        if shaker is not None and daq is not None:
+            close_links(Links(shaker, daq, "", None))
+
+    def disconnect(self) -> Future:
+        def job() -> None:
+            self._release()
+            self.post(LinkState(False, "disconnected"))
+        return self._commands.submit(self._job, "disconnect", job)
+
+    def _link_event(self, message: str) -> None:
+        if message.startswith("heartbeat failing"):
+            self.heartbeat_ok = False
+        elif message.startswith("heartbeat back"):
+            self.heartbeat_ok = True
+        self.post(Notice(message))
+
+    # ----- manual commands: checked here, sent on the command thread ------------------------------------
+    def _refuse_manual(self, status: ShakerStatus | None, need_hydraulics: bool) -> list[str]:
+        if self.session_running:
+            return ["a session is running: abort it first"]
+        if self.shaker is None:
+            return ["not connected"]
+        if status is not None and status.state == "ALARM":
+            return [f"alarm latched ({status.alarm}): reset it first"]
+        if need_hydraulics and status is not None and status.state == "OFF":
+            return ["the hydraulics are off: switch them on first"]
+        return []
+
+    def _manual(self, what: str, problems: list[str], action: Callable[[Shaker], None]) -> list[str]:
+        """Send ``action`` unless ``problems``; the refusal is returned and posted, nothing sent."""
+        if problems:
+            self.post(Notice(f"{what} refused, nothing sent: {'; '.join(problems)}", "refused"))
+            return problems
+        shaker = self.shaker
+        assert shaker is not None  # _refuse_manual checked it
+
+        def job() -> None:
+            action(shaker)
+            self.post(Notice(f"{what}: sent"))
+        self._commands.submit(self._job, what, job)
+        return []
+
+    def hydraulics(self, on: bool, status: ShakerStatus | None) -> list[str]:
+        problems = self._refuse_manual(status, need_hydraulics=False)
+        return self._manual(f"hydraulics {'on' if on else 'off'}", problems, lambda s: s.hydraulics(on))
+
+    def move(self, static_m: float, status: ShakerStatus | None) -> list[str]:
+        lim = self.config.limits
+        problems = self._refuse_manual(status, need_hydraulics=True)
+        if not lim.stroke_low_m <= static_m <= lim.stroke_high_m:
+            problems.append(f"static position {static_m * 1e3:.2f} mm outside the stroke limits "
+                            f"{lim.stroke_low_m * 1e3:.1f}…{lim.stroke_high_m * 1e3:.1f} mm")
+        return self._manual(f"move to {static_m * 1e3:.2f} mm", problems, lambda s: s.move_to(static_m))
+
+    def sine(self, static_m: float, amplitude_m: float, frequency_hz: float, status: ShakerStatus | None) -> list[str]:
+        problems = self._refuse_manual(status, need_hydraulics=True)
+        problems += check_waveform(self.config.limits, static_m, amplitude_m, frequency_hz)
+        ramp = self.config.steady_state.ramp_time_s
+
+        def run(s: Shaker) -> None:
+            s.run(static_m, amplitude_m, frequency_hz, "sine", ramp)
+            self.manual_frequency_hz = frequency_hz
+        return self._manual(f"sine {amplitude_m * 1e3:.2f} mm at {frequency_hz:g} Hz around {static_m * 1e3:.2f} mm",
+                            problems, run)
+
+    def fade_stop(self, status: ShakerStatus | None) -> list[str]:
+        """Stop: fade a running waveform out (then hold), else hold at once."""
+        problems = self._refuse_manual(None, need_hydraulics=False)
+        running = status is not None and status.state == "RUNNING"
+
+        def stop(s: Shaker) -> None:
+            s.fade_out() if running else s.stop()
+        return self._manual("fade out" if running else "stop", problems, stop)
+
+    def reset_alarm(self) -> list[str]:
+        problems = ["a session is running: abort it first"] if self.session_running else []
+        if self.shaker is None and not problems:
+            problems = ["not connected"]
+        return self._manual("alarm reset", problems, lambda s: s.reset_alarm())
+
+    # ----- E-STOP -----------------------------------------------------------------------------------------
+    def estop(self) -> None:
+        """STOP and hydraulics off at once, no fade, on a thread of its own; a session is
+        told to stop too (its safe stop then finds the rig at rest)."""
+        self._abort.set()
+        runner = self.runner
+        if runner is not None:
+            runner.acquisition.stop_requested.set()
+            runner.bus.publish("log", message="E-STOP pressed by the operator: STOP and hydraulics off")
+        threading.Thread(target=self._estop, name="e-stop", daemon=True).start()
+
+    def _estop(self) -> None:
+        t0, failures = time.monotonic(), []
+        shaker, own = self.active_shaker(), None
+        try:
+            if shaker is None:      # between the console's links and a session's: a line of its own
+                if not self.shaker_url:
+                    raise RigError("no controller address")
+                own = shaker = Shaker(self.shaker_url, self.config.limits, self.register_map, reconnect_s=0.5)
+                shaker.connect(heartbeat=False)
+            for name, step in (("STOP", shaker.stop), ("hydraulics off", lambda: shaker.hydraulics(False))):
+                try:
+                    step()
+                except Exception as exc:  # noqa: BLE001 — the next step is tried all the same
+                    failures.append(f"{name}: {exc}")
+        except Exception as exc:  # noqa: BLE001 — said on the banner; the watchdog is the last guard
+            failures.append(str(exc))
+        finally:
+            if own is not None:
+                own.close()
+        self.post(EstopDone(failures, time.monotonic() - t0))
+
+    # ----- sessions ---------------------------------------------------------------------------------------
+    def run_plan(self, opt: RunOptions, identify: IdentifySettings | None) -> bool:
+        """Start a session (False if one is running).  ``opt`` is what ``rig run`` would get."""
+        if self.session_running:
+            return False
+        self._abort.clear()
+        self._session = threading.Thread(target=self._run_session, args=(opt, identify), name="rig-session",
+                                         daemon=True)
+        self._session.start()
+        return True
+
+    def abort(self, why: str = "Abort pressed by the operator") -> None:
+        """The safe stop: the session fades out, stops, switches the hydraulics off."""
+        self._abort.set()
+        runner = self.runner
+        if runner is not None:
+            runner.bus.publish("log", message=f"{why}: safe stop")
+            runner.acquisition.stop_requested.set()
+
+    def _run_session(self, opt: RunOptions, identify: IdentifySettings | None) -> None:
+        result: RunResult | None = None
+        try:
+            result = self._session_steps(opt)
+        except (BadInput, InputError, RigError) as exc:
+            self.post(SessionClosed(None, f"session not started: {exc}"))
+        except Exception as exc:  # noqa: BLE001 — a bug: shown with its traceback, the console goes on
+            self.post(SessionClosed(None, f"internal error: {type(exc).__name__}: {exc}\n{traceback.format_exc()}"))
+        finally:
+            if self._was_connected and not self.closing:
+                self._commands.submit(self._job, "reconnect", self._connect)
+        if result is None:
+            return
+        self.post(SessionClosed(result, f"session {result.status}: {result.session.path}"))
+        if result.exit_code == EXIT_OK and identify is not None and result.captured:
+            self.identify(result, opt)
+
+    def _session_steps(self, opt: RunOptions) -> RunResult | None:
+        prep = prepare(opt)                      # refused here: nothing written, nothing sent
+        self._was_connected = self.shaker is not None
+        self._commands.submit(self._release).result()
+        bus = EventBus()
+        bus.subscribe(self.post)                 # queued: the acquisition never waits on the window
+        log: SessionLog | None = None
+        links = connect(prep, on_event=lambda m: bus.publish("log", message=m))
+        try:
+            runner = SessionRunner(prep, links, bus, Console(file=io.StringIO()))
+            if self._abort.is_set():
+                runner.acquisition.stop_requested.set()
+            session = runner.open_session()
+            log = SessionLog(session.path / "session.log")
+            bus.subscribe(log, inline=True)
+            progress = PlanProgress(prep.plan, prep.config, session.meta["date"], self.speed, session.completed())
+            self.post(SessionOpened(session.path, progress, opt))
+            self.runner = runner
+            if self._abort.is_set():             # Abort or E-STOP while the links were opened
+                runner.acquisition.stop_requested.set()
+            result = runner.run(session)
+        finally:
+            self.runner = None
+            close_links(links)                   # first: the links' threads publish to the log
+            bus.close()
+            if log is not None:
+                log.close()
+        if result.error is not None:
+            self.post(Notice(f"internal error in the session: {result.error!r}", "error"))
+        return result
+
+    def wait_session(self, timeout_s: float | None = None) -> bool:
+        """True once no session runs (for closing the window and for tests)."""
+        thread = self._session
+        if thread is not None:
+            thread.join(timeout_s)
+        return not self.session_running
+
+    # ----- fits -------------------------------------------------------------------------------------------
+    def identify(self, result: RunResult, opt: RunOptions) -> None:
+        title = f"identification {opt.model} of {result.session.path.name}"
+        folder = result.session.path
+        self._fits.submit(title, fits.session_fit, (result.session, opt, result.captured),
+                          lambda summary: self.post(FitDone(title, summary, folder)))
+
+    def refit(self, folder: Path, settings: IdentifySettings) -> None:
+        title = f"re-fit {settings.model} of {folder.name}"
+        self._fits.submit(title, fits.refit, (folder, settings.model, settings.params, list(settings.estimate)),
+                          lambda summary: self.post(FitDone(title, summary, folder)))
+
+    def compare(self, folder: Path, settings: IdentifySettings) -> None:
+        title = f"1-dof vs 2-dof on {folder.name}"
+        self._fits.submit(title, fits.compare_models, (folder, list(settings.estimate), settings.params),
+                          lambda results: self.post(ComparisonDone(results, folder)))
+
+    # ----- plumbing ---------------------------------------------------------------------------------------
+    def _job(self, what: str, fn: Callable[[], None]) -> None:
+        """Run one job; its failure is posted in one line (bugs with their traceback)."""
+        try:
+            fn()
+        except (BadInput, InputError, RigError, IdentifyError) as exc:
+            self.post(Notice(f"{what} failed: {exc}", "error"))
+        except Exception as exc:  # noqa: BLE001 — a bug: shown, the console goes on
+            self.post(Notice(f"{what}: internal error {type(exc).__name__}: {exc}\n{traceback.format_exc()}",
+                             "error"))
+
+    def _poll(self) -> None:
+        while not self._closed.wait(STATUS_PERIOD_S):
+            shaker, daq = self.active_shaker(), self.live_daq()
+            if shaker is None:
+                continue
+            status, error = None, None
+            try:
+                status = shaker.status()
+            except Exception as exc:  # noqa: BLE001 — shown as the link's state
+                error = str(exc)
+            kw = {}
+            if daq is not None:
+                c = daq.counters
+                kw = dict(received=daq.parser.received, lost=c.lost_samples, crc_errors=c.crc_errors,
+                          over_range=c.over_range, overflow_flags=c.overflow_flags)
+            self.post(Snapshot(status, error, heartbeat_ok=self.heartbeat_ok, **kw))
+
+    def close(self, timeout_s: float = 60.0) -> None:
+        """Safe stop of a running session, then every link closed and every thread ended."""
+        self.closing = True
+        self.abort("the console is closing")
+        self.wait_session(timeout_s)
+        self._closed.set()
+        self._commands.submit(self._release)
+        self._commands.shutdown(wait=True)
+        self._fits.close()
+        self._poller.join(timeout=2)
+
+
+def session_options(plan: str, shaker: str | None, daq: str | None, out: Path, experiments: list[str] | None,
+                    station: Station, identify: IdentifySettings | None, resume: bool = False) -> RunOptions:
+    """The options ``rig run`` would be given for the same session."""
+    files = station.config_files
+    opt = RunOptions(plan=plan, shaker=shaker, daq=daq, out=out, experiments=experiments, resume=resume,
+                     identify=identify is not None, rig_config=files["rig_config"],
+                     calibration=files["calibration"], register_map=files["register_map"])
+    if identify is not None:
+        opt.model, opt.params, opt.estimate = identify.model, identify.params, list(identify.estimate)
+    return opt
+

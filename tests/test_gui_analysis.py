@@ -1,0 +1,76 @@
+"""What the live view and the plan table compute, without Qt or a rig."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from rig.config import load_rig_config
+from rig.events import Event
+from rig.gui import analysis
+from rig.gui.plan_state import PlanProgress
+from rig.plans import load_plan
+
+
+def test_loop_energy_of_a_viscous_damper_is_pi_c_omega_a_squared():
+    rate, f, a, c, cycles = 2000.0, 2.0, 0.01, 3000.0, 3
+    t = np.arange(int(cycles * rate / f) + 1) / rate
+    q = a * np.sin(2 * np.pi * f * t)
+    force = 5000.0 + 1e5 * q + c * a * 2 * np.pi * f * np.cos(2 * np.pi * f * t)   # spring + viscous
+    energy = analysis.loop_energy_j(q, force, cycles)
+    assert math.isclose(energy, np.pi * c * 2 * np.pi * f * a**2, rel_tol=1e-4)
+
+
+def test_velocity_of_a_sine_and_the_whole_cycles_in_view():
+    rate, f, a = 2000.0, 1.0, 0.02
+    t = np.arange(4000) / rate
+    v = analysis.velocity_m_s(a * np.sin(2 * np.pi * f * t), rate, f)
+    assert np.max(np.abs(v[100:-100] - a * 2 * np.pi * f * np.cos(2 * np.pi * f * t[100:-100]))) < 1e-3 * a * 2 * np.pi
+    assert analysis.last_cycles(4000, rate, f, 3) == 4000          # only 2 whole cycles held
+    assert analysis.last_cycles(4000, rate, f, 1) == 2000
+
+
+def test_cycles_left_from_a_geometric_decay():
+    thresholds = {"stroke_mm": 0.02, "pressure_bar": 0.0005}
+    history = [(10, {"stroke_mm": 0.001, "pressure_bar": 0.004}), (20, {"stroke_mm": 0.001, "pressure_bar": 0.002})]
+    # halves every 10 cycles: 0.002 → 0.0005 takes 20 more
+    assert analysis.predicted_cycles_left(history, thresholds, 3, 1500) == 20
+    assert analysis.predicted_cycles_left(history[:1], thresholds, 3, 1500) is None
+    growing = [(10, {"stroke_mm": 0.001, "pressure_bar": 0.001}), (20, {"stroke_mm": 0.001, "pressure_bar": 0.002})]
+    assert analysis.predicted_cycles_left(growing, thresholds, 3, 1500) is None
+    settled = [(2, {"stroke_mm": 0.001, "pressure_bar": 0.0001})]
+    assert analysis.predicted_cycles_left(settled, thresholds, 3, 1500) == 1     # the minimum still to come
+
+
+def test_plan_rows_follow_the_events_and_the_eta_scales_with_what_was_measured():
+    now = [0.0]
+    config = load_rig_config()
+    progress = PlanProgress(load_plan("standard").select(["j", "n"]), config, "261122", speed=50.0,
+                            clock=lambda: now[0])
+    j, n = progress.rows
+    assert [r.status_text() for r in progress.rows] == ["pending", "pending"]
+    assert math.isclose(progress.session_left_s(), (j.estimate_s + n.estimate_s) / 50)
+    progress.apply(Event("phase", "261122j", {"phase": "moving"}))
+    progress.apply(Event("progress", "261122j", {"phase": "settling", "cycles": 12, "change": {"stroke_mm": 0.1}}))
+    assert j.status_text() == "settling 12" and progress.current is j
+    progress.apply(Event("progress", "261122j", {"phase": "capturing", "fraction": 0.42}))
+    assert j.status_text() == "capturing 42 %"
+    now[0] = j.estimate_s / 10                          # took 5x longer than at 50x
+    progress.apply(Event("experiment-done", "261122j", {"flags": []}))
+    assert j.status_text() == "done"
+    assert math.isclose(progress.left_s(n), n.estimate_s / 10)
+    progress.apply(Event("phase", "261122n", {"phase": "settling"}))
+    progress.apply(Event("session-end", None, {"message": "interrupted (SIGINT)"}))
+    assert n.status == "interrupted" and progress.session_left_s() == 0.0
+
+
+def test_peak_decimation_keeps_the_extremes_in_time_order():
+    t = np.arange(20000) / 2000.0
+    y = np.sin(2 * np.pi * t)
+    y[12345] = 5.0                                          # a spike
+    td, yd = analysis.peak_decimate(t, y, 1000)
+    assert len(td) == 2000 and np.all(np.diff(td) > 0)
+    assert yd.max() == 5.0 and math.isclose(yd.min(), y.min())
+    short_t, short_y = analysis.peak_decimate(t[:1500], y[:1500], 1000)    # under 2 samples a bucket: as is
+    assert np.array_equal(short_t, t[:1500]) and np.array_equal(short_y, y[:1500])
