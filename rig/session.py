@@ -159,7 +159,8 @@ class SessionLog:
         self._file = open(path, "a", encoding="utf-8")
 
     def __call__(self, event: Event) -> None:
-        stamp = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(event.time))
+        # Milliseconds: what a session spends between two phases is what a rig's time is made of.
+        stamp = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(event.time)) + f".{int(event.time % 1 * 1000):03d}"
         details = " ".join(f"{k}={v}" for k, v in event.data.items() if k != "message")
         text = event.data.get("message", "")
         gap = " " if text and details else ""
