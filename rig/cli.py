@@ -5,6 +5,7 @@
 ``move``     hydraulics on and move to a static position
 ``stop``     stop motion, fade out or switch the hydraulics off; reset a latched alarm
 ``monitor``  live channel values and loss counters in the terminal
+``qc``       quality control of production dampers (run, judge, history)
 
 Exit status (every command): 0 done; 1 identification did not converge (``run
 --identify``); 2 bad input (a file, address or argument; one line naming it, and
@@ -25,6 +26,7 @@ from identify.errors import InputError
 from rig.config import load_rig_config
 from rig.daq import Calibration, Daq
 from rig.errors import BadInput, RigFault
+from rig.qc.cli import add_parser as add_qc_parser
 from rig.registers import load_register_map
 from rig.run import (
     EXIT_ABORTED,
@@ -217,6 +219,8 @@ def build_parser() -> argparse.ArgumentParser:
     mon.add_argument("--rate", type=int, default=1000)
     mon.add_argument("--duration", type=float, help="seconds (default: until Ctrl-C)")
     mon.set_defaults(func=cmd_monitor)
+
+    add_qc_parser(sub)
     return parser
 
 
