@@ -61,15 +61,15 @@ def qc_run(opt: QcOptions, console: Console) -> int:
     spec.check_serial(opt.serial)
     check_model(spec)
     operator, rig_id = opt.operator or getpass.getuser(), opt.rig_id or socket.gethostname()
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    run_options = RunOptions(plan=spec.source, shaker=opt.shaker, daq=opt.daq,
+                             out=Path(opt.out) / f"{opt.serial}-{stamp}", periods=opt.periods,
+                             reset_alarm=opt.reset_alarm, rig_config=opt.rig_config, calibration=opt.calibration,
+                             register_map=opt.register_map, unit_serial=opt.serial)
+    prep = prepare(run_options)
+    prep = replace(prep, config=replace(prep.config, steady_state=spec.steady_state))
     records = Records.open(opt.db or default_url(opt.out))
     try:
-        stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
-        run_options = RunOptions(plan=spec.source, shaker=opt.shaker, daq=opt.daq,
-                                 out=Path(opt.out) / f"{opt.serial}-{stamp}", periods=opt.periods,
-                                 reset_alarm=opt.reset_alarm, rig_config=opt.rig_config,
-                                 calibration=opt.calibration, register_map=opt.register_map, unit_serial=opt.serial)
-        prep = prepare(run_options)
-        prep = replace(prep, config=replace(prep.config, steady_state=spec.steady_state))
         console.print(f"QC {spec.name} {spec.version} on unit {opt.serial}: records in {records.name}", highlight=False)
         started = now_utc()
         result = execute(prep, console)
