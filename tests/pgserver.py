@@ -11,6 +11,7 @@ import os
 import shutil
 import socket
 import subprocess
+import tempfile
 from pathlib import Path
 
 import pytest
@@ -76,11 +77,15 @@ class PgServer:
 
 
 @pytest.fixture(scope="module")
-def pg_server(tmp_path_factory: pytest.TempPathFactory):
-    """A server with user ``qc`` whose password contains characters a URL must escape."""
-    root = tmp_path_factory.mktemp("pg")
+def pg_server():
+    """A server with user ``qc``.  Its folder is made in the system's temporary folder,
+    not pytest's (private to root, so ``nobody`` could not enter it)."""
+    root = Path(tempfile.mkdtemp(prefix="qc-pg-"))
     os.chmod(root, 0o755)
     server = PgServer(root, "qc", "Pg-s3cret-9f4e")
-    server.start()
-    yield server
-    server.stop()
+    try:
+        server.start()
+        yield server
+    finally:
+        server.stop()
+        shutil.rmtree(root, ignore_errors=True)
