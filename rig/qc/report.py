@@ -50,7 +50,7 @@ def band_figure(record: QcRecord, spec: Spec) -> str:
         ax.axvspan(low, high, color=TOLERANCE_ZONE, label="tolerance")
         if c.std is not None and high - low > 2 * k * c.std:
             ax.axvspan(low + k * c.std, high - k * c.std, color=CONFORMANCE_ZONE, label=f"PASS zone (±{k:g}σ in)")
-        ax.axvline(c.nominal, color="#444444", lw=1, ls="--")
+        ax.axvline(c.nominal, color="#444444", lw=1, ls="--", label="nominal")
         if c.value is not None and c.std is not None:
             ax.errorbar([c.value], [0.0], xerr=[[k * c.std], [k * c.std]], fmt="o", ms=7, capsize=6, lw=2,
                         color=COLOURS.get(c.outcome, "#555555"))
@@ -61,7 +61,7 @@ def band_figure(record: QcRecord, spec: Spec) -> str:
         ax.set_xlabel(f"[{c.unit}]", fontsize=9, labelpad=1)
         ax.tick_params(axis="x", labelsize=9)
     handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="upper right", fontsize=8, ncol=2, frameon=False)
+    fig.legend(handles, labels, loc="upper right", fontsize=8, ncol=3, frameon=False)
     fig.tight_layout(rect=(0, 0, 1, 0.97))
     return _png(fig)
 
@@ -80,11 +80,11 @@ def loops_figure(evaluation: Evaluation) -> str | None:
                       e.frequency_hz, n)
         force_kn = np.append(folded.values["force_N"], folded.values["force_N"][0]) / 1e3
         stroke = np.append(folded.values["stroke_mm"], folded.values["stroke_mm"][0])
-        ax.plot(stroke, force_kn, color="#1f4e9c", lw=2.2, label="measured")
+        ax.plot(stroke, force_kn, color="#8fb3e8", lw=4.0, label="measured")
         fit = fits.get(e.label)
-        if fit is not None:
+        if fit is not None:      # the model's stroke under the measured force: drawn over the measurement
             model = np.append(fit.predicted["stroke_mm"], fit.predicted["stroke_mm"][0])
-            ax.plot(model, force_kn, color="#e07b00", lw=1.2, ls="--", label="identified model")
+            ax.plot(model, force_kn, color="#b34700", lw=1.1, ls="--", label="identified model")
         ax.set_title(f"{e.label}: {e.meta.get('static_position_mm', '?')} ± {e.meta.get('amplitude_mm', '?')} mm, "
                      f"{e.frequency_hz:g} Hz", fontsize=9)
         ax.set_xlabel("stroke [mm]", fontsize=9)

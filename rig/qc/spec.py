@@ -153,7 +153,7 @@ def load_spec(source: str) -> Spec:
         start = str((path.parent / str(start)).resolve())
     return Spec(name=_str(doc, "name", where), version=str(_str(doc, "version", where)),
                 title=str(doc.get("title", "")), source=str(path), text=text,
-                sha256=hashlib.sha256(text.encode()).hexdigest(), serial_pattern=pattern, k=k,
+                sha256=hashlib.sha256(path.read_bytes()).hexdigest(), serial_pattern=pattern, k=k,
                 model=str(ident.get("model", "2dof")), estimate=tuple(estimate),
                 grid_points=int(_number(ident, "grid_points", f"{where}, [identification]", default=800)),
                 start=start, steady_state=_steady_state(doc, where), plan=plan, characteristics=characteristics,
