@@ -111,12 +111,14 @@ def control_charts(records: list[QcRecord], directory: Path) -> list[Path]:
             ax.annotate(f"mean {cap.mean:.4g}", (1.0, cap.mean), xycoords=("axes fraction", "data"), xytext=(4, 0),
                         textcoords="offset points", va="center", fontsize=8, color="#1f4e9c")
         for limit, label in ((cap.low, "LSL"), (cap.high, "USL")):
-            if limit is not None:
+            if limit is not None:   # labelled inside on the left: control limits may lie close by on the right
                 ax.axhline(limit, color="#c62828", ls="--", lw=1.2)
-                ax.annotate(f"{label} {limit:.4g}", (1.0, limit), xycoords=("axes fraction", "data"), xytext=(4, 0),
-                            textcoords="offset points", va="center", fontsize=8, color="#c62828")
+                ax.annotate(f"{label} {limit:.4g}", (0.0, limit), xycoords=("axes fraction", "data"), xytext=(4, 3),
+                            textcoords="offset points", va="bottom", fontsize=8, color="#c62828")
         ax.plot(i[~outside], x[~outside], "o", color="#1f4e9c", ms=5)
-        ax.plot(i[outside], x[outside], "o", color="#c62828", ms=7, label="beyond the control limits")
+        if outside.any():
+            ax.plot(i[outside], x[outside], "o", color="#c62828", ms=7, label="beyond the control limits")
+            ax.legend(fontsize=8, loc="best")
         ax.set_xlabel("unit, in test order")
         ax.set_ylabel(f"{cap.name} [{cap.unit}]")
         cp = "—" if cap.cp is None else f"{cap.cp:.2f}"

@@ -72,7 +72,7 @@ def loops_figure(evaluation: Evaluation) -> str | None:
     exps = evaluation.experiments
     if not exps:
         return None
-    fig, axes = plt.subplots(1, len(exps), figsize=(4.0 * len(exps), 3.6), squeeze=False)
+    fig, axes = plt.subplots(1, len(exps), figsize=(3.6 * len(exps), 3.8), squeeze=False)
     fits = {e.label: e for e in evaluation.fit.experiments} if evaluation.fit else {}
     n = evaluation.fit.n_grid if evaluation.fit else 800
     for ax, e in zip(axes[0], exps, strict=True):
@@ -86,12 +86,12 @@ def loops_figure(evaluation: Evaluation) -> str | None:
             model = np.append(fit.predicted["stroke_mm"], fit.predicted["stroke_mm"][0])
             ax.plot(model, force_kn, color="#b34700", lw=1.1, ls="--", label="identified model")
         ax.set_title(f"{e.label}: {e.meta.get('static_position_mm', '?')} ± {e.meta.get('amplitude_mm', '?')} mm, "
-                     f"{e.frequency_hz:g} Hz", fontsize=9)
-        ax.set_xlabel("stroke [mm]", fontsize=9)
-        ax.set_ylabel("axle force [kN]", fontsize=9)
-        ax.tick_params(labelsize=8)
+                     f"{e.frequency_hz:g} Hz", fontsize=10)
+        ax.set_xlabel("stroke [mm]", fontsize=10)
+        ax.set_ylabel("axle force [kN]", fontsize=10)
+        ax.tick_params(labelsize=9)
         ax.grid(alpha=0.3)
-    axes[0, 0].legend(fontsize=8, loc="upper left")
+    axes[0, 0].legend(fontsize=9, loc="upper left")
     fig.tight_layout()
     return _png(fig)
 
