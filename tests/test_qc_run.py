@@ -88,7 +88,10 @@ def test_an_aborted_run_is_on_record_without_a_verdict(served_rig, tmp_path):
     assert "QC run ABORTED" in r.stderr and "no verdict" in r.stderr
     (doc,) = history(station / "qc-records.sqlite")
     assert (doc["verdict"], doc["status"], doc["characteristics"]) == (None, "ABORTED", {})
-    assert "safe stop done" in (Path(doc["session"]) / "session.log").read_text()
+    session = Path(doc["session"])
+    assert "safe stop done" in (session / "session.log").read_text()
+    report = (session / "qc-report.html").read_text()
+    assert "no verdict (ABORTED)" in report and "emergency stop" in report
 
 
 def test_two_runs_on_one_sqlite_file_both_land(served_rig, tmp_path):

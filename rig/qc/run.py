@@ -77,17 +77,17 @@ def qc_run(opt: QcOptions, console: Console) -> int:
         session = result.session.path
         identity = dict(serial=opt.serial, operator=operator, rig=rig_id, started=started, finished=finished)
         if result.error is not None:
-            _store(records, _unjudged(spec, session, "ERROR", [f"internal error: {result.error!r}"], **identity))
+            _store(records, _unjudged(spec, session, "ERROR", [f"internal error: {result.error!r}"], **identity), spec)
             raise result.error
         if result.exit_code != EXIT_OK:
-            _store(records, _unjudged(spec, session, "ABORTED", [f"session {result.status}"], **identity))
+            _store(records, _unjudged(spec, session, "ABORTED", [f"session {result.status}"], **identity), spec)
             console.print(f"[red]QC run ABORTED: session {result.status}; no verdict[/red]", highlight=False)
             return result.exit_code
         try:
             evaluation = evaluate(spec, session)
         except BaseException as exc:
             status = "ABORTED" if isinstance(exc, KeyboardInterrupt) else "ERROR"
-            _store(records, _unjudged(spec, session, status, [f"judging ended: {exc!r}"], **identity))
+            _store(records, _unjudged(spec, session, status, [f"judging ended: {exc!r}"], **identity), spec)
             if isinstance(exc, KeyboardInterrupt):
                 return EXIT_INTERRUPTED
             raise
@@ -148,8 +148,10 @@ def _document(record: QcRecord) -> dict:
     return doc
 
 
-def _store(records: Records, record: QcRecord) -> None:
+def _store(records: Records, record: QcRecord, spec: Spec) -> None:
+    """A run without a verdict: on record all the same, with a report that says why."""
     records.add(record)
+    atomic_write_bytes(Path(record.session) / "qc-report.html", render_report(record, spec, None).encode())
     atomic_write_bytes(Path(record.session) / "qc-record.json",
                        (json.dumps(_document(record), indent=2) + "\n").encode())
 
