@@ -5,7 +5,7 @@ VENV   := .venv
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 
-.PHONY: demo gui screenshots lint test test-fast bench clean
+.PHONY: demo gui lint test test-fast bench clean qc-screenshots screenshots
 
 $(STAMP): pyproject.toml
 	@$(PYTHON) -c 'import sys; sys.exit(sys.version_info < (3, 11))' || \
@@ -42,6 +42,17 @@ test-fast: $(STAMP)
 
 bench: $(STAMP)
 	@for b in benchmarks/bench_*.py; do echo "== $$b"; $(BIN)/python $$b || exit 1; done
+
+# A PASS and a FAIL QC report (and a control chart) as headless Chromium shows them, into
+# out/screenshots/.  Debian's chromium is installed when missing (as root, or with sudo).
+qc-screenshots: $(STAMP)
+	@command -v chromium >/dev/null || { \
+	  if [ "$$(id -u)" -eq 0 ]; then sudo=; else sudo="sudo -n"; fi; \
+	  $$sudo env DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends chromium; }
+	$(BIN)/python examples/qc_screenshots.py --out out/screenshots
+
+# Every screenshot of the product; each part adds its own target as a prerequisite.
+screenshots: qc-screenshots
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache .mypy_cache build *.egg-info

@@ -6,6 +6,7 @@
 ``stop``     stop motion, fade out or switch the hydraulics off; reset a latched alarm
 ``monitor``  live channel values and loss counters in the terminal
 ``gui``      the operator's console: live view, manual control, plans, fits, sessions
+``qc``       quality control of production dampers (run, judge, history)
 
 Exit status (every command): 0 done; 1 identification did not converge (``run
 --identify``); 2 bad input (a file, address or argument; one line naming it, and
@@ -26,6 +27,7 @@ from identify.errors import InputError
 from rig.config import load_rig_config
 from rig.daq import Calibration, Daq
 from rig.errors import BadInput, RigFault
+from rig.qc.cli import add_parser as add_qc_parser
 from rig.registers import load_register_map
 from rig.run import (
     EXIT_ABORTED,
@@ -239,6 +241,8 @@ def build_parser() -> argparse.ArgumentParser:
     gui.add_argument("--out", default="sessions", help="folder in which new session folders are made")
     gui.add_argument("--calibration", help="DAQ calibration TOML of this rig")
     gui.set_defaults(func=cmd_gui)
+
+    add_qc_parser(sub)
     return parser
 
 

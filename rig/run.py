@@ -348,7 +348,25 @@ def _interrupt_on_signals(stop: threading.Event) -> Iterator[list[int]]:
 def run_session(opt: RunOptions, console: Console | None = None) -> int:
     """``rig run``: prepare, connect, run, tear down; identification after a complete session."""
     console = console or Console(stderr=True, soft_wrap=True)  # log lines stay whole when piped
-    prep = prepare(opt)
+    result = execute(prepare(opt), console)
+    session = result.session
+    if result.error is not None:
+        raise result.error
+    if result.exit_code != EXIT_OK:
+        console.print(f"[red]session {result.status}[/red]", highlight=False)
+        console.print(f"captured experiments are kept in {session.path}; to finish the session: "
+                      f"{resume_command(session, opt)}", highlight=False)
+        return result.exit_code
+    console.print(f"session {result.status}: {session.path}", highlight=False)
+    if opt.identify:
+        return identify_session(session, opt, console, result.captured)
+    return EXIT_OK
+
+
+def execute(prep: Prepared, console: Console) -> RunResult:
+    """Connect, run the prepared plan, tear down: the session's log and console progress
+    on, the links closed whatever happens.  A bug inside the run comes back in
+    ``result.error`` after the safe stop, for the caller to record and then raise."""
     bus = EventBus()
     links = connect(prep, on_event=lambda m: bus.publish("log", message=m))
     log: SessionLog | None = None
@@ -367,17 +385,7 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
         bus.close()
         if log is not None:
             log.close()
-    if result.error is not None:
-        raise result.error
-    if result.exit_code != EXIT_OK:
-        console.print(f"[red]session {result.status}[/red]", highlight=False)
-        console.print(f"captured experiments are kept in {session.path}; to finish the session: "
-                      f"{resume_command(session, opt)}", highlight=False)
-        return result.exit_code
-    console.print(f"session {result.status}: {session.path}", highlight=False)
-    if opt.identify:
-        return identify_session(session, opt, console, result.captured)
-    return EXIT_OK
+    return result
 
 
 def session_estimates_s(prep: Prepared, session: Session, start_position_m: float) -> dict[str, float]:

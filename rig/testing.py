@@ -39,7 +39,7 @@ class VirtualRig:
 
     def __init__(self, *, speed: float = 50.0, params: str | Path | dict[str, float] | None = None, seed: int = 1,
                  faults: Sequence[str] = (), daq: str = "tcp", rig: str = "shaker", modbus: str = "tcp",
-                 extra_args: Sequence[str] = ()) -> None:
+                 unit: str | None = None, unit_seed: int | None = None, extra_args: Sequence[str] = ()) -> None:
         self._tmp = tempfile.TemporaryDirectory(prefix="virtual-rig-")
         if isinstance(params, dict):
             truth = Path(self._tmp.name) / "truth.json"
@@ -50,6 +50,8 @@ class VirtualRig:
                "--daq", "tcp://127.0.0.1:0" if daq == "tcp" else "pty",
                "--speed", str(speed), "--seed", str(seed), "--rig", rig]
         cmd += ["--params", str(params)] if params is not None else []
+        cmd += ["--unit", unit] if unit is not None else []             # a production unit (QC)
+        cmd += ["--unit-seed", str(unit_seed)] if unit_seed is not None else []
         for fault in faults:
             cmd += ["--fault", fault]
         cmd += list(extra_args)
@@ -157,7 +159,7 @@ def pytest_configure(config: pytest.Config) -> None:
 @pytest.fixture
 def virtual_rig(request: pytest.FixtureRequest) -> Iterator[Callable[..., VirtualRig]]:
     """Factory: ``virtual_rig(speed=50, params=None, seed=1, faults=(), daq="tcp", rig="shaker",
-    modbus="tcp")`` starts a simulated rig and returns its :class:`VirtualRig`."""
+    modbus="tcp", unit=None, unit_seed=None)`` starts a simulated rig and returns its :class:`VirtualRig`."""
     marker = request.node.get_closest_marker("virtual_rig")
     defaults: dict[str, Any] = dict(marker.kwargs) if marker else {}
     speed_override = request.config.getoption("--virtual-rig-speed")

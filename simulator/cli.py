@@ -15,23 +15,45 @@ import signal
 import sys
 import threading
 import time
+import tomllib
+from pathlib import Path
 
 from identify.errors import InputError
-from identify.plans import STANDARD_SET, select
+from identify.plans import STANDARD_SET, ExperimentSpec, select
 from simulator.errors import SimulatorError, UsageError
 from simulator.faults import parse_fault
 from simulator.generate import generate
 from simulator.truth import load_truth
+from simulator.units import UNITS
+
+
+def read_plan(source: str) -> tuple[ExperimentSpec, ...]:
+    """``standard`` or a plan TOML with ``[[experiment]]`` tables, the format ``rig run
+    --plan`` reads (a QC spec holds its plan that way too)."""
+    if source == "standard":
+        return STANDARD_SET
+    try:
+        doc = tomllib.loads(Path(source).read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise UsageError(f"--plan {source}: {exc}") from None
+    try:
+        return tuple(ExperimentSpec(str(e["label"]), str(e.get("group", "")), float(e["static_mm"]),
+                                    float(e["amplitude_mm"]), float(e["frequency_Hz"]), str(e.get("waveform", "sine")),
+                                    int(e.get("periods", doc.get("periods", 3))))
+                     for e in doc.get("experiment", []))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise UsageError(f"--plan {source}: an [[experiment]] table without a usable {exc}") from None
 
 
 def run_generate(args: argparse.Namespace) -> int:
-    if args.plan != "standard":
-        raise UsageError(f"--plan {args.plan!r}: only the built-in 'standard' plan is available here")
     letters = [x.strip() for x in args.experiments.split(",")] if args.experiments else None
-    plan = select(STANDARD_SET, letters)
+    plan = select(read_plan(args.plan), letters)
+    if not plan:
+        raise UsageError(f"--plan {args.plan}: no [[experiment]] tables")
     t0 = time.perf_counter()
-    out = generate(args.out, plan, load_truth(args.params, args.model), periods=args.periods, rate_hz=args.rate,
-                   seed=args.seed, drop=args.drop, date=args.date, noise_scale=args.noise_scale)
+    truth = load_truth(args.params, args.model, args.unit, args.unit_seed)
+    out = generate(args.out, plan, truth, periods=args.periods, rate_hz=args.rate, seed=args.seed, drop=args.drop,
+                   date=args.date, noise_scale=args.noise_scale, serial=args.serial)
     print(f"wrote {out} ({len(plan)} experiments{' + drop test' if args.drop else ''}, "
           f"{time.perf_counter() - t0:.1f} s)")
     return 0
@@ -50,7 +72,7 @@ def run_serve(args: argparse.Namespace) -> int:
 
     if args.speed <= 0:
         raise UsageError(f"--speed {args.speed}: must be positive")
-    damper = load_truth(args.params, args.model)  # refused before any endpoint is opened
+    damper = load_truth(args.params, args.model, args.unit, args.unit_seed)  # refused before any endpoint opens
     faults = [parse_fault(f) for f in args.fault]
     bridge = None
     if args.modbus == "rtu:pty":
@@ -98,13 +120,21 @@ def run_serve(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m simulator", description="virtual shaker rig")
     sub = parser.add_subparsers(dest="command", required=True)
+    def unit_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--unit", choices=UNITS,
+                       help="a production unit: the nominal damper with a seeded production scatter (good) or a "
+                            "typical fault; parameters named in --params override the unit's")
+        p.add_argument("--unit-seed", type=int, default=0, help="which unit of the batch (default 0)")
+
     gen = sub.add_parser("generate", help="write a dataset (steady states of a plan) without the protocol loop")
-    gen.add_argument("--plan", default="standard")
+    gen.add_argument("--plan", default="standard", help="standard, or a plan TOML (a QC spec too)")
     gen.add_argument("--params", help="true parameters (START.json format; default: nominal)")
     gen.add_argument("--model", choices=("2dof", "1dof"), default="2dof")
+    unit_options(gen)
+    gen.add_argument("--serial", default="SIM-0001", help="the unit's serial number in dataset.json")
     gen.add_argument("--out", required=True, help="dataset folder to write")
     gen.add_argument("--experiments", help="comma-separated letters of the plan (default: all)")
-    gen.add_argument("--periods", type=int, default=3)
+    gen.add_argument("--periods", type=int, help="periods per experiment (default: the plan's; standard: 3)")
     gen.add_argument("--rate", type=float, default=2000.0, help="sample rate, Hz")
     gen.add_argument("--seed", type=int, default=0)
     gen.add_argument("--drop", action="store_true", help="add the drop test (350 kg, v0 = 0)")
@@ -122,6 +152,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--speed", type=float, default=1.0, help="simulated seconds per wall second")
     serve.add_argument("--params", help="true parameters (START.json format; default: nominal)")
     serve.add_argument("--model", choices=("2dof", "1dof"), default="2dof")
+    unit_options(serve)
     serve.add_argument("--seed", type=int, default=0)
     serve.add_argument("--rig", choices=("shaker", "drop"), default="shaker",
                        help="drop: a drop-test rig; RUN (mode 2, hydraulics on) releases the mass at q = 0")

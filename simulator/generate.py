@@ -33,13 +33,15 @@ def _record(state: SteadyState, sensors: SensorSet, with_temperature: bool) -> t
     return cols, int(over.sum())
 
 
-def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper, *, periods: int = 3,
+def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper, *, periods: int | None = 3,
              rate_hz: float = 2000.0, seed: int = 0, drop: bool = False, date: str | None = None,
-             actuator: Actuator | None = None, noise_scale: float = 1.0, name: str | None = None) -> Path:
+             actuator: Actuator | None = None, noise_scale: float = 1.0, name: str | None = None,
+             serial: str = "SIM-0001") -> Path:
     """Write the dataset folder ``out`` and return its path.
 
     Labels are ``date + letter`` as in the paper; ``truth.json`` beside the manifest
-    holds the simulated parameters for round-trip checks.
+    holds the simulated parameters for round-trip checks.  ``periods`` None captures
+    each experiment's own number of periods.
     """
     out = Path(out)
     actuator = actuator or Actuator()
@@ -47,14 +49,15 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper, *, per
     entries = []
     for i, spec in enumerate(plan):
         sensors = SensorSet(seed=seed * 1000 + i, noise_scale=noise_scale)
-        k = int(np.ceil(periods * rate_hz / spec.frequency_hz))
+        k_periods = spec.periods if periods is None else periods
+        k = int(np.ceil(k_periods * rate_hz / spec.frequency_hz))
         t = SETTLE_S + np.arange(k) / rate_hz
         state = periodic_steady_state(damper, actuator, spec, t)
         cols, over = _record(state, sensors, True)
         label = f"{date}{spec.letter}"
         atomic_write_bytes(out / f"{label}.csv", csv_bytes(cols))
         entry = {"label": label, "file": f"{label}.csv", **spec.metadata(), "sample_rate_Hz": rate_hz,
-                 "periods": periods}
+                 "periods": k_periods}
         if over:
             entry["over_range_samples"] = over
         entries.append(entry)
@@ -70,7 +73,7 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper, *, per
     manifest = {
         "format": FORMAT,
         "name": name or f"simulated {damper.model} damper, {len(plan)}-experiment set",
-        "unit": {"serial": "SIM-0001", "type": "simulated nose landing gear damper"},
+        "unit": {"serial": serial, "type": "simulated nose landing gear damper"},
         "ambient": {"temperature_K": damper.ambient_k, "pressure_Pa": 101325.0},
         "source": {"generator": "simulator generate", "seed": seed, "model": damper.model},
         "experiments": entries,

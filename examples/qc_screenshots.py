@@ -1,0 +1,72 @@
+"""``make qc-screenshots``: a PASS and a FAIL QC report rendered by headless Chromium
+into out/screenshots/ (qc-report-pass.png, qc-report-fail.png), plus the control chart
+of a small batch (qc-chart-damping.png), so that a person can look at what the station
+shows.  The units are simulated (a good one and one with a worn orifice), judged with
+the default spec through the public command line.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
+                  "--disable-component-update", "--disable-sync", "--hide-scrollbars"]
+
+
+def run(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, *args], capture_output=True, text=True, timeout=600)
+
+
+def screenshot(chromium: str, page: Path, png: Path, size: str, profile: Path) -> None:
+    r = subprocess.run([chromium, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", f"--screenshot={png}",
+                        f"--window-size={size}", page.as_uri()], capture_output=True, text=True, timeout=180)
+    if r.returncode != 0 or not png.is_file():
+        raise SystemExit(f"chromium failed on {page} (exit {r.returncode}): {r.stderr[-2000:]}")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--out", default="out/screenshots")
+    args = parser.parse_args()
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if not chromium:
+        raise SystemExit("chromium is not installed (apt-get install -y chromium)")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        db = tmp / "records.sqlite"
+        reports = {}
+        for verdict, unit, seed in (("pass", "good", 4), ("fail", "worn-orifice", 2)):
+            data = tmp / unit
+            r = run("-m", "simulator", "generate", "--plan", "rig/qc/specs/default.toml", "--unit", unit,
+                    "--unit-seed", str(seed), "--seed", str(seed), "--serial", f"SN-{4200 + seed}", "--out", str(data))
+            if r.returncode != 0:
+                raise SystemExit(r.stderr)
+            r = run("-m", "rig", "qc", "judge", str(data), "--db", str(db), "--operator", "screenshots")
+            if r.returncode not in (0, 1):
+                raise SystemExit(r.stderr)
+            (reports[verdict],) = data.glob("qc-report-*.html")
+        for seed in range(5, 13):       # a small batch for the control chart
+            data = tmp / f"batch-{seed}"
+            run("-m", "simulator", "generate", "--plan", "rig/qc/specs/default.toml", "--unit", "good", "--unit-seed",
+                str(seed), "--seed", str(seed), "--serial", f"SN-{4200 + seed}", "--out", str(data))
+            run("-m", "rig", "qc", "judge", str(data), "--db", str(db), "--operator", "screenshots")
+        r = run("-m", "rig", "qc", "history", "--db", str(db), "--chart", str(tmp / "charts"))
+        if r.returncode != 0:
+            raise SystemExit(r.stderr)
+        shutil.copy(tmp / "charts" / "damping_force_0.3_N.png", out / "qc-chart-damping.png")
+        for verdict, page in reports.items():
+            screenshot(chromium, page, out / f"qc-report-{verdict}.png", "1100,2450", tmp / "chromium")
+    for name in ("qc-report-pass.png", "qc-report-fail.png", "qc-chart-damping.png"):
+        print(out / name)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

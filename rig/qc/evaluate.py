@@ -1,0 +1,53 @@
+"""From a session folder to a judgement: read the captured experiments, identify the
+spec's parameters, compute the characteristics, judge them.  ``qc run`` and ``qc judge``
+both come here, reading the files, so that a re-judgement of the same data under the
+same spec gives the same numbers."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from identify.dataset import Experiment, read_dataset
+from identify.errors import IdentifyError
+from identify.fit import fit_experiments
+from identify.model import CompiledModel
+from identify.parameters import Parameters
+from identify.preparation import model_columns, resolve_outputs
+from identify.result import FitResult
+from rig.qc.characteristics import Measured, check_model, measure
+from rig.qc.judge import Judgement, judge
+from rig.qc.spec import Spec
+
+
+@dataclass
+class Evaluation:
+    model: CompiledModel
+    experiments: list[Experiment]
+    fit: FitResult | None
+    measured: list[Measured]
+    judgement: Judgement
+    fit_s: float                                   # identification and characteristics, wall time
+    notes: list[str] = field(default_factory=list)  # fit warnings, or why there is no fit
+
+
+def evaluate(spec: Spec, session: Path) -> Evaluation:
+    t0 = time.perf_counter()
+    model = check_model(spec)
+    columns = model_columns(model, resolve_outputs(model, None))
+    dataset = read_dataset(session, columns)
+    experiments = [e for e in dataset.experiments if e.kind == "periodic"]
+    params = Parameters.from_file(model, spec.start) if spec.start else Parameters(model)
+    notes: list[str] = []
+    fit: FitResult | None = None
+    try:
+        fit = fit_experiments(model, experiments, params, list(spec.estimate), n=spec.grid_points)
+        notes += fit.warnings
+        if not fit.converged:
+            notes.append(f"identification did not converge: {fit.message}")
+    except IdentifyError as exc:
+        notes.append(f"identification failed: {exc}")
+    measured = measure(spec, model, fit, experiments)
+    notes += [f"{m.name}: {m.note}" for m in measured if m.note]
+    return Evaluation(model, experiments, fit, measured, judge(spec, measured), time.perf_counter() - t0, notes)

@@ -1,0 +1,360 @@
+"""The QC records database: one schema through SQLAlchemy, SQLite by default (WAL) or
+PostgreSQL by URL (``postgresql://…``, driver psycopg 3).
+
+A record is written once, in one transaction with its characteristics, and never
+changed: the tool has no update or delete, and triggers in the database refuse both
+(a re-judgement adds a record that refers to the first).  Concurrent writers lose
+nothing: SQLite transactions take the write lock when they begin (``BEGIN IMMEDIATE``)
+and wait for it; PostgreSQL serialises the schema's creation with an advisory lock.
+
+Credentials never leak: a database is only ever named by :func:`safe_url`, and every
+message from the driver is stripped of the password given in the URL, in PGPASSWORD or
+in the .pgpass file before anyone sees it.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+from urllib.parse import quote, quote_plus
+
+from sqlalchemy import (
+    Column,
+    Connection,
+    Engine,
+    Float,
+    ForeignKey,
+    Integer,
+    MetaData,
+    String,
+    Table,
+    Text,
+    create_engine,
+    event,
+    inspect,
+    select,
+    text,
+)
+from sqlalchemy.engine import URL, make_url
+from sqlalchemy.exc import ArgumentError, SQLAlchemyError
+
+from rig.errors import BadInput
+
+SCHEMA_VERSION = 1
+DEFAULT_FILE = "qc-records.sqlite"
+SQLITE_WAIT_S = 60.0          # a writer waits this long for another one's transaction
+PG_SCHEMA_LOCK = 0x5143_5245  # advisory lock key ("QCRE") held while the schema is created
+
+metadata = MetaData()
+schema_table = Table("qc_schema", metadata, Column("version", Integer, primary_key=True))
+record_table = Table(
+    "qc_record", metadata,
+    Column("id", Integer, primary_key=True, autoincrement=True),
+    Column("uid", String(36), nullable=False, unique=True),
+    Column("serial", String(64), nullable=False, index=True),
+    Column("operator", String(128), nullable=False),
+    Column("rig", String(128), nullable=False),
+    Column("started", String(40)),
+    Column("finished", String(40)),
+    Column("judged", String(40), nullable=False),
+    Column("software", String(128), nullable=False),
+    Column("spec_name", String(128), nullable=False),
+    Column("spec_version", String(64), nullable=False),
+    Column("spec_sha256", String(64), nullable=False),
+    Column("calibration_sha256", String(64)),
+    Column("register_map_sha256", String(64)),
+    Column("verdict", String(16)),
+    Column("status", String(16), nullable=False),
+    Column("session", Text, nullable=False),
+    Column("data_sha256", String(64), nullable=False, index=True),
+    Column("files", Text, nullable=False),        # JSON {relative path: sha256}
+    Column("diagnosis", Text, nullable=False),    # JSON list of lines
+    Column("remedy", Text),
+    Column("notes", Text, nullable=False),        # JSON list of lines
+    Column("rejudges", String(36)),               # uid of the first record of the same data
+)
+characteristic_table = Table(
+    "qc_characteristic", metadata,
+    Column("record_id", Integer, ForeignKey("qc_record.id"), primary_key=True),
+    Column("position", Integer, primary_key=True),
+    Column("name", String(128), nullable=False),
+    Column("unit", String(16), nullable=False),
+    Column("value", Float(precision=53)),
+    Column("std", Float(precision=53)),
+    Column("std_fit", Float(precision=53)),
+    Column("u_cal", Float(precision=53), nullable=False),
+    Column("low", Float(precision=53)),
+    Column("high", Float(precision=53)),
+    Column("nominal", Float(precision=53), nullable=False),
+    Column("outcome", String(16), nullable=False),
+)
+IMMUTABLE = ("qc_record", "qc_characteristic", "qc_schema")
+
+
+class RecordsError(BadInput):
+    """A records database that cannot be opened or written (named without credentials)."""
+
+
+@dataclass(frozen=True)
+class CharacteristicRecord:
+    name: str
+    unit: str
+    value: float | None
+    std: float | None
+    std_fit: float | None
+    u_cal: float
+    low: float | None
+    high: float | None
+    nominal: float
+    outcome: str
+
+
+@dataclass(frozen=True)
+class QcRecord:
+    """One verdict on one unit, as stored.  ``started``/``finished`` are the
+    measurement's (ISO 8601, UTC); ``judged`` when this record was made."""
+
+    uid: str
+    serial: str
+    operator: str
+    rig: str
+    started: str | None
+    finished: str | None
+    judged: str
+    software: str
+    spec_name: str
+    spec_version: str
+    spec_sha256: str
+    calibration_sha256: str | None
+    register_map_sha256: str | None
+    verdict: str | None
+    status: str                       # COMPLETE, ABORTED or ERROR
+    session: str
+    data_sha256: str                  # fingerprint of the measured data: a re-judgement finds its first record by it
+    files: dict[str, str]
+    characteristics: tuple[CharacteristicRecord, ...]
+    diagnosis: tuple[str, ...] = ()
+    remedy: str | None = None
+    notes: tuple[str, ...] = ()
+    rejudges: str | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        """The form ``qc history --json`` prints."""
+        return {
+            "serial": self.serial, "verdict": self.verdict, "status": self.status,
+            "spec": {"name": self.spec_name, "version": self.spec_version, "sha256": self.spec_sha256},
+            "characteristics": {c.name: {"value": c.value, "std": c.std, "low": c.low, "high": c.high,
+                                         "unit": c.unit, "outcome": c.outcome} for c in self.characteristics},
+            "started": self.started, "finished": self.finished, "operator": self.operator, "rig": self.rig,
+            "session": self.session,
+        }
+
+
+# ----- URLs and secrets ----------------------------------------------------------------------------------
+def default_url(directory: Path) -> str:
+    return f"sqlite:///{(Path(directory) / DEFAULT_FILE).resolve()}"
+
+
+def parse_url(url: str) -> URL:
+    """A database URL (a bare path means an SQLite file); refused with one line that
+    does not repeat a password."""
+    if "://" not in url:
+        url = f"sqlite:///{Path(url).resolve()}"
+    try:
+        parsed = make_url(url)
+    except ArgumentError:
+        raise RecordsError(f"--db {_mask_raw(url)}: not a database URL (sqlite:///FILE or "
+                           "postgresql://USER@HOST:PORT/DB)") from None
+    backend = parsed.get_backend_name()
+    if backend == "sqlite":
+        if not parsed.database or parsed.database == ":memory:":
+            raise RecordsError(f"--db {safe_url(parsed)}: an SQLite URL needs a file (sqlite:///FILE)")
+        return parsed.set(drivername="sqlite")
+    if backend in ("postgresql", "postgres"):
+        if not parsed.database:
+            raise RecordsError(f"--db {safe_url(parsed)}: a PostgreSQL URL needs a database name (…/DB)")
+        return parsed.set(drivername="postgresql+psycopg")
+    raise RecordsError(f"--db {safe_url(parsed)}: unsupported database {backend!r} (sqlite or postgresql)")
+
+
+def safe_url(url: URL | str) -> str:
+    """The URL as it may be shown: no password, not even in the query string."""
+    if isinstance(url, str):
+        try:
+            parsed = make_url(url)
+        except ArgumentError:
+            return _mask_raw(url)
+    else:
+        parsed = url
+    return parsed.difference_update_query(["password"]).render_as_string(hide_password=True)
+
+
+def _mask_raw(text: str) -> str:
+    """An unparsable URL: drop whatever sits between '//' … ':' and '@'."""
+    head, sep, rest = text.partition("://")
+    if sep and "@" in rest:
+        userinfo, _, host = rest.rpartition("@")
+        return f"{head}://{userinfo.split(':', 1)[0]}:***@{host}" if ":" in userinfo else text
+    return text
+
+
+def secrets_for(url: URL) -> list[str]:
+    """Every password the driver may use for this URL: in the URL, its query, PGPASSWORD
+    and the .pgpass file (PGPASSFILE or ~/.pgpass)."""
+    found = [url.password, url.query.get("password"), os.environ.get("PGPASSWORD")]
+    passfile = Path(os.environ.get("PGPASSFILE") or Path.home() / ".pgpass")
+    try:
+        for line in passfile.read_text().splitlines():
+            if line.strip() and not line.lstrip().startswith("#"):
+                fields = line.replace("\\\\", "\0").replace("\\:", "\1").split(":")
+                if len(fields) >= 5:
+                    found.append(":".join(fields[4:]).replace("\1", ":").replace("\0", "\\"))
+    except (OSError, UnicodeDecodeError):
+        pass
+    out: list[str] = []
+    for s in found:
+        if isinstance(s, tuple):
+            s = s[0] if s else None
+        if s:
+            out += [str(s), quote(str(s), safe=""), quote_plus(str(s))]
+    return sorted(set(out), key=len, reverse=True)
+
+
+def redact(message: str, secrets: list[str]) -> str:
+    for s in secrets:
+        message = message.replace(s, "***")
+    return message
+
+
+# ----- the database -----------------------------------------------------------------------------------------
+class Records:
+    """An open records database.  :meth:`add` is the only way in; nothing changes or deletes."""
+
+    def __init__(self, engine: Engine, url: URL) -> None:
+        self.engine, self.url = engine, url
+        self.name = safe_url(url)
+        self._secrets = secrets_for(url)
+
+    @classmethod
+    def open(cls, url: str) -> Records:
+        parsed = parse_url(url)
+        if parsed.get_backend_name() == "sqlite":
+            Path(str(parsed.database)).parent.mkdir(parents=True, exist_ok=True)
+            engine = create_engine(parsed, connect_args={"timeout": SQLITE_WAIT_S})
+            event.listen(engine, "connect", _sqlite_connect)
+            event.listen(engine, "begin", lambda conn: conn.exec_driver_sql("BEGIN IMMEDIATE"))
+        else:
+            engine = create_engine(parsed, pool_pre_ping=True)
+        records = cls(engine, parsed)
+        with records._errors("cannot be opened"):
+            records._ensure_schema()
+        return records
+
+    def close(self) -> None:
+        self.engine.dispose()
+
+    @contextmanager
+    def _errors(self, what: str) -> Iterator[None]:
+        try:
+            yield
+        except SQLAlchemyError as exc:
+            reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()
+            first = reason[0] if reason else type(exc).__name__
+            raise RecordsError(redact(f"records database {self.name} {what}: {first}", self._secrets)) from None
+
+    def _ensure_schema(self) -> None:
+        with self.engine.begin() as conn:
+            if conn.dialect.name == "postgresql":
+                conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": PG_SCHEMA_LOCK})
+            if not inspect(conn).has_table("qc_schema"):
+                metadata.create_all(conn)
+                _create_triggers(conn)
+                conn.execute(schema_table.insert().values(version=SCHEMA_VERSION))
+                return
+            versions = conn.execute(select(schema_table.c.version)).scalars().all()
+        if versions != [SCHEMA_VERSION]:
+            raise RecordsError(f"records database {self.name} has schema version "
+                               f"{', '.join(map(str, versions)) or 'none'}; this program reads and writes "
+                               f"version {SCHEMA_VERSION}")
+
+    def add(self, record: QcRecord) -> None:
+        """The record and its characteristics, in one transaction."""
+        with self._errors("refused the record"), self.engine.begin() as conn:
+            row = {k: v for k, v in record.__dict__.items() if k != "characteristics"}
+            row["files"] = json.dumps(record.files, sort_keys=True)
+            row["diagnosis"] = json.dumps(list(record.diagnosis))
+            row["notes"] = json.dumps(list(record.notes))
+            key = conn.execute(record_table.insert().values(**row)).inserted_primary_key
+            assert key is not None  # an INSERT of one row
+            record_id = key[0]
+            if record.characteristics:
+                conn.execute(characteristic_table.insert(), [
+                    {"record_id": record_id, "position": i, **c.__dict__}
+                    for i, c in enumerate(record.characteristics)])
+
+    def find(self, serial: str | None = None, since: str | None = None) -> list[QcRecord]:
+        """Records in the order they were written, optionally of one serial number and
+        measured on or after ``since`` (an ISO date or time, UTC)."""
+        query = select(record_table).order_by(record_table.c.id)
+        if serial is not None:
+            query = query.where(record_table.c.serial == serial)
+        if since is not None:
+            query = query.where(record_table.c.started >= since)
+        with self._errors("cannot be read"), self.engine.connect() as conn:
+            rows = conn.execute(query).mappings().all()
+            chars: dict[int, list[CharacteristicRecord]] = {}
+            ids = [r["id"] for r in rows]
+            if ids:
+                for c in conn.execute(select(characteristic_table)
+                                      .where(characteristic_table.c.record_id.in_(ids))
+                                      .order_by(characteristic_table.c.record_id,
+                                                characteristic_table.c.position)).mappings():
+                    chars.setdefault(c["record_id"], []).append(CharacteristicRecord(
+                        **{k: c[k] for k in CharacteristicRecord.__dataclass_fields__}))
+        return [_record(r, tuple(chars.get(r["id"], []))) for r in rows]
+
+    def first_for_data(self, data_sha256: str) -> QcRecord | None:
+        query = select(record_table).where(record_table.c.data_sha256 == data_sha256).order_by(record_table.c.id)
+        with self._errors("cannot be read"), self.engine.connect() as conn:
+            row = conn.execute(query.limit(1)).mappings().first()
+        return _record(row, ()) if row else None
+
+
+def _record(row: Any, characteristics: tuple[CharacteristicRecord, ...]) -> QcRecord:
+    fields = {k: row[k] for k in QcRecord.__dataclass_fields__ if k in row}
+    fields["files"] = json.loads(row["files"])
+    fields["diagnosis"] = tuple(json.loads(row["diagnosis"]))
+    fields["notes"] = tuple(json.loads(row["notes"]))
+    return QcRecord(characteristics=characteristics, **{k: v for k, v in fields.items() if k != "characteristics"})
+
+
+def _sqlite_connect(dbapi_connection: Any, _record: Any) -> None:
+    # The driver's own transaction handling off: the "begin" listener says BEGIN IMMEDIATE.
+    dbapi_connection.isolation_level = None
+    cursor = dbapi_connection.cursor()
+    cursor.execute(f"PRAGMA busy_timeout = {int(SQLITE_WAIT_S * 1000)}")
+    cursor.execute("PRAGMA journal_mode = WAL")
+    cursor.execute("PRAGMA foreign_keys = ON")
+    cursor.close()
+
+
+def _create_triggers(conn: Connection) -> None:
+    """Records are never changed or deleted, whoever connects."""
+    if conn.dialect.name == "sqlite":
+        for table in IMMUTABLE:
+            for action in ("UPDATE", "DELETE"):
+                conn.exec_driver_sql(
+                    f"CREATE TRIGGER {table}_no_{action.lower()} BEFORE {action} ON {table} "
+                    f"BEGIN SELECT RAISE(ABORT, 'QC records are never changed or deleted'); END")
+    else:
+        conn.exec_driver_sql(
+            "CREATE OR REPLACE FUNCTION qc_refuse_change() RETURNS trigger LANGUAGE plpgsql AS "
+            "$$ BEGIN RAISE EXCEPTION 'QC records are never changed or deleted'; END $$")
+        for table in IMMUTABLE:
+            conn.exec_driver_sql(f"CREATE TRIGGER {table}_immutable BEFORE UPDATE OR DELETE OR TRUNCATE ON {table} "
+                                 "FOR EACH STATEMENT EXECUTE FUNCTION qc_refuse_change()")

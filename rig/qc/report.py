@@ -1,0 +1,167 @@
+"""The unit's QC report: one self-contained HTML page (figures as PNG data URIs), for the
+operator at the station and for the quality engineer later.
+
+Top to bottom: the verdict, large; the likely causes or the remedy; every characteristic
+on its tolerance band with value ± k·σ; the work loops measured against the identified
+model; the traceability data of the record.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import math
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402 — after the backend is chosen
+import numpy as np  # noqa: E402
+
+from identify.folding import fold  # noqa: E402
+from rig.qc.evaluate import Evaluation  # noqa: E402
+from rig.qc.records import QcRecord  # noqa: E402
+from rig.qc.spec import Spec  # noqa: E402
+
+COLOURS = {"PASS": "#1a7f37", "FAIL": "#c62828", "INCONCLUSIVE": "#b26a00", None: "#555555"}
+TOLERANCE_ZONE, CONFORMANCE_ZONE = "#f3d9a4", "#b7e1c1"
+
+
+def _png(fig: plt.Figure) -> str:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode()
+
+
+def band_figure(record: QcRecord, spec: Spec) -> str:
+    """Each characteristic on its band: the tolerance zone, the zone where a value passes
+    with its guard band (limits moved in by k·σ), the nominal, and value ± k·σ."""
+    rows = record.characteristics
+    fig, axes = plt.subplots(len(rows), 1, figsize=(9.0, 1.25 * len(rows) + 0.4), squeeze=False)
+    k = spec.k
+    for ax, c in zip(axes[:, 0], rows, strict=True):
+        low = c.low if c.low is not None else c.nominal - 2 * abs(c.high - c.nominal)  # type: ignore[operator]
+        high = c.high if c.high is not None else c.nominal + 2 * abs(c.nominal - c.low)  # type: ignore[operator]
+        span = high - low
+        values = [low, high] + ([c.value - k * c.std, c.value + k * c.std] if c.value is not None and c.std else [])
+        left, right = min(values) - 0.15 * span, max(values) + 0.15 * span
+        ax.axvspan(low, high, color=TOLERANCE_ZONE, label="tolerance")
+        if c.std is not None and high - low > 2 * k * c.std:
+            ax.axvspan(low + k * c.std, high - k * c.std, color=CONFORMANCE_ZONE, label=f"PASS zone (±{k:g}σ in)")
+        ax.axvline(c.nominal, color="#444444", lw=1, ls="--", label="nominal")
+        if c.value is not None and c.std is not None:
+            ax.errorbar([c.value], [0.0], xerr=[[k * c.std], [k * c.std]], fmt="o", ms=7, capsize=6, lw=2,
+                        color=COLOURS.get(c.outcome, "#555555"))
+        ax.set_xlim(left, right)
+        ax.set_ylim(-1, 1)
+        ax.set_yticks([])
+        ax.set_title(f"{c.name}: {c.outcome}", loc="left", fontsize=10, color=COLOURS.get(c.outcome, "#555555"))
+        ax.set_xlabel(f"[{c.unit}]", fontsize=9, labelpad=1)
+        ax.tick_params(axis="x", labelsize=9)
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="upper right", fontsize=8, ncol=3, frameon=False)
+    fig.tight_layout(rect=(0, 0, 1, 0.97))
+    return _png(fig)
+
+
+def loops_figure(evaluation: Evaluation) -> str | None:
+    """Force against stroke per experiment: measured (folded over the captured periods)
+    and the model's stroke response to the measured force."""
+    exps = evaluation.experiments
+    if not exps:
+        return None
+    fig, axes = plt.subplots(1, len(exps), figsize=(3.6 * len(exps), 3.8), squeeze=False)
+    fits = {e.label: e for e in evaluation.fit.experiments} if evaluation.fit else {}
+    n = evaluation.fit.n_grid if evaluation.fit else 800
+    for ax, e in zip(axes[0], exps, strict=True):
+        folded = fold(e.label, e.time_s, {"stroke_mm": e.column("stroke_mm"), "force_N": e.column("force_N")},
+                      e.frequency_hz, n)
+        force_kn = np.append(folded.values["force_N"], folded.values["force_N"][0]) / 1e3
+        stroke = np.append(folded.values["stroke_mm"], folded.values["stroke_mm"][0])
+        ax.plot(stroke, force_kn, color="#8fb3e8", lw=4.0, label="measured")
+        fit = fits.get(e.label)
+        if fit is not None:      # the model's stroke under the measured force: drawn over the measurement
+            model = np.append(fit.predicted["stroke_mm"], fit.predicted["stroke_mm"][0])
+            ax.plot(model, force_kn, color="#b34700", lw=1.1, ls="--", label="identified model")
+        ax.set_title(f"{e.label}: {e.meta.get('static_position_mm', '?')} ± {e.meta.get('amplitude_mm', '?')} mm, "
+                     f"{e.frequency_hz:g} Hz", fontsize=10)
+        ax.set_xlabel("stroke [mm]", fontsize=10)
+        ax.set_ylabel("axle force [kN]", fontsize=10)
+        ax.tick_params(labelsize=9)
+        ax.grid(alpha=0.3)
+    axes[0, 0].legend(fontsize=9, loc="upper left")
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _fmt(x: float | None, digits: int = 5) -> str:
+    return "—" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}g}"
+
+
+def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -> str:
+    e = html.escape
+    verdict = record.verdict or f"no verdict ({record.status})"
+    colour = COLOURS.get(record.verdict, COLOURS[None])
+    descriptions = {c.name: c.description for c in spec.characteristics}
+    rows = []
+    for c in record.characteristics:
+        value = "—" if c.value is None else f"{_fmt(c.value)} ± {_fmt(spec.k * c.std if c.std else None, 2)}"
+        limits = f"{_fmt(c.low)} … {_fmt(c.high)}"
+        rows.append(
+            f"<tr><td><b>{e(c.name)}</b><br><small>{e(descriptions.get(c.name, ''))}</small></td>"
+            f"<td class=num>{value} {e(c.unit)}</td><td class=num>{_fmt(c.std_fit, 2)} / {_fmt(c.u_cal, 2)}</td>"
+            f"<td class=num>{limits} {e(c.unit)}</td>"
+            f"<td style='color:{COLOURS.get(c.outcome, '#555')};font-weight:bold'>{e(c.outcome)}</td></tr>")
+    findings = ""
+    if record.diagnosis:
+        findings += "<div class=box><h2>Likely cause</h2><ul>" + "".join(
+            f"<li>{e(d)}</li>" for d in record.diagnosis) + "</ul></div>"
+    if record.remedy:
+        findings += f"<div class=box><h2>Remedy</h2><p>{e(record.remedy)}</p></div>"
+    figures = ""
+    if record.characteristics:
+        bands = band_figure(record, spec)
+        figures += f"<h2>Characteristics on their tolerance bands</h2><img alt='bands' src='{bands}'>"
+    loops = loops_figure(evaluation) if evaluation is not None else None
+    if loops:
+        figures += f"<h2>Work loops: measured and identified model</h2><img alt='work loops' src='{loops}'>"
+    trace = [("serial", record.serial), ("operator", record.operator), ("rig", record.rig),
+             ("measured", f"{record.started or '—'} … {record.finished or '—'}"), ("judged", record.judged),
+             ("status", record.status), ("software", record.software),
+             ("spec", f"{record.spec_name} {record.spec_version}"), ("spec sha256", record.spec_sha256),
+             ("calibration sha256", record.calibration_sha256 or "—"),
+             ("register map sha256", record.register_map_sha256 or "—"),
+             ("session", record.session), ("record", record.uid), ("re-judges record", record.rejudges or "—")]
+    trace += [(f"sha256 {name}", digest) for name, digest in sorted(record.files.items())]
+    notes = "".join(f"<li>{e(n)}</li>" for n in record.notes)
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8">
+<title>QC {e(record.serial)}: {e(verdict)}</title>
+<style>
+body {{ font-family: "DejaVu Sans", Arial, sans-serif; margin: 24px auto; max-width: 1000px; color: #222; }}
+.verdict {{ font-size: 56px; font-weight: bold; color: #fff; background: {colour}; padding: 10px 24px;
+           border-radius: 8px; display: inline-block; }}
+h1 {{ font-size: 22px; margin: 0 0 10px 0; }} h2 {{ font-size: 17px; margin: 22px 0 6px 0; }}
+table {{ border-collapse: collapse; width: 100%; font-size: 13px; }}
+td, th {{ border-bottom: 1px solid #ddd; padding: 5px 8px; text-align: left; vertical-align: top; }}
+td.num {{ text-align: right; white-space: nowrap; font-variant-numeric: tabular-nums; }}
+.box {{ border-left: 5px solid {colour}; background: #f7f7f7; padding: 4px 14px; margin: 14px 0; }}
+img {{ max-width: 100%; }} .trace td {{ font-family: "DejaVu Sans Mono", monospace; font-size: 11px;
+  word-break: break-all; }}
+</style></head><body>
+<h1>QC report — unit {e(record.serial)}</h1>
+<div class="verdict">{e(verdict)}</div>
+<p>Spec <b>{e(record.spec_name)} {e(record.spec_version)}</b> ({e(spec.title)}); guard band k = {spec.k:g}:
+PASS when value ± kσ lies inside the limits, FAIL when value ∓ kσ lies outside (ISO 14253-1).</p>
+{findings}
+<h2>Characteristics</h2>
+<table><tr><th>characteristic</th><th>value ± kσ</th><th>σ fit / cal</th><th>limits</th><th>outcome</th></tr>
+{''.join(rows) or '<tr><td colspan=5>none: the run ended without a verdict</td></tr>'}</table>
+{figures}
+{'<h2>Notes</h2><ul>' + notes + '</ul>' if notes else ''}
+<h2>Traceability</h2>
+<table class="trace">{''.join(f'<tr><th>{e(k)}</th><td>{e(str(v))}</td></tr>' for k, v in trace)}</table>
+</body></html>
+"""

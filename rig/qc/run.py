@@ -1,0 +1,195 @@
+"""``qc run`` and ``qc judge``: a QC run is a rig session (rig.run: the same checks before
+anything moves, the same safe stop whatever ends it) followed by identification and
+judging; a re-judgement is the second half alone, on stored data.
+
+Exit status: 0 PASS, 1 FAIL, 4 INCONCLUSIVE (retest with more periods), 2 bad input
+(nothing moved, nothing written), 3 aborted after the safe stop (status ABORTED, no
+verdict), 130 interrupted after the safe stop (ABORTED too), 70 an internal error after
+the safe stop (status ERROR, no verdict; traceback shown).
+
+The verdict is written once, at the end, in one transaction: a run killed on the way
+leaves no verdict behind.  The database is opened before the rig moves, so a bad URL or
+a wrong password costs no rig time.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import getpass
+import json
+import shlex
+import socket
+import uuid
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+from rich.console import Console
+
+from identify.files import atomic_write_bytes
+from rig.errors import BadInput
+from rig.qc.characteristics import check_model
+from rig.qc.evaluate import Evaluation, evaluate
+from rig.qc.judge import Outcome
+from rig.qc.records import CharacteristicRecord, QcRecord, Records, default_url
+from rig.qc.report import render_report
+from rig.qc.spec import Spec, load_spec
+from rig.qc.trace import now_utc, software_version, trace_session
+from rig.run import EXIT_INTERRUPTED, EXIT_OK, RunOptions, execute, prepare
+
+EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
+
+
+@dataclass
+class QcOptions:
+    spec: str
+    serial: str
+    shaker: str
+    daq: str
+    out: Path                       # the station's folder: one session folder per unit, and the default database
+    db: str | None = None
+    operator: str | None = None
+    rig_id: str | None = None
+    periods: int | None = None      # the remedy for INCONCLUSIVE: more periods than the spec's
+    reset_alarm: bool = False
+    rig_config: str | None = None
+    calibration: str | None = None
+    register_map: str | None = None
+
+
+def qc_run(opt: QcOptions, console: Console) -> int:
+    spec = load_spec(opt.spec)
+    spec.check_serial(opt.serial)
+    check_model(spec)
+    operator, rig_id = opt.operator or getpass.getuser(), opt.rig_id or socket.gethostname()
+    stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
+    run_options = RunOptions(plan=spec.source, shaker=opt.shaker, daq=opt.daq,
+                             out=Path(opt.out) / f"{opt.serial}-{stamp}", periods=opt.periods,
+                             reset_alarm=opt.reset_alarm, rig_config=opt.rig_config, calibration=opt.calibration,
+                             register_map=opt.register_map, unit_serial=opt.serial)
+    prep = prepare(run_options)
+    prep = replace(prep, config=replace(prep.config, steady_state=spec.steady_state))
+    records = Records.open(opt.db or default_url(opt.out))
+    try:
+        console.print(f"QC {spec.name} {spec.version} on unit {opt.serial}: records in {records.name}", highlight=False)
+        started = now_utc()
+        result = execute(prep, console)
+        finished = now_utc()
+        session = result.session.path
+        identity = dict(serial=opt.serial, operator=operator, rig=rig_id, started=started, finished=finished)
+        if result.error is not None:
+            _store(records, _unjudged(spec, session, "ERROR", [f"internal error: {result.error!r}"], **identity), spec)
+            raise result.error
+        if result.exit_code != EXIT_OK:
+            _store(records, _unjudged(spec, session, "ABORTED", [f"session {result.status}"], **identity), spec)
+            console.print(f"[red]QC run ABORTED: session {result.status}; no verdict[/red]", highlight=False)
+            return result.exit_code
+        try:
+            evaluation = evaluate(spec, session)
+        except BaseException as exc:
+            status = "ABORTED" if isinstance(exc, KeyboardInterrupt) else "ERROR"
+            _store(records, _unjudged(spec, session, status, [f"judging ended: {exc!r}"], **identity), spec)
+            if isinstance(exc, KeyboardInterrupt):
+                return EXIT_INTERRUPTED
+            raise
+        retest = shlex.join(["python", "-m", "rig", "qc", "run", "--spec", opt.spec, "--serial", opt.serial,
+                             "--shaker", opt.shaker, "--daq", opt.daq, "--out", str(opt.out),
+                             "--periods", str(spec.retest_periods())])
+        record = _judged(spec, session, evaluation, retest, rejudges=None, **identity)
+        return _conclude(records, record, spec, evaluation, session / "qc-report.html", session / "qc-record.json")
+    finally:
+        records.close()
+
+
+def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str | None) -> int:
+    """Judge stored data again (a new spec, a new model): a new record that refers to the first."""
+    spec = load_spec(spec_source)
+    check_model(spec)
+    session = Path(session_dir).resolve()
+    if not (session / "dataset.json").is_file():
+        raise BadInput(f"{session_dir}: not a session or dataset folder (no dataset.json)")
+    records = Records.open(db or default_url(session.parent))
+    try:
+        trace = trace_session(session)
+        first = records.first_for_data(trace.data_sha256)
+        manifest = json.loads((session / "dataset.json").read_text())
+        serial = first.serial if first else str(manifest.get("unit", {}).get("serial", "unknown"))
+        rig = first.rig if first else str(manifest.get("source", {}).get("generator", "unknown"))
+        evaluation = evaluate(spec, session)
+        retest = f"retest the unit with more periods (qc run … --periods {spec.retest_periods()})"
+        record = _judged(spec, session, evaluation, retest, rejudges=first.uid if first else None, serial=serial,
+                         operator=first.operator if first else operator or getpass.getuser(), rig=rig,
+                         started=trace.started, finished=trace.finished)
+        tag = f"{record.judged.replace(':', '').replace('-', '')[:15]}-{record.uid[:8]}"
+        return _conclude(records, record, spec, evaluation, session / f"qc-report-{tag}.html",
+                         session / f"qc-record-{tag}.json")
+    finally:
+        records.close()
+
+
+def _conclude(records: Records, record: QcRecord, spec: Spec, evaluation: Evaluation, report: Path,
+              record_file: Path) -> int:
+    """The report rendered first (a failure there costs no record), then the record
+    stored, then the files: a killed process leaves a verdict in the database or nowhere."""
+    html = render_report(record, spec, evaluation)
+    records.add(record)
+    atomic_write_bytes(report, html.encode())
+    atomic_write_bytes(record_file, (json.dumps(_document(record), indent=2) + "\n").encode())
+    _print_summary(record, spec.k, report, records.name)
+    assert record.verdict is not None  # a judged record
+    return EXIT_BY_VERDICT[Outcome(record.verdict)]
+
+
+def _document(record: QcRecord) -> dict:
+    doc = record.to_json()
+    doc.update(uid=record.uid, judged=record.judged, software=record.software, files=record.files,
+               calibration_sha256=record.calibration_sha256, register_map_sha256=record.register_map_sha256,
+               diagnosis=list(record.diagnosis), remedy=record.remedy, notes=list(record.notes),
+               rejudges=record.rejudges)
+    return doc
+
+
+def _store(records: Records, record: QcRecord, spec: Spec) -> None:
+    """A run without a verdict: on record all the same, with a report that says why."""
+    records.add(record)
+    atomic_write_bytes(Path(record.session) / "qc-report.html", render_report(record, spec, None).encode())
+    atomic_write_bytes(Path(record.session) / "qc-record.json",
+                       (json.dumps(_document(record), indent=2) + "\n").encode())
+
+
+def _base(spec: Spec, session: Path, **identity: str | None) -> dict:
+    trace = trace_session(session)
+    return dict(uid=str(uuid.uuid4()), judged=now_utc(), software=software_version(), spec_name=spec.name,
+                spec_version=spec.version, spec_sha256=spec.sha256, calibration_sha256=trace.calibration_sha256,
+                register_map_sha256=trace.register_map_sha256, session=trace.path, data_sha256=trace.data_sha256,
+                files=trace.files, **identity)
+
+
+def _unjudged(spec: Spec, session: Path, status: str, notes: list[str], **identity: str | None) -> QcRecord:
+    return QcRecord(**_base(spec, session, **identity), verdict=None, status=status, characteristics=(),
+                    notes=tuple(notes))
+
+
+def _judged(spec: Spec, session: Path, evaluation: Evaluation, retest: str, rejudges: str | None,
+            **identity: str | None) -> QcRecord:
+    j = evaluation.judgement
+    characteristics = tuple(
+        CharacteristicRecord(c.name, c.measured.unit, c.measured.value, c.measured.std, c.measured.std_fit,
+                             c.measured.u_cal, c.low, c.high, c.nominal, c.outcome.value)
+        for c in j.characteristics)
+    return QcRecord(**_base(spec, session, **identity), verdict=j.verdict.value, status="COMPLETE",
+                    characteristics=characteristics, diagnosis=tuple(j.diagnosis),
+                    remedy=retest if j.verdict is Outcome.INCONCLUSIVE else None, notes=tuple(evaluation.notes),
+                    rejudges=rejudges)
+
+
+def _print_summary(record: QcRecord, k: float, report: Path, database: str) -> None:
+    print(f"{record.serial}: {record.verdict}  (spec {record.spec_name} {record.spec_version}; value ± {k:g}σ)")
+    for c in record.characteristics:
+        value = "—" if c.value is None or c.std is None else f"{c.value:.5g} ± {k * c.std:.2g}"
+        limits = f"[{'-∞' if c.low is None else f'{c.low:g}'} … {'∞' if c.high is None else f'{c.high:g}'}]"
+        print(f"  {c.outcome:<12} {c.name:<24} {value} {c.unit}  limits {limits}")
+    for line in record.diagnosis:
+        print(f"  likely cause: {line}")
+    if record.remedy:
+        print(f"  remedy: {record.remedy}")
+    print(f"report {report}; record {record.uid} in {database}")

@@ -1,0 +1,84 @@
+"""Traceability: what a record says about where its verdict came from — the software,
+the measured files with their sha256, the rig's calibration and register map as used,
+and when the measurement was made."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import subprocess
+from dataclasses import dataclass
+from functools import cache
+from importlib import metadata
+from pathlib import Path
+
+JOURNAL = "journal/daq-raw.bin"
+CALIBRATION = "config/daq-calibration.toml"
+REGISTER_MAP = "config/register-map.toml"
+
+
+def now_utc() -> str:
+    return _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")
+
+
+def as_utc(stamp: str | None) -> str | None:
+    """A session.json time (local, naive) as ISO 8601 UTC."""
+    if not stamp:
+        return None
+    t = _dt.datetime.fromisoformat(stamp)
+    return (t if t.tzinfo else t.astimezone()).astimezone(_dt.UTC).isoformat(timespec="seconds")
+
+
+@cache
+def software_version() -> str:
+    """The package version and, run from a git checkout, its commit (+ ``.dirty``)."""
+    try:
+        version = metadata.version("damper-rig")
+    except metadata.PackageNotFoundError:
+        version = "unknown"
+    here = Path(__file__).resolve().parent
+    try:
+        commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=here, capture_output=True,
+                                text=True, timeout=5).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
+                               capture_output=True, text=True, timeout=5).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return version
+    return f"{version}+g{commit}{'.dirty' if dirty else ''}" if commit else version
+
+
+def sha256(path: Path) -> str | None:
+    if not path.is_file():
+        return None
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+@dataclass(frozen=True)
+class SessionTrace:
+    path: str
+    files: dict[str, str]                 # relative path → sha256: dataset.json, every CSV, the raw journal
+    data_sha256: str                      # the measured data's fingerprint (dataset.json and the CSVs)
+    calibration_sha256: str | None
+    register_map_sha256: str | None
+    started: str | None
+    finished: str | None
+
+
+def trace_session(session: Path) -> SessionTrace:
+    session = Path(session).resolve()
+    manifest = json.loads((session / "dataset.json").read_text())
+    data = ["dataset.json"] + [e["file"] for e in manifest["experiments"]]
+    files = {name: digest for name in data if (digest := sha256(session / name))}
+    journal = sha256(session / JOURNAL)
+    fingerprint = hashlib.sha256("".join(f"{n}:{files.get(n)}\n" for n in data).encode()).hexdigest()
+    if journal:
+        files[JOURNAL] = journal
+    meta_path = session / "session.json"
+    meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    return SessionTrace(str(session), files, fingerprint, sha256(session / CALIBRATION), sha256(session / REGISTER_MAP),
+                        as_utc(meta.get("started")), as_utc(meta.get("finished")))

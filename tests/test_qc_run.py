@@ -1,0 +1,129 @@
+"""``qc run`` end to end against ``python -m simulator serve``: a good unit passes with the
+default spec; an aborted run is on record without a verdict; two runs writing to one
+SQLite file both land; a run killed with SIGKILL leaves no verdict behind."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import re
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+from rig.qc.records import Records
+from rig.qc.spec import SPECS_DIR
+
+HISTORY_KEYS = {"serial", "verdict", "status", "spec", "characteristics", "started", "finished", "operator", "rig",
+                "session"}
+
+
+def qc_cmd(sim, out: Path, serial: str, *args: str) -> list[str]:
+    return [sys.executable, "-m", "rig", "qc", "run", "--serial", serial, "--shaker", sim.modbus_url, "--daq",
+            sim.daq_url, "--out", str(out), *args]
+
+
+def history(db: Path) -> list[dict]:
+    r = subprocess.run([sys.executable, "-m", "rig", "qc", "history", "--db", str(db), "--json"], capture_output=True,
+                       text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    return json.loads(r.stdout)
+
+
+def short_spec(tmp_path: Path) -> Path:
+    """The default spec with its fast experiment only and loose settling: a run of about
+    30 simulated seconds, for tests that are about the records, not the plan."""
+    text = (SPECS_DIR / "default.toml").read_text()
+    text, n = re.subn(r'\[\[experiment\]\]\nlabel = "[ls]"\n(?:[a-z_A-Z]+ = .*\n)+', "", text)
+    assert n == 2
+    for old, new in (("pressure_bar = 0.003", "pressure_bar = 0.5"), ("gas_temperature_C = 0.01",
+                                                                       "gas_temperature_C = 10.0"),
+                     ("force_N = 5.0", "force_N = 200.0"), ('version = "1.0.0"', 'version = "test"')):
+        assert old in text
+        text = text.replace(old, new)
+    path = tmp_path / "QC-short.toml"
+    path.write_text(text)
+    return path
+
+
+def test_a_good_unit_on_the_served_rig_passes_with_the_default_spec(virtual_rig, tmp_path):
+    sim = virtual_rig(unit="good", unit_seed=4, seed=3)
+    station = tmp_path / "station"
+    r = subprocess.run(qc_cmd(sim, station, "SN-0042", "--operator", "alice", "--rig-id", "rig-7"),
+                       capture_output=True, text=True, timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.startswith("SN-0042: PASS")
+
+    (doc,) = history(station / "qc-records.sqlite")
+    assert set(doc) == HISTORY_KEYS
+    assert (doc["verdict"], doc["status"], doc["operator"], doc["rig"]) == ("PASS", "COMPLETE", "alice", "rig-7")
+    assert doc["spec"]["name"] == "default" and \
+        doc["spec"]["sha256"] == hashlib.sha256((SPECS_DIR / "default.toml").read_bytes()).hexdigest()
+    assert list(doc["characteristics"]) == ["gas_precharge_bar", "damping_force_0.3_N", "friction_10bar_N",
+                                            "dissipated_energy_J", "drop_peak_force_kN"]
+    assert all(c["outcome"] == "PASS" and c["std"] > 0 for c in doc["characteristics"].values())
+    session = Path(doc["session"])
+    assert session.parent == station.resolve() and session.name.startswith("SN-0042-")
+    assert json.loads((session / "session.json").read_text())["status"] == "complete"
+
+    (record,) = Records.open(str(station / "qc-records.sqlite")).find()
+    for name, digest in record.files.items():
+        assert hashlib.sha256((session / name).read_bytes()).hexdigest() == digest, name
+    assert {"journal/daq-raw.bin", "dataset.json"} <= set(record.files) and len(record.files) == 5
+    assert record.calibration_sha256 == hashlib.sha256(
+        (session / "config" / "daq-calibration.toml").read_bytes()).hexdigest()
+    assert (session / "config" / "plan.toml").read_text().rstrip() == (SPECS_DIR / "default.toml").read_text().rstrip()
+    report = (session / "qc-report.html").read_text()
+    assert ">PASS</div>" in report and record.uid in report and "work loops" in report.lower()
+
+
+def test_an_aborted_run_is_on_record_without_a_verdict(virtual_rig, tmp_path):
+    sim = virtual_rig(faults=["estop@run+3"])
+    station = tmp_path / "station"
+    r = subprocess.run(qc_cmd(sim, station, "SN-0007", "--spec", str(short_spec(tmp_path))), capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 3, r.stderr[-3000:]
+    assert "QC run ABORTED" in r.stderr and "no verdict" in r.stderr
+    (doc,) = history(station / "qc-records.sqlite")
+    assert (doc["verdict"], doc["status"], doc["characteristics"]) == (None, "ABORTED", {})
+    session = Path(doc["session"])
+    assert "safe stop done" in (session / "session.log").read_text()
+    report = (session / "qc-report.html").read_text()
+    assert "no verdict (ABORTED)" in report and "emergency stop" in report
+
+
+def test_two_runs_on_one_sqlite_file_both_land(virtual_rig, tmp_path):
+    spec = str(short_spec(tmp_path))
+    station = tmp_path / "station"
+    sims = [virtual_rig(unit="good", unit_seed=i) for i in (1, 2)]
+    procs = [subprocess.Popen(qc_cmd(sim, station, f"SN-100{i}", "--spec", spec), stdout=subprocess.PIPE,
+                              stderr=subprocess.PIPE, text=True) for i, sim in enumerate(sims)]
+    outcomes = [p.communicate(timeout=300) for p in procs]
+    # the short plan is not the one the spec's limits were made for: any verdict will do
+    verdicts = [{0: "PASS", 1: "FAIL", 4: "INCONCLUSIVE"}.get(p.returncode) for p in procs]
+    assert None not in verdicts, [err[-2000:] for _, err in outcomes]
+    docs = history(station / "qc-records.sqlite")
+    assert sorted((d["serial"], d["status"], d["verdict"]) for d in docs) == \
+        [("SN-1000", "COMPLETE", verdicts[0]), ("SN-1001", "COMPLETE", verdicts[1])]
+
+
+def test_a_run_killed_with_sigkill_leaves_no_verdict(virtual_rig, tmp_path):
+    sim = virtual_rig(unit="worn-seal")
+    station = tmp_path / "station"
+    proc = subprocess.Popen(qc_cmd(sim, station, "SN-0666", "--spec", str(short_spec(tmp_path))),
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stderr is not None
+    for line in proc.stderr:            # the run's own progress is the event: capture under way
+        if "capturing" in line:
+            break
+    else:
+        raise AssertionError(f"the run ended before capturing (exit {proc.wait()})")
+    os.kill(proc.pid, signal.SIGKILL)
+    proc.wait(timeout=30)
+    assert proc.returncode == -signal.SIGKILL
+    assert history(station / "qc-records.sqlite") == []
+    (session,) = [p for p in station.iterdir() if p.is_dir()]
+    assert json.loads((session / "session.json").read_text())["status"] == "running"
+    assert not list(session.glob("qc-*"))
