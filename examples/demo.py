@@ -46,6 +46,9 @@ def main() -> int:
 
     out = Path(args.out)
     if out.exists():
+        # Only an earlier demo's session is replaced: a folder of anything else is the user's.
+        if not (out / "session.json").is_file():
+            raise SystemExit(f"--out {out}: exists and is not a session folder; choose another --out")
         shutil.rmtree(out)
     sim_log = tempfile.TemporaryFile("w+")
     proc, modbus, daq = start_simulator(args.speed, args.seed, args.truth, sim_log)

@@ -172,9 +172,7 @@ class Rig:
     def move(self, position_mm: float, wait_s: float = 60.0) -> ShakerStatus:
         """Hydraulics on and move to a static position; returns once there."""
         shaker = self._links.shaker
-        if shaker.status().state == "OFF":
-            shaker.hydraulics(True)
-        shaker.move_to(position_mm * 1e-3)
+        shaker.move_to(position_mm * 1e-3, switch_on=True)
         return shaker.wait_for({"AT_STATIC"}, timeout_s=wait_s)
 
     def plan(self, plan: str | Path = "standard", *, out: str | Path, experiments: Sequence[str] | None = None,

@@ -18,6 +18,7 @@ shown) after the safe stop; 130 interrupted after the safe stop.
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 import time
 import traceback
@@ -91,10 +92,8 @@ def cmd_status(args: argparse.Namespace) -> int:
 def cmd_move(args: argparse.Namespace) -> int:
     shaker = _shaker(args)
     try:
-        if shaker.status().state == "OFF":
-            shaker.hydraulics(True)
         try:
-            shaker.move_to(args.position_mm * 1e-3)
+            shaker.move_to(args.position_mm * 1e-3, switch_on=True)
             if args.wait:
                 st = shaker.wait_for({"AT_STATIC"}, timeout_s=args.wait)
                 print(f"at static position {st.position_m * 1e3:.2f} mm")
@@ -118,9 +117,11 @@ def cmd_stop(args: argparse.Namespace) -> int:
     try:
         if args.reset:
             shaker.reset_alarm()
-        elif args.fade:
+        elif args.fade and shaker.status().state == "RUNNING":
             shaker.fade_out()
         else:
+            if args.fade:
+                print("nothing runs: no waveform to fade out; STOP sent", file=sys.stderr)
             shaker.stop()
         if args.hydraulics_off:
             shaker.hydraulics(False)
@@ -172,14 +173,15 @@ def cmd_gui(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m rig", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m rig", description=(__doc__ or "").replace("``", ""),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 
     def common(p: argparse.ArgumentParser, shaker_required: bool = True) -> None:
         p.add_argument("--shaker", required=shaker_required, help="tcp://HOST:PORT or rtu:///dev/DEVICE")
         p.add_argument("--register-map", help="register map TOML (default: the datasheet's)")
-        p.add_argument("--rig-config", help="limits and steady-state criteria TOML (default: config/rig-default.toml)")
+        p.add_argument("--rig-config",
+                       help="limits and steady-state criteria TOML (default: rig/config/rig-default.toml)")
 
     run = sub.add_parser("run", help="run a plan of experiments into a session folder")
     common(run, shaker_required=False)
@@ -250,6 +252,9 @@ def main(argv: list[str] | None = None) -> int:
     """The command line's one error boundary: known errors become one line and their
     exit status; anything else is a bug and keeps its traceback."""
     args = build_parser().parse_args(argv)
+    # The drivers say in their own words when a link fails; pymodbus's log lines would
+    # put a second, rawer message before the one that counts.
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     try:
         return int(args.func(args))
     except (BadInput, InputError) as exc:

@@ -20,6 +20,8 @@ from rig.settling import PAUSE_S, first_block_s, move_duration_s, predict_settli
 from rig.shaker import check_waveform
 from rig.tomlfile import read_toml
 
+EXPERIMENT_KEYS = {"label", "group", "static_mm", "amplitude_mm", "frequency_Hz", "waveform", "periods"}
+
 
 class PlanError(BadInput):
     """A plan that cannot be run (file problems, or limit violations listed one per line)."""
@@ -61,6 +63,10 @@ def load_plan(source: str) -> Plan:
     experiments, seen = [], set()
     for i, e in enumerate(entries, 1):
         where = f"plan {path}, experiment {i}"
+        unknown = sorted(set(e) - EXPERIMENT_KEYS)
+        if unknown:   # a misspelt optional key (period for periods) would silently take its default
+            raise PlanError(f"{where}: unknown key{'s' if len(unknown) > 1 else ''} {', '.join(unknown)} "
+                            f"(known: {', '.join(sorted(EXPERIMENT_KEYS))})")
         try:
             spec = ExperimentSpec(str(e["label"]), str(e.get("group", "")), float(e["static_mm"]),
                                   float(e["amplitude_mm"]), float(e["frequency_Hz"]), str(e.get("waveform", "sine")),

@@ -31,7 +31,7 @@ class ConsoleProgress:
         if not self.done_s:
             return ""
         left = (time.monotonic() - self.started) / self.done_s * (sum(self.estimates.values()) - self.done_s)
-        return f", session ETA {int(left // 60)}:{int(left % 60):02d}"
+        return f", session ETA {int(left // 60)}:{int(left % 60):02d} (min:s, wall clock)"
 
     def __call__(self, e: Event) -> None:
         if e.kind in ("experiment-done", "experiment-failed"):

@@ -140,6 +140,10 @@ def prepare(opt: RunOptions) -> Prepared:
         if stored.meta.get("status") == "complete":
             raise SessionError(f"{opt.out}: the session is complete; nothing to resume")
         meta = stored.meta
+        if "identify" in meta and not opt.identify:   # asked for when the session began
+            wanted = meta["identify"]
+            opt = replace(opt, identify=True, model=wanted["model"], estimate=wanted["estimate"],
+                          params=wanted["params"])
         plan = load_plan(meta["plan"]).select(meta["experiments"]).with_periods(meta["periods"])
         shaker_url = opt.shaker or meta.get("endpoints", {}).get("shaker")
         daq_url = opt.daq or meta.get("endpoints", {}).get("daq")
@@ -207,8 +211,12 @@ def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Ca
     return links
 
 
-def close_links(links: Links) -> None:
-    for close in (links.shaker.close, links.daq.close):
+def close_links(links: Links, *, disarm: bool = False) -> None:
+    """Close both links; with ``disarm``, first hand the controller back with its watchdog
+    off, as the manual commands leave it: a session that ends before it ran took nothing
+    over, and an armed watchdog would trip a rig left with its hydraulics on."""
+    steps = ([links.shaker.disable_watchdog] if disarm else []) + [links.shaker.close, links.daq.close]
+    for close in steps:
         try:
             close()
         except Exception:  # noqa: BLE001 — closing must not hide why the session ended
@@ -241,7 +249,10 @@ class SessionRunner:
                                      str(Path(opt.plan).resolve()),
                                      letters=[e.letter for e in plan.experiments], periods=opt.periods,
                                      date=opt.date, snapshot=snapshot, unit={"serial": opt.unit_serial},
-                                     endpoints={"shaker": prep.shaker_url, "daq": prep.daq_url})
+                                     endpoints={"shaker": prep.shaker_url, "daq": prep.daq_url},
+                                     identify={"model": opt.model, "estimate": opt.estimate,
+                                               "params": str(Path(opt.params).resolve()) if opt.params else None}
+                                     if opt.identify else None)
         self.links.daq.attach_journal(session.journal_path)
         return session
 
@@ -255,7 +266,8 @@ class SessionRunner:
                                        "cleared by --reset-alarm")
         if prep.stored is not None:
             kept = sorted(session.completed())
-            bus.publish("log", message=f"resuming: {len(kept)} experiments kept as captured "
+            plural = "s" if len(kept) != 1 else ""
+            bus.publish("log", message=f"resuming: {len(kept)} experiment{plural} kept as captured "
                                        f"({', '.join(kept) or 'none'}), {len(todo)} to do")
         self.state = "running"
         reason = "end of session"
@@ -348,7 +360,9 @@ def _interrupt_on_signals(stop: threading.Event) -> Iterator[list[int]]:
 def run_session(opt: RunOptions, console: Console | None = None) -> int:
     """``rig run``: prepare, connect, run, tear down; identification after a complete session."""
     console = console or Console(stderr=True, soft_wrap=True)  # log lines stay whole when piped
-    result = execute(prepare(opt), console)
+    prep = prepare(opt)
+    opt = prep.options                      # a resumed session brings its identification back
+    result = execute(prep, console)
     session = result.session
     if result.error is not None:
         raise result.error
@@ -370,6 +384,7 @@ def execute(prep: Prepared, console: Console) -> RunResult:
     bus = EventBus()
     links = connect(prep, on_event=lambda m: bus.publish("log", message=m))
     log: SessionLog | None = None
+    result: RunResult | None = None
     try:
         runner = SessionRunner(prep, links, bus, console)
         session = runner.open_session()
@@ -381,7 +396,7 @@ def execute(prep: Prepared, console: Console) -> RunResult:
         bus.subscribe(ConsoleProgress(console, estimates))
         result = runner.run(session)
     finally:
-        close_links(links)   # first: the links' threads publish to the log
+        close_links(links, disarm=result is None)   # first: the links' threads publish to the log
         bus.close()
         if log is not None:
             log.close()

@@ -66,16 +66,25 @@ class Session:
 
     @classmethod
     def create(cls, path: Path, *, plan_source: str, letters: list[str], periods: int | None, date: str | None,
-               snapshot: dict[str, str], unit: dict[str, str], endpoints: dict[str, str]) -> Session:
+               snapshot: dict[str, str], unit: dict[str, str], endpoints: dict[str, str],
+               identify: dict[str, Any] | None = None) -> Session:
+        """``identify``: the fit asked for after the capture, kept so that a resume after a
+        crash still does it."""
         path = Path(path)
         cls.check_new(path)
-        path.mkdir(parents=True, exist_ok=True)
-        for name, text in snapshot.items():
-            atomic_write_bytes(path / "config" / name, text.encode())
-        atomic_write_bytes(path / "config" / "software.json", (json.dumps(_software(), indent=2) + "\n").encode())
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+            for name, text in snapshot.items():
+                atomic_write_bytes(path / "config" / name, text.encode())
+            atomic_write_bytes(path / "config" / "software.json",
+                               (json.dumps(_software(), indent=2) + "\n").encode())
+        except OSError as exc:  # a disk that says no only when asked (read-only, full, /proc)
+            raise SessionError(f"--out {path}: cannot create the session folder ({exc.strerror or exc})") from None
         meta = {"plan": plan_source, "experiments": letters, "periods": periods,
                 "date": date or _dt.date.today().strftime("%y%m%d"), "status": "running",
                 "started": _dt.datetime.now().isoformat(timespec="seconds"), "endpoints": endpoints}
+        if identify:
+            meta["identify"] = identify
         manifest = {"format": FORMAT, "name": f"shaker session {meta['date']} ({plan_source} plan)", "unit": unit,
                     "experiments": []}
         session = cls(path, meta, manifest)

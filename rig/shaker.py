@@ -197,12 +197,16 @@ class Shaker:
     def reset_alarm(self) -> None:
         self._write_coil("alarm_reset", True)
 
-    def move_to(self, static_m: float) -> None:
-        """Move to a static position (state MOVING, then AT_STATIC)."""
+    def move_to(self, static_m: float, switch_on: bool = False) -> None:
+        """Move to a static position (state MOVING, then AT_STATIC); with ``switch_on``
+        the hydraulics are switched on first where they are off.  A position outside
+        the limits is refused before anything is sent, hydraulics included."""
         lim = self.limits
         if not lim.stroke_low_m <= static_m <= lim.stroke_high_m:
             raise LimitError(f"static position {static_m * 1e3:.2f} mm outside the stroke limits "
                              f"{lim.stroke_low_m * 1e3:.1f}…{lim.stroke_high_m * 1e3:.1f} mm")
+        if switch_on and self.status().state == "OFF":
+            self.hydraulics(True)
         self._write_holding({"static_position": static_m})
         self._write_holding({"mode": self.map.modes["static"]})
 

@@ -46,6 +46,10 @@ def read_plan(source: str) -> tuple[ExperimentSpec, ...]:
 
 
 def run_generate(args: argparse.Namespace) -> int:
+    if args.periods is not None and args.periods < 1:
+        raise UsageError(f"--periods {args.periods}: at least one whole period")
+    if args.rate <= 0:
+        raise UsageError(f"--rate {args.rate:g}: must be positive")
     letters = [x.strip() for x in args.experiments.split(",")] if args.experiments else None
     plan = select(read_plan(args.plan), letters)
     if not plan:
@@ -61,8 +65,8 @@ def run_generate(args: argparse.Namespace) -> int:
 
 def _host_port(text: str, option: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
-    if not sep or not port.isdigit():
-        raise UsageError(f"{option} {text!r}: expected HOST:PORT")
+    if not sep or not port.isdigit() or int(port) > 65535:
+        raise UsageError(f"{option} {text!r}: expected HOST:PORT with a port 0…65535")
     return host or "127.0.0.1", int(port)
 
 
@@ -88,7 +92,10 @@ def run_serve(args: argparse.Namespace) -> int:
         if any(f.kind == "disconnect" for f in faults):
             raise UsageError("--fault disconnect needs the TCP DAQ (a pseudo-terminal cannot be unplugged)")
     elif args.daq.startswith("tcp://"):
-        daq_port = TcpPort(*_host_port(args.daq[len("tcp://"):], "--daq"))
+        try:
+            daq_port = TcpPort(*_host_port(args.daq[len("tcp://"):], "--daq"))
+        except OSError as exc:
+            raise UsageError(f"cannot open the DAQ endpoint {args.daq}: {exc.strerror or exc}") from None
     else:
         raise UsageError(f"--daq {args.daq!r}: expected pty or tcp://HOST:PORT")
     rig = VirtualRig(damper, daq_port, speed=args.speed, seed=args.seed,
@@ -100,9 +107,10 @@ def run_serve(args: argparse.Namespace) -> int:
         signal.signal(sig, lambda *_: stop.set())
     try:
         rig.start()
-    except OSError as exc:
+    except (OSError, RuntimeError) as exc:   # pymodbus says a busy port with a RuntimeError
         daq_port.close()
-        raise UsageError(f"cannot open the Modbus endpoint {host}:{port}: {exc.strerror or exc}") from None
+        raise UsageError(f"cannot open the Modbus endpoint {host}:{port}: {getattr(exc, 'strerror', None) or exc} "
+                         "(is another simulator using it?)") from None
     print(f"modbus {f'rtu://{bridge.client_path}' if bridge else rig.modbus.url}", flush=True)
     print(f"daq {daq_port.url}", flush=True)
     try:

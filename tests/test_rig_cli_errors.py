@@ -80,6 +80,23 @@ def test_plan_outside_the_limits_lists_every_violation(tmp_path):
     assert not out.exists()
 
 
+def test_a_misspelt_key_in_a_plan_is_refused(tmp_path):
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[experiment]]\nlabel = "x"\nstatic_mm = 133\namplitude_mm = 5\nfrequency_Hz = 2\nperiod = 5\n')
+    r, out = rig_run(tmp_path, "--plan", str(plan))
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert f"plan {plan}, experiment 1: unknown key period (known: " in r.stderr, r.stderr
+    assert not out.exists()
+
+
+def test_an_out_folder_that_cannot_be_made_is_bad_input(virtual_rig, tmp_path):
+    sim = virtual_rig()
+    r = subprocess.run([sys.executable, "-m", "rig", "run", "--shaker", sim.modbus_url, "--daq", sim.daq_url,
+                        "--out", "/proc/no-session-here"], capture_output=True, text=True, timeout=60)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert "--out /proc/no-session-here: cannot create the session folder" in r.stderr
+
+
 def test_swapped_calibration_is_refused_before_anything_moves(tmp_path):
     r, out = rig_run(tmp_path, "--calibration", str(swapped_calibration(tmp_path)))
     assert r.returncode == 2 and "Traceback" not in r.stderr

@@ -109,8 +109,8 @@ def test_modbus_link_lost_mid_session_reconnects_and_continues(virtual_rig, tmp_
 def test_killed_mid_experiment_resume_finishes_and_keeps_earlier_files(virtual_rig, tmp_path):
     sim = virtual_rig()
     out = tmp_path / "killed"
-    proc = subprocess.Popen(rig_cmd(sim, out, "--experiments", "j,n"), stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(rig_cmd(sim, out, "--experiments", "j,n", "--identify", "--params", str(START)),
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     first = out / "261122j.csv"
     deadline = time.monotonic() + 120
     while not first.exists() and time.monotonic() < deadline:
@@ -152,9 +152,11 @@ def test_killed_mid_experiment_resume_finishes_and_keeps_earlier_files(virtual_r
     assert r.returncode == 0, r.stderr[-3000:]
     assert json.loads((out / "session.json").read_text())["status"] == "complete"
     assert "alarm latched before the session: watchdog; cleared by --reset-alarm" in (out / "session.log").read_text()
+    # The identification asked for when the session began is done when it completes.
+    assert json.loads((out / "RESULT.json").read_text())["converged"]
     assert hashlib.sha256(first.read_bytes()).hexdigest() == digest
     assert [e["label"] for e in manifest(out)["experiments"]] == ["261122j", "261122n"]
-    assert "resuming: 1 experiments kept" in (out / "session.log").read_text()
+    assert "resuming: 1 experiment kept" in (out / "session.log").read_text()
     data = np.loadtxt(out / "261122n.csv", delimiter=",", skiprows=1)
     assert len(data) == 3000
 
@@ -211,6 +213,9 @@ def test_manual_commands_and_monitor(virtual_rig):
         return subprocess.run([sys.executable, "-m", "rig", *args], capture_output=True, text=True, timeout=60)
 
     assert "state OFF" in rig("status", "--shaker", sim.modbus_url).stdout
+    refused = rig("move", "9999", "--shaker", sim.modbus_url)
+    assert refused.returncode == 2 and "outside the stroke limits" in refused.stderr
+    assert "state OFF" in rig("status", "--shaker", sim.modbus_url).stdout   # refused: not even the hydraulics
     moved = rig("move", "120", "--shaker", sim.modbus_url)
     assert moved.returncode == 0 and "at static position 120.00 mm" in moved.stdout, moved.stderr
     refused = rig("move", "400", "--shaker", sim.modbus_url)
