@@ -135,8 +135,10 @@ class Estimator:
                                        <= NOISE_REFRESH * self._prior_std(ev.theta)):
             ev.noise = last.noise
             return
-        ev.noise = np.array([d.grid_variance + self._propagated_variance(d, sol, d.theta(ev.theta))
-                             for d, sol in zip(self.data, ev.solutions)])
+        noise = np.array([d.grid_variance + self._propagated_variance(d, sol, d.theta(ev.theta))
+                          for d, sol in zip(self.data, ev.solutions)])
+        # A channel with no noise at all (a noise-free simulation) gives no weight shape.
+        ev.noise = noise if np.all(noise > 0) else None
         self._noise_at = ev
 
     def _propagated_variance(self, d: PeriodicData, sol: PeriodicSolution, theta: np.ndarray) -> np.ndarray:
@@ -332,8 +334,8 @@ class Estimator:
         A_inv = np.linalg.pinv(A)
         notes = []
         if ev.noise is None:
-            notes.append("measurement noise not estimable (a single sample per grid bin): standard deviations "
-                         "assume white residuals")
+            notes.append("measurement noise not estimable (a single sample per grid bin, or no scatter at all "
+                         "between periods): standard deviations assume white residuals")
             return A_inv, notes
         k = len(self.index)
         B = np.zeros((k, k))
