@@ -322,12 +322,13 @@ class Estimator:
             lam /= 2
         return None, lam, objective
 
-    def _covariance(self, ev: _Evaluation, v: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    def _covariance(self, ev: _Evaluation, v: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
         """Sandwich covariance A⁻¹·B·A⁻¹ of the estimates under the measurement noise:
         the folded output noise and the folded input noise propagated through the model
         (Hᵀ·W·S by the adjoint), each with the fold's exact grid covariance σ²·F·Fᵀ.
         Residuals well above what that noise explains mean systematic model error, which
-        a standard deviation cannot cover: they are reported as a warning.  Falls back to
+        that covariance does not cover: they are reported as a warning, and the
+        residual-based covariance is returned beside it (None otherwise).  Falls back to
         A⁻¹ (white residuals of the observed size) where the noise of a record cannot be
         estimated."""
         A, _ = self._normal_equations(ev, v)
@@ -336,7 +337,7 @@ class Estimator:
         if ev.noise is None:
             notes.append("measurement noise not estimable (a single sample per grid bin, or no scatter at all "
                          "between periods): standard deviations assume white residuals")
-            return A_inv, notes
+            return A_inv, None, notes
         k = len(self.index)
         B = np.zeros((k, k))
         for a, (d, sol, S) in enumerate(zip(self.data, ev.solutions, ev.sensitivities)):
@@ -346,19 +347,40 @@ class Estimator:
             Fu = d.folded.noise_factor_t(self.solver.input_adjoint(sol, d.theta(ev.theta), self.output_idx, Sw))
             B += np.einsum("jmk,j,jml->kl", Fu, d.input_noise_variance, Fu)
         excess = self._residual_variances(ev) / ev.noise  # (n_experiments, n_outputs)
+        flagged = []
         for b, o in enumerate(self.outputs):
             x = float(np.sqrt(excess[:, b].max()))
             if x > MODEL_ERROR_RATIO:
-                worst = self.data[int(np.argmax(excess[:, b]))].label
-                notes.append(f"{o}: residuals up to {x:.1f}x what the measurement noise explains (worst: "
-                             f"{worst}): systematic model or discretisation error; the standard deviations "
-                             f"cover the noise only")
-        return A_inv @ B @ A_inv, notes
+                flagged.append((o, x, self.data[int(np.argmax(excess[:, b]))].label))
+        residual_cov = self._residual_covariance(ev, v, A_inv) if flagged else None
+        beside = ("; residual-based standard deviations, which include it, are given beside them"
+                  if residual_cov is not None else
+                  f"; with {len(self.data)} experiments for {k} parameters no residual-based ones can be given")
+        for o, x, worst in flagged:
+            notes.append(f"{o}: residuals up to {x:.1f}x what the measurement noise explains (worst: {worst}): "
+                         f"systematic model or discretisation error; the standard deviations cover the noise only"
+                         + beside)
+        return A_inv @ B @ A_inv, residual_cov, notes
+
+    def _residual_covariance(self, ev: _Evaluation, v: np.ndarray, A_inv: np.ndarray) -> np.ndarray | None:
+        """Cluster sandwich A⁻¹·(E/(E−k))·Σ_α g_α·g_αᵀ·A⁻¹ over the E experiments, with
+        g_α = S_αᵀ·W·r_α the pull of experiment α's residuals on θ, whatever caused them.
+
+        Model error is systematic within an experiment but differs between experiments
+        (another frequency, another stroke range), so experiments are the independent
+        units and the scatter of their pulls measures what it does to θ.  It cannot be
+        formed from no more experiments than parameters (None)."""
+        E, k = len(self.data), len(self.index)
+        if E <= k:
+            return None
+        g = np.array([np.einsum("onk,on->k", S / v[a][:, None, None], r)
+                      for a, (S, r) in enumerate(zip(ev.sensitivities, ev.residuals))])  # (E, k)
+        return A_inv @ (g.T @ g * E / (E - k)) @ A_inv
 
     # ----------------------------------------------------------------------------------
     def _result(self, ev: _Evaluation, v: np.ndarray, converged: bool, iterations: int, message: str,
                 history: list[float], elapsed: float) -> FitResult:
-        cov, notes = self._covariance(ev, v)
+        cov, residual_cov, notes = self._covariance(ev, v)
         std = np.sqrt(np.abs(np.diag(cov)))
         with np.errstate(invalid="ignore", divide="ignore"):
             corr = cov / np.outer(std, std)
@@ -393,4 +415,5 @@ class Estimator:
             experiments=experiments, converged=converged, iterations=iterations, message=message,
             objective_history=history, elapsed_s=elapsed, n_grid=self.grid.n, scheme=self.grid.scheme,
             singular_values=singular, sensitivity_matrix=Sw, notes=notes,
+            std_residual=None if residual_cov is None else np.sqrt(np.abs(np.diag(residual_cov))),
         )

@@ -153,3 +153,28 @@ def test_reported_standard_deviations_match_the_monte_carlo_spread(generator):
     assert np.all((s.spread_over_sigma >= 0.7) & (s.spread_over_sigma <= 1.4)), figures
     assert np.all(variation < 0.06), figures
 
+
+
+@pytest.mark.slow
+def test_model_error_adds_a_residual_based_sigma_to_the_report_and_result(tmp_path):
+    from identify.plans import STANDARD_SET, select
+    from tests.independent_generator import generate_dataset
+
+    data = generate_dataset(tmp_path / "data", select(STANDARD_SET, ["j", "c", "m", "n"]), seed=3)
+    runs = {}
+    for name, damping in (("right", 5.0e3), ("wrong", 1.0e4)):  # theta3 fixed at the truth / at twice it
+        start = tmp_path / f"{name}.json"
+        start.write_text(json.dumps({"model": "2dof", "parameters": {"theta3": damping}}))
+        report = tmp_path / f"{name}.txt"
+        proc = identify("fit", str(data), "--params", str(start), "--estimate", "theta4,theta6",
+                        "--output", str(tmp_path / f"{name}-result.json"), "--report", str(report), "--quiet")
+        assert proc.returncode == 0, proc.stderr
+        runs[name] = json.loads((tmp_path / f"{name}-result.json").read_text()), report.read_text()
+    doc, report = runs["right"]
+    assert all("std_residual" not in p for p in doc["parameters"].values())
+    assert "residual-based" not in report
+    doc, report = runs["wrong"]
+    for k in ("theta4", "theta6"):
+        assert doc["parameters"][k]["std_residual"] > 3 * doc["parameters"][k]["std"]
+    assert any("residual-based standard deviations" in w for w in doc["warnings"])
+    assert "* residual-based σ" in report
