@@ -137,8 +137,10 @@ def test_reported_standard_deviations_match_the_monte_carlo_spread(generator):
     dominates the stroke residual through a few low harmonics; weights taken from each
     experiment's own residuals then followed the noise realisation, and σ was 1.3-1.8x
     the spread on the standard set.  On these four experiments that shows most clearly
-    in σ varying between seeds (coefficient of variation 0.12-0.14 then, 0.02 now),
-    while spread/σ is known to ±0.16 from 20 seeds."""
+    in σ varying between seeds: coefficient of variation 0.13-0.16 then, 0.02-0.04 now
+    (some remains: the channel factor λ is estimated from the residuals of four
+    experiments only).  Spread/σ, known to ±0.16 from 20 seeds, was 0.66-0.68 for θ4
+    and θ6 on the independent generator's data then, 0.74-1.16 now."""
     import numpy as np
 
     from tests.sigma_calibration import ESTIMATE, Case, fit_seed, summarise
