@@ -72,10 +72,6 @@ class FoldedRecord:
         w, b = self.interp_weights, self.interp_bins
         return float(np.mean(w[0] ** 2 / c[b[0]] + w[1] ** 2 / c[b[1]]))
 
-    def grid_variance(self, column: str) -> float:
-        """Mean variance of one grid value of ``column`` from the measurement noise."""
-        return self.noise_std[column] ** 2 * self.grid_factor
-
 
 def _whole_period_lag(t: np.ndarray, frequency_hz: float) -> int:
     """Samples per period when that is a whole number and the record spans two periods or more."""
