@@ -61,7 +61,7 @@ def transient_fit(model, data, params) -> tuple[float, dict[str, float], int]:
     n = data.inputs.shape[1]
     tau = np.arange(n + 1) / n
     force = CubicSpline(tau * period, np.append(data.inputs[0], data.inputs[0, 0]), bc_type="periodic")
-    sigma = np.sqrt(data.grid_variance)  # the same weights as the Bayesian fit's noise
+    sigma = np.sqrt(data.grid_variance)  # channels scaled by their folded measurement noise
     solver = PeriodicSolver(model, Grid(n))
     warm: list[np.ndarray] = []
 

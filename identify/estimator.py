@@ -1,11 +1,7 @@
 """The modified Bayesian Gauss–Newton estimator over periodic experiments (paper eq. 16–20).
 
 Residuals e = y − ŷ(θ) of all experiments α, grid points μ and fitted channels β share
-one parameter vector.  Each (experiment, channel) carries a variance v_αβ re-estimated
-from its residuals at every iteration, with the bias correction for the number of
-estimated parameters (the paper's channel variances, kept per experiment because the
-noise on a folded grid differs between a 0.04 Hz and a 2 Hz record, and because the
-force input's noise reaches the outputs through the damper's dynamics).  The step solves
+one parameter vector.  The step solves
 
     (SᵀWS + diag(1/w)) Δθ = SᵀW e,    W = diag(1/v_αβ)
 
@@ -14,11 +10,26 @@ iteration: a damped, scale-aware Gauss–Newton.  Where the full step does not l
 objective, it is halved.  Periodic solutions are warm-started from the last ones, and
 sensitivities come from the Jacobian factorisation of each converged solution.
 
+The weights are the paper's channel variances with a known shape across experiments:
+v_αβ = λ_β·e_αβ, where e_αβ is the variance of one grid value that the measurement noise
+explains (the folded output noise plus the force input's noise propagated through the
+damper, both from the period-to-period scatter of the record) and λ_β the channel's
+factor, re-estimated from the pooled residuals at every iteration with the bias
+correction for the estimated parameters.  The shape differs by a factor ten and more
+between a 0.04 Hz and a 2 Hz record.  Variances estimated per experiment from its own
+residuals would rest on a few degrees of freedom: the force noise reaches the stroke
+through the stiff gas spring as a low-pass signal (the mean force error alone shifts
+the static stroke of a low-pressure record by several µm), so such weights follow the
+noise realisation, and the sandwich below, which holds the weights fixed, then
+overstated σ by 1.3–1.8× (Monte-Carlo, docs/uncertainty.md).  Where a record's noise
+cannot be estimated, each (experiment, channel) falls back to its residual variance.
+
 Standard deviations come from a sandwich covariance A⁻¹·B·A⁻¹: the measured force is
 the model's input, and its noise reaches the outputs filtered by the damper's dynamics,
 so the residuals are coloured and the white-noise formula A⁻¹ alone would misstate the
-uncertainty.  B propagates the input noise (estimated by folding) through dŷ/du, which
-the same Jacobian factorisation gives.  The standard deviations are those of the
+uncertainty.  B takes the noise covariance of the folded grid exactly (fold operator F:
+interpolated grid values share samples) for the outputs and, through dŷ/du from the
+same Jacobian factorisation, for the input.  The standard deviations are those of the
 measurement noise; residuals beyond it (model error) are flagged, not hidden in σ.
 """
 
@@ -40,7 +51,9 @@ from identify.result import ExperimentFit, FitResult
 
 DEFAULT_PRIOR_FRACTION = 0.5  # prior std as a fraction of |θ| where none is given
 MODEL_ERROR_RATIO = 2.0  # residual RMS over what the noise explains, above which a warning is given
-PROBES = 16  # random probes estimating the input-noise share of the output variance
+RANK = 8  # random responses whose span is taken as the dominant part of the input-noise response
+PROBES = 8  # random probes estimating the rest of it
+NOISE_REFRESH = 0.02  # the noise model follows θ once it has moved by this many prior standard deviations
 CHI2_TOLERANCE = 0.1  # a Gauss-Newton step promising less χ² decrease than this changes nothing that matters
 
 
@@ -56,6 +69,7 @@ class _Evaluation:
     residuals: list[np.ndarray]
     sensitivities: list[np.ndarray] = field(default_factory=list)  # dŷ/dθ (n_outputs, n, k)
     state_sensitivities: list[np.ndarray] = field(default_factory=list)  # dX/dθ (n_states, n, k)
+    noise: np.ndarray | None = None  # (n_experiments, n_outputs) grid variance the noise explains; None: unknown
 
 
 class Estimator:
@@ -80,6 +94,7 @@ class Estimator:
         self.step_tolerance = step_tolerance
         self.progress = progress
         self.stability = stability  # Floquet multipliers of each solution in the result
+        self._noise_at: _Evaluation | None = None  # where the noise model was last computed
 
     # ----------------------------------------------------------------------------------
     def _evaluate(self, theta: np.ndarray, start: _Evaluation | None, sensitivities: bool) -> _Evaluation:
@@ -107,20 +122,72 @@ class Estimator:
         return states + start.state_sensitivities[a] @ (theta - start.theta)[self.index]
 
     def _add_sensitivities(self, ev: _Evaluation) -> None:
+        """What an accepted evaluation needs beyond the solutions: sensitivities and the noise model."""
         for sol, d in zip(ev.solutions, self.data, strict=True):
             dX, dY = self.solver.sensitivities(sol, d.theta(ev.theta), self.index, self.output_idx)
             ev.state_sensitivities.append(dX)
             ev.sensitivities.append(dY)
+        if not all(d.noise_estimable() for d in self.data):
+            return
+        # The propagated noise changes with θ as the gas stiffness does; recomputing it costs
+        # about half an evaluation, so it is reused while θ stays within a percent or so.
+        last = self._noise_at
+        if last is not None and np.all(np.abs(ev.theta - last.theta)[self.index]
+                                       <= NOISE_REFRESH * self._prior_std(ev.theta)):
+            ev.noise = last.noise
+            return
+        noise = np.array([d.grid_variance + self._propagated_variance(d, sol, d.theta(ev.theta))
+                          for d, sol in zip(self.data, ev.solutions, strict=True)])
+        # A channel with no noise at all (a noise-free simulation) gives no weight shape.
+        ev.noise = noise if np.all(noise > 0) else None
+        self._noise_at = ev
 
-    def _variances(self, ev: _Evaluation) -> np.ndarray:
-        """(n_experiments, n_outputs) residual variances with the bias correction for the
-        estimated parameters (their degrees of freedom shared by all residuals)."""
+    def _propagated_variance(self, d: PeriodicData, sol: PeriodicSolution, theta: np.ndarray) -> np.ndarray:
+        """(n_outputs,) mean over the grid of diag(H·Σu·Hᵀ): the output variance that the
+        folded input noise Σu = F·diag(σu²)·Fᵀ causes, H = dŷ/du, i.e. ‖H·F·σu‖²_F / n.
+
+        Hutch++ (Meyer, Musco, Musco & Woodruff 2021): the response is low-pass, a few
+        directions carry most of it (a gas spring passes the mean force error and a few
+        harmonics), which plain random probes estimate poorly.  Their span, found from
+        RANK random responses, is taken exactly through the adjoint; probes estimate the
+        rest.  The draws are fixed, so the weights are a deterministic function of θ."""
+        rng = np.random.default_rng(0)
+        n_in, m, n_out = len(d.input_noise_variance), len(d.folded.filled_counts), len(self.outputs)
+        su = np.sqrt(d.input_noise_variance)[:, None, None]
+
+        def response(k: int) -> np.ndarray:  # H·F·σu applied to k unit draws: (n_out, n, k)
+            z = d.folded.noise_factor(rng.standard_normal((n_in, m, k)))
+            return self.solver.input_response(sol, theta, self.output_idx, su * z)
+
+        Q = np.linalg.qr(response(RANK))[0]  # an orthonormal basis per output: (n_out, n, RANK)
+        basis = np.einsum("onr,op->onpr", Q, np.eye(n_out)).reshape(n_out, Q.shape[1], n_out * RANK)
+        exact = su * d.folded.noise_factor_t(self.solver.input_adjoint(sol, theta, self.output_idx, basis))
+        exact = np.sum(exact.reshape(n_in, m, n_out, RANK) ** 2, axis=(0, 1, 3))
+        G = response(PROBES)
+        rest = G - np.einsum("onr,orp->onp", Q, np.einsum("onr,onp->orp", Q, G))
+        return (exact + np.sum(rest**2, axis=(1, 2)) / PROBES) / self.grid.n
+
+    def _residual_variances(self, ev: _Evaluation) -> np.ndarray:
+        """(n_experiments, n_outputs) residual variance of each experiment and channel with
+        the bias correction for the estimated parameters (their degrees of freedom shared
+        by all residuals)."""
         n_total = sum(r.size for r in ev.residuals)
         out = np.empty((len(ev.residuals), len(self.outputs)))
         for a, r in enumerate(ev.residuals):
             dof = r.shape[1] - len(self.index) * r.shape[1] / n_total
             out[a] = np.sum(r**2, axis=1) / dof
         return np.maximum(out, 1e-300)
+
+    def _variances(self, ev: _Evaluation) -> np.ndarray:
+        """(n_experiments, n_outputs) weights v_αβ = λ_β·e_αβ (see the module docstring);
+        the residual variances where the noise is not known."""
+        if ev.noise is None:
+            return self._residual_variances(ev)
+        n_total = sum(r.size for r in ev.residuals)
+        n_channel = n_total / len(self.outputs)
+        dof = n_channel - len(self.index) * n_channel / n_total
+        scaled = sum(np.sum(r**2, axis=1) / ev.noise[a] for a, r in enumerate(ev.residuals))
+        return np.maximum(ev.noise * (scaled / dof), 1e-300)
 
     @staticmethod
     def _objective(ev: _Evaluation, v: np.ndarray) -> float:
@@ -146,15 +213,18 @@ class Estimator:
         """Curvature that the re-estimated variances remove from the objective.
 
         With the variances concentrated out, the objective is Σ N·log v(θ); its
-        Gauss–Newton Hessian is the weighted AᵀA minus Σ (2/N)·(Sᵀr/v)(Sᵀr/v)ᵀ per
-        experiment and channel.  Without this term the iteration between θ and v
-        converges only linearly when channels compete (model error, offsets)."""
-        k = len(self.index)
-        C = np.zeros((k, k))
-        for a, (S, r) in enumerate(zip(ev.sensitivities, ev.residuals, strict=True)):
-            b = np.einsum("onk,on->ok", S, r) / v[a][:, None]  # (n_out, k)
-            C += 2.0 / r.shape[1] * b.T @ b
-        return C
+        Gauss–Newton Hessian is the weighted AᵀA minus Σ (2/N)·(Sᵀr/v)(Sᵀr/v)ᵀ over each
+        set of residuals that shares one estimated variance (a channel over all
+        experiments; an experiment's channel where the noise is not known).  Without
+        this term the iteration between θ and v converges only linearly when channels
+        compete (model error, offsets)."""
+        pairs = zip(ev.sensitivities, ev.residuals, strict=True)
+        # (n_exp, n_out, k)
+        b = np.array([np.einsum("onk,on->ok", S, r) / v[a][:, None] for a, (S, r) in enumerate(pairs)])
+        n = np.array([r.shape[1] for r in ev.residuals], dtype=float)
+        if ev.noise is not None:
+            b, n = b.sum(axis=0, keepdims=True), n.sum(keepdims=True)
+        return np.einsum("a,aok,aol->kl", 2.0 / n, b, b)
 
     def _prior_std(self, theta: np.ndarray) -> np.ndarray:
         """Prior standard deviations of the varying parameters: as given, or a fraction of
@@ -254,52 +324,65 @@ class Estimator:
             lam /= 2
         return None, lam, objective
 
-    def _covariance(self, ev: _Evaluation, v: np.ndarray) -> tuple[np.ndarray, list[str]]:
+    def _covariance(self, ev: _Evaluation, v: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
         """Sandwich covariance A⁻¹·B·A⁻¹ of the estimates under the measurement noise:
-        folded output noise (white on the grid) plus folded input noise propagated
-        through the model (H·Hᵀ, H = dŷ/du).  Residuals well above what that noise
-        explains mean systematic model error, which a standard deviation cannot cover:
-        they are reported as a warning.  Falls back to A⁻¹ (white residuals of the
-        observed size) where the noise of a record cannot be estimated."""
+        the folded output noise and the folded input noise propagated through the model
+        (Hᵀ·W·S by the adjoint), each with the fold's exact grid covariance σ²·F·Fᵀ.
+        Residuals well above what that noise explains mean systematic model error, which
+        that covariance does not cover: they are reported as a warning, and the
+        residual-based covariance is returned beside it (None otherwise).  Falls back to
+        A⁻¹ (white residuals of the observed size) where the noise of a record cannot be
+        estimated."""
         A, _ = self._normal_equations(ev, v)
         A_inv = np.linalg.pinv(A)
         notes = []
-        if not all(np.all(np.isfinite(d.grid_variance)) and np.all(np.isfinite(d.input_grid_variance))
-                   for d in self.data):
-            notes.append("measurement noise not estimable (a single sample per grid bin): standard deviations "
-                         "assume white residuals")
-            return A_inv, notes
+        if ev.noise is None:
+            notes.append("measurement noise not estimable (a single sample per grid bin, or no scatter at all "
+                         "between periods): standard deviations assume white residuals")
+            return A_inv, None, notes
         k = len(self.index)
         B = np.zeros((k, k))
-        excess_rows = []
-        rng = np.random.default_rng(0)  # probes of the input-noise response: deterministic reports
         for a, (d, sol, S) in enumerate(zip(self.data, ev.solutions, ev.sensitivities, strict=True)):
             Sw = S / v[a][:, None, None]  # (n_out, n, k)
-            B += np.einsum("onk,o,onl->kl", Sw, d.grid_variance, Sw)
-            th = d.theta(ev.theta)
-            M = self.solver.input_adjoint(sol, th, self.output_idx, Sw)  # Hᵀ·Sw, H = dŷ/du: (n_in, n, k)
-            B += np.einsum("jmk,j,jml->kl", M, d.input_grid_variance, M)
-            # Output variance the input noise explains, diag(H·Σu·Hᵀ) averaged over the
-            # grid, estimated with random probes (Hutchinson) instead of forming H.
-            z = rng.standard_normal((len(d.input_grid_variance), S.shape[1], PROBES))
-            z *= np.sqrt(d.input_grid_variance)[:, None, None]
-            Hz = self.solver.input_response(sol, th, self.output_idx, z)
-            explained = d.grid_variance + np.mean(Hz**2, axis=(1, 2))
-            excess_rows.append(v[a] / explained)
-        excess = np.array(excess_rows)  # (n_experiments, n_outputs)
+            Fy = d.folded.noise_factor_t(Sw)
+            B += np.einsum("omk,o,oml->kl", Fy, d.noise_variance, Fy)
+            Fu = d.folded.noise_factor_t(self.solver.input_adjoint(sol, d.theta(ev.theta), self.output_idx, Sw))
+            B += np.einsum("jmk,j,jml->kl", Fu, d.input_noise_variance, Fu)
+        excess = self._residual_variances(ev) / ev.noise  # (n_experiments, n_outputs)
+        flagged = []
         for b, o in enumerate(self.outputs):
             x = float(np.sqrt(excess[:, b].max()))
             if x > MODEL_ERROR_RATIO:
-                worst = self.data[int(np.argmax(excess[:, b]))].label
-                notes.append(f"{o}: residuals up to {x:.1f}x what the measurement noise explains (worst: "
-                             f"{worst}): systematic model or discretisation error; the standard deviations "
-                             f"cover the noise only")
-        return A_inv @ B @ A_inv, notes
+                flagged.append((o, x, self.data[int(np.argmax(excess[:, b]))].label))
+        residual_cov = self._residual_covariance(ev, v, A_inv) if flagged else None
+        beside = ("; residual-based standard deviations, which include it, are given beside them"
+                  if residual_cov is not None else
+                  f"; with {len(self.data)} experiments for {k} parameters no residual-based ones can be given")
+        for o, x, worst in flagged:
+            notes.append(f"{o}: residuals up to {x:.1f}x what the measurement noise explains (worst: {worst}): "
+                         f"systematic model or discretisation error; the standard deviations cover the noise only"
+                         + beside)
+        return A_inv @ B @ A_inv, residual_cov, notes
+
+    def _residual_covariance(self, ev: _Evaluation, v: np.ndarray, A_inv: np.ndarray) -> np.ndarray | None:
+        """Cluster sandwich A⁻¹·(E/(E−k))·Σ_α g_α·g_αᵀ·A⁻¹ over the E experiments, with
+        g_α = S_αᵀ·W·r_α the pull of experiment α's residuals on θ, whatever caused them.
+
+        Model error is systematic within an experiment but differs between experiments
+        (another frequency, another stroke range), so experiments are the independent
+        units and the scatter of their pulls measures what it does to θ.  It cannot be
+        formed from no more experiments than parameters (None)."""
+        E, k = len(self.data), len(self.index)
+        if E <= k:
+            return None
+        g = np.array([np.einsum("onk,on->k", S / v[a][:, None, None], r)
+                      for a, (S, r) in enumerate(zip(ev.sensitivities, ev.residuals, strict=True))])  # (E, k)
+        return A_inv @ (g.T @ g * E / (E - k)) @ A_inv
 
     # ----------------------------------------------------------------------------------
     def _result(self, ev: _Evaluation, v: np.ndarray, converged: bool, iterations: int, message: str,
                 history: list[float], elapsed: float) -> FitResult:
-        cov, notes = self._covariance(ev, v)
+        cov, residual_cov, notes = self._covariance(ev, v)
         std = np.sqrt(np.abs(np.diag(cov)))
         with np.errstate(invalid="ignore", divide="ignore"):
             corr = cov / np.outer(std, std)
@@ -334,4 +417,5 @@ class Estimator:
             experiments=experiments, converged=converged, iterations=iterations, message=message,
             objective_history=history, elapsed_s=elapsed, n_grid=self.grid.n, scheme=self.grid.scheme,
             singular_values=singular, sensitivity_matrix=Sw, notes=notes,
+            std_residual=None if residual_cov is None else np.sqrt(np.abs(np.diag(residual_cov))),
         )

@@ -7,6 +7,14 @@ from those (phase, value) pairs.  That removes the bias a plain bin average has 
 bin's samples sit off its centre (2 Hz at 2 kHz has 1.25 samples per bin and period),
 and fills bins that got no sample.
 
+Folding is linear, grid = L·(bin means), and the record keeps L (two bins per grid
+point) and the bin counts: white sample noise of variance σ² reaches the grid with the
+covariance σ²·F·Fᵀ, F = L·diag(1/√count).  Interpolated grid values are averages of
+neighbouring bins, so their noise is smaller than σ²/count and correlated along the
+grid; with few samples per bin (2 Hz at 1 kHz: 3 samples in 500 of 800 bins) that
+matters by a factor two and more, and the estimator uses F rather than a per-point
+variance.
+
 The period-to-period scatter estimates each channel's measurement noise: where a period
 holds a whole number of samples, from differences of samples one period apart (the
 signal cancels exactly); otherwise from the scatter around the folded curve, which also
@@ -32,11 +40,37 @@ class FoldedRecord:
     counts: np.ndarray  # samples per bin (n,)
     periods: float  # how many periods the record covers
     samples: int
+    interp_bins: np.ndarray  # (2, n) the two filled bins (indices into the filled ones) each grid value comes from
+    interp_weights: np.ndarray  # (2, n) their interpolation weights
 
-    def grid_variance(self, column: str) -> float:
-        """Mean variance of one grid value of ``column`` from the measurement noise."""
-        sigma = self.noise_std[column]
-        return float(sigma**2 * np.mean(1.0 / np.maximum(self.counts, 1)))
+    @property
+    def filled_counts(self) -> np.ndarray:
+        """Sample counts of the bins that got samples, in grid order (m,)."""
+        return self.counts[self.counts > 0]
+
+    def noise_factor(self, z: np.ndarray) -> np.ndarray:
+        """F·z along axis -2: (…, m, k) independent unit draws per filled bin -> (…, n, k)
+        grid noise of a unit-variance white sample noise."""
+        z = z / np.sqrt(self.filled_counts)[:, None]
+        return self.interp_weights[0][:, None] * z[..., self.interp_bins[0], :] \
+            + self.interp_weights[1][:, None] * z[..., self.interp_bins[1], :]
+
+    def noise_factor_t(self, x: np.ndarray) -> np.ndarray:
+        """Fᵀ·x along axis -2: (…, n, k) -> (…, m, k); ‖Fᵀx‖² is xᵀ·Cov·x for the grid
+        noise of a unit-variance white sample noise."""
+        m = len(self.filled_counts)
+        moved = np.moveaxis(x, -2, 0)  # (n, …, k)
+        out = np.zeros((m,) + moved.shape[1:])
+        for bins, w in zip(self.interp_bins, self.interp_weights, strict=True):
+            np.add.at(out, bins, w.reshape((-1,) + (1,) * (moved.ndim - 1)) * moved)
+        return np.moveaxis(out, 0, -2) / np.sqrt(self.filled_counts)[:, None]
+
+    @property
+    def grid_factor(self) -> float:
+        """Mean variance of one grid value for a unit-variance white sample noise: mean diag(F·Fᵀ)."""
+        c = self.filled_counts
+        w, b = self.interp_weights, self.interp_bins
+        return float(np.mean(w[0] ** 2 / c[b[0]] + w[1] ** 2 / c[b[1]]))
 
 
 def _whole_period_lag(t: np.ndarray, frequency_hz: float) -> int:
@@ -49,6 +83,17 @@ def _whole_period_lag(t: np.ndarray, frequency_hz: float) -> int:
     return lag
 
 
+def _interpolation(xp: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Periodic linear interpolation from increasing points xp in [-0.5, n - 0.5) to the
+    grid 0…n-1, as the two source indices and weights per grid point (np.interp's rule)."""
+    m = len(xp)
+    ext = np.concatenate(([xp[-1] - n], xp, [xp[0] + n]))
+    mu = np.arange(n, dtype=float)
+    left = np.clip(np.searchsorted(ext, mu, side="right") - 1, 0, m)
+    w = (mu - ext[left]) / (ext[left + 1] - ext[left])
+    return np.vstack([(left - 1) % m, left % m]), np.vstack([1.0 - w, w])
+
+
 def fold(label: str, time_s: np.ndarray, columns: dict[str, np.ndarray], frequency_hz: float, n: int) -> FoldedRecord:
     """Fold sample columns of a periodic record onto ``n`` phases of one period."""
     t = np.asarray(time_s, dtype=float)
@@ -59,16 +104,16 @@ def fold(label: str, time_s: np.ndarray, columns: dict[str, np.ndarray], frequen
     counts = np.bincount(b, minlength=n)
     filled = counts > 0
     mean_offset = np.bincount(b, weights=offset, minlength=n)[filled] / counts[filled]
-    xp = np.arange(n)[filled] + mean_offset
-    mu = np.arange(n, dtype=float)
+    bins, weights = _interpolation(np.arange(n)[filled] + mean_offset, n)
     values: dict[str, np.ndarray] = {}
     noise: dict[str, float] = {}
     dof = len(t) - int(filled.sum())
     lag = _whole_period_lag(t, frequency_hz)
+    mu = np.arange(n, dtype=float)
     for name, v in columns.items():
         v = np.asarray(v, dtype=float)
         fp = np.bincount(b, weights=v, minlength=n)[filled] / counts[filled]
-        grid = np.interp(mu, xp, fp, period=n)
+        grid = weights[0] * fp[bins[0]] + weights[1] * fp[bins[1]]
         values[name] = grid
         if lag:
             noise[name] = float(np.sqrt(np.mean((v[lag:] - v[:-lag]) ** 2) / 2))
@@ -78,4 +123,5 @@ def fold(label: str, time_s: np.ndarray, columns: dict[str, np.ndarray], frequen
         else:
             noise[name] = float("nan")
     duration = len(t) * (t[-1] - t[0]) / max(len(t) - 1, 1)
-    return FoldedRecord(label, float(frequency_hz), n, values, noise, counts, duration * frequency_hz, len(t))
+    return FoldedRecord(label, float(frequency_hz), n, values, noise, counts, duration * frequency_hz, len(t),
+                        bins, weights)

@@ -20,10 +20,18 @@ class PeriodicData:
     frequency_hz: float
     inputs: np.ndarray  # (n_inputs, n)
     measured: np.ndarray  # (n_outputs, n) for the fitted outputs
-    grid_variance: np.ndarray  # (n_outputs,) noise variance of one grid value, SI (nan: unknown)
-    input_grid_variance: np.ndarray  # (n_inputs,) likewise for the inputs
-    folded: FoldedRecord
+    noise_variance: np.ndarray  # (n_outputs,) measurement noise variance of one sample, SI (nan: unknown)
+    input_noise_variance: np.ndarray  # (n_inputs,) likewise for the inputs
+    folded: FoldedRecord  # its fold operator gives the noise covariance on the grid
     fixed: dict[int, float] = field(default_factory=dict)  # per-experiment parameter values (e.g. friction)
+
+    @property
+    def grid_variance(self) -> np.ndarray:
+        """(n_outputs,) mean noise variance of one grid value, SI."""
+        return self.noise_variance * self.folded.grid_factor
+
+    def noise_estimable(self) -> bool:
+        return bool(np.all(np.isfinite(self.noise_variance)) and np.all(np.isfinite(self.input_noise_variance)))
 
     def theta(self, theta: np.ndarray) -> np.ndarray:
         """The shared parameter vector with this experiment's own fixed values."""
@@ -66,7 +74,7 @@ def prepare_periodic(model: CompiledModel, experiments: list[Experiment], n: int
         folded = fold(exp.label, exp.time_s, cols, exp.frequency_hz, n)
         inputs = np.vstack([ch.to_si(folded.values[ch.column]) for ch in d.inputs.values()])
         measured = np.array([d.outputs[o].to_si(folded.values[d.outputs[o].column]) for o in outputs]).reshape(-1, n)
-        gvar = np.array([folded.grid_variance(d.outputs[o].column) * d.outputs[o].scale ** 2 for o in outputs])
-        uvar = np.array([folded.grid_variance(ch.column) * ch.scale ** 2 for ch in d.inputs.values()])
-        prepared.append(PeriodicData(exp.label, exp.frequency_hz, inputs, measured, gvar, uvar, folded))
+        yvar = np.array([(folded.noise_std[d.outputs[o].column] * d.outputs[o].scale) ** 2 for o in outputs])
+        uvar = np.array([(folded.noise_std[ch.column] * ch.scale) ** 2 for ch in d.inputs.values()])
+        prepared.append(PeriodicData(exp.label, exp.frequency_hz, inputs, measured, yvar, uvar, folded))
     return prepared

@@ -75,6 +75,8 @@ class FitResult:
     singular_values: np.ndarray
     warnings: list[str] = field(default_factory=list)
     start: dict[str, float] = field(default_factory=dict)
+    # Residual-based σ, given where the residuals exceed the measurement noise (model error).
+    std_residual: dict[str, float] | None = None
     priors: dict[str, float | None] = field(default_factory=dict)
 
     @classmethod
@@ -83,7 +85,7 @@ class FitResult:
               experiments: list[ExperimentFit], converged: bool, iterations: int, message: str,
               objective_history: list[float], elapsed_s: float, n_grid: int, scheme: str,
               singular_values: np.ndarray, sensitivity_matrix: np.ndarray,
-              notes: Sequence[str] = ()) -> FitResult:
+              notes: Sequence[str] = (), std_residual: np.ndarray | None = None) -> FitResult:
         n_par = len(estimated)
         variances = {}
         for o in outputs:
@@ -97,6 +99,8 @@ class FitResult:
             channel_variances=variances, experiments=experiments, converged=converged, iterations=iterations,
             message=message, objective_history=objective_history, elapsed_s=elapsed_s, n_grid=n_grid,
             scheme=scheme, singular_values=singular_values,
+            std_residual=None if std_residual is None else
+            {nm: float(s) for nm, s in zip(estimated, std_residual, strict=True)},
         )
         result.warnings = result._identifiability_warnings(sensitivity_matrix) + list(notes)
         return result
@@ -105,10 +109,11 @@ class FitResult:
         out = []
         for nm in self.estimated:
             value = self.params[nm].value
-            s = self.std[nm]
+            s = self.honest_std(nm)
             if value != 0 and s / abs(value) > RELATIVE_STD_WARNING:
                 out.append(f"{nm} ({self.params[nm].alias}) is poorly identifiable from these experiments: "
-                           f"±{100 * s / abs(value):.0f} %")
+                           f"±{100 * s / abs(value):.0f} %"
+                           + (" (residual-based σ)" if self.std_residual is not None else ""))
         if Sw.size and len(self.singular_values) > 1:
             sv = self.singular_values
             cond = sv[0] / max(sv[-1], 1e-300)
@@ -146,6 +151,10 @@ class FitResult:
     def relative_std(self, name: str) -> float:
         return self.std[name] / abs(self.value(name))
 
+    def honest_std(self, name: str) -> float:
+        """The σ to quote: the residual-based one where model error was found, else the noise σ."""
+        return self.std_residual[name] if self.std_residual is not None else self.std[name]
+
     def to_document(self) -> dict[str, Any]:
         """RESULT.json (contract: model, converged, iterations, parameters, correlation,
         channels, experiments; extended with report details)."""
@@ -156,6 +165,8 @@ class FitResult:
                 "value": p.value, "std": self.std[p.name] if est else None, "estimated": est, "unit": p.unit,
                 "alias": p.alias,
             }
+            if est and self.std_residual is not None:
+                params[p.name]["std_residual"] = self.std_residual[p.name]
             if p.name in self.start:
                 params[p.name]["initial"] = self.start[p.name]
         corr = {a: {b: _finite(self.correlation[i, j]) for j, b in enumerate(self.estimated)}
@@ -218,8 +229,18 @@ class FitResult:
                 init_s = f"(init = {init:.6g})" if init is not None else ""
                 prior = self.priors.get(p.name)
                 prior_s = f"prior std {prior:.3g}" if prior else "prior std 50 %"
+                residual = ""
+                if self.std_residual is not None:
+                    sr = self.std_residual[p.name]
+                    residual = f"   [+/- {sr:.3g}" + (f" ({100 * sr / abs(p.value):.3g}%)" if p.value else "") + " *]"
                 lines.append(f"    {p.name:8s} {p.alias:18s} {p.value: .8g} +/- {s:.3g} {rel} {p.unit} "
-                             f"{init_s}, {prior_s}")
+                             f"{init_s}, {prior_s}" + residual)
+        if self.std_residual is not None:
+            lines.append(f"    * residual-based σ: the residuals exceed the measurement noise (see warnings), and "
+                         f"the +/- before it covers the noise only.  It treats each experiment's misfit as one "
+                         f"random draw ({len(self.experiments)} experiments), is itself uncertain by about "
+                         f"±{100 / math.sqrt(2 * max(len(self.experiments) - len(self.estimated), 1)):.0f} %, "
+                         f"and does not cover a bias the model error may cause")
         fixed = [p for p in self.params if p.name not in self.estimated]
         if fixed:
             lines.append("    fixed: " + ", ".join(f"{p.name}={p.value:.6g}" for p in fixed))

@@ -125,28 +125,58 @@ def test_stability_reports_floquet_multipliers(standard_dataset, tmp_path):
 
 
 @pytest.mark.slow
-def test_reported_standard_deviations_are_calibrated_over_noise_realisations(tmp_path):
-    """Spread of the estimates over 16 fixed noise seeds within a factor 1.5 of the reported σ."""
+@pytest.mark.parametrize("generator", ["independent", "simulator"])
+def test_reported_standard_deviations_match_the_monte_carlo_spread(generator):
+    """Spread of θ4, θ6, θ16 over 20 fixed noise seeds within [0.7, 1.4] of the mean
+    reported σ, on the independent generator's data and on the simulator's, and σ itself
+    the same from seed to seed.
+
+    Experiments b, l, m, n: b (0.1 Hz, full stroke about the middle) carries the heat
+    transfer θ16, whose 10 s time constant it straddles, and with l, m, n (0.5-2 Hz near
+    full extension, a soft gas spring) separates θ4 and θ6.  In l, m, n the force noise
+    dominates the stroke residual through a few low harmonics; weights taken from each
+    experiment's own residuals then followed the noise realisation, and σ was 1.3-1.8x
+    the spread on the standard set.  On these four experiments that shows most clearly
+    in σ varying between seeds: coefficient of variation 0.13-0.16 then, 0.02-0.04 now
+    (some remains: the channel factor λ is estimated from the residuals of four
+    experiments only).  Spread/σ, known to ±0.16 from 20 seeds, was 0.66-0.68 for θ4
+    and θ6 on the independent generator's data then, 0.74-1.16 now."""
     import numpy as np
 
-    from identify.dataset import read_dataset
-    from identify.fit import fit_experiments
-    from identify.model import load_model
-    from identify.parameters import Parameters
-    from identify.plans import STANDARD_SET, select
-    from identify.preparation import model_columns, resolve_outputs
-    from simulator.generate import generate
-    from simulator.truth import load_truth
+    from tests.sigma_calibration import ESTIMATE, Case, fit_seed, summarise
 
-    model = load_model("2dof")
-    columns = model_columns(model, resolve_outputs(model, None))
-    estimate = ["theta4", "theta6", "theta16"]
-    values, stds = [], []
-    for seed in range(100, 116):
-        out = tmp_path / str(seed)
-        generate(out, select(STANDARD_SET, ["b", "j", "c"]), load_truth(), periods=3, rate_hz=2000.0, seed=seed)
-        result = fit_experiments(model, read_dataset(out, columns).experiments, Parameters(model), estimate)
-        values.append([result.value(k) for k in estimate])
-        stds.append([result.std[k] for k in estimate])
-    ratio = np.std(values, axis=0, ddof=1) / np.mean(stds, axis=0)
-    assert np.all((ratio > 1 / 1.5) & (ratio < 1.5)), dict(zip(estimate, ratio, strict=True))
+    case = Case(generator, 1000.0, 3, ("b", "l", "m", "n"))
+    fits = [fit_seed(case, seed) for seed in range(200, 220)]
+    stds = np.array([f[1] for f in fits])
+    s = summarise(np.array([f[0] for f in fits]), stds, sum(f[2] for f in fits))
+    variation = np.std(stds, axis=0) / np.mean(stds, axis=0)
+    figures = {k: (round(r, 2), round(c, 3)) for k, r, c in zip(ESTIMATE, s.spread_over_sigma, variation, strict=True)}
+    assert s.converged == 20
+    assert np.all((s.spread_over_sigma >= 0.7) & (s.spread_over_sigma <= 1.4)), figures
+    assert np.all(variation < 0.06), figures
+
+
+
+@pytest.mark.slow
+def test_model_error_adds_a_residual_based_sigma_to_the_report_and_result(tmp_path):
+    from identify.plans import STANDARD_SET, select
+    from tests.independent_generator import generate_dataset
+
+    data = generate_dataset(tmp_path / "data", select(STANDARD_SET, ["j", "c", "m", "n"]), seed=3)
+    runs = {}
+    for name, damping in (("right", 5.0e3), ("wrong", 1.0e4)):  # theta3 fixed at the truth / at twice it
+        start = tmp_path / f"{name}.json"
+        start.write_text(json.dumps({"model": "2dof", "parameters": {"theta3": damping}}))
+        report = tmp_path / f"{name}.txt"
+        proc = identify("fit", str(data), "--params", str(start), "--estimate", "theta4,theta6",
+                        "--output", str(tmp_path / f"{name}-result.json"), "--report", str(report), "--quiet")
+        assert proc.returncode == 0, proc.stderr
+        runs[name] = json.loads((tmp_path / f"{name}-result.json").read_text()), report.read_text()
+    doc, report = runs["right"]
+    assert all("std_residual" not in p for p in doc["parameters"].values())
+    assert "residual-based" not in report
+    doc, report = runs["wrong"]
+    for k in ("theta4", "theta6"):
+        assert doc["parameters"][k]["std_residual"] > 3 * doc["parameters"][k]["std"]
+    assert any("residual-based standard deviations" in w for w in doc["warnings"])
+    assert "* residual-based σ" in report
