@@ -8,7 +8,9 @@ RESULT.json form plus a ``batch`` block) under a key: the digest of the session'
 parameters and priors, the estimated set and the fit settings.  A task that finds a
 converged result under its key does no fit, which makes a batch resumable after a crash
 or Ctrl-C, and makes a task that Dask retries after its worker died find what the
-first attempt already wrote instead of writing it twice.
+first attempt already wrote instead of writing it twice.  The digest is stored with the
+files' sizes and modification times, and trusted while they are unchanged: a rerun
+reads a manifest and a result per session, not the data.
 
 Failures stay in their task: a session that cannot be read or fitted is written and
 reported as ``failed: <reason>``; it is tried again on the next run (only converged
@@ -126,22 +128,39 @@ class SessionOutcome:
 # The task (runs on a worker)
 
 
-def session_digest(directory: Path) -> tuple[Dataset, str]:
-    """The session's manifest and the SHA-256 of what a fit reads: the manifest and the
-    periodic experiments' CSVs (a session's logs, journal or drop record change nothing)."""
-    ds = read_manifest(directory)
-    h = hashlib.sha256((directory / "dataset.json").read_bytes())
-    for exp in ds.select(kind="periodic"):
-        path = ds.path / exp.file
-        h.update(b"\0" + exp.file.encode() + b"\0")
+def _data_files(ds: Dataset) -> dict[str, Path]:
+    """What a fit reads, by name in the session: the manifest and the periodic
+    experiments' CSVs (a session's logs, journal or drop record change nothing)."""
+    return {"dataset.json": ds.path / "dataset.json"} | {e.file: ds.path / e.file for e in ds.select(kind="periodic")}
+
+
+def session_stamp(ds: Dataset) -> dict[str, list[int]]:
+    """Size and modification time (ns) of each file a fit reads: while they are unchanged,
+    the digest stored with a result is trusted, so that resuming a batch reads a
+    manifest and a result per session instead of all its data."""
+    stamp = {}
+    for name, path in _data_files(ds).items():
         try:
-            with path.open("rb") as f:
-                h.update(hashlib.file_digest(f, "sha256").digest())
+            st = path.stat()
         except FileNotFoundError:
             raise DatasetError(f"{path}: file not found") from None
         except OSError as exc:
             raise DatasetError(f"{path}: cannot be read ({exc.strerror or exc})") from None
-    return ds, h.hexdigest()
+        stamp[name] = [st.st_size, st.st_mtime_ns]
+    return stamp
+
+
+def session_digest(ds: Dataset) -> str:
+    """SHA-256 of the files a fit reads, names included."""
+    h = hashlib.sha256()
+    for name, path in _data_files(ds).items():
+        h.update(name.encode() + b"\0")
+        try:
+            with path.open("rb") as f:
+                h.update(hashlib.file_digest(f, "sha256").digest())
+        except OSError as exc:
+            raise DatasetError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    return h.hexdigest()
 
 
 def fit_session(path: str, settings: FitSettings, out_dir: str, run_id: str) -> SessionOutcome:
@@ -150,20 +169,25 @@ def fit_session(path: str, settings: FitSettings, out_dir: str, run_id: str) -> 
     t0 = time.perf_counter()
     directory = Path(path)
     target = Path(out_dir) / f"{directory.name}.json"
-    serial, key = "", None
+    serial, key, stamp, data_hash = "", None, None, None
     try:
         model = load_model(settings.model)
         if model.version != settings.model_version:
             raise BatchError(f"model {model.name!r} on this worker is version {model.version}, the client's is "
                              f"{settings.model_version}: install the same project on the client and every worker")
-        manifest, data_hash = session_digest(directory)
+        manifest = read_manifest(directory)
         serial = _serial(manifest)
+        stamp = session_stamp(manifest)
+        previous = _read_json(target)
+        stored = _batch_block(previous)
+        data_hash = stored.get("data_hash") if stored.get("stamp") == stamp else None
+        if not isinstance(data_hash, str):
+            data_hash = session_digest(manifest)
         key = settings.key(data_hash)
-        done = _converged_result(target, key)
-        if done is not None:
+        if stored.get("key") == key and stored.get("status") == "ok":
             # Written by an earlier attempt of this very task (its worker died before it
             # could report) or by an earlier run: either way the fit is not repeated.
-            return _outcome(directory, done, "ok" if done["batch"]["run"] == run_id else "skipped")
+            return _outcome(directory, previous, "ok" if stored.get("run") == run_id else "skipped")
         labels = [e.label for e in manifest.select(kind="periodic")]
         outputs = resolve_outputs(model, None)
         ds = read_dataset(directory, model_columns(model, outputs), labels)
@@ -179,7 +203,8 @@ def fit_session(path: str, settings: FitSettings, out_dir: str, run_id: str) -> 
         status = f"failed: internal error: {type(exc).__name__}: {exc}"
         doc = _failure_document(settings, status) | {"traceback": traceback.format_exc()}
     doc["batch"] = {"status": status, "key": key, "run": run_id, "session": str(directory), "serial": serial,
-                    "fit_s": time.perf_counter() - t0, "model_version": settings.model_version}
+                    "fit_s": time.perf_counter() - t0, "model_version": settings.model_version,
+                    "data_hash": data_hash, "stamp": stamp}
     atomic_write_bytes(target, (json.dumps(doc, indent=2) + "\n").encode())
     return _outcome(directory, doc, status)
 
@@ -190,15 +215,18 @@ def _serial(ds: Dataset) -> str:
     return str(serial) if serial is not None else ""
 
 
-def _converged_result(target: Path, key: str) -> dict[str, Any] | None:
+def _read_json(path: Path) -> Any:
+    """A JSON file's content; None when it is absent or not JSON (then fitted again and replaced)."""
     try:
-        doc = json.loads(target.read_bytes())
-    except (OSError, ValueError):  # absent, or not ours: fitted again and replaced
+        return json.loads(path.read_bytes())
+    except (OSError, ValueError):
         return None
+
+
+def _batch_block(doc: Any) -> dict[str, Any]:
+    """The ``batch`` block of a result written by a batch (empty for anything else)."""
     batch = doc.get("batch") if isinstance(doc, dict) else None
-    if isinstance(batch, dict) and batch.get("key") == key and batch.get("status") == "ok":
-        return doc
-    return None
+    return batch if isinstance(batch, dict) else {}
 
 
 def _failure_document(settings: FitSettings, message: str) -> dict[str, Any]:

@@ -142,11 +142,23 @@ def test_changed_data_or_settings_are_fitted_again(sessions, settings, tmp_path)
     assert batch.fit_session(str(session), settings, str(out), "a").status == "ok"
     other = batch.FitSettings.resolve("2dof", None, ["theta4", "theta6"], n=400)
     assert batch.fit_session(str(session), other, str(out), "b").status == "ok"
-    manifest = json.loads((session / "dataset.json").read_text())
-    manifest["note"] = "re-calibrated"
-    (session / "dataset.json").write_text(json.dumps(manifest))
-    assert batch.fit_session(str(session), other, str(out), "c").status == "ok"
-    assert batch.fit_session(str(session), other, str(out), "d").status == "skipped"
+    csv_file = next(session.glob("*h.csv"))
+    os.utime(csv_file, ns=(0, 0))                        # touched, not changed: the digest says so
+    assert batch.fit_session(str(session), other, str(out), "c").status == "skipped"
+    lines = csv_file.read_text().splitlines()
+    cells = lines[-1].split(",")
+    cells[1] = f"{float(cells[1]) + 0.01:.9g}"           # one sample 10 µm off
+    csv_file.write_text("\n".join(lines[:-1] + [",".join(cells)]) + "\n")
+    assert batch.fit_session(str(session), other, str(out), "d").status == "ok"
+    assert batch.fit_session(str(session), other, str(out), "e").status == "skipped"
+    # While size and modification time are those stored, the data are not read again
+    # (a resumed batch of 100,000 sessions must not re-read terabytes): an edit that
+    # keeps both is, by design, not seen.
+    before = csv_file.stat()
+    csv_file.write_text(csv_file.read_text().replace(cells[1], cells[1][:-1] + ("1" if cells[1][-1] != "1" else "2")))
+    os.utime(csv_file, ns=(before.st_atime_ns, before.st_mtime_ns))
+    assert csv_file.stat().st_size == before.st_size
+    assert batch.fit_session(str(session), other, str(out), "f").status == "skipped"
 
 
 def test_killing_a_worker_mid_batch_still_yields_every_result_exactly_once(client, sessions, settings, tmp_path):
