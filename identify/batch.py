@@ -26,6 +26,7 @@ import io
 import json
 import logging
 import os
+import signal
 import socket
 import time
 import traceback
@@ -308,8 +309,16 @@ def connect(scheduler: str | None = None, workers: int | None = None,
     # A dashboard needs bokeh; without it no port is opened (and none is announced).
     dashboard = ":0" if find_spec("bokeh") else None
     with LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                      dashboard_address=dashboard, silence_logs=logging.ERROR) as cluster, Client(cluster) as client:
+                      dashboard_address=dashboard, silence_logs=logging.ERROR, preload=[__name__]) as cluster, \
+            Client(cluster) as client:
         yield client
+
+
+def dask_setup(worker: object) -> None:
+    """Run in each local worker process as it starts (the cluster's preload).  Ctrl-C in
+    a terminal reaches the whole process group; the client handles it and closes the
+    cluster, so a worker ignores it instead of dying with a traceback mid-fit."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _check_reachable(scheduler: str, timeout_s: float) -> None:

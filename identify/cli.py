@@ -314,8 +314,8 @@ def run_batch(args: argparse.Namespace) -> int:
 
                 rows = batch.run_batch(client, sessions, settings, out, advance)
     except KeyboardInterrupt:
-        console.print(f"interrupted after {sum(counts.values())} of {len(sessions)} sessions; their results are in "
-                      f"{out}: the same command goes on from there", highlight=False)
+        console.print(f"interrupted with {sum(counts.values())} of {len(sessions)} sessions reported; every result "
+                      f"written is kept in {out}, and the same command goes on from there", highlight=False)
         return EXIT_INTERRUPTED
     _batch_table(rows, settings.estimate)
     print(f"{len(rows)} sessions: " + ", ".join(f"{v} {k}" for k, v in counts.items())
@@ -331,8 +331,10 @@ def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) ->
     shown = rows if len(rows) <= TABLE_ROWS else [r for r in rows if r.failed]
     if shown:
         table = Table(title="batch identification (value ± std)" if shown is rows else "failed sessions")
-        for col in ("session", "serial", "status", "converged", *estimate, "fit [s]"):
-            table.add_column(col, justify="right" if col in estimate or col == "fit [s]" else "left")
+        for col in ("session", "serial", "status", "converged"):
+            table.add_column(col, no_wrap=True)  # identifiers: whole, or cut with an ellipsis, never folded
+        for col in (*estimate, "fit [s]"):
+            table.add_column(col, justify="right")
         for r in shown:
             cells = [f"{r.values[p]:.5g} ± {r.stds[p]:.2g}" if r.stds.get(p) is not None else "" for p in estimate]
             table.add_row(r.session, r.serial, r.state, "yes" if r.converged else "no", *cells,
