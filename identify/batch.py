@@ -273,7 +273,8 @@ def check_sessions(sessions: Sequence[str | Path]) -> list[Path]:
     """Absolute session paths, each once.  Two different folders of the same name are
     refused: the folder name is the result's file name.  Whether a folder holds a valid
     session is each task's business (its failure is that session's alone)."""
-    unique = list(dict.fromkeys(Path(s).resolve() for s in sessions))
+    # abspath, not resolve: a folder reached through a symbolic link keeps the name it was given
+    unique = list(dict.fromkeys(Path(os.path.abspath(s)) for s in sessions))
     if not unique:
         raise BatchError("no sessions: name session folders or give --list FILE")
     by_name: dict[str, Path] = {}
@@ -281,8 +282,6 @@ def check_sessions(sessions: Sequence[str | Path]) -> list[Path]:
         if p.name in by_name:
             raise BatchError(f"sessions {by_name[p.name]} and {p} share the folder name {p.name!r}; "
                              f"results are named after it: rename one or run them in separate batches")
-        if p.name == Path(SUMMARY).stem:
-            raise BatchError(f"{p}: a session folder named {p.name!r} would clash with {SUMMARY}")
         by_name[p.name] = p
     return unique
 

@@ -299,6 +299,10 @@ def run_batch(args: argparse.Namespace) -> int:
     counts = {"ok": 0, "failed": 0, "skipped": 0}
     try:
         with batch.connect(args.scheduler, args.workers) as client:
+            try:  # only now: input refused before this point leaves no folder behind
+                out.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise UsageError(f"--out {out}: cannot create the folder ({exc.strerror or exc})") from None
             workers = len(client.scheduler_info().get("workers", {}))
             link = batch.dashboard_link(client)
             console.print(f"identifying {', '.join(settings.estimate)} of model {settings.model_name} in "

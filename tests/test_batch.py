@@ -8,6 +8,7 @@ once for the module, on the same cluster."""
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import os
 import shutil
@@ -159,6 +160,14 @@ def test_changed_data_or_settings_are_fitted_again(sessions, settings, tmp_path)
     os.utime(csv_file, ns=(before.st_atime_ns, before.st_mtime_ns))
     assert csv_file.stat().st_size == before.st_size
     assert batch.fit_session(str(session), other, str(out), "f").status == "skipped"
+
+
+def test_a_worker_with_another_model_version_fails_its_sessions_with_that_reason(sessions, settings, tmp_path):
+    client_side = dataclasses.replace(settings, model_version="0123456789abcdef0123")
+    outcome = batch.fit_session(str(sessions[2]), client_side, str(tmp_path), "a")
+    assert outcome.status.startswith(f"failed: model '2dof' on this worker is version {settings.model_version}, "
+                                     "the client's is 0123456789abcdef0123")
+    assert json.loads((tmp_path / "unit-02.json").read_text())["converged"] is False
 
 
 def test_killing_a_worker_mid_batch_still_yields_every_result_exactly_once(client, sessions, settings, tmp_path):
