@@ -3,9 +3,10 @@ approach, on the same simulated data (2-dof, standard set, n = 800, theta4/theta
 from examples/start-2dof.json, 15-40 % off).
 
 Printed side by side:
-  * the joint fit of all 14 experiments (target <= 0.5 s) and the whole
-    ``python -m identify fit`` process (target <= 1.5 s);
-  * one periodic solve from the static guess, per experiment (target <= 20 ms);
+  * the joint fit of all 14 experiments (target <= 0.3 s) and the whole
+    ``python -m identify fit`` process (target <= 1.0 s), with the process's import
+    time alone (``-X importtime``) beside it;
+  * one periodic solve from the static guess, per experiment (target: median <= 10 ms);
   * on the subset the transient side can afford (experiment h, 0.5 Hz): our fit against
     solve_ivp (LSODA, hand-written right-hand side) integrated period by period until the
     state repeats, inside scipy.optimize.least_squares (target: >= 100x faster, equal or
@@ -103,6 +104,14 @@ def transient_fit(model, data, params) -> tuple[float, dict[str, float], int]:
     return elapsed, {k: res.x[i] * theta0[idx[i]] for i, k in enumerate(ESTIMATE)}, res.nfev
 
 
+def import_seconds(env: dict[str, str]) -> float:
+    """What the fit process spends importing identify.cli and everything below it."""
+    proc = subprocess.run([sys.executable, "-X", "importtime", "-c", "import identify.cli"], capture_output=True,
+                          text=True, env=env)
+    line = next(ln for ln in proc.stderr.splitlines() if ln.rstrip().endswith("| identify.cli"))
+    return int(line.split("|")[1]) / 1e6
+
+
 def main() -> int:
     truth = load_truth().theta
     model = load_model("2dof")
@@ -134,6 +143,7 @@ def main() -> int:
                                ",".join(ESTIMATE), "--output", os.path.join(tmp, "R.json"), "--quiet"],
                               capture_output=True, text=True, env=env)
         t_process = time.perf_counter() - t0
+        t_imports = import_seconds(env)
 
         h = [e for e in experiments if e.label.endswith("h")]
         t0 = time.perf_counter()
@@ -142,14 +152,15 @@ def main() -> int:
         t_base, base_values, nfev = transient_fit(model, prepare_periodic(model, h, 800, outputs)[0], params)
 
     print("identification speed, 2-dof, n = 800, theta4/theta6/theta16 from a start 15-40 % off")
-    print(f"  joint fit, 14 experiments:           {t_joint:7.2f} s  ({joint.iterations} iterations; target <= 0.5 s: "
-          f"{'met' if t_joint <= 0.5 else 'NOT met'})   "
+    print(f"  joint fit, 14 experiments:           {t_joint:7.2f} s  ({joint.iterations} iterations; target <= 0.3 s: "
+          f"{'met' if t_joint <= 0.3 else 'NOT met'})   "
           f"errors: {rel_errors({k: joint.value(k) for k in ESTIMATE}, truth)}")
-    print(f"  python -m identify fit (process):     {t_process:7.2f} s  (exit {proc.returncode}; target <= 1.5 s: "
-          f"{'met' if t_process <= 1.5 else 'NOT met'})")
-    print(f"  periodic solve from the static guess: median {1e3 * np.median(solve_times):.0f} ms, max "
+    print(f"  python -m identify fit (process):     {t_process:7.2f} s  (exit {proc.returncode}; target <= 1.0 s: "
+          f"{'met' if t_process <= 1.0 else 'NOT met'}; of it imports {t_imports:.2f} s)")
+    median = float(np.median(solve_times))
+    print(f"  periodic solve from the static guess: median {1e3 * median:.1f} ms, max "
           f"{1e3 * max(solve_times):.0f} ms, {min(iterations)}-{max(iterations)} Newton iterations "
-          f"(target <= 20 ms: {'met' if max(solve_times) <= 0.02 else 'NOT met'})")
+          f"(target median <= 10 ms: {'met' if median <= 0.01 else 'NOT met'})")
     print("  subset the transient side can afford: experiment h (0.5 Hz)")
     print(f"    periodic equilibrium + Bayesian Gauss-Newton: {t_ours_h:8.2f} s   "
           f"errors: {rel_errors({k: ours_h.value(k) for k in ESTIMATE}, truth)}")

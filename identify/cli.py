@@ -1,7 +1,8 @@
-"""``python -m identify``: fit, compare, friction, predict, report.
+"""``python -m identify``: fit, compare, friction, predict, report, batch.
 
 Exit status: 0 success (a fit converged); 1 a fit did not converge (RESULT.json still
-written, ``converged`` false); 2 bad input (message names file and place, no traceback).
+written, ``converged`` false), or a session of a batch failed; 2 bad input (message
+names file and place, no traceback); 130 a batch interrupted (its results are kept).
 """
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,7 +28,11 @@ from identify.preparation import model_columns, prepare_periodic, resolve_output
 from identify.result import FitResult
 from identify.transient import drop_test
 
-EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT = 0, 1, 2
+if TYPE_CHECKING:
+    from identify import batch
+
+EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
+TABLE_ROWS = 40  # a longer batch shows only its failed sessions on the terminal (summary.csv has all)
 
 
 class UsageError(InputError):
@@ -276,6 +282,73 @@ def run_report(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def run_batch(args: argparse.Namespace) -> int:
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from identify import batch
+
+    console = Console(stderr=True)
+    named = list(args.sessions) + (batch.read_session_list(args.list) if args.list else [])
+    sessions = batch.check_sessions(named)
+    settings = batch.FitSettings.resolve(args.model, args.params, _csv_list(args.estimate) or [], n=args.n,
+                                         scheme=args.scheme, max_iterations=args.max_iterations)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise UsageError(f"--out {out}: exists and is not a folder")
+    counts = {"ok": 0, "failed": 0, "skipped": 0}
+    try:
+        with batch.connect(args.scheduler, args.workers) as client:
+            try:  # only now: input refused before this point leaves no folder behind
+                out.mkdir(parents=True, exist_ok=True)
+            except OSError as exc:
+                raise UsageError(f"--out {out}: cannot create the folder ({exc.strerror or exc})") from None
+            workers = len(client.scheduler_info().get("workers", {}))
+            link = batch.dashboard_link(client)
+            console.print(f"identifying {', '.join(settings.estimate)} of model {settings.model_name} in "
+                          f"{len(sessions)} sessions on {workers} workers"
+                          + (f"; dashboard {link}" if link else ""), highlight=False)
+            columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+            with Progress(*columns, console=console) as progress:
+                bar = progress.add_task("sessions", total=len(sessions))
+
+                def advance(outcome: batch.SessionOutcome) -> None:
+                    counts[outcome.state] += 1
+                    progress.update(bar, advance=1, description=", ".join(f"{v} {k}" for k, v in counts.items()))
+
+                rows = batch.run_batch(client, sessions, settings, out, advance)
+    except KeyboardInterrupt:
+        console.print(f"interrupted with {sum(counts.values())} of {len(sessions)} sessions reported; every result "
+                      f"written is kept in {out}, and the same command goes on from there", highlight=False)
+        return EXIT_INTERRUPTED
+    _batch_table(rows, settings.estimate)
+    print(f"{len(rows)} sessions: " + ", ".join(f"{v} {k}" for k, v in counts.items())
+          + f"; results in {out}, summary {out / batch.SUMMARY}")
+    return EXIT_NOT_CONVERGED if counts["failed"] else EXIT_OK
+
+
+def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    console = Console()  # stdout: the table is the command's result, progress went to stderr
+    shown = rows if len(rows) <= TABLE_ROWS else [r for r in rows if r.failed]
+    if shown:
+        table = Table(title="batch identification (value ± std)" if shown is rows else "failed sessions")
+        for col in ("session", "serial", "status", "converged"):
+            table.add_column(col, no_wrap=True)  # identifiers: whole, or cut with an ellipsis, never folded
+        for col in (*estimate, "fit [s]"):
+            table.add_column(col, justify="right")
+        for r in shown:
+            cells = [f"{r.values[p]:.5g} ± {r.stds[p]:.2g}" if r.stds.get(p) is not None else "" for p in estimate]
+            table.add_row(r.session, r.serial, r.state, "yes" if r.converged else "no", *cells,
+                          "" if r.fit_s is None else f"{r.fit_s:.2f}")
+        console.print(table)
+    for r in rows:
+        if r.failed:  # the reason names a file and line: too long for a cell, whole on its own line
+            console.print(f"{r.session}: {r.status}", highlight=False, soft_wrap=True)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m identify", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -330,6 +403,18 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_.add_argument("--n", type=int, default=800)
     cmp_.add_argument("--output", help="COMPARE.json to write")
     cmp_.set_defaults(func=run_compare)
+
+    bat = sub.add_parser("batch", help="identify many sessions on a Dask cluster, one task per session (resumable)")
+    bat.add_argument("sessions", nargs="*", help="session folders (dataset.json + CSVs)")
+    bat.add_argument("--list", help="file of session folders, one per line (# comments; relative to the file)")
+    model_args(bat)
+    bat.add_argument("--estimate", required=True, help="comma-separated parameters (names or aliases)")
+    bat.add_argument("--out", required=True, help="RESULTS_DIR: <session folder name>.json each, summary.csv")
+    bat.add_argument("--max-iterations", type=int, default=40)
+    where = bat.add_mutually_exclusive_group()
+    where.add_argument("--scheduler", help="address of a running Dask scheduler, tcp://HOST:8786")
+    where.add_argument("--workers", type=int, help="worker processes of a local cluster (default: one per core)")
+    bat.set_defaults(func=run_batch)
 
     rep = sub.add_parser("report", help="print a RESULT.json as a report")
     rep.add_argument("result")

@@ -115,6 +115,7 @@ class CompiledModel:
     declaration: ModelDeclaration
     module: ModuleType
     source_path: Path
+    version: str  # digest of the declaration's source and the generator: changes whenever the equations may
 
     def __post_init__(self) -> None:
         d = self.declaration
@@ -339,7 +340,7 @@ def compile_model(cls: type[ModelDeclaration]) -> CompiledModel:
             module = ModuleType(modname)
             exec(compile(src, f"<generated {decl.name}>", "exec"), module.__dict__)
     sys.modules.setdefault(modname, module)
-    compiled = CompiledModel(decl, module, path)
+    compiled = CompiledModel(decl, module, path, key)
     _COMPILED[cls] = compiled
     return compiled
 

@@ -1,0 +1,121 @@
+"""Batch identification throughput: the same sessions identified three ways, side by side.
+
+  * a serial loop of ``python -m identify fit`` processes (each pays the imports);
+  * an in-process serial loop of :func:`identify.batch.fit_session` (the worker's code
+    path: digest, read, fit, write, on one core);
+  * ``identify.batch.run_batch`` on a LocalCluster of single-threaded workers.
+
+Sessions: generated, 3-5 experiments each (h, j, i, d, e of the standard set: 0.5-2 Hz,
+3 periods at 1 kHz), each unit's θ4, θ6, θ16 drawn within ±20 % of nominal; every fit
+starts from examples/start-2dof.json (2-dof, n = 800).  Targets: the Dask batch on 2
+workers >= 1.8x the in-process serial loop, and >= 10x the loop of processes.  Also
+printed: the scheduler's overhead per task.  The machine may be shared: the load
+average is printed beside the figures.
+
+    python benchmarks/bench_batch.py [--sessions 100] [--workers 2]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from identify import batch  # noqa: E402
+from identify.model import load_model  # noqa: E402
+from identify.parameters import Parameters  # noqa: E402
+from identify.plans import STANDARD_SET, select  # noqa: E402
+from simulator.generate import generate  # noqa: E402
+from simulator.physics import Damper  # noqa: E402
+
+ESTIMATE = ["theta4", "theta6", "theta16"]
+START = ROOT / "examples" / "start-2dof.json"
+LETTERS = ["h", "j", "i", "d", "e"]
+NOOP_TASKS = 1000
+
+
+def make_session(folder: Path, i: int) -> Path:
+    rng = np.random.default_rng(i)
+    theta = Parameters(load_model("2dof")).as_dict()
+    theta |= {k: theta[k] * rng.uniform(0.8, 1.2) for k in ESTIMATE}
+    return generate(folder, select(STANDARD_SET, LETTERS[:3 + i % 3]), Damper(theta, "2dof"), periods=3,
+                    rate_hz=1000.0, seed=i)
+
+
+def noop(i: int) -> int:
+    return i
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--sessions", type=int, default=100)
+    parser.add_argument("--workers", type=int, default=2)
+    args = parser.parse_args()
+    settings = batch.FitSettings.resolve("2dof", str(START), ESTIMATE)
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        folders = [tmp / "sessions" / f"unit-{i:03d}" for i in range(args.sessions)]
+        with batch.connect(workers=args.workers) as client:
+            client.gather(client.map(make_session, folders, range(args.sessions), pure=False))
+
+        # The serial loops run with no cluster up: nothing else of ours competes for the cores.
+        t0 = time.perf_counter()
+        codes = [subprocess.run([sys.executable, "-m", "identify", "fit", str(f), "--params", str(START),
+                                 "--estimate", ",".join(ESTIMATE), "--output", str(tmp / "proc" / f"{f.name}.json"),
+                                 "--quiet"], capture_output=True, env=dict(os.environ, PYTHONPATH=str(ROOT))
+                                ).returncode for f in folders]
+        t_process = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        serial = [batch.fit_session(str(f), settings, str(tmp / "serial"), "serial") for f in folders]
+        t_serial = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        with batch.connect(workers=args.workers) as client:
+            client.run(lambda: __import__("identify.batch"))  # each worker pays its imports once, here
+            t_cluster = time.perf_counter() - t0
+
+            t0 = time.perf_counter()
+            rows = batch.run_batch(client, folders, settings, tmp / "dask")
+            t_dask = time.perf_counter() - t0
+
+            t0 = time.perf_counter()
+            client.gather(client.map(noop, range(NOOP_TASKS), pure=False))
+            t_noop = time.perf_counter() - t0
+
+    n = args.sessions
+    task_s = sum(r.fit_s or 0.0 for r in rows)
+    failed = sum(c != 0 for c in codes), sum(r.failed for r in serial), sum(r.failed for r in rows)
+    vs_serial, vs_process = t_serial / t_dask, t_process / t_dask
+    load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
+    print(f"batch identification: {n} sessions of 3-5 experiments, 2-dof, n = 800, {', '.join(ESTIMATE)} "
+          f"from {START.name}; {os.cpu_count()} cores, load average {load}")
+    print(f"  {'':44s} {'sessions/s':>10s} {'wall [s]':>9s} {'failed':>7s}")
+    for name, wall, bad in (("serial loop of `identify fit` processes", t_process, failed[0]),
+                            ("in-process serial loop (fit_session)", t_serial, failed[1]),
+                            (f"Dask batch, {args.workers} single-threaded workers", t_dask, failed[2])):
+        print(f"  {name:44s} {n / wall:10.2f} {wall:9.1f} {bad:7d}")
+    print(f"  Dask batch vs in-process serial: {vs_serial:5.2f}x  (target >= 1.8x on 2 cores: "
+          f"{'met' if vs_serial >= 1.8 else 'NOT met'})")
+    print(f"  Dask batch vs loop of processes: {vs_process:5.1f}x  (target >= 10x: "
+          f"{'met' if vs_process >= 10 else 'NOT met'})")
+    print(f"  cluster start ({args.workers} workers, imports included, not in the batch's wall time): "
+          f"{t_cluster:.1f} s")
+    print(f"  scheduler overhead per task: {1e3 * t_noop / NOOP_TASKS:.2f} ms wall per no-op task "
+          f"({NOOP_TASKS} on {args.workers} workers); in the batch, workers x wall - sum of task times = "
+          f"{1e3 * (args.workers * t_dask - task_s) / n:.1f} ms per session (task time "
+          f"{1e3 * task_s / n:.0f} ms per session)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,239 @@
+"""identify batch on a LocalCluster of 2 single-threaded workers: 30 generated sessions
+identified within 3 σ of their truths, a corrupt one failing alone, a rerun that fits
+nothing, and a worker killed mid-batch without a result lost or written twice.
+
+The sessions are small (experiments h and j, 3 periods at 1 kHz, n = 400) and generated
+once for the module, on the same cluster."""
+
+from __future__ import annotations
+
+import csv
+import dataclasses
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from identify import batch
+from identify.cli import main
+from identify.model import load_model
+from identify.parameters import Parameters
+from identify.plans import STANDARD_SET, select
+from simulator.generate import generate
+from simulator.physics import Damper
+
+ESTIMATE = ("theta4", "theta6", "theta16")
+N_SESSIONS = 30
+CORRUPT = "unit-corrupt"
+
+
+def truth(i: int) -> dict[str, float]:
+    """A unit of the fleet: nominal but for the estimated parameters, each within ±20 %
+    (the batch starts every session from one START, so the fixed ones must be right)."""
+    rng = np.random.default_rng(7_000 + i)
+    theta = Parameters(load_model("2dof")).as_dict()
+    return theta | {k: theta[k] * rng.uniform(0.8, 1.2) for k in ESTIMATE}
+
+
+@pytest.fixture(scope="module")
+def client():
+    with batch.connect(workers=2) as c:
+        yield c
+
+
+@pytest.fixture(scope="module")
+def sessions(client, tmp_path_factory) -> list[Path]:
+    root = tmp_path_factory.mktemp("sessions")
+    folders = [root / f"unit-{i:02d}" for i in range(N_SESSIONS)]
+    plan = select(STANDARD_SET, ["h", "j"])
+    client.gather(client.map(lambda folder, i: generate(folder, plan, Damper(truth(i), "2dof"), periods=3,
+                                                        rate_hz=1000.0, seed=i),
+                             folders, range(N_SESSIONS), pure=False))
+    for i, folder in enumerate(folders):
+        manifest = json.loads((folder / "dataset.json").read_text())
+        manifest["unit"]["serial"] = f"SN-{i:04d}"
+        (folder / "dataset.json").write_text(json.dumps(manifest))
+    corrupt = shutil.copytree(folders[0], root / CORRUPT)
+    csv_file = next(corrupt.glob("*j.csv"))
+    lines = csv_file.read_text().splitlines()
+    cells = lines[6].split(",")
+    cells[1] = "nan"                                      # line 7, column stroke_mm
+    lines[6] = ",".join(cells)
+    csv_file.write_text("\n".join(lines) + "\n")
+    return [*folders, corrupt]
+
+
+@pytest.fixture(scope="module")
+def settings() -> batch.FitSettings:
+    return batch.FitSettings.resolve("2dof", None, list(ESTIMATE), n=400)
+
+
+@pytest.fixture(scope="module")
+def first_run(client, sessions, settings, tmp_path_factory):
+    out = tmp_path_factory.mktemp("results")
+    rows = batch.run_batch(client, batch.check_sessions(sessions), settings, out)
+    return out, rows
+
+
+def read_summary(out: Path) -> list[dict[str, str]]:
+    with (out / "summary.csv").open() as f:
+        return list(csv.DictReader(f))
+
+
+def test_every_session_is_identified_within_3_sigma_of_its_truth(first_run):
+    out, rows = first_run
+    good = [r for r in rows if r.session != CORRUPT]
+    assert [r.session for r in good] == [f"unit-{i:02d}" for i in range(N_SESSIONS)]
+    assert all(r.status == "ok" and r.converged for r in good), [r.status for r in good]
+    z = np.array([[(r.values[k] - truth(i)[k]) / r.stds[k] for k in ESTIMATE] for i, r in enumerate(good)])
+    assert np.all(np.abs(z) < 3), z
+    assert [r.serial for r in good] == [f"SN-{i:04d}" for i in range(N_SESSIONS)]
+    doc = json.loads((out / "unit-07.json").read_text())
+    assert doc["converged"] and doc["parameters"]["theta4"]["value"] == good[7].values["theta4"]
+    assert doc["batch"]["status"] == "ok" and len(doc["batch"]["key"]) == 64
+
+
+def test_a_corrupt_session_fails_alone_with_its_reason(first_run, sessions):
+    out, rows = first_run
+    failed = [r for r in rows if r.failed]
+    assert [r.session for r in failed] == [CORRUPT]
+    assert failed[0].status.startswith(f"failed: {sessions[-1]}/")
+    assert failed[0].status.endswith(".csv: line 7, column 'stroke_mm': 'nan' is not a finite number")
+    summary = read_summary(out)
+    assert list(summary[0]) == ["session", "serial", "status", "converged", "fit_s",
+                                *[c for k in ESTIMATE for c in (k, f"{k}_std")]]
+    assert [s["session"] for s in summary] == [r.session for r in rows]
+    assert summary[-1]["status"] == failed[0].status and summary[-1]["theta4"] == ""
+    assert all(s["status"] == "ok" and s["converged"] == "True" and float(s["theta4_std"]) > 0 for s in summary[:-1])
+
+
+def test_a_second_run_fits_nothing_that_is_done(first_run, client, sessions, settings):
+    out, rows = first_run
+    good = [out / f"{p.name}.json" for p in sessions[:-1]]
+    before = [(p.stat().st_ino, p.stat().st_mtime_ns) for p in good]
+    again = batch.run_batch(client, batch.check_sessions(sessions), settings, out)
+    assert [r.status for r in again[:-1]] == ["skipped"] * N_SESSIONS
+    assert [(p.stat().st_ino, p.stat().st_mtime_ns) for p in good] == before   # not one result rewritten
+    assert [r.values for r in again[:-1]] == [r.values for r in rows[:-1]]
+    assert again[-1].failed                                                    # only converged fits count as done
+    assert [s["status"] for s in read_summary(out)] == ["skipped"] * N_SESSIONS + [again[-1].status]
+
+
+def test_a_retried_task_reuses_what_its_first_attempt_wrote(sessions, settings, tmp_path):
+    first = batch.fit_session(str(sessions[0]), settings, str(tmp_path), "run-1")
+    written = (tmp_path / "unit-00.json").stat()
+    retry = batch.fit_session(str(sessions[0]), settings, str(tmp_path), "run-1")
+    later = batch.fit_session(str(sessions[0]), settings, str(tmp_path), "run-2")
+    assert (first.status, retry.status, later.status) == ("ok", "ok", "skipped")
+    assert retry == first and later.values == first.values
+    assert (tmp_path / "unit-00.json").stat().st_mtime_ns == written.st_mtime_ns
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["unit-00.json"]
+
+
+def test_changed_data_or_settings_are_fitted_again(sessions, settings, tmp_path):
+    session = Path(shutil.copytree(sessions[1], tmp_path / "unit-01"))
+    out = tmp_path / "out"
+    assert batch.fit_session(str(session), settings, str(out), "a").status == "ok"
+    other = batch.FitSettings.resolve("2dof", None, ["theta4", "theta6"], n=400)
+    assert batch.fit_session(str(session), other, str(out), "b").status == "ok"
+    csv_file = next(session.glob("*h.csv"))
+    os.utime(csv_file, ns=(0, 0))                        # touched, not changed: the digest says so
+    assert batch.fit_session(str(session), other, str(out), "c").status == "skipped"
+    lines = csv_file.read_text().splitlines()
+    cells = lines[-1].split(",")
+    cells[1] = f"{float(cells[1]) + 0.01:.9g}"           # one sample 10 µm off
+    csv_file.write_text("\n".join(lines[:-1] + [",".join(cells)]) + "\n")
+    assert batch.fit_session(str(session), other, str(out), "d").status == "ok"
+    assert batch.fit_session(str(session), other, str(out), "e").status == "skipped"
+    # While size and modification time are those stored, the data are not read again
+    # (a resumed batch of 100,000 sessions must not re-read terabytes): an edit that
+    # keeps both is, by design, not seen.
+    before = csv_file.stat()
+    csv_file.write_text(csv_file.read_text().replace(cells[1], cells[1][:-1] + ("1" if cells[1][-1] != "1" else "2")))
+    os.utime(csv_file, ns=(before.st_atime_ns, before.st_mtime_ns))
+    assert csv_file.stat().st_size == before.st_size
+    assert batch.fit_session(str(session), other, str(out), "f").status == "skipped"
+
+
+def test_a_worker_with_another_model_version_fails_its_sessions_with_that_reason(sessions, settings, tmp_path):
+    client_side = dataclasses.replace(settings, model_version="0123456789abcdef0123")
+    outcome = batch.fit_session(str(sessions[2]), client_side, str(tmp_path), "a")
+    assert outcome.status.startswith(f"failed: model '2dof' on this worker is version {settings.model_version}, "
+                                     "the client's is 0123456789abcdef0123")
+    assert json.loads((tmp_path / "unit-02.json").read_text())["converged"] is False
+
+
+def test_killing_a_worker_mid_batch_still_yields_every_result_exactly_once(client, sessions, settings, tmp_path):
+    chosen = sessions[:10]                                 # enough to be mid-batch at the first result
+    pids = client.run(os.getpid)
+    killed = []  # (worker, the keys it was processing)
+
+    def kill_a_busy_worker(outcome: batch.SessionOutcome) -> None:
+        if killed:
+            return
+        busy = {w: keys for w, keys in client.processing().items() if keys}
+        worker, keys = next(iter(busy.items()))
+        os.kill(pids[worker], signal.SIGKILL)
+        killed.append((worker, keys))
+
+    rows = batch.run_batch(client, batch.check_sessions(chosen), settings, tmp_path, kill_a_busy_worker)
+    assert killed and killed[0][1], "no worker was busy when one was killed"
+    assert killed[0][0] not in client.scheduler_info()["workers"]             # it died; the nanny started another
+    assert [r.session for r in rows] == [p.name for p in chosen]
+    assert [r.status for r in rows] == ["ok"] * len(chosen)
+    # (a worker killed inside atomic_write_bytes may leave a hidden .tmp file: never a result)
+    assert sorted(p.name for p in tmp_path.glob("*.json")) == sorted(f"{p.name}.json" for p in chosen)
+    assert [s["session"] for s in read_summary(tmp_path)] == [p.name for p in chosen]
+
+
+# ------------------------------------------------------------------------------------------
+# The command line
+
+
+def test_the_command_runs_a_list_on_the_plants_scheduler(client, sessions, tmp_path):
+    client.wait_for_workers(2)                            # a worker killed above may still be restarting
+    listing = tmp_path / "sessions.txt"
+    listing.write_text(f"# two units\n{sessions[2]}\n\n{os.path.relpath(sessions[3], tmp_path)}  # relative\n")
+    proc = subprocess.run([sys.executable, "-m", "identify", "batch", "--list", str(listing), "--model", "2dof",
+                           "--estimate", "area,volume_slope,heat_transfer", "--n", "400", "--out",
+                           str(tmp_path / "out"), "--scheduler", client.scheduler.address],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert "2 sessions: 2 ok, 0 failed, 0 skipped" in proc.stdout
+    assert "unit-02" in proc.stdout and "SN-0003" in proc.stdout
+    assert "in 2 sessions on 2 workers" in proc.stderr
+    assert [s["session"] for s in read_summary(tmp_path / "out")] == ["unit-02", "unit-03"]
+
+
+def _closed_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.mark.parametrize("args, message", [
+    ([], "no sessions: name session folders or give --list FILE"),
+    (["--list", "{tmp}/missing.txt"], "missing.txt: session list not found"),
+    (["{tmp}/a/unit", "{tmp}/b/unit"], "share the folder name 'unit'"),
+    (["{tmp}/a/unit", "--model", "3dof"], "unknown model '3dof'"),
+    (["{tmp}/a/unit", "--estimate", "theta4,theta99"], "model '2dof' has no parameter 'theta99'"),
+    (["{tmp}/a/unit", "--params", "{tmp}/nope.json"], "nope.json: parameter file not found"),
+    (["{tmp}/a/unit", "--scheduler", "nonsense"], "'nonsense': not a scheduler address"),
+    (["{tmp}/a/unit", "--scheduler", "tcp://127.0.0.1:{port}"], "cannot reach the scheduler"),
+    (["{tmp}/a/unit", "--workers", "0"], "--workers must be at least 1, got 0"),
+])
+def test_bad_input_is_one_line_and_exit_2(args, message, tmp_path, capsys):
+    argv = [a.format(tmp=tmp_path, port=_closed_port()) for a in args]
+    if "--estimate" not in argv:
+        argv += ["--estimate", "theta4"]
+    assert main(["batch", *argv, "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and message in err, err
+    assert not (tmp_path / "out").exists()
