@@ -57,6 +57,16 @@ NOISE_REFRESH = 0.02  # the noise model follows θ once it has moved by this man
 CHI2_TOLERANCE = 0.1  # a Gauss-Newton step promising less χ² decrease than this changes nothing that matters
 
 
+
+def scaled_pinv(A: np.ndarray) -> np.ndarray:
+    """Pseudo-inverse of a normal matrix whose parameters differ in scale by many decades
+    (θ3 ≈ 5e3 beside θ9 ≈ 4e-5 spans ~17 in AᵀA): pinv's relative cut-off would drop the
+    large parameter's direction and report a σ of 1e-16.  Inverting the unit-diagonal
+    matrix D·A·D, D = diag(A)^-1/2, and scaling back keeps every direction the data hold."""
+    d = np.sqrt(np.abs(np.diag(A)))
+    d = np.where(d > 0, 1 / np.where(d > 0, d, 1.0), 0.0)
+    return d[:, None] * np.linalg.pinv(d[:, None] * A * d[None, :]) * d[None, :]
+
 class EstimationError(ComputationError):
     """The fit cannot start (e.g. no periodic solution at the starting parameters)."""
 
@@ -262,7 +272,7 @@ class Estimator:
             # Far from the optimum the correction would make the step uphill.
             coupled = np.min(np.linalg.eigvals(np.linalg.solve(A, A_coupled)).real) >= 0.1
             scale = self._prior_std(theta)  # solve in prior-std units: well scaled, zeros included
-            sigma = np.sqrt(np.abs(np.diag(np.linalg.pinv(A))))
+            sigma = np.sqrt(np.abs(np.diag(scaled_pinv(A))))
             for A_step in ((A_coupled, A) if coupled else (A,)):
                 As = A_step * np.outer(scale, scale) + np.eye(len(scale))
                 step = scale * np.linalg.solve(As, g * scale)
@@ -334,7 +344,7 @@ class Estimator:
         A⁻¹ (white residuals of the observed size) where the noise of a record cannot be
         estimated."""
         A, _ = self._normal_equations(ev, v)
-        A_inv = np.linalg.pinv(A)
+        A_inv = scaled_pinv(A)
         notes = []
         if ev.noise is None:
             notes.append("measurement noise not estimable (a single sample per grid bin, or no scatter at all "
