@@ -19,6 +19,8 @@ if TYPE_CHECKING:
     import pandas as pd
 
 RELATIVE_STD_WARNING = 0.10  # a parameter known to worse than 10 % is flagged
+# Monte-Carlo calibration of the reported σ, written by benchmarks/bench_sigma.py --record.
+CALIBRATION_FILE = Path(__file__).with_name("calibration.json")
 CONDITION_WARNING = 1e6  # of the weighted, parameter-scaled sensitivity matrix
 CORRELATION_REPORT = 0.5
 
@@ -241,6 +243,9 @@ class FitResult:
                          f"random draw ({len(self.experiments)} experiments), is itself uncertain by about "
                          f"±{100 / math.sqrt(2 * max(len(self.experiments) - len(self.estimated), 1)):.0f} %, "
                          f"and does not cover a bias the model error may cause")
+        calibration = _calibration_line(self.model)
+        if calibration:
+            lines.append(calibration)
         fixed = [p for p in self.params if p.name not in self.estimated]
         if fixed:
             lines.append("    fixed: " + ", ".join(f"{p.name}={p.value:.6g}" for p in fixed))
@@ -267,6 +272,19 @@ class FitResult:
             lines.append("[[Warnings]]")
             lines += [f"    {w}" for w in self.warnings]
         return "\n".join(ln for ln in lines if ln != "")
+
+
+def _calibration_line(model: str) -> str | None:
+    """What the Monte-Carlo calibration on record (CALIBRATION_FILE) says about σ, if any."""
+    try:
+        doc = json.loads(CALIBRATION_FILE.read_text(encoding="utf-8"))
+        lo, hi = doc["spread_over_sigma_range"]
+        seeds, calibrated = int(doc["seeds"]), str(doc["model"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    scope = "" if calibrated == model else f" (for model {calibrated}, not {model})"
+    return (f"    σ validated by Monte-Carlo{scope}, {seeds} seeds per case: spread/σ {lo:.2f}–{hi:.2f} "
+            f"({', '.join(doc.get('estimated', []))}; benchmarks/bench_sigma.py, docs/uncertainty.md)")
 
 
 def _finite(x: float) -> float | None:
