@@ -9,10 +9,12 @@ Sessions: generated, 3-5 experiments each (h, j, i, d, e of the standard set: 0.
 3 periods at 1 kHz), each unit's θ4, θ6, θ16 drawn within ±20 % of nominal; every fit
 starts from examples/start-2dof.json (2-dof, n = 800).  Targets: the Dask batch on 2
 workers >= 1.8x the in-process serial loop, and >= 10x the loop of processes.  Also
-printed: the scheduler's overhead per task.  The machine may be shared: the load
-average is printed beside the figures.
+printed: the scheduler's overhead per task.  The machine may be shared: the sessions
+are timed in rounds, each round all three ways in turn (each way leading a round in
+turn), so that other jobs' load falls on all three alike, and the load average is
+printed beside the figures.  Every way runs numpy/scipy on one BLAS thread.
 
-    python benchmarks/bench_batch.py [--sessions 100] [--workers 2]
+    python benchmarks/bench_batch.py [--sessions 100] [--workers 2] [--rounds 4]
 """
 
 from __future__ import annotations
@@ -25,7 +27,12 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
+# One BLAS thread, set before numpy loads OpenBLAS: what `python -m identify` and Dask's
+# workers use, so that the in-process figures measure the same code the same way.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -55,55 +62,67 @@ def noop(i: int) -> int:
     return i
 
 
+def process_loop(folders: list[Path], out: Path) -> list[int]:
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    return [subprocess.run([sys.executable, "-m", "identify", "fit", str(f), "--params", str(START), "--estimate",
+                            ",".join(ESTIMATE), "--output", str(out / f"{f.name}.json"), "--quiet"],
+                           capture_output=True, env=env).returncode for f in folders]
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--sessions", type=int, default=100)
     parser.add_argument("--workers", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=4,
+                        help="the sessions are split into rounds, each timed all three ways in turn, so that "
+                             "other jobs' load falls on all three alike")
     args = parser.parse_args()
     settings = batch.FitSettings.resolve("2dof", str(START), ESTIMATE)
+    wall = {"process": 0.0, "serial": 0.0, "dask": 0.0}
+    failed = dict.fromkeys(wall, 0)
+    task_s = 0.0
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         folders = [tmp / "sessions" / f"unit-{i:03d}" for i in range(args.sessions)]
-        with batch.connect(workers=args.workers) as client:
-            client.gather(client.map(make_session, folders, range(args.sessions), pure=False))
-
-        # The serial loops run with no cluster up: nothing else of ours competes for the cores.
-        t0 = time.perf_counter()
-        codes = [subprocess.run([sys.executable, "-m", "identify", "fit", str(f), "--params", str(START),
-                                 "--estimate", ",".join(ESTIMATE), "--output", str(tmp / "proc" / f"{f.name}.json"),
-                                 "--quiet"], capture_output=True, env=dict(os.environ, PYTHONPATH=str(ROOT))
-                                ).returncode for f in folders]
-        t_process = time.perf_counter() - t0
-
-        t0 = time.perf_counter()
-        serial = [batch.fit_session(str(f), settings, str(tmp / "serial"), "serial") for f in folders]
-        t_serial = time.perf_counter() - t0
-
         t0 = time.perf_counter()
         with batch.connect(workers=args.workers) as client:
             client.run(lambda: __import__("identify.batch"))  # each worker pays its imports once, here
             t_cluster = time.perf_counter() - t0
+            client.gather(client.map(make_session, folders, range(args.sessions), pure=False))
 
-            t0 = time.perf_counter()
-            rows = batch.run_batch(client, folders, settings, tmp / "dask")
-            t_dask = time.perf_counter() - t0
+            def run(method: str, chunk: list[Path]) -> None:
+                nonlocal task_s
+                t0 = time.perf_counter()
+                if method == "process":
+                    failed[method] += sum(c != 0 for c in process_loop(chunk, tmp / method))
+                elif method == "serial":
+                    failed[method] += sum(batch.fit_session(str(f), settings, str(tmp / method), method).failed
+                                          for f in chunk)
+                else:
+                    rows = batch.run_batch(client, chunk, settings, tmp / method)
+                    failed[method] += sum(r.failed for r in rows)
+                    task_s += sum(r.fit_s or 0.0 for r in rows)
+                wall[method] += time.perf_counter() - t0
+
+            methods = list(wall)
+            for r, chunk in enumerate(np.array_split(np.array(folders, dtype=object), args.rounds)):
+                for method in methods[r % 3:] + methods[:r % 3]:  # each method leads a round in turn
+                    run(method, list(chunk))
 
             t0 = time.perf_counter()
             client.gather(client.map(noop, range(NOOP_TASKS), pure=False))
             t_noop = time.perf_counter() - t0
 
     n = args.sessions
-    task_s = sum(r.fit_s or 0.0 for r in rows)
-    failed = sum(c != 0 for c in codes), sum(r.failed for r in serial), sum(r.failed for r in rows)
-    vs_serial, vs_process = t_serial / t_dask, t_process / t_dask
+    vs_serial, vs_process = wall["serial"] / wall["dask"], wall["process"] / wall["dask"]
     load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
     print(f"batch identification: {n} sessions of 3-5 experiments, 2-dof, n = 800, {', '.join(ESTIMATE)} "
-          f"from {START.name}; {os.cpu_count()} cores, load average {load}")
+          f"from {START.name}; {args.rounds} rounds; {os.cpu_count()} cores, load average {load}")
     print(f"  {'':44s} {'sessions/s':>10s} {'wall [s]':>9s} {'failed':>7s}")
-    for name, wall, bad in (("serial loop of `identify fit` processes", t_process, failed[0]),
-                            ("in-process serial loop (fit_session)", t_serial, failed[1]),
-                            (f"Dask batch, {args.workers} single-threaded workers", t_dask, failed[2])):
-        print(f"  {name:44s} {n / wall:10.2f} {wall:9.1f} {bad:7d}")
+    for name, key in (("serial loop of `identify fit` processes", "process"),
+                      ("in-process serial loop (fit_session)", "serial"),
+                      (f"Dask batch, {args.workers} single-threaded workers", "dask")):
+        print(f"  {name:44s} {n / wall[key]:10.2f} {wall[key]:9.1f} {failed[key]:7d}")
     print(f"  Dask batch vs in-process serial: {vs_serial:5.2f}x  (target >= 1.8x on 2 cores: "
           f"{'met' if vs_serial >= 1.8 else 'NOT met'})")
     print(f"  Dask batch vs loop of processes: {vs_process:5.1f}x  (target >= 10x: "
@@ -112,7 +131,7 @@ def main() -> int:
           f"{t_cluster:.1f} s")
     print(f"  scheduler overhead per task: {1e3 * t_noop / NOOP_TASKS:.2f} ms wall per no-op task "
           f"({NOOP_TASKS} on {args.workers} workers); in the batch, workers x wall - sum of task times = "
-          f"{1e3 * (args.workers * t_dask - task_s) / n:.1f} ms per session (task time "
+          f"{1e3 * (args.workers * wall['dask'] - task_s) / n:.1f} ms per session (task time "
           f"{1e3 * task_s / n:.0f} ms per session)")
     return 0
 

@@ -25,10 +25,15 @@ import tempfile
 import time
 from pathlib import Path
 
-import numpy as np
-from scipy.integrate import solve_ivp
-from scipy.interpolate import CubicSpline
-from scipy.optimize import least_squares
+# One BLAS thread, set before numpy loads OpenBLAS: what `python -m identify` and Dask's
+# workers use, so that the in-process figures measure the same code the same way.
+for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import numpy as np  # noqa: E402
+from scipy.integrate import solve_ivp  # noqa: E402
+from scipy.interpolate import CubicSpline  # noqa: E402
+from scipy.optimize import least_squares  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
