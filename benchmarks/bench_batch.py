@@ -3,7 +3,11 @@
   * a serial loop of ``python -m identify fit`` processes (each pays the imports);
   * an in-process serial loop of :func:`identify.batch.fit_session` (the worker's code
     path: digest, read, fit, write, on one core);
-  * ``identify.batch.run_batch`` on a LocalCluster of single-threaded workers.
+  * ``identify.batch.run_batch`` on a LocalCluster of single-threaded workers;
+  * as a control, the same fit_session calls on a plain process pool of as many
+    processes: what the machine's cores give this bench at the time of the run (on a
+    shared machine, Linux's per-session CPU shares can leave it one core's worth,
+    however many processes it starts), and so how much of a shortfall is Dask's own.
 
 Sessions: generated, 3-5 experiments each (h, j, i, d, e of the standard set: 0.5-2 Hz,
 3 periods at 1 kHz), each unit's θ4, θ6, θ16 drawn within ±20 % of nominal; every fit
@@ -20,11 +24,13 @@ printed beside the figures.  Every way runs numpy/scipy on one BLAS thread.
 from __future__ import annotations
 
 import argparse
+import multiprocessing
 import os
 import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 # One BLAS thread, set before numpy loads OpenBLAS: what `python -m identify` and Dask's
@@ -78,16 +84,18 @@ def main() -> int:
                              "other jobs' load falls on all three alike")
     args = parser.parse_args()
     settings = batch.FitSettings.resolve("2dof", str(START), ESTIMATE)
-    wall = {"process": 0.0, "serial": 0.0, "dask": 0.0}
+    wall = {"process": 0.0, "serial": 0.0, "dask": 0.0, "pool": 0.0}
     failed = dict.fromkeys(wall, 0)
     task_s = 0.0
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)
         folders = [tmp / "sessions" / f"unit-{i:03d}" for i in range(args.sessions)]
         t0 = time.perf_counter()
-        with batch.connect(workers=args.workers) as client:
+        with batch.connect(workers=args.workers) as client, \
+                ProcessPoolExecutor(args.workers, mp_context=multiprocessing.get_context("spawn")) as pool:
             client.run(lambda: __import__("identify.batch"))  # each worker pays its imports once, here
             t_cluster = time.perf_counter() - t0
+            list(pool.map(noop, range(args.workers)))  # the pool's processes started and importing
             client.gather(client.map(make_session, folders, range(args.sessions), pure=False))
 
             def run(method: str, chunk: list[Path]) -> None:
@@ -98,6 +106,10 @@ def main() -> int:
                 elif method == "serial":
                     failed[method] += sum(batch.fit_session(str(f), settings, str(tmp / method), method).failed
                                           for f in chunk)
+                elif method == "pool":
+                    failed[method] += sum(o.failed for o in pool.map(
+                        batch.fit_session, [str(f) for f in chunk], [settings] * len(chunk),
+                        [str(tmp / method)] * len(chunk), [method] * len(chunk)))
                 else:
                     rows = batch.run_batch(client, chunk, settings, tmp / method)
                     failed[method] += sum(r.failed for r in rows)
@@ -106,7 +118,7 @@ def main() -> int:
 
             methods = list(wall)
             for r, chunk in enumerate(np.array_split(np.array(folders, dtype=object), args.rounds)):
-                for method in methods[r % 3:] + methods[:r % 3]:  # each method leads a round in turn
+                for method in methods[r % 4:] + methods[:r % 4]:  # each method leads a round in turn
                     run(method, list(chunk))
 
             t0 = time.perf_counter()
@@ -115,16 +127,19 @@ def main() -> int:
 
     n = args.sessions
     vs_serial, vs_process = wall["serial"] / wall["dask"], wall["process"] / wall["dask"]
+    available = wall["serial"] / wall["pool"]
     load = " / ".join(f"{x:.1f}" for x in os.getloadavg())
     print(f"batch identification: {n} sessions of 3-5 experiments, 2-dof, n = 800, {', '.join(ESTIMATE)} "
           f"from {START.name}; {args.rounds} rounds; {os.cpu_count()} cores, load average {load}")
     print(f"  {'':44s} {'sessions/s':>10s} {'wall [s]':>9s} {'failed':>7s}")
     for name, key in (("serial loop of `identify fit` processes", "process"),
                       ("in-process serial loop (fit_session)", "serial"),
-                      (f"Dask batch, {args.workers} single-threaded workers", "dask")):
+                      (f"Dask batch, {args.workers} single-threaded workers", "dask"),
+                      (f"control: plain pool of {args.workers} processes", "pool")):
         print(f"  {name:44s} {n / wall[key]:10.2f} {wall[key]:9.1f} {failed[key]:7d}")
     print(f"  Dask batch vs in-process serial: {vs_serial:5.2f}x  (target >= 1.8x on 2 cores: "
-          f"{'met' if vs_serial >= 1.8 else 'NOT met'})")
+          f"{'met' if vs_serial >= 1.8 else 'NOT met'}; the plain pool reached {available:.2f}x, "
+          f"Dask {wall['pool'] / wall['dask']:.2f} of the pool's rate)")
     print(f"  Dask batch vs loop of processes: {vs_process:5.1f}x  (target >= 10x: "
           f"{'met' if vs_process >= 10 else 'NOT met'})")
     print(f"  cluster start ({args.workers} workers, imports included, not in the batch's wall time): "
