@@ -281,7 +281,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     def model_args(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--model", default="2dof", help="1dof, 2dof, duffing or path/file.py:ClassName")
+        p.add_argument("--model", default="2dof", help="1dof, 2dof, duffing, bouc-wen or path/file.py:ClassName")
         p.add_argument("--params", help="START.json / RESULT.json / flat {name: value} (default: nominal)")
         p.add_argument("--scheme", choices=SCHEMES, default="bdf2", help="grid differentiation scheme")
         p.add_argument("--n", type=int, default=800, help="grid points per period (default 800)")

@@ -351,6 +351,7 @@ _BUILTIN = {
     "1dof": ("identify.models.damper", "Damper1Dof"),
     "2dof": ("identify.models.damper", "Damper2Dof"),
     "duffing": ("identify.models.duffing", "Duffing"),
+    "bouc-wen": ("identify.models.bouc_wen", "BoucWen"),
 }
 
 
@@ -359,7 +360,7 @@ def builtin_models() -> list[str]:
 
 
 def load_model(spec: str) -> CompiledModel:
-    """A model by built-in name (``1dof``, ``2dof``, ``duffing``) or ``path/file.py:ClassName``."""
+    """A model by built-in name (``1dof``, ``2dof``, ``duffing``, ``bouc-wen``) or ``path/file.py:ClassName``."""
     if spec in _BUILTIN:
         modname, clsname = _BUILTIN[spec]
         cls = getattr(importlib.import_module(modname), clsname)
