@@ -123,7 +123,7 @@ def write_dataset(out: str | Path, theta: dict[str, float] | None = None, phase_
     t, u, y = simulate(theta, multisine(phase_seed), periods)
     y_mm = 1e3 * y
     y_mm = y_mm + noise * np.sqrt(np.mean(y_mm**2)) * np.random.default_rng(noise_seed).standard_normal(y.size)
-    atomic_write_bytes(out / "bw.csv", csv_bytes({"time_s": t, "force_N": u, "displacement_mm": y_mm}))
+    atomic_write_bytes(out / "bw.csv", csv_bytes({"time_s": t, "force_N": u, "displacement_mm": y_mm}, "%.12g"))
     write_manifest(out, {
         "format": FORMAT, "name": f"Bouc-Wen oscillator, random-phase multisine (seed {phase_seed})",
         "experiments": [{"label": "bw", "kind": "periodic", "file": "bw.csv", "frequency_Hz": RATE_HZ / SAMPLES,
