@@ -48,14 +48,14 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
                     max_iterations: int = 40,
                     progress: Callable[[int, float, np.ndarray], None] | None = None,
                     fixed: dict[str, dict[int, float]] | None = None, stability: bool = False,
-                    oversample: int | None = 1) -> FitResult:
+                    oversample: int | None = 1, linear_solver: str = "auto") -> FitResult:
     """Joint Bayesian fit of ``estimate`` over all ``experiments`` (shared parameters).
 
     ``params`` gives the start values and priors; it is not modified.  ``fixed`` holds
     per-experiment values of fixed parameters ({label: {parameter index: value}}, e.g.
     friction from :mod:`identify.friction`).  ``n`` or ``oversample`` None: chosen
-    (:func:`choose_grid`).  Each experiment of the result names the start of its first
-    periodic solve (:mod:`identify.start`)."""
+    (:func:`choose_grid`); ``linear_solver`` as for :class:`Grid`.  Each experiment of
+    the result names the start of its first periodic solve (:mod:`identify.start`)."""
     params = params.copy()
     start = params.as_dict()
     params.set_estimated(estimate)
@@ -69,7 +69,7 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
             clash = [names[i] for i in d.fixed if names[i] in estimate]
             if clash:
                 raise InputError(f"{', '.join(clash)}: estimated and also fixed per experiment")
-    estimator = Estimator(model, data, params.copy(), Grid(n, scheme, oversample=oversample), outputs,
+    estimator = Estimator(model, data, params.copy(), Grid(n, scheme, linear_solver, oversample), outputs,
                           max_iterations=max_iterations, progress=progress, stability=stability)
     result = estimator.fit()
     result.start = {k: start[k] for k in result.estimated}

@@ -115,18 +115,20 @@ def simulate(theta: dict[str, float], spectrum: np.ndarray, periods: int, settle
 
 
 def write_dataset(out: str | Path, theta: dict[str, float] | None = None, phase_seed: int = 1, periods: int = 2,
-                  noise: float = 0.01, noise_seed: int = 0) -> Path:
+                  noise: float = 0.01, noise_seed: int = 0, samples: int = SAMPLES) -> Path:
     """A dataset folder with one periodic experiment ``bw``: the force as commanded and
-    the displacement [mm] with white noise of ``noise`` times its RMS."""
+    the displacement [mm] with white noise of ``noise`` times its RMS; ``samples`` per
+    period at RATE_HZ."""
     theta = dict(TRUTH if theta is None else theta)
     out = Path(out)
-    t, u, y = simulate(theta, multisine(phase_seed), periods)
+    t, u, y = simulate(theta, multisine(phase_seed, samples), periods, samples=samples,
+                       settle_periods=max(1, -(-SAMPLES // samples)))
     y_mm = 1e3 * y
     y_mm = y_mm + noise * np.sqrt(np.mean(y_mm**2)) * np.random.default_rng(noise_seed).standard_normal(y.size)
     atomic_write_bytes(out / "bw.csv", csv_bytes({"time_s": t, "force_N": u, "displacement_mm": y_mm}, "%.12g"))
     write_manifest(out, {
         "format": FORMAT, "name": f"Bouc-Wen oscillator, random-phase multisine (seed {phase_seed})",
-        "experiments": [{"label": "bw", "kind": "periodic", "file": "bw.csv", "frequency_Hz": RATE_HZ / SAMPLES,
+        "experiments": [{"label": "bw", "kind": "periodic", "file": "bw.csv", "frequency_Hz": RATE_HZ / samples,
                          "sample_rate_Hz": RATE_HZ, "periods": periods,
                          "excitation": f"random-phase multisine {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz, {RMS_N:g} N RMS"}],
     })
