@@ -4,6 +4,7 @@ identify/models/bouc_wen.py on data made by tests/hysteresis_data.py."""
 from __future__ import annotations
 
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -154,3 +155,9 @@ def test_bouc_wen_recovered_from_broadband_data_and_predicts_another_realisation
     error = np.sqrt(np.mean((predicted - measured) ** 2)) / np.sqrt(np.mean(measured**2))
     print(f"prediction for another phase realisation: RMS error {100 * error:.3f} % of the output RMS (target <= 1 %)")
     assert error <= 0.01
+
+
+def test_the_user_models_page_shows_the_shipped_declaration():
+    root = Path(bw.__file__).resolve().parents[1]
+    shown = re.findall(r"```python\n(.*?)```", (root / "docs" / "user-models.md").read_text(), flags=re.S)
+    assert shown and shown[0] in (root / "identify" / "models" / "bouc_wen.py").read_text()
