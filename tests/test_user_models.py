@@ -43,7 +43,7 @@ def test_reference_data_agree_with_an_adaptive_integrator():
     assert np.max(np.abs(y - ref)) < 3e-6 * np.max(np.abs(ref))  # 3e-7 found; 4 substeps give 4e-5
 
 
-SMALL = 512  # samples per period of the quick cases below: 0.68 s periods, lines 3-102
+SMALL = 256  # samples per period of the quick cases below: 0.34 s periods, lines 2-51
 
 
 def _small_case():
