@@ -78,7 +78,6 @@ def test_every_start_reaches_the_same_periodic_solution_of_the_literal_bouc_wen_
 
 
 FRICTION = '''
-import sympy as sp
 from identify.model import Channel, ModelDeclaration, ParameterSpec, State
 
 class Friction(ModelDeclaration):
@@ -92,6 +91,8 @@ class Friction(ModelDeclaration):
                   ParameterSpec("a", "sharpness", "s/m", 1e4))
 
     def residuals(self, s):
+        import sympy as sp  # here, not at the top: loading a cached model then skips sympy's import
+
         return [s.m * s.y_tt + s.c * s.y_t + s.k * s.y + s.F * sp.atan(s.a * s.y_t) - s.u]
 
     def output_equations(self, s):
