@@ -20,7 +20,7 @@ from identify.differentiation import SCHEMES, Grid
 from identify.errors import ComputationError, InputError
 from identify.estimator import EstimationError
 from identify.files import atomic_write_bytes
-from identify.fit import fit_experiments
+from identify.fit import DEFAULT_POINTS, choose_grid, fit_experiments
 from identify.model import CompiledModel, load_model
 from identify.parameters import Parameters
 from identify.periodic import PeriodicSolver
@@ -92,9 +92,12 @@ def run_fit(args: argparse.Namespace) -> int:
     if not estimate:
         raise UsageError("--estimate names no parameter")
     params.copy().set_estimated(estimate)  # names checked before the (slower) folding
-    grid = Grid(args.n, args.scheme)
+    n, oversample, notes = choose_grid(model, ds.select(labels), outputs, args.n, args.scheme, args.oversample)
+    grid = Grid(n, args.scheme, oversample=oversample)
     console.print(f"fitting {', '.join(estimate)} of model {model.name} on {len(labels)} experiments "
                   f"({grid.scheme}, n = {grid.n})", highlight=False)
+    for note in notes:
+        console.print(f"  {note}", highlight=False)
     progress = _progress(console) if not args.quiet else None
     results: list[tuple[str, FitResult]] = []
     groups = [[e] for e in ds.select(labels)] if args.per_experiment else [ds.select(labels)]
@@ -105,9 +108,9 @@ def run_fit(args: argparse.Namespace) -> int:
         fixed = load_fixed(args.friction, params.names())
     for group in groups:
         try:
-            result = fit_experiments(model, group, params, estimate, n=args.n, scheme=args.scheme, outputs=outputs,
+            result = fit_experiments(model, group, params, estimate, n=n, scheme=args.scheme, outputs=outputs,
                                      max_iterations=args.max_iterations, progress=progress, fixed=fixed,
-                                     stability=args.stability)
+                                     stability=args.stability, oversample=oversample)
         except EstimationError as exc:
             console.print(f"[red]fit failed:[/red] {exc}", highlight=False)
             _write_failed(args.output, model, params, str(exc))
@@ -171,8 +174,11 @@ def run_predict(args: argparse.Namespace) -> int:
     t = exp.time_s
     cols: dict[str, np.ndarray] = {"time_s": t}
     if exp.kind == "periodic":
-        grid = Grid(args.n, args.scheme)
-        data = prepare_periodic(model, [exp], args.n, [])[0]
+        n, oversample, notes = choose_grid(model, [exp], [], args.n, args.scheme, args.oversample)
+        for note in notes:
+            print(note, file=sys.stderr)
+        grid = Grid(n, args.scheme, oversample=oversample)
+        data = prepare_periodic(model, [exp], n, [])[0]
         sol = PeriodicSolver(model, grid).solve(data.inputs, data.frequency_hz, theta, label=label)
         y = model.output(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         phase = t * exp.frequency_hz
@@ -354,10 +360,13 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
 
     def model_args(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--model", default="2dof", help="1dof, 2dof, duffing or path/file.py:ClassName")
+        p.add_argument("--model", default="2dof", help="1dof, 2dof, duffing, bouc-wen or path/file.py:ClassName")
         p.add_argument("--params", help="START.json / RESULT.json / flat {name: value} (default: nominal)")
         p.add_argument("--scheme", choices=SCHEMES, default="bdf2", help="grid differentiation scheme")
-        p.add_argument("--n", type=int, default=800, help="grid points per period (default 800)")
+        p.add_argument("--n", type=int, help=f"grid points per period (default {DEFAULT_POINTS} for bdf2; for "
+                                             "spectral chosen from the data's highest harmonic with signal)")
+        p.add_argument("--oversample", type=int, help="solve the model on n x this many points (default: 4 for "
+                                                      "spectral grids of models with kinks such as |x|, else 1)")
 
     fit = sub.add_parser("fit", help="estimate parameters from periodic experiments")
     fit.add_argument("dataset", help="dataset folder (dataset.json + CSVs)")

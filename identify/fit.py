@@ -13,23 +13,54 @@ from identify.errors import InputError
 from identify.estimator import Estimator
 from identify.model import CompiledModel
 from identify.parameters import Parameters
-from identify.preparation import prepare_periodic, resolve_outputs
+from identify.preparation import choose_points, prepare_periodic, resolve_outputs
 from identify.result import FitResult
+
+DEFAULT_POINTS = 800  # per period on the bdf2 grid, as in the paper
+# Kinks (|ẋ|, hysteresis) make every scheme converge at second order in the step: a
+# model grid four times finer than the data's cuts that error sixteenfold (Bouc-Wen at
+# 750 Hz: 1.8 % of the output RMS on the data's grid, 0.08 % on the finer one).
+NONSMOOTH_OVERSAMPLE = 4
+
+
+def choose_grid(model: CompiledModel, experiments: list[Experiment], outputs: list[str], n: int | None,
+                scheme: str, oversample: int | None) -> tuple[int, int, list[str]]:
+    """Points per period and model-grid oversampling, each as given or chosen: n from
+    the data for the spectral scheme (DEFAULT_POINTS for bdf2), oversampling for
+    spectral grids of models with kinks; and sentences saying what was chosen."""
+    notes = []
+    if n is None:
+        if scheme == "spectral":
+            n, why = choose_points(model, experiments, outputs)
+            notes.append(why)
+        else:
+            n = DEFAULT_POINTS
+    if oversample is None:
+        oversample = NONSMOOTH_OVERSAMPLE if scheme == "spectral" and model.nonsmooth else 1
+        if oversample > 1:
+            notes.append(f"model solved on {oversample} x {n} points: model {model.name!r} has kinks (|x|, sign, "
+                         f"max), whose error falls only with the square of the step")
+    return n, oversample, notes
 
 
 def fit_experiments(model: CompiledModel, experiments: list[Experiment], params: Parameters, estimate: list[str], *,
-                    n: int = 800, scheme: str = "bdf2", outputs: list[str] | None = None, max_iterations: int = 40,
+                    n: int | None = DEFAULT_POINTS, scheme: str = "bdf2", outputs: list[str] | None = None,
+                    max_iterations: int = 40,
                     progress: Callable[[int, float, np.ndarray], None] | None = None,
-                    fixed: dict[str, dict[int, float]] | None = None, stability: bool = False) -> FitResult:
+                    fixed: dict[str, dict[int, float]] | None = None, stability: bool = False,
+                    oversample: int | None = 1, linear_solver: str = "auto") -> FitResult:
     """Joint Bayesian fit of ``estimate`` over all ``experiments`` (shared parameters).
 
     ``params`` gives the start values and priors; it is not modified.  ``fixed`` holds
     per-experiment values of fixed parameters ({label: {parameter index: value}}, e.g.
-    friction from :mod:`identify.friction`)."""
+    friction from :mod:`identify.friction`).  ``n`` or ``oversample`` None: chosen
+    (:func:`choose_grid`); ``linear_solver`` as for :class:`Grid`.  Each experiment of
+    the result names the start of its first periodic solve (:mod:`identify.start`)."""
     params = params.copy()
     start = params.as_dict()
     params.set_estimated(estimate)
     outputs = resolve_outputs(model, outputs)
+    n, oversample, _ = choose_grid(model, experiments, outputs, n, scheme, oversample)
     data = prepare_periodic(model, experiments, n, outputs)
     if fixed:
         names = params.names()
@@ -38,8 +69,12 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
             clash = [names[i] for i in d.fixed if names[i] in estimate]
             if clash:
                 raise InputError(f"{', '.join(clash)}: estimated and also fixed per experiment")
-    result = Estimator(model, data, params.copy(), Grid(n, scheme), outputs, max_iterations=max_iterations,
-                       progress=progress, stability=stability).fit()
+    estimator = Estimator(model, data, params.copy(), Grid(n, scheme, linear_solver, oversample), outputs,
+                          max_iterations=max_iterations, progress=progress, stability=stability)
+    result = estimator.fit()
     result.start = {k: start[k] for k in result.estimated}
     result.priors = {k: params[k].prior_std for k in result.estimated}
+    result.oversample = oversample
+    for e in result.experiments:
+        e.start = estimator.solver.starts_used.get(e.label, "")
     return result

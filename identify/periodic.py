@@ -2,9 +2,10 @@
 
 The residual equations are collocated on the n-point phase grid of one period; the
 resulting n·n_states algebraic equations are solved by Newton's method with step
-halving, started from the static equilibrium for the mean input (or warm-started from
-an earlier solution).  The factorised Jacobian at the solution gives the parameter
-sensitivities dz/dθ = −(∂G/∂z)⁻¹·∂G/∂θ at the cost of back-substitutions only.
+halving, started from the static equilibrium for the mean input or another start of
+:mod:`identify.start` (or warm-started from an earlier solution).  The factorised
+Jacobian at the solution gives the parameter sensitivities dz/dθ = −(∂G/∂z)⁻¹·∂G/∂θ at
+the cost of back-substitutions only.
 """
 
 from __future__ import annotations
@@ -16,8 +17,11 @@ import numpy as np
 from scipy.linalg import LinAlgWarning
 
 from identify.differentiation import BDF2_D1, BDF2_D2, Factorization, Grid
-from identify.errors import ComputationError
+from identify.errors import ComputationError, InputError
 from identify.model import CompiledModel
+from identify.start import STARTS, StartError, rest_state, solve_from_rest
+
+NEWTON_RTOL = 1e-3  # relative accuracy of a matrix-free Newton step (1e-6: 20 % more GMRES iterations in a fit)
 
 
 class ConvergenceError(ComputationError):
@@ -43,45 +47,34 @@ class PeriodicSolution:
     iterations: int
     residual_norm: float  # scaled RMS of the residual equations at the solution
     factorization: Factorization = field(repr=False)
+    start: str = "given"  # where Newton started: a name of identify.start.STARTS, or "given" (warm start)
 
 
 class PeriodicSolver:
     """Newton solver for periodic equilibria of one model on one grid."""
 
-    def __init__(self, model: CompiledModel, grid: Grid, max_iterations: int = 60, tolerance: float = 1e-9):
+    def __init__(self, model: CompiledModel, grid: Grid, max_iterations: int = 60, tolerance: float = 1e-9,
+                 starts: tuple[str, ...] | None = None):
+        unknown = set(starts or ()) - set(STARTS)
+        if unknown:
+            raise InputError(f"unknown periodic starts {', '.join(sorted(unknown))}: use {', '.join(STARTS)}")
         self.model = model
         self.grid = grid
         self.max_iterations = max_iterations
         self.tolerance = tolerance
+        self.starts = starts  # order of the starts tried; None: chosen from the rest state
+        self.starts_used: dict[str, str] = {}  # label -> start of its last solve from rest
+        self._last_sensitivities: dict[tuple[str, tuple[int, ...]], np.ndarray] = {}
 
     # ----------------------------------------------------------------------------------
     def static_equilibrium(self, inputs: np.ndarray, theta: np.ndarray, label: str = "") -> np.ndarray:
-        """States at rest (all derivatives zero) for constant inputs (n_inputs,)."""
-        m = self.model
-        x = m.static_guess(theta)
-        zero = np.zeros_like(x)
-        scales = m.state_scales
-        for it in range(100):  # noqa: B007 - the count goes into the error raised after the loop
-            g = m.residual(x, zero, zero, inputs, theta)
-            gx = m.residual_jacobian(x, zero, zero, inputs, theta)[0]
-            try:
-                dx = -np.linalg.solve(gx, g)
-            except np.linalg.LinAlgError:
-                break
-            if np.all(np.abs(dx) <= self.tolerance * scales):
-                return x + dx
-            merit = float(g @ g)
-            lam = 1.0
-            while lam > 1e-6:
-                xt = x + lam * dx
-                gt = m.residual(xt, zero, zero, inputs, theta)
-                if np.all(np.isfinite(gt)) and float(gt @ gt) < merit:
-                    break
-                lam /= 2
-            x = xt
-        raise ConvergenceError(
-            f"{label or 'experiment'}: no static equilibrium found for the mean input {inputs}", label, it
-        )
+        """States at rest (all derivatives zero) for constant inputs (n_inputs,); the
+        least-norm one where rest states form a continuum."""
+        rest = rest_state(self.model, inputs, theta, self.tolerance)
+        if rest is None:
+            raise ConvergenceError(f"{label or 'experiment'}: no static equilibrium found for the mean input {inputs}",
+                                   label)
+        return rest.states
 
     # ----------------------------------------------------------------------------------
     def _equation_weights(self, jac: tuple[np.ndarray, np.ndarray, np.ndarray], f: float) -> np.ndarray:
@@ -93,25 +86,44 @@ class PeriodicSolver:
 
     def solve(self, inputs: np.ndarray, frequency_hz: float, theta: np.ndarray,
               start: np.ndarray | None = None, label: str = "") -> PeriodicSolution:
-        """Periodic solution for grid inputs (n_inputs, n) at the given frequency.
+        """Periodic solution for data-grid inputs (n_inputs, n) at the given frequency.
 
-        ``start`` (n_states, n) warm-starts Newton; otherwise the static equilibrium for
-        the mean input is the first guess.  Raises :class:`ConvergenceError` naming ``label``.
+        ``start`` (n_states, points) warm-starts Newton; otherwise the starts of
+        :mod:`identify.start` are tried in turn (the static equilibrium for the mean
+        input first where it is unique), the one that worked is recorded in the
+        solution and in ``starts_used[label]``.  On an oversampled grid the start is
+        the solution on the data's grid, refined.  Raises :class:`ConvergenceError`
+        naming ``label``.  The solution's arrays are on the model grid.
         """
         # Unphysical trial parameters (a line-search step too far) give NaNs or singular
         # Jacobians; they end in ConvergenceError, which the caller handles, so numpy's
         # and scipy's warnings about them would only be noise.
         with np.errstate(all="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore", LinAlgWarning)
-            if start is None:
-                xs = self.static_equilibrium(inputs.mean(axis=1), theta, label)
-                start = np.repeat(xs[:, None], self.grid.n, axis=1)
-            return self._solve(inputs, frequency_hz, theta, start, label)
+            refined = self.grid.refine(inputs)
+            if start is not None:
+                return self._solve(refined, frequency_hz, theta, start, label)
+            if self.grid.oversample > 1:
+                coarse = PeriodicSolver(self.model, self.grid.base(), self.max_iterations, self.tolerance,
+                                        self.starts).solve(inputs, frequency_hz, theta, label=label)
+                sol = self._solve(refined, frequency_hz, theta, self.grid.refine(coarse.states), label)
+                name = coarse.start
+            else:
+                try:
+                    sol, name = solve_from_rest(
+                        self.model, self.grid, lambda u, x: self._solve(u, frequency_hz, theta, x, label), refined,
+                        frequency_hz, theta, self.tolerance, self.starts)
+                except StartError as exc:
+                    raise ConvergenceError(f"{label or 'experiment'}: no periodic solution from any start ({exc})",
+                                           label) from exc
+            sol.start = name
+            self.starts_used[label] = name
+            return sol
 
     def _solve(self, inputs: np.ndarray, frequency_hz: float, theta: np.ndarray,
                start: np.ndarray, label: str) -> PeriodicSolution:
         m, grid, f = self.model, self.grid, frequency_hz
-        ns, n = m.n_states, grid.n
+        ns, n = m.n_states, grid.points
         X = np.array(start, dtype=float, copy=True)
         tol = self.tolerance * m.state_scales[:, None]
         DX, DDX = grid.derivatives(X, f)
@@ -126,8 +138,14 @@ class PeriodicSolver:
                 merit = float(np.sum((weights * G) ** 2))
             if not np.isfinite(merit):
                 break
-            fac = grid.factorize(*jac, f)
-            dX = -fac.solve(G.ravel()).reshape(ns, n)
+            try:
+                fac = grid.factorize(*jac, f, m.state_scales)
+                # Newton judges its own convergence: a matrix-free step solved roughly costs a
+                # little contraction per iteration, far less than the Krylov iterations saved.
+                step = fac.krylov.solve(G.ravel(), NEWTON_RTOL) if fac.krylov else fac.solve(G.ravel())
+                dX = -step.reshape(ns, n)
+            except np.linalg.LinAlgError:  # a singular Newton matrix (banded LU) or GMRES stalled
+                break
             if not np.all(np.isfinite(dX)):
                 break
             # Differentiation is linear: the trial points' derivatives are combinations.
@@ -166,11 +184,19 @@ class PeriodicSolver:
 
     # ----------------------------------------------------------------------------------
     def state_sensitivities(self, sol: PeriodicSolution, theta: np.ndarray, indices: list[int]) -> np.ndarray:
-        """dX/dθ_k for the listed parameter indices: (n_states, n, k)."""
-        m, n = self.model, self.grid.n
+        """dX/dθ_k for the listed parameter indices: (n_states, points, k), model grid."""
+        m, n = self.model, self.grid.points
         gth = m.residual_dtheta(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)[:, indices, :]
         rhs = np.transpose(gth, (0, 2, 1)).reshape(-1, len(indices))
-        return -sol.factorization.solve(rhs).reshape(m.n_states, n, len(indices))
+        krylov = sol.factorization.krylov
+        if krylov is None:
+            return -sol.factorization.solve(rhs).reshape(m.n_states, n, len(indices))
+        # The last sensitivities of this experiment start GMRES: between a fit's iterations
+        # they change by the step, and the solve needs that much fewer iterations.
+        key = (sol.label, tuple(indices))
+        solution = krylov.solve(rhs, guess=self._last_sensitivities.get(key))
+        self._last_sensitivities[key] = solution
+        return -solution.reshape(m.n_states, n, len(indices))
 
     def floquet_multipliers(self, sol: PeriodicSolution, theta: np.ndarray) -> np.ndarray:
         """Floquet multipliers of the periodic solution, largest magnitude first: the
@@ -182,7 +208,7 @@ class PeriodicSolver:
         so the Σ orders largest are the physical multipliers."""
         m, grid, f = self.model, self.grid, sol.frequency_hz
         gx, gdx, gddx = m.residual_jacobian(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
-        h = 1.0 / grid.n
+        h = 1.0 / grid.points
         c1 = BDF2_D1 / h * f
         c2 = BDF2_D2 / h**2 * f * f
         A = c1[:, None, None, None] * gdx[None] + c2[:, None, None, None] * gddx[None]  # (4, neq, ns, n)
@@ -191,7 +217,7 @@ class PeriodicSolver:
         blocks = np.moveaxis(A, -1, 0)  # (n, 4, neq, ns)
         # x_μ = -A0⁻¹ (A1 x_{μ-1} + A2 x_{μ-2} + A3 x_{μ-3}), all steps solved at once.
         top = -np.linalg.solve(blocks[:, 0], np.concatenate([blocks[:, 1], blocks[:, 2], blocks[:, 3]], axis=2))
-        step = np.zeros((grid.n, 3 * ns, 3 * ns))
+        step = np.zeros((grid.points, 3 * ns, 3 * ns))
         step[:, :ns] = top
         step[:, ns:2 * ns, :ns] = np.eye(ns)
         step[:, 2 * ns:, ns:2 * ns] = np.eye(ns)
@@ -205,21 +231,25 @@ class PeriodicSolver:
     def input_response(self, sol: PeriodicSolution, theta: np.ndarray, outputs: list[int],
                        du: np.ndarray) -> np.ndarray:
         """Output perturbations (len(outputs), n, k) caused by input perturbations du
-        (n_inputs, n, k): dŷ/du applied to k vectors (how input noise reaches the outputs)."""
-        m = self.model
+        (n_inputs, n, k), data grid: dŷ/du applied to k vectors (how input noise reaches
+        the outputs)."""
+        m, grid = self.model, self.grid
+        du = grid.refine(du, axis=1)
         args = (sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         gu = m.residual_dinput(*args)  # (neq, nin, n): each input sample enters its own equations
         rhs = np.einsum("ijn,jnk->ink", gu, du)
         k = du.shape[2]
-        dX = -sol.factorization.solve(rhs.reshape(-1, k)).reshape(m.n_states, self.grid.n, k)
+        dX = -sol.factorization.solve(rhs.reshape(-1, k)).reshape(m.n_states, grid.points, k)
         hu = m.output_dinput(*args)[outputs]  # (nout, nin, n)
-        return self._output_response(sol, theta, dX, outputs) + np.einsum("ojn,jnk->onk", hu, du)
+        return grid.sample(self._output_response(sol, theta, dX, outputs) + np.einsum("ojn,jnk->onk", hu, du), axis=1)
 
     def input_adjoint(self, sol: PeriodicSolution, theta: np.ndarray, outputs: list[int], w: np.ndarray) -> np.ndarray:
-        """(dŷ/du)ᵀ applied to output weights w (len(outputs), n, k): (n_inputs, n, k).
+        """(dŷ/du)ᵀ applied to output weights w (len(outputs), n, k): (n_inputs, n, k),
+        data grid.
 
         One transposed solve with k right-hand sides instead of n per input."""
         m, f = self.model, sol.frequency_hz
+        w = self.grid.sample_transposed(w, axis=1)
         args = (sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         hx, hdx, hddx = m.output_jacobian(*args)
         wk = np.moveaxis(w, 1, -1)  # (nout, k, n)
@@ -228,14 +258,16 @@ class PeriodicSolver:
             np.stack([np.einsum("ojn,okn->jkn", hdx[outputs], wk), np.einsum("ojn,okn->jkn", hddx[outputs], wk)]), f)
         lam = np.moveaxis(lam + d1[0] + d2[1], -1, 1)  # (n_states, n, k)
         k = w.shape[2]
-        mu = sol.factorization.solve_transposed(lam.reshape(-1, k)).reshape(m.n_states, self.grid.n, k)
+        mu = sol.factorization.solve_transposed(lam.reshape(-1, k)).reshape(m.n_states, self.grid.points, k)
         gu = m.residual_dinput(*args)
         hu = m.output_dinput(*args)[outputs]
-        return -np.einsum("ijn,ink->jnk", gu, mu) + np.einsum("ojn,onk->jnk", hu, w)
+        adjoint = -np.einsum("ijn,ink->jnk", gu, mu) + np.einsum("ojn,onk->jnk", hu, w)
+        return self.grid.refine_transposed(adjoint, axis=1)
 
     def _output_response(self, sol: PeriodicSolution, theta: np.ndarray, dX: np.ndarray,
                          outputs: list[int]) -> np.ndarray:
-        """Output perturbations (len(outputs), n, k) caused by state perturbations dX (n_states, n, k)."""
+        """Output perturbations (len(outputs), points, k) caused by state perturbations dX
+        (n_states, points, k), model grid."""
         dDX, dDDX = self.grid.apply_derivative_operators(dX, sol.frequency_hz)
         hx, hdx, hddx = self.model.output_jacobian(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         return (np.einsum("ojn,jnk->onk", hx[outputs], dX)
@@ -243,19 +275,20 @@ class PeriodicSolver:
                 + np.einsum("ojn,jnk->onk", hddx[outputs], dDDX))
 
     def outputs(self, sol: PeriodicSolution, theta: np.ndarray, outputs: list[int]) -> np.ndarray:
-        """Model outputs on the grid (len(outputs), n), SI."""
+        """Model outputs on the data grid (len(outputs), n), SI."""
         y = self.model.output(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
-        return y[outputs]
+        return self.grid.sample(y[outputs])
 
     def sensitivities(self, sol: PeriodicSolution, theta: np.ndarray, indices: list[int],
                       outputs: list[int]) -> tuple[np.ndarray, np.ndarray]:
-        """dX/dθ_k (n_states, n, k) and dŷ/dθ_k (len(outputs), n, k) on the grid."""
+        """dX/dθ_k (n_states, points, k) on the model grid and dŷ/dθ_k (len(outputs), n, k)
+        on the data grid."""
         dX = self.state_sensitivities(sol, theta, indices)
         hth = self.model.output_dtheta(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         dY = self._output_response(sol, theta, dX, outputs) + np.transpose(hth[outputs][:, indices, :], (0, 2, 1))
-        return dX, dY
+        return dX, self.grid.sample(dY, axis=1)
 
     def output_sensitivities(self, sol: PeriodicSolution, theta: np.ndarray, indices: list[int],
                              outputs: list[int]) -> np.ndarray:
-        """dŷ/dθ_k on the grid: (len(outputs), n, k)."""
+        """dŷ/dθ_k on the data grid: (len(outputs), n, k)."""
         return self.sensitivities(sol, theta, indices, outputs)[1]

@@ -78,3 +78,47 @@ def prepare_periodic(model: CompiledModel, experiments: list[Experiment], n: int
         uvar = np.array([(folded.noise_std[ch.column] * ch.scale) ** 2 for ch in d.inputs.values()])
         prepared.append(PeriodicData(exp.label, exp.frequency_hz, inputs, measured, yvar, uvar, folded))
     return prepared
+
+
+SIGNAL_MARGIN = 1.25  # grid points per period: at least 2·margin·(highest harmonic with signal)
+SIGNAL_THRESHOLD = 5.0  # a harmonic has signal where its amplitude exceeds this many noise standard deviations
+# Below this fraction of a column's largest harmonic (−80 dB) a noiseless column (a
+# commanded force) holds only rounding and folding error: 9 digits of time_s put
+# harmonics at 1e-6 of the largest up to the Nyquist line.
+RELATIVE_FLOOR = 1e-4
+# Records with a whole number of samples per period up to this many times the points
+# needed are fitted on their own samples: folding two or three samples into a bin
+# averages them, a low-pass filter that biased a broadband Bouc-Wen fit by 10 σ.
+OWN_SAMPLES_FACTOR = 4
+
+
+def choose_points(model: CompiledModel, experiments: list[Experiment], outputs: list[str]) -> tuple[int, str]:
+    """Grid points per period for the spectral scheme, from the data, and a sentence
+    saying why: the smallest power of two with SIGNAL_MARGIN to spare above twice the
+    highest harmonic that stands out of its column's noise, or the records' own samples
+    per period where they are whole and not many more (every record the same)."""
+    d = model.declaration
+    columns = [ch.column for ch in d.inputs.values()] + [d.outputs[o].column for o in outputs]
+    best, why, sizes = 0, "", set()
+    for exp in experiments:
+        per_period = exp.sample_rate_hz / exp.frequency_hz
+        samples = int(round(per_period))
+        whole = abs(per_period - samples) < 1e-6 * per_period
+        size = samples if whole else 1 << int(np.ceil(np.log2(per_period)))
+        sizes.add(size if whole else 0)
+        folded = fold(exp.label, exp.time_s, {c: exp.column(c) for c in columns}, exp.frequency_hz, size)
+        for c in columns:
+            spectrum = np.abs(np.fft.rfft(folded.values[c] - folded.values[c].mean()))
+            noise = folded.noise_std[c] ** 2 * folded.grid_factor
+            floor = max(SIGNAL_THRESHOLD * np.sqrt(size * noise) if np.isfinite(noise) else 0.0,
+                        RELATIVE_FLOOR * spectrum.max())
+            above = np.flatnonzero(spectrum > floor)
+            if above.size and above[-1] > best:
+                best, why = int(above[-1]), f"{c} of {exp.label}"
+    needed = max(64, 1 << int(np.ceil(np.log2(2 * SIGNAL_MARGIN * max(best, 1)))))
+    own = sizes.pop() if len(sizes) == 1 else 0
+    if own and needed <= own <= OWN_SAMPLES_FACTOR * needed:
+        return own, (f"n = {own}, the records' samples per period (the highest harmonic with signal is {best}, "
+                     f"in {why}: {needed} points would resolve it)")
+    return needed, (f"n = {needed}, the power of two above 2 x {SIGNAL_MARGIN:g} x the highest harmonic with signal "
+                    f"({best}, in {why})")

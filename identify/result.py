@@ -45,6 +45,7 @@ class ExperimentFit:
     predicted: dict[str, np.ndarray]
     newton_iterations: int
     floquet: np.ndarray | None = None  # multipliers, largest magnitude first (when asked for)
+    start: str = ""  # where the first periodic solve started (identify.start: static, transient, ...)
 
     def residual(self, column: str) -> np.ndarray:
         return self.measured[column] - self.predicted[column]
@@ -80,6 +81,7 @@ class FitResult:
     # Residual-based σ, given where the residuals exceed the measurement noise (model error).
     std_residual: dict[str, float] | None = None
     priors: dict[str, float | None] = field(default_factory=dict)
+    oversample: int = 1  # the model solved on n·oversample points per period
 
     @classmethod
     def build(cls, *, model: CompiledModel, params: Parameters, estimated: list[str], std: np.ndarray,
@@ -183,6 +185,8 @@ class FitResult:
                 "channels": {o: dict(zip(("residual_mean", "residual_std"), e.stats(o), strict=True))
                              for o in self.outputs},
             }
+            if e.start:
+                experiments[e.label]["start"] = e.start
             if e.floquet is not None:
                 experiments[e.label]["floquet_max_multiplier"] = float(np.abs(e.floquet[0]))
                 experiments[e.label]["stable"] = bool(np.abs(e.floquet[0]) < 1.0)
@@ -198,6 +202,7 @@ class FitResult:
             "objective": self.objective_history[-1] if self.objective_history else None,
             "n": self.n_grid,
             "scheme": self.scheme,
+            "oversample": self.oversample,
             "elapsed_s": self.elapsed_s,
             "warnings": self.warnings,
         }
@@ -212,7 +217,8 @@ class FitResult:
         lines = [
             "[[Fit statistics]]",
             f"    model              = {self.model}",
-            f"    scheme, n          = {self.scheme}, {self.n_grid} points per period",
+            f"    scheme, n          = {self.scheme}, {self.n_grid} points per period"
+            + (f" (model on {self.n_grid * self.oversample})" if self.oversample > 1 else ""),
             f"    experiments        = {len(self.experiments)} ({', '.join(e.label for e in self.experiments)})",
             f"    fitted outputs     = {', '.join(self.outputs)}",
             f"    data points        = {n_points}",
@@ -266,8 +272,9 @@ class FitResult:
             mean, std = e.stats(self.outputs[0])
             stability = "" if e.floquet is None else (
                 f", Floquet |μ|max {np.abs(e.floquet[0]):.4g} ({'stable' if np.abs(e.floquet[0]) < 1 else 'UNSTABLE'})")
+            started = f", started {e.start}" if e.start else ""
             lines.append(f"    {e.label:12s} {e.frequency_hz:8.4g} Hz   {mean:+.4g} +/- {2 * std:.4g}"
-                         f"   ({e.newton_iterations} Newton iterations{stability})")
+                         f"   ({e.newton_iterations} Newton iterations{started}{stability})")
         if self.warnings:
             lines.append("[[Warnings]]")
             lines += [f"    {w}" for w in self.warnings]

@@ -34,7 +34,7 @@ def _fd(f, args, which, k, h):
     return (f(*plus) - f(*minus)) / (2 * h)
 
 
-@pytest.mark.parametrize("name", ["1dof", "2dof", "duffing"])
+@pytest.mark.parametrize("name", ["1dof", "2dof", "duffing", "bouc-wen"])
 def test_declared_derivatives_match_finite_differences(name):
     m = load_model(name)
     rng = np.random.default_rng(1)
@@ -93,6 +93,40 @@ def test_user_model_loads_from_a_file(tmp_path):
     X = np.array([[0.01]])
     g = m.residual(X, np.zeros_like(X), np.zeros_like(X), np.array([[1.0]]), m.nominal_vector())
     assert g[0, 0] == pytest.approx(100.0 * 0.01 - 1.0)
+
+
+def test_kinks_and_jumps_compile_to_their_generalised_derivatives(tmp_path):
+    """sign, max and Heaviside in a residual: the Jacobian takes the derivative of a jump
+    as zero (semismooth Newton) instead of a DiracDelta numpy cannot evaluate, and the
+    model is flagged as non-smooth (a finer model grid by default on spectral grids)."""
+    src = textwrap.dedent('''
+        import sympy as sp
+        from identify.model import Channel, ModelDeclaration, ParameterSpec, State
+
+        class Stop(ModelDeclaration):
+            name = "stop_test"
+            states = (State("x", "m", 1e-3),)
+            inputs = {"f": Channel("force_N", "N")}
+            outputs = {"stroke_mm": Channel("stroke_mm", "mm", scale=1e-3)}
+            default_outputs = ("stroke_mm",)
+            parameters = (ParameterSpec("k", "stiffness", "N/m", 100.0), ParameterSpec("F", "friction", "N", 2.0),
+                          ParameterSpec("g", "gap", "m", 0.01))
+
+            def residuals(self, s):
+                contact = sp.Max(s.x - s.g, 0) * sp.Heaviside(s.x)
+                return [s.x_t + s.F * sp.sign(s.x_t) * s.x**2 + s.k * (s.x + 10 * contact) - s.f]
+
+            def output_equations(self, s):
+                return {"stroke_mm": s.x}
+    ''')
+    path = tmp_path / "stop.py"
+    path.write_text(src)
+    m = load_model(f"{path}:Stop")
+    assert m.nonsmooth and not load_model("duffing").nonsmooth
+    X, DX = np.array([[0.005, 0.02]]), np.array([[-0.1, 0.3]])
+    gx, gdx, _ = m.residual_jacobian(X, DX, np.zeros_like(X), np.array([[1.0, 1.0]]), m.nominal_vector())
+    np.testing.assert_allclose(gx[0, 0], [2 * 2.0 * 0.005 * -1 + 100, 2 * 2.0 * 0.02 + 100 * 11])
+    np.testing.assert_allclose(gdx[0, 0], [1.0, 1.0])  # d sign(x')/dx' = 0 away from the jump
 
 
 def test_unknown_model_is_a_clear_error(tmp_path):
