@@ -1,0 +1,127 @@
+"""The virtual rig as a child process: ``python -m simulator serve`` on free loopback
+ports, exactly as an operator would start it by hand, with its endpoints, its log and
+its clean stop.  The rig package never imports the simulator; it talks to it over
+Modbus and the DAQ line only.  Used by the pytest plugin (``rig.testing``) and the
+demo (``examples/demo.py``)."""
+
+from __future__ import annotations
+
+import json
+import re
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+from collections.abc import Sequence
+from pathlib import Path
+
+START_TIMEOUT_S = 60.0
+
+
+class VirtualRig:
+    """A running ``simulator serve``: its endpoints, its log, and how to stop it."""
+
+    def __init__(self, *, speed: float = 50.0, params: str | Path | dict[str, float] | None = None, seed: int = 1,
+                 faults: Sequence[str] = (), daq: str = "tcp", rig: str = "shaker", modbus: str = "tcp",
+                 unit: str | None = None, unit_seed: int | None = None, extra_args: Sequence[str] = ()) -> None:
+        self._tmp = tempfile.TemporaryDirectory(prefix="virtual-rig-")
+        if isinstance(params, dict):
+            truth = Path(self._tmp.name) / "truth.json"
+            truth.write_text(json.dumps({"parameters": params}))
+            params = truth
+        cmd = [sys.executable, "-m", "simulator", "serve",
+               "--modbus", "127.0.0.1:0" if modbus == "tcp" else "rtu:pty",
+               "--daq", "tcp://127.0.0.1:0" if daq == "tcp" else "pty",
+               "--speed", str(speed), "--seed", str(seed), "--rig", rig]
+        cmd += ["--params", str(params)] if params is not None else []
+        cmd += ["--unit", unit] if unit is not None else []             # a production unit (QC)
+        cmd += ["--unit-seed", str(unit_seed)] if unit_seed is not None else []
+        for fault in faults:
+            cmd += ["--fault", fault]
+        cmd += list(extra_args)
+        self.command = cmd
+        self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self._lines: list[str] = []
+        self._lock = threading.Lock()
+        # The log is drained continuously: a simulator blocked on a full pipe would stall the rig.
+        self._drain = threading.Thread(target=self._read_log, name="virtual-rig-log", daemon=True)
+        self._drain.start()
+        self.modbus_url, self.daq_url = self._endpoints()
+        self.returncode: int | None = None
+
+    def _endpoints(self) -> tuple[str, str]:
+        found: dict[str, str] = {}
+        ready = threading.Event()
+
+        def read() -> None:
+            assert self._proc.stdout is not None
+            for line in self._proc.stdout:
+                kind, _, url = line.strip().partition(" ")
+                found[kind] = url
+                if {"modbus", "daq"} <= found.keys():
+                    break
+            ready.set()
+
+        threading.Thread(target=read, daemon=True).start()
+        if not ready.wait(START_TIMEOUT_S) or not {"modbus", "daq"} <= found.keys():
+            self.stop()
+            raise RuntimeError(f"the virtual rig did not start ({' '.join(self.command)}):\n{self.log()}")
+        return found["modbus"], found["daq"]
+
+    def _read_log(self) -> None:
+        assert self._proc.stderr is not None
+        for line in self._proc.stderr:
+            with self._lock:
+                self._lines.append(line)
+
+    @property
+    def host(self) -> str:
+        return self.modbus_url.removeprefix("tcp://").rsplit(":", 1)[0]
+
+    @property
+    def port(self) -> int:
+        return int(self.modbus_url.rsplit(":", 1)[1])
+
+    def log(self) -> str:
+        """What the simulator logged so far (faults, trips, commands, each at its simulated time)."""
+        with self._lock:
+            return "".join(self._lines)
+
+    @property
+    def running(self) -> bool:
+        return self._proc.poll() is None
+
+    def stop(self, timeout_s: float = 20.0) -> str:
+        """SIGTERM, wait for the clean exit, return the whole log (killed if it hangs)."""
+        if self._proc.poll() is None:
+            self._proc.send_signal(signal.SIGTERM)
+            try:
+                self._proc.wait(timeout=timeout_s)
+            except subprocess.TimeoutExpired:
+                self._proc.kill()
+                self._proc.wait()
+        self._drain.join(timeout=5)
+        self.returncode = self._proc.returncode
+        self._tmp.cleanup()
+        return self.log()
+
+    def rig_time_s(self) -> float:
+        """Simulated seconds from the first 'hydraulics on' to the last 'hydraulics off'."""
+        marks = re.findall(r"\[sim t=\s*([0-9.]+) s\] hydraulics (on|off)", self.log())
+        if not marks or marks[0][1] != "on" or marks[-1][1] != "off":
+            raise ValueError("the simulator's log holds no hydraulics on ... off")
+        return float(marks[-1][0]) - float(marks[0][0])
+
+    def lost_frames(self) -> int:
+        """The simulator's own count of DAQ frames lost to injected faults (once stopped)."""
+        m = re.search(r"DAQ frames lost by faults: (\d+)", self.log())
+        if m is None:
+            raise ValueError("no loss count in the log: stop() the rig first")
+        return int(m.group(1))
+
+    def __enter__(self) -> VirtualRig:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
