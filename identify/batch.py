@@ -42,7 +42,7 @@ from identify.dataset import Dataset, DatasetError, read_dataset, read_manifest
 from identify.differentiation import Grid
 from identify.errors import IdentifyError, InputError
 from identify.files import atomic_write_bytes
-from identify.fit import fit_experiments
+from identify.fit import DEFAULT_POINTS, fit_experiments
 from identify.model import load_model
 from identify.parameters import Parameters
 from identify.preparation import model_columns, resolve_outputs
@@ -69,23 +69,24 @@ class FitSettings:
     start: dict[str, float]
     priors: dict[str, float | None]
     estimate: tuple[str, ...]  # stable names, in the order given
-    n: int = 800
+    n: int | None = None  # None: as `identify fit` chooses it, per session
     scheme: str = "bdf2"
     max_iterations: int = 40
+    oversample: int | None = None
 
     @classmethod
-    def resolve(cls, model: str, params: str | None, estimate: Sequence[str], *, n: int = 800,
-                scheme: str = "bdf2", max_iterations: int = 40) -> FitSettings:
+    def resolve(cls, model: str, params: str | None, estimate: Sequence[str], *, n: int | None = None,
+                scheme: str = "bdf2", max_iterations: int = 40, oversample: int | None = None) -> FitSettings:
         compiled = load_model(model)  # also fills the on-disk code cache the local workers load from
         start = Parameters.from_file(compiled, params) if params else Parameters(compiled)
         if not estimate:
             raise BatchError("--estimate names no parameter")
         names = tuple(dict.fromkeys(start[k].name for k in estimate))  # aliases to names, once each
-        Grid(n, scheme)
+        Grid(n or DEFAULT_POINTS, scheme, oversample=oversample or 1)
         if max_iterations < 1:
             raise BatchError(f"--max-iterations must be at least 1, got {max_iterations}")
         return cls(model, compiled.name, compiled.version, start.as_dict(), {p.name: p.prior_std for p in start},
-                   names, n, scheme, max_iterations)
+                   names, n, scheme, max_iterations, oversample)
 
     def parameters(self) -> Parameters:
         params = Parameters(load_model(self.model), self.start)
@@ -98,7 +99,7 @@ class FitSettings:
         doc = {"data": data_hash, "model": self.model_name, "model_version": self.model_version,
                "identify": identify.__version__, "start": self.start, "priors": self.priors,
                "estimate": sorted(self.estimate), "n": self.n, "scheme": self.scheme,
-               "max_iterations": self.max_iterations}
+               "max_iterations": self.max_iterations, "oversample": self.oversample}
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
 
 
@@ -194,7 +195,7 @@ def fit_session(path: str, settings: FitSettings, out_dir: str, run_id: str) -> 
         ds = read_dataset(directory, model_columns(model, outputs), labels)
         result = fit_experiments(model, ds.select(labels), settings.parameters(), list(settings.estimate),
                                  n=settings.n, scheme=settings.scheme, outputs=outputs,
-                                 max_iterations=settings.max_iterations)
+                                 max_iterations=settings.max_iterations, oversample=settings.oversample)
         doc = result.to_document()
         status = "ok" if result.converged else f"failed: not converged ({result.message})"
     except IdentifyError as exc:

@@ -298,7 +298,8 @@ def run_batch(args: argparse.Namespace) -> int:
     named = list(args.sessions) + (batch.read_session_list(args.list) if args.list else [])
     sessions = batch.check_sessions(named)
     settings = batch.FitSettings.resolve(args.model, args.params, _csv_list(args.estimate) or [], n=args.n,
-                                         scheme=args.scheme, max_iterations=args.max_iterations)
+                                         scheme=args.scheme, max_iterations=args.max_iterations,
+                                         oversample=args.oversample)
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out}: exists and is not a folder")
