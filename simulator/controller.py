@@ -343,6 +343,7 @@ class ShakerController:
             if seg.fade_from_s is None:
                 seg.fade_level = float(seg.envelope(np.array([t]))[0])
                 seg.fade_from_s = t
+                self.on_event(f"fade out after {self.cycles()} cycles")
         else:
             self._move_to(static, t)
             if mode == Mode.RUN and self._segment.finished(t):
@@ -359,6 +360,8 @@ class ShakerController:
                                  frequency_hz=r["frequency"] * 1e-3, waveform=r["waveform"],
                                  ramp_s=r["ramp_time"] * 0.1)
         self._run_started_s = t
+        self.on_event(f"RUN: {('sine', 'triangle')[r['waveform']]} {r['amplitude'] * 1e-2:.2f} mm at "
+                      f"{r['frequency'] * 1e-3:g} Hz about {r['static_position'] * 1e-2:.2f} mm")
         if self.first_run_s is None:
             self.first_run_s = t
 

@@ -5,6 +5,8 @@ client side."""
 
 from __future__ import annotations
 
+import math
+import re
 import socket
 import struct
 import subprocess
@@ -43,6 +45,16 @@ def wait_state(c: ModbusTcpClient, state: int, timeout_s: float = 20.0) -> list[
     raise AssertionError(f"state {regs[0]} (alarm {regs[1]}), expected {state}")
 
 
+def wait_cycles(c: ModbusTcpClient, count: int, timeout_s: float = 60.0) -> int:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        cycles = inputs(c)[4]
+        if cycles >= count:
+            return cycles
+        time.sleep(0.02)
+    raise AssertionError(f"{cycles} cycles after {timeout_s} s, expected {count}")
+
+
 def s16(word: int) -> int:
     return word - 0x10000 if word >= 0x8000 else word
 
@@ -64,11 +76,15 @@ def test_modbus_map_state_machine_and_cycles(virtual_rig):
     assert not c.write_registers(1, [0, 13300, 1000, 2000, 5], device_id=1).isError()
     assert not c.write_register(0, 2, device_id=1).isError()
     wait_state(c, RUNNING)
-    time.sleep(0.5)  # 25 simulated seconds at 50x
-    assert 40 <= inputs(c)[4] <= 60
+    read = wait_cycles(c, 50)
     assert not c.write_register(0, 1, device_id=1).isError()  # fade out
     wait_state(c, AT_STATIC)
     c.close()
+    log = rig.log()
+    started = float(re.search(r"\[sim t=\s*([0-9.]+) s\] RUN: sine 10.00 mm at 2 Hz about 133.00 mm", log)[1])
+    m = re.search(r"\[sim t=\s*([0-9.]+) s\] fade out after (\d+) cycles", log)
+    faded, counted = float(m[1]), int(m[2])
+    assert read <= counted == math.floor((faded - started) * 2.0)  # whole periods of the simulated clock
 
 
 def test_out_of_range_writes_get_exception_3_and_change_nothing(virtual_rig):
