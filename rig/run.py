@@ -158,6 +158,10 @@ def prepare(opt: RunOptions) -> Prepared:
     problems = check_plan(plan, config)
     if problems:
         raise PlanRefused(config.source, problems)
+    if stored is None:
+        # Settling is most of a session and depends on the experiment before: the order of
+        # least predicted rig time (a resumed session keeps the order it began with).
+        plan = plan.ordered(config)
     if opt.identify:
         _check_identification(opt)
     return Prepared(opt, shaker_url, daq_url, config, calibration, register_map, plan, stored)
