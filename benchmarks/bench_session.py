@@ -31,7 +31,10 @@ CASES = {
     "today": ("change", "fixed", []),
     "new": ("drift", "thermal", []),
     "new+faults": ("drift", "thermal", ["corrupt=0.001", "drop=0.0005"]),
+    "change+order": ("change", "thermal", []),
+    "hold": ("drift", "fixed", []),
 }
+SIDE_BY_SIDE = ("today", "new", "new+faults")
 ESTIMATE = ["theta4", "theta6", "theta16"]
 START = ROOT / "examples" / "start-2dof.json"
 
@@ -45,11 +48,11 @@ def run_case(name: str, hold_cycles: int, out: Path) -> dict:
     from rig.run import Links, RunOptions, SessionRunner, fit_session, prepare, session_estimates_s
     from tests.virtual_rig_inprocess import DAQ_URL, SHAKER_URL, InProcessRig
 
-    criterion, order, faults = CASES.get(name, ("change", "fixed", []))
+    criterion, order, faults = CASES[name]
     text = DEFAULT_RIG_CONFIG.read_text().replace('criterion = "drift"', f'criterion = "{criterion}"')
     if hold_cycles:   # a criterion that never passes: the experiment is held to max_cycles
         text = text.replace("max_cycles = 1500", f"max_cycles = {hold_cycles}").replace(
-            "drift_sigma_fraction = 0.5", "drift_sigma_fraction = 1e-12")
+            "drift_sigma_fraction = 10.0", "drift_sigma_fraction = 1e-12")
     config = out / "rig.toml"
     config.write_text(text)
     rig = InProcessRig(config)
@@ -93,12 +96,15 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--case", help=argparse.SUPPRESS)
     ap.add_argument("--hold", type=int, default=0, help="also hold experiment a (0.04 Hz) for this many cycles")
+    ap.add_argument("--cases", default=",".join(SIDE_BY_SIDE),
+                    help=f"comma-separated, of {', '.join(c for c in CASES if c != 'hold')} (today's first)")
     args = ap.parse_args()
     if args.case:
         with tempfile.TemporaryDirectory() as tmp:
             print(json.dumps(run_case(args.case, args.hold if args.case == "hold" else 0, Path(tmp))))
         return
-    names = list(CASES) + (["hold"] if args.hold else [])
+    shown = args.cases.split(",")
+    names = shown + (["hold"] if args.hold else [])
     results = {}
     for name in names:
         proc = subprocess.run([sys.executable, __file__, "--case", name, "--hold", str(args.hold)],
@@ -109,26 +115,26 @@ def main() -> None:
     from identify.plans import STANDARD_SET
 
     print("rig time per experiment [s] (settle cycles); simulated time, in-process rig")
-    print(f"{'':4}" + "".join(f"{n:>22}" for n in CASES))
+    print(f"{'':4}" + "".join(f"{n:>22}" for n in shown))
     for e in STANDARD_SET:
         print(f"{e.letter:4}" + "".join(f"{results[n]['per'][e.letter][0]:>14.1f} ({results[n]['per'][e.letter][1]:>4})"
-                                        for n in CASES))
-    print(f"{'total':6}" + "".join(f"{results[n]['taken_s']:>22.1f}" for n in CASES))
-    print(f"{'ETA':6}" + "".join(f"{results[n]['eta_s']:>22.1f}" for n in CASES))
-    print(f"{'ETA/taken':10}" + "".join(f"{results[n]['eta_s'] / results[n]['taken_s'] - 1:>+18.1%}" for n in CASES))
-    print(f"{'order':6}" + "".join(f"{''.join(results[n]['order']):>22}" for n in CASES))
-    print(f"{'RSS MB':6}" + "".join(f"{results[n]['peak_rss_mb']:>22.0f}" for n in CASES))
+                                        for n in shown))
+    print(f"{'total':6}" + "".join(f"{results[n]['taken_s']:>22.1f}" for n in shown))
+    print(f"{'ETA':6}" + "".join(f"{results[n]['eta_s']:>22.1f}" for n in shown))
+    print(f"{'ETA/taken':10}" + "".join(f"{results[n]['eta_s'] / results[n]['taken_s'] - 1:>+18.1%}" for n in shown))
+    print(f"{'order':6}" + "".join(f"{''.join(results[n]['order']):>22}" for n in shown))
+    print(f"{'RSS MB':6}" + "".join(f"{results[n]['peak_rss_mb']:>22.0f}" for n in shown))
     from simulator.truth import load_truth
 
     truth = load_truth().theta
-    print("\nidentified (start: examples/start-2dof.json); Δ in σ of today's fit; truth Δ in each fit's σ")
+    print("\nidentified (start: examples/start-2dof.json); Δ in σ of the first case's fit; truth Δ in each fit's σ")
     for k in ESTIMATE:
         t = truth.get(k)
         row = [f"{k:8}"]
-        v0, s0 = results["today"]["fit"][k]
-        for n in CASES:
+        v0, s0 = results[shown[0]]["fit"][k]
+        for n in shown:
             v, s = results[n]["fit"][k]
-            row.append(f"{v:.6g} ± {s:.2g} (vs today {(v - v0) / s0:+.2f}σ"
+            row.append(f"{v:.6g} ± {s:.2g} (vs first {(v - v0) / s0:+.2f}σ"
                        + (f", vs truth {(v - t) / s:+.2f}σ)" if t is not None else ")"))
         print("  ".join(row))
     if args.hold:
