@@ -52,7 +52,7 @@ def run_case(name: str, hold_cycles: int, out: Path) -> dict:
     text = DEFAULT_RIG_CONFIG.read_text().replace('criterion = "drift"', f'criterion = "{criterion}"')
     if hold_cycles:   # a criterion that never passes: the experiment is held to max_cycles
         text = text.replace("max_cycles = 1500", f"max_cycles = {hold_cycles}").replace(
-            "drift_sigma_fraction = 10.0", "drift_sigma_fraction = 1e-12")
+            "drift_sigma_fraction = 2.0", "drift_sigma_fraction = 1e-12")
     config = out / "rig.toml"
     config.write_text(text)
     rig = InProcessRig(config)

@@ -75,7 +75,7 @@ def test_default_config_has_the_drift_criterion_and_bad_settings_get_one_line(tm
     assert ss.criterion == "drift" and ss.drift is not None and set(ss.drift.noise) == set(NOISE)
     text = DEFAULT_RIG_CONFIG.read_text()
     for old, new, message in [('criterion = "drift"', 'criterion = "slow"', "criterion 'slow' is not one of"),
-                              ("drift_fit_cycles = 12", "drift_fit_cycles = 2", "drift_fit_cycles at least 4"),
+                              ("drift_fit_cycles = 40", "drift_fit_cycles = 2", "drift_fit_cycles at least 4"),
                               ("drift_sigma_fraction =", "sigma_fraction =", "missing key 'drift_sigma_fraction'")]:
         path = tmp_path / "rig.toml"
         path.write_text(text.replace(old, new))

@@ -239,3 +239,19 @@ def test_thermal_order_is_quicker_than_the_listed_one_and_fixed_keeps_it():
     listed_s = estimate_duration_s(plan, DRIFT)
     assert estimate_duration_s(ordered, DRIFT) < listed_s - 60
     assert replace(plan, order="fixed").ordered(DRIFT) == replace(plan, order="fixed")
+
+
+def test_a_plan_file_pins_its_order_or_is_refused_with_one_line(tmp_path):
+    from rig.plans import PlanError
+
+    body = "".join(f'[[experiment]]\nlabel = "{e.letter}"\nstatic_mm = {e.static_position_mm}\n'
+                   f"amplitude_mm = {e.amplitude_mm}\nfrequency_Hz = {e.frequency_hz}\n"
+                   for e in select(STANDARD_SET, ["c", "j"]))
+    path = tmp_path / "plan.toml"
+    path.write_text('order = "fixed"\n' + body)
+    assert [e.letter for e in load_plan(str(path)).ordered(DRIFT).experiments] == ["c", "j"]
+    path.write_text(body)
+    assert [e.letter for e in load_plan(str(path)).ordered(DRIFT).experiments] == ["j", "c"]
+    path.write_text('order = "sideways"\n' + body)
+    with pytest.raises(PlanError, match="order 'sideways' is not one of thermal, fixed"):
+        load_plan(str(path))
