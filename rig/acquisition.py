@@ -25,6 +25,7 @@ import numpy as np
 from identify.plans import ExperimentSpec
 from rig.clock import WALL_CLOCK, Clock
 from rig.config import RigConfig
+from rig.criterion import bias_bound
 from rig.daq import CHANNELS, Daq, Samples
 from rig.errors import RigFault
 from rig.events import EventBus, Phase
@@ -222,8 +223,11 @@ class Acquisition:
         ss, rate = self.config.steady_state, self.daq.rate_hz
         spp = rate / spec.frequency_hz                       # samples per period
         start = int(math.ceil((ss.ramp_time_s + 0.5) * rate))  # after the fade-in (+ the actuator's lag)
-        m = max(1, math.ceil(ss.block_s * spec.frequency_hz))  # cycles per comparison block
+        drift = ss.drift if ss.criterion == "drift" else None
+        m = max(1, math.ceil(ss.block_s * spec.frequency_hz))  # cycles per block
         thresholds = np.array([ss.thresholds[c] for c in CHANNELS])
+        fitted = [CHANNELS.index(c) for c in drift.noise] if drift is not None else []
+        history: list[np.ndarray] = []                         # consecutive block means of the fitted channels
         block, prev_means, settled, cycles = 0, None, False, 0
         while True:
             # Settling: compare the channel means of consecutive blocks of whole cycles.
@@ -236,9 +240,25 @@ class Acquisition:
             cycles = (block + 1) * m
             if means is None:
                 # Too much of the block is missing to know its mean: it can neither pass
-                # nor count as the reference of the next comparison.
+                # nor count as the reference of the next comparison (nor as a point of the
+                # decay, whose cycles must follow each other).
+                history.clear()
                 self.bus.publish("log", label, message=f"settling block ending at cycle {cycles}: "
                                                        f"{np.count_nonzero(~present)} samples lost, not compared")
+            elif drift is not None:
+                history = (history + [means[fitted]])[-drift.fit_cycles:]
+                if len(history) >= 4:
+                    fit = bias_bound(drift, tuple(drift.noise), np.array(history), m / spec.frequency_hz, m * spp,
+                                     spec.periods / m)
+                    # the cycle-to-cycle change too: what the console and the GUI show of settling
+                    change = np.abs(means - prev_means) if prev_means is not None else np.full(len(CHANNELS), np.nan)
+                    self.bus.publish("progress", label, phase=Phase.SETTLING.value, cycles=cycles,
+                                     change={c: float(x) for c, x in zip(CHANNELS, change, strict=True)},
+                                     bias_sigma=fit.bias_sigma, ratio=fit.ratio,
+                                     drift={c: float(x) for c, x in zip(drift.noise, fit.drift, strict=True)})
+                    if cycles >= ss.min_cycles and fit.bias_sigma < drift.fraction:
+                        settled = True
+                        break
             elif prev_means is not None:
                 change = np.abs(means - prev_means)
                 self.bus.publish("progress", label, phase=Phase.SETTLING.value, cycles=cycles,

@@ -70,7 +70,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     if not args.resume and not (args.shaker and args.daq):
         raise BadInput("run: --shaker and --daq are needed (only --resume takes them from the session)")
     opt = RunOptions(plan=args.plan, shaker=args.shaker, daq=args.daq, out=Path(args.out),
-                     experiments=_csv(args.experiments), periods=args.periods, resume=args.resume,
+                     experiments=_csv(args.experiments), periods=args.periods, order=args.order, resume=args.resume,
                      reset_alarm=args.reset_alarm, identify=args.identify, on_alarm=args.on_alarm,
                      rig_config=args.rig_config, calibration=args.calibration, register_map=args.register_map,
                      model=args.model, params=args.params, estimate=_csv(args.estimate) or [], date=args.date,
@@ -190,6 +190,9 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--out", required=True, help="session folder")
     run.add_argument("--experiments", help="comma-separated letters of the plan (default: all)")
     run.add_argument("--periods", type=_positive_int, help="whole periods to capture (default: the plan's)")
+    run.add_argument("--order", choices=("thermal", "fixed"),
+                     help="thermal: the order of least predicted rig time; fixed: as listed (default: the plan's "
+                          "order, thermal unless it says fixed; a --experiments list as given)")
     run.add_argument("--resume", action="store_true",
                      help="continue an interrupted session in --out (addresses default to the session's)")
     run.add_argument("--reset-alarm", action="store_true",

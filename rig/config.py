@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from rig.criterion import DriftCriterion
 from rig.errors import BadInput
 from rig.registers import CONFIG_DIR
 from rig.tomlfile import read_toml
@@ -29,9 +30,16 @@ class Limits:
     watchdog_timeout_s: float
 
 
+CRITERIA = ("change", "drift")
+
+
 @dataclass(frozen=True)
 class SteadyStateCriteria:
-    """When a periodic experiment counts as settled (engineering units per channel)."""
+    """When a periodic experiment counts as settled (engineering units per channel).
+
+    ``criterion``: ``change`` compares the channel means of consecutive blocks with the
+    thresholds; ``drift`` bounds the bias the transient left over the capture window
+    would cause in the fit (:mod:`rig.criterion`)."""
 
     block_s: float
     thresholds: dict[str, float]
@@ -39,6 +47,33 @@ class SteadyStateCriteria:
     max_cycles: int
     max_recaptures: int
     ramp_time_s: float
+    criterion: str = "change"
+    drift: DriftCriterion | None = None
+
+
+def steady_state_from_table(ss: dict, where: str, error: type[BadInput]) -> SteadyStateCriteria:
+    """``[steady_state]`` of a rig configuration or a QC spec (the drift keys optional:
+    without ``criterion`` the change criterion)."""
+    try:
+        thresholds = {k: float(ss[k]) for k in ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")}
+        criterion = str(ss.get("criterion", "change"))
+        if criterion not in CRITERIA:
+            raise error(f"{where}: criterion {criterion!r} is not one of {', '.join(CRITERIA)}")
+        drift = None
+        if criterion == "drift":
+            noise = {str(k): float(v) for k, v in ss["drift_noise"].items()}
+            drift = DriftCriterion(float(ss["drift_sigma_fraction"]), int(ss["drift_fit_cycles"]),
+                                   float(ss["drift_max_time_constant_s"]), noise)
+            if not (drift.fraction > 0 and drift.fit_cycles >= 4 and drift.max_time_constant_s > 0 and noise
+                    and all(v > 0 for v in noise.values())):
+                raise error(f"{where}: drift_sigma_fraction, drift_max_time_constant_s and every drift_noise must be "
+                            "positive, drift_fit_cycles at least 4")
+        return SteadyStateCriteria(float(ss["block_s"]), thresholds, int(ss["min_cycles"]), int(ss["max_cycles"]),
+                                   int(ss["max_recaptures"]), float(ss["ramp_time_s"]), criterion, drift)
+    except KeyError as exc:
+        raise error(f"{where}: missing key {exc.args[0]!r}") from None
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise error(f"{where}: {exc}") from None
 
 
 @dataclass(frozen=True)
@@ -58,9 +93,7 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
         lim, ss = doc["limits"], doc["steady_state"]
         limits = Limits(lim["stroke_low_mm"] * 1e-3, lim["stroke_high_mm"] * 1e-3, lim["force_limit_kN"] * 1e3,
                         lim["max_velocity_m_s"], lim["max_frequency_Hz"], lim["watchdog_timeout_s"])
-        thresholds = {k: float(ss[k]) for k in ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")}
-        criteria = SteadyStateCriteria(float(ss["block_s"]), thresholds, int(ss["min_cycles"]),
-                                       int(ss["max_cycles"]), int(ss["max_recaptures"]), float(ss["ramp_time_s"]))
+        criteria = steady_state_from_table(ss, f"{path}: [steady_state]", ConfigError)
         rate = int(doc["daq"]["rate_Hz"])
         reconnect = float(doc.get("link", {}).get("reconnect_s", 20.0))
     except KeyError as exc:

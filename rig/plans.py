@@ -27,11 +27,18 @@ class PlanError(BadInput):
     """A plan that cannot be run (file problems, or limit violations listed one per line)."""
 
 
+ORDERS = ("thermal", "fixed")
+
+
 @dataclass(frozen=True)
 class Plan:
+    """``order``: ``thermal`` runs the experiments in the order of least predicted rig time
+    (rig.ordering), ``fixed`` as listed."""
+
     name: str
     experiments: tuple[ExperimentSpec, ...]
     text: str = ""
+    order: str = "thermal"
 
     def select(self, letters: list[str] | None) -> Plan:
         if not letters:
@@ -42,6 +49,15 @@ class Plan:
             raise PlanError(f"plan {self.name!r} has no experiment {', '.join(unknown)} "
                             f"(letters: {', '.join(by_letter)})")
         return replace(self, experiments=tuple(by_letter[x] for x in letters))
+
+    def ordered(self, config: RigConfig, start_position_m: float = 0.0) -> Plan:
+        """The plan in the order it runs: as listed when ``order = "fixed"``, else the
+        order of least predicted rig time from rest at ``start_position_m``."""
+        from rig.ordering import thermal_order
+
+        if self.order == "fixed" or len(self.experiments) < 2:
+            return self
+        return replace(self, experiments=thermal_order(self.experiments, config, start_position_m))
 
     def with_periods(self, periods: int | None) -> Plan:
         if periods is None:
@@ -79,7 +95,10 @@ def load_plan(source: str) -> Plan:
             raise PlanError(f"{where}: label {spec.letter!r} used twice")
         seen.add(spec.letter)
         experiments.append(spec)
-    return Plan(str(doc.get("name", path.stem)), tuple(experiments), text)
+    order = str(doc.get("order", "thermal"))
+    if order not in ORDERS:
+        raise PlanError(f"plan {path}: order {order!r} is not one of {', '.join(ORDERS)}")
+    return Plan(str(doc.get("name", path.stem)), tuple(experiments), text, order)
 
 
 def check_plan(plan: Plan, config: RigConfig) -> list[str]:

@@ -47,7 +47,9 @@ class ConsoleProgress:
             ch = e.data["change"]
             self.console.print(f"{head}   cycle {e.data['cycles']:4d}: change stroke {ch['stroke_mm']:.3f} mm, "
                                f"force {ch['force_N']:.1f} N, pressure {ch['pressure_bar']:.4f} bar, "
-                               f"temperature {ch['gas_temperature_C']:.3f} °C", highlight=False, style="dim")
+                               f"temperature {ch['gas_temperature_C']:.3f} °C"
+                               + (f"; decay {e.data['ratio']:.3f}/cycle, bias ≤ {e.data['bias_sigma']:.2f} σ"
+                                  if "bias_sigma" in e.data else ""), highlight=False, style="dim")
         elif e.kind == "progress" and e.data.get("phase") == "capturing":
             if e.data["fraction"] >= self._captured + 0.25:
                 self._captured = e.data["fraction"]

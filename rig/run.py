@@ -76,6 +76,7 @@ class RunOptions:
     estimate: list[str] = field(default_factory=lambda: ["theta4", "theta6", "theta16"])
     date: str | None = None
     unit_serial: str = "unknown"
+    order: str | None = None                # thermal or fixed; None: the plan's, and a --experiments list as given
 
 
 class PlanRefused(PlanError):
@@ -158,6 +159,12 @@ def prepare(opt: RunOptions) -> Prepared:
     problems = check_plan(plan, config)
     if problems:
         raise PlanRefused(config.source, problems)
+    if stored is None:
+        # Settling is most of a session and depends on the experiment before: the order of
+        # least predicted rig time (a resumed session keeps the order it began with; a list
+        # of experiments the operator typed runs as typed unless --order thermal).
+        order = opt.order or ("fixed" if opt.experiments else plan.order)
+        plan = replace(plan, order=order).ordered(config)
     if opt.identify:
         _check_identification(opt)
     return Prepared(opt, shaker_url, daq_url, config, calibration, register_map, plan, stored)

@@ -33,6 +33,7 @@ from identify.model import CompiledModel, load_model
 from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
 from rig.config import SteadyStateCriteria
+from rig.criterion import bias_bound
 
 MOVE_PEAK_SPEED_M_S = 0.05     # the controller's half-cosine profile for moves to a static position
 DAQ_LAG_S = 0.5                # the acquisition skips ramp + this before its first block
@@ -252,7 +253,11 @@ def predict_settling(experiments: Sequence[ExperimentSpec], criteria: SteadyStat
                        np.broadcast_to(np.asarray(pause_s, dtype=float), len(experiments)))
     thresholds = np.array([criteria.thresholds.get(c, math.inf) for c in gas.channels])
     m = np.array([block_cycles(criteria, e.frequency_hz) for e in experiments])
-    cycles, settled, limiting = _apply_criterion(period_map, T_start, m, thresholds, criteria)
+    if criteria.criterion == "drift":
+        cycles, settled, limiting = _apply_drift_criterion(period_map, T_start, m, gas.channels, criteria, runs,
+                                                           [e.periods for e in experiments], rate_hz)
+    else:
+        cycles, settled, limiting = _apply_criterion(period_map, T_start, m, thresholds, criteria)
     return [SettlingPrediction(e.letter, int(cycles[i]), bool(settled[i]), int(m[i]), float(T_start[i]),
                                float(period_map.fixed_point_k[i]), float(period_map.multiplier[i]),
                                gas.channels[limiting[i]])
@@ -371,6 +376,43 @@ def _lead_in(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria
         return gas.temperature_rate(*runs.stroke(t, 1.0, 0.0), T)
 
     return _rk4_waveform(until_first_block, T, np.full(n, ramp), np.full(n, t0_s - ramp), runs.frequency_hz)
+
+
+def _apply_drift_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray, channels: tuple[str, ...],
+                           criteria: SteadyStateCriteria, runs: _Runs, periods: list[int], rate_hz: float
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The acquisition's drift criterion (rig.criterion) on the predicted block means:
+    settle cycles, whether it passed, and the fitted channel with the largest drift."""
+    drift = criteria.drift
+    assert drift is not None   # a drift criterion always has its settings (rig.config)
+    fitted = [channels.index(c) for c in drift.noise]
+    sigma = np.array(list(drift.noise.values()))
+    n = len(T_start)
+    last = np.array([_last_block_cycles(criteria, int(k)) for k in m])
+    cycles, settled, limiting = last.copy(), np.zeros(n, dtype=bool), np.zeros(n, dtype=int)
+    open_ = np.ones(n, dtype=bool)
+    history: list[list[np.ndarray]] = [[] for _ in range(n)]
+    T = T_start.copy()
+    block_sum = np.zeros((n, len(channels)))
+    for cycle in range(1, int(last.max()) + 1):
+        T, means = period_map.step(T)
+        block_sum += means
+        for i in np.flatnonzero(open_ & (cycle % m == 0)):
+            history[i] = (history[i] + [block_sum[i, fitted] / m[i]])[-drift.fit_cycles:]
+            block_sum[i] = 0.0
+            if len(history[i]) >= 4:
+                spp = rate_hz / runs.frequency_hz[i]
+                fit = bias_bound(drift, tuple(drift.noise), np.array(history[i]), m[i] / runs.frequency_hz[i],
+                                 m[i] * spp, periods[i] / m[i])
+                limiting[i] = fitted[int(np.argmax(np.abs(fit.drift) / sigma))]
+                if cycle >= criteria.min_cycles and fit.bias_sigma < drift.fraction:
+                    cycles[i], settled[i], open_[i] = cycle, True, False
+                    continue
+            if cycle >= last[i]:
+                open_[i] = False
+        if not open_.any():
+            break
+    return cycles, settled, limiting
 
 
 def _apply_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray, thresholds: np.ndarray,

@@ -21,7 +21,7 @@ import pytest
 
 from identify.plans import STANDARD_SET
 from rig.acquisition import Acquisition, ExperimentRecord, Recorder
-from rig.config import DEFAULT_RIG_CONFIG
+from rig.config import DEFAULT_RIG_CONFIG, load_rig_config
 from rig.daq import CHANNELS
 from rig.run import EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK
 from rig.shaker import AlarmError
@@ -36,8 +36,10 @@ LINK_GONE = f"Modbus link to {SHAKER_URL} lost and not back within 3 s ({RESET})
 # Once the safe stop found the link gone, each remaining step gets one quick try.
 LINK_STILL_GONE = f"Modbus link to {SHAKER_URL} lost and not back within 0.5 s ({RESET})"
 # Steady-state criteria loose enough that j settles after about half a minute of simulated
-# time (the default ones take 150 s); a Modbus link may be away 3 s.
-TEST_CONFIG = {"force_N = 5.0": "force_N = 50.0", "pressure_bar = 0.0005": "pressure_bar = 0.1",
+# time (the default ones take 150 s), on the change criterion (the machine, not the
+# criterion, is tested here); a Modbus link may be away 3 s.
+TEST_CONFIG = {'criterion = "drift"': 'criterion = "change"',
+               "force_N = 5.0": "force_N = 50.0", "pressure_bar = 0.0005": "pressure_bar = 0.1",
                "gas_temperature_C = 0.003": "gas_temperature_C = 3.0", "max_cycles = 1500": "max_cycles = 200",
                "reconnect_s = 20.0": "reconnect_s = 3.0"}
 
@@ -289,25 +291,54 @@ def test_a_bug_in_the_acquisition_still_ends_in_the_safe_stop(vrig, tmp_path, mo
 
 
 @pytest.mark.slow
-def test_lost_samples_do_not_stretch_settling(tmp_path):
-    """Line faults while settling: the criterion must neither pass early nor, because the
-    holes make the plain block means scatter, keep waiting (a took 109 cycles instead of 8)."""
+@pytest.mark.parametrize("letter", ["a", "j"])
+def test_lost_samples_do_not_stretch_settling(tmp_path, letter):
+    """Line faults while settling: the criterion (the default, rig.criterion's drift
+    bound) must neither pass early nor, because the holes make the block means scatter,
+    keep waiting (a took 109 cycles instead of 8, j 380 instead of 110)."""
     from identify.plans import STANDARD_SET, select
     from rig.config import DEFAULT_RIG_CONFIG
 
-    def settle_cycles(faults: list[str]) -> tuple[int, int]:
+    def settle_cycles(faults: list[str]) -> tuple[int, int, list[float]]:
         rig = InProcessRig(DEFAULT_RIG_CONFIG)        # the real criterion, not the tests' relaxed one
         rig.connect()
         try:
             for fault in faults:
                 rig.when("settling", 0.0, partial(rig.inject, fault))
-            (spec,) = select(STANDARD_SET, ["a"])
-            record = acquisition(rig).run_experiment(spec, "261122a")
-            return record.settle_cycles, record.stream_lost
+            (spec,) = select(STANDARD_SET, [letter])
+            record = acquisition(rig).run_experiment(spec, f"261122{letter}")
+            bounds = [e.data["bias_sigma"] for _, e in rig.events
+                      if e.kind == "progress" and e.data["phase"] == "settling" and "bias_sigma" in e.data]
+            return record.settle_cycles, record.stream_lost, bounds
         finally:
             rig.close()
 
-    clean, none_lost = settle_cycles([])
-    faulted, lost = settle_cycles(["corrupt=0.001", "drop=0.0005"])
-    assert none_lost == 0 and lost > 5000
+    assert load_rig_config(DEFAULT_RIG_CONFIG).steady_state.criterion == "drift"
+    clean, none_lost, _ = settle_cycles([])
+    faulted, lost, bounds = settle_cycles(["corrupt=0.001", "drop=0.0005"])
+    assert none_lost == 0 and lost > 3000
     assert clean <= faulted <= 1.2 * clean, (clean, faulted)
+    assert bounds[-1] < load_rig_config(DEFAULT_RIG_CONFIG).steady_state.drift.fraction <= min(bounds[:-1])
+
+
+@pytest.mark.slow
+def test_a_stall_while_settling_does_not_pass_the_drift_criterion_early():
+    """The serial line stalls for 3 s early in j's settling: the DAQ's FIFO overflows and
+    the blocks around it lose samples; the criterion starts its fit again after them
+    instead of reading the gap as a settled stretch."""
+    from identify.plans import STANDARD_SET, select
+    from rig.config import DEFAULT_RIG_CONFIG
+
+    def run(faults: list[str]) -> int:
+        rig = InProcessRig(DEFAULT_RIG_CONFIG)
+        rig.connect()
+        try:
+            for fault in faults:
+                rig.when("settling", 10.0, partial(rig.inject, fault))
+            (spec,) = select(STANDARD_SET, ["j"])
+            return acquisition(rig).run_experiment(spec, "261122j").settle_cycles
+        finally:
+            rig.close()
+
+    clean, stalled = run([]), run(["stall=3"])
+    assert clean <= stalled <= 1.2 * clean, (clean, stalled)

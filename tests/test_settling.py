@@ -17,7 +17,8 @@ import pytest
 from identify.model import load_model
 from identify.parameters import Parameters
 from identify.plans import STANDARD_SET, ExperimentSpec, select
-from rig.config import load_rig_config
+from rig.config import SteadyStateCriteria, load_rig_config
+from rig.criterion import bias_bound
 from rig.daq import CHANNELS
 from rig.plans import Plan, estimate_duration_s, estimate_experiment_durations, load_plan
 from rig.settling import PAUSE_S, predict_settling
@@ -25,7 +26,8 @@ from simulator.controller import ShakerController, State
 from simulator.physics import Actuator, StreamingPlant
 from simulator.truth import load_truth
 
-CONFIG = load_rig_config()
+DRIFT = load_rig_config()       # the default: the drift criterion (rig.criterion)
+CONFIG = replace(DRIFT, steady_state=replace(DRIFT.steady_state, criterion="change", drift=None))
 REFERENCE_RATE_HZ = 500.0   # samples of the reference (block means of whole cycles do not need 2 kHz)
 CHUNK_S = 0.4               # plant blocks: short enough for its temperature iteration to converge
 
@@ -68,9 +70,10 @@ class ReferenceRig:
         while self.controller.state != state:
             self.advance(int(0.01 * self.rate))
 
-    def run(self, e: ExperimentSpec, pause_s: float) -> ReferenceExperiment:
+    def run(self, e: ExperimentSpec, pause_s: float, ss: SteadyStateCriteria = CONFIG.steady_state
+            ) -> ReferenceExperiment:
         """The acquisition's sequence: move, RUN, blocks until settled, capture, fade, STOP."""
-        ss, c, t_begin = CONFIG.steady_state, self.controller, self.t
+        c, t_begin = self.controller, self.t
         self.advance(int(round(pause_s * self.rate)))
         c.write_holding(2, [round(e.static_position_mm * 100)])
         c.write_holding(0, [1])                                           # STATIC: move
@@ -84,11 +87,22 @@ class ReferenceRig:
         thresholds = np.array([ss.thresholds[col] for col in CHANNELS])
         self.advance(start)
         taken, block, previous, settled = start, 0, None, False
+        fitted = [CHANNELS.index(col) for col in ss.drift.noise] if ss.drift else []
+        history: list[np.ndarray] = []
         while True:
             b = start + round((block + 1) * m * spp)
             means = self.advance(b - taken).mean(axis=0)
             taken, cycles = b, (block + 1) * m
-            if previous is not None and cycles >= ss.min_cycles and np.all(np.abs(means - previous) < thresholds):
+            if ss.drift:
+                history.append(means[fitted])
+                # the DAQ's rate, not the reference's: the criterion weighs the DAQ's noise
+                fit = bias_bound(ss.drift, tuple(ss.drift.noise), np.array(history), m / e.frequency_hz,
+                                 m * DRIFT.daq_rate_hz / e.frequency_hz, e.periods / m)
+                if len(history) >= 4 and cycles >= ss.min_cycles and fit.bias_sigma < ss.drift.fraction:
+                    settled = True
+                    break
+            elif previous is not None and cycles >= ss.min_cycles and \
+                    np.all(np.abs(means - previous) < thresholds):
                 settled = True
                 break
             if cycles >= ss.max_cycles:
@@ -191,3 +205,53 @@ def test_triangle_waveforms_match_the_simulated_physics():
     rig = ReferenceRig()
     for e, p in zip(specs, predicted, strict=True):
         assert abs(rig.run(e, PAUSE_S).settle_cycles - p.cycles) <= p.block_cycles, e.letter
+
+
+@pytest.fixture(scope="module")
+def drift_reference() -> tuple[tuple[ExperimentSpec, ...], list[ReferenceExperiment]]:
+    """The standard plan in its thermal order, under the drift criterion."""
+    plan = load_plan("standard").ordered(DRIFT)
+    rig = ReferenceRig()
+    return plan.experiments, [rig.run(e, PAUSE_S, DRIFT.steady_state) for e in plan.experiments]
+
+
+def test_drift_criterion_settle_cycles_match_the_simulated_physics(drift_reference):
+    """The block means the DAQ's 2 kHz would give (noise left out on both sides, as the
+    prediction does): the same cycles within one block or 5 %."""
+    experiments, reference = drift_reference
+    predicted = predict_settling(experiments, DRIFT.steady_state, DRIFT.daq_rate_hz)
+    for p, ref in zip(predicted, reference, strict=True):
+        assert p.settled and ref.settled
+        assert abs(p.cycles - ref.settle_cycles) <= max(p.block_cycles, 0.05 * ref.settle_cycles), \
+            (ref.letter, p.cycles, ref.settle_cycles)
+
+
+def test_thermal_order_session_estimate_within_10_percent_of_the_simulated_rig_time(drift_reference):
+    experiments, reference = drift_reference
+    durations = estimate_experiment_durations(Plan("standard", experiments), DRIFT)
+    assert sum(d.total_s for d in durations) == pytest.approx(sum(r.duration_s for r in reference), rel=0.1)
+
+
+def test_thermal_order_is_quicker_than_the_listed_one_and_fixed_keeps_it():
+    plan = load_plan("standard")
+    ordered = plan.ordered(DRIFT)
+    assert sorted(e.letter for e in ordered.experiments) == sorted(e.letter for e in plan.experiments)
+    listed_s = estimate_duration_s(plan, DRIFT)
+    assert estimate_duration_s(ordered, DRIFT) < listed_s - 60
+    assert replace(plan, order="fixed").ordered(DRIFT) == replace(plan, order="fixed")
+
+
+def test_a_plan_file_pins_its_order_or_is_refused_with_one_line(tmp_path):
+    from rig.plans import PlanError
+
+    body = "".join(f'[[experiment]]\nlabel = "{e.letter}"\nstatic_mm = {e.static_position_mm}\n'
+                   f"amplitude_mm = {e.amplitude_mm}\nfrequency_Hz = {e.frequency_hz}\n"
+                   for e in select(STANDARD_SET, ["c", "j"]))
+    path = tmp_path / "plan.toml"
+    path.write_text('order = "fixed"\n' + body)
+    assert [e.letter for e in load_plan(str(path)).ordered(DRIFT).experiments] == ["c", "j"]
+    path.write_text(body)
+    assert [e.letter for e in load_plan(str(path)).ordered(DRIFT).experiments] == ["j", "c"]
+    path.write_text('order = "sideways"\n' + body)
+    with pytest.raises(PlanError, match="order 'sideways' is not one of thermal, fixed"):
+        load_plan(str(path))

@@ -67,7 +67,8 @@ def qc_run(opt: QcOptions, console: Console) -> int:
                              reset_alarm=opt.reset_alarm, rig_config=opt.rig_config, calibration=opt.calibration,
                              register_map=opt.register_map, unit_serial=opt.serial)
     prep = prepare(run_options)
-    prep = replace(prep, config=replace(prep.config, steady_state=spec.steady_state))
+    config = replace(prep.config, steady_state=spec.steady_state)
+    prep = replace(prep, config=config, plan=prep.plan.ordered(config))   # the order the spec's criterion favours
     records = Records.open(opt.db or default_url(opt.out))
     try:
         console.print(f"QC {spec.name} {spec.version} on unit {opt.serial}: records in {records.name}", highlight=False)

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from rig.config import SteadyStateCriteria
+from rig.config import SteadyStateCriteria, steady_state_from_table
 from rig.errors import BadInput
 from rig.plans import Plan, PlanError, load_plan
 from rig.tomlfile import read_toml
@@ -164,14 +164,9 @@ def _steady_state(doc: dict[str, Any], where: str) -> SteadyStateCriteria:
     ss = _table(doc, "steady_state", where)
     at = f"{where}, [steady_state]"
     channels = ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")
-    _no_unknown(ss, ("block_s", "min_cycles", "max_cycles", "max_recaptures", "ramp_time_s", *channels), at)
-    try:
-        return SteadyStateCriteria(float(ss["block_s"]), {c: float(ss[c]) for c in channels}, int(ss["min_cycles"]),
-                                   int(ss["max_cycles"]), int(ss["max_recaptures"]), float(ss["ramp_time_s"]))
-    except KeyError as exc:
-        raise SpecError(f"{at}: missing key {exc.args[0]!r}") from None
-    except (TypeError, ValueError) as exc:
-        raise SpecError(f"{at}: {exc}") from None
+    drift = ("criterion", "drift_sigma_fraction", "drift_fit_cycles", "drift_max_time_constant_s", "drift_noise")
+    _no_unknown(ss, ("block_s", "min_cycles", "max_cycles", "max_recaptures", "ramp_time_s", *channels, *drift), at)
+    return steady_state_from_table(ss, at, SpecError)
 
 
 def _characteristic(c: Any, i: int, where: str, plan: Plan) -> Characteristic:
