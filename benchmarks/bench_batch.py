@@ -33,25 +33,18 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-# One BLAS thread, set before numpy loads OpenBLAS: what `python -m identify` and Dask's
-# workers use, so that the in-process figures measure the same code the same way.
-for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
-    os.environ.setdefault(_var, "1")
+from _setup import ESTIMATE, START, fit_command, fit_env  # first: one BLAS thread, set before numpy loads
 
-import numpy as np  # noqa: E402
+# isort: split
+import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+from identify import batch
+from identify.model import load_model
+from identify.parameters import Parameters
+from identify.plans import STANDARD_SET, select
+from simulator.generate import generate
+from simulator.physics import Damper
 
-from identify import batch  # noqa: E402
-from identify.model import load_model  # noqa: E402
-from identify.parameters import Parameters  # noqa: E402
-from identify.plans import STANDARD_SET, select  # noqa: E402
-from simulator.generate import generate  # noqa: E402
-from simulator.physics import Damper  # noqa: E402
-
-ESTIMATE = ["theta4", "theta6", "theta16"]
-START = ROOT / "examples" / "start-2dof.json"
 LETTERS = ["h", "j", "i", "d", "e"]
 NOOP_TASKS = 1000
 
@@ -69,10 +62,8 @@ def noop(i: int) -> int:
 
 
 def process_loop(folders: list[Path], out: Path) -> list[int]:
-    env = dict(os.environ, PYTHONPATH=str(ROOT))
-    return [subprocess.run([sys.executable, "-m", "identify", "fit", str(f), "--params", str(START), "--estimate",
-                            ",".join(ESTIMATE), "--output", str(out / f"{f.name}.json"), "--quiet"],
-                           capture_output=True, env=env).returncode for f in folders]
+    return [subprocess.run(fit_command(f, out / f"{f.name}.json"), capture_output=True, env=fit_env()).returncode
+            for f in folders]
 
 
 def main() -> int:

@@ -5,7 +5,7 @@ derivatives times f_e (d/dt = f_e·d/dτ).  Two schemes:
 
 ``bdf2``
     the paper's second-order backward differences with periodic wrap-around; sparse
-    circulant operators, sparse LU of the Newton Jacobian.
+    circulant operators, banded LU of the Newton Jacobian.
 ``spectral``
     Fourier differentiation, exact for band-limited periodic signals (multisine data);
     dense operators and dense LU up to DENSE_LIMIT unknowns, above it the matrix-free
@@ -79,6 +79,43 @@ class Factorization:
         return self._solve_transposed(rhs)  # type: ignore[operator]
 
 
+@dataclass(frozen=True)
+class _BandLayout:
+    """The BDF2 Newton matrix of a periodic grid as one band, for LAPACK's banded LU.
+
+    The periodic wrap-around couples the first three time points to the last three;
+    with the time points in the folded order τ_0, τ_{n-1}, τ_1, τ_{n-2}, … every point
+    sits within six places of the points its stencil reaches, wrap-around included, so
+    the whole matrix is a band (of width 13·n_states) with no low-rank correction to
+    solve for.  Unknowns of one time point are adjacent (interleaved states)."""
+
+    kl: int
+    ku: int
+    rows: int  # of the band storage: 2·kl + ku + 1
+    entries: np.ndarray  # flat position in the (N, rows) band array of each coefficient (k, i, j, μ)
+    to_band: np.ndarray  # band order of the unknowns, as indices into the state-major order
+    from_band: np.ndarray  # the inverse permutation
+
+    @staticmethod
+    def build(neq: int, ns: int, n: int) -> _BandLayout:
+        order = np.empty(n, dtype=np.intp)
+        order[0::2] = np.arange((n + 1) // 2)
+        order[1::2] = n - 1 - np.arange(n // 2)
+        place = np.empty(n, dtype=np.intp)
+        place[order] = np.arange(n)
+        k, i, j, mu = np.meshgrid(np.arange(4), np.arange(neq), np.arange(ns), np.arange(n), indexing="ij")
+        row = place[mu] * ns + i
+        col = place[(mu - k) % n] * ns + j
+        kl, ku = int(np.max(row - col)), int(np.max(col - row))
+        rows = 2 * kl + ku + 1
+        entries = (col * rows + kl + ku + row - col).ravel()  # J[r, c] at ab[kl + ku + r - c, c]
+        state_major = (np.arange(ns)[None, :] * n + np.arange(n)[:, None])  # (time, state) -> index
+        to_band = state_major[order].ravel()
+        from_band = np.empty_like(to_band)
+        from_band[to_band] = np.arange(to_band.size)
+        return _BandLayout(kl, ku, rows, entries, to_band, from_band)
+
+
 class Grid:
     """The phase grid of one period with its differentiation scheme.
 
@@ -111,6 +148,7 @@ class Grid:
         if scheme == "bdf2":
             self._c1 = BDF2_D1 / h
             self._c2 = BDF2_D2 / h**2
+            self._layouts: dict[tuple[int, int], _BandLayout] = {}
         else:
             self._s1, self._s2 = _spectral_symbols(self.points)
             self._dense: tuple[np.ndarray, np.ndarray] | None = None  # D1, D2, built on first dense use
@@ -228,78 +266,35 @@ class Grid:
         return Factorization(lambda rhs: sla.lu_solve(lu, rhs, check_finite=False),
                              lambda rhs: sla.lu_solve(lu, rhs, trans=1, check_finite=False))
 
-    def _factorize_banded(self, gx: np.ndarray, gdx: np.ndarray, gddx: np.ndarray, f: float) -> Factorization:
-        """Banded LU of the BDF2 Jacobian, with the periodic wrap-around as a low-rank
-        (Woodbury) correction.
+    def _band_layout(self, neq: int, ns: int) -> _BandLayout:
+        """Where each BDF2 Jacobian coefficient sits in LAPACK band storage, for this grid
+        and model size (computed once, then every factorisation is one scatter)."""
+        key = (neq, ns)
+        if key not in self._layouts:
+            self._layouts[key] = _BandLayout.build(neq, ns, self.points)
+        return self._layouts[key]
 
-        Unknowns are interleaved in time (x_1(τ_0), x_2(τ_0), x_1(τ_1), …), which makes the
-        non-periodic part a band of width 4·n_states; the wrap-around couples the first
-        three time points to the last three, a rank-3·n_states corner.
-        """
+    def _factorize_banded(self, gx: np.ndarray, gdx: np.ndarray, gddx: np.ndarray, f: float) -> Factorization:
+        """Banded LU of the BDF2 Jacobian, periodic wrap-around included (see _BandLayout)."""
         neq, ns, n = gx.shape
-        N = n * ns
+        layout = self._band_layout(neq, ns)
         c1, c2 = self._c1 * f, self._c2 * f * f
         data = c1[:, None, None, None] * gdx[None] + c2[:, None, None, None] * gddx[None]
         data[0] += gx  # (offset k, i, j, μ): coefficient of x_j(τ_{μ-k}) in g_i(τ_μ)
-        kl, ku = 4 * ns - 1, ns - 1
-        rc = 3 * ns
-        # Band storage: J[r, c] sits at ab[kl + ku + r - c, c]; for x_j(τ_{μ-k}) in g_i(τ_μ)
-        # r - c = k·ns + i - j, so each (k, i, j) fills a strided slice of one band row.
-        ab = np.zeros((2 * kl + ku + 1, N))
-        for k in range(4):
-            for i in range(neq):
-                for j in range(ns):
-                    ab[kl + ku + k * ns + i - j, j:N - k * ns:ns] = data[k, i, j, k:]
-        # The wrap-around: g(τ_μ), μ < k, reaches back to τ_{n+μ-k}, among the last 3 points.
-        corner = np.zeros((rc, rc))
-        blocks = corner.reshape(3, ns, 3, ns)
-        for k in range(1, 4):
-            for mu in range(k):
-                blocks[mu, :, mu + 3 - k, :] = data[k, :, :, mu]
-        lu, piv, info = lapack.dgbtrf(ab, kl, ku)
+        N, kl, ku, rows = ns * n, layout.kl, layout.ku, layout.rows
+        ab = np.zeros(rows * N)
+        ab[layout.entries] = data.ravel()
+        lu, piv, info = lapack.dgbtrf(ab.reshape(N, rows).T, kl, ku, overwrite_ab=1)  # a Fortran-ordered view
         if info != 0:
             raise np.linalg.LinAlgError(f"singular periodic Jacobian (banded LU pivot {info})")
 
-        def band_solve(b: np.ndarray, trans: int = 0) -> np.ndarray:
-            x, info_ = lapack.dgbtrs(lu, kl, ku, b, piv, trans=trans)
-            return x
+        def solver(trans: int):
+            def solve(rhs: np.ndarray) -> np.ndarray:
+                x, _ = lapack.dgbtrs(lu, kl, ku, rhs.reshape(N, -1)[layout.to_band], piv, trans=trans)
+                return x[layout.from_band].reshape(rhs.shape)
+            return solve
 
-        # Equations the wrap-around does not reach (a first-order state's row at τ_2, say)
-        # need no column of W: one band solve fewer each.
-        live = np.flatnonzero(np.any(corner != 0.0, axis=1))
-        corner = corner[live]  # (r, rc): J = B + P[:, live]·corner·Qᵀ
-        P = np.zeros((N, live.size))
-        P[live, np.arange(live.size)] = 1.0
-        W = band_solve(P)
-        K = np.eye(live.size) + corner @ W[N - rc:]
-        K_lu = sla.lu_factor(K, check_finite=False)
-        # Jᵀ = Bᵀ + Q·cornerᵀ·Pᵀ (P: first rc rows, Q: last rc columns): the same
-        # Woodbury identity with the roles of P and Q exchanged, built on first use.
-        adjoint: list = []
-
-        def interleave(rhs: np.ndarray) -> np.ndarray:
-            return rhs.reshape(ns, n, -1).transpose(1, 0, 2).reshape(N, -1)
-
-        def deinterleave(y: np.ndarray, shape: tuple) -> np.ndarray:
-            return y.reshape(n, ns, -1).transpose(1, 0, 2).reshape(shape)
-
-        def solve(rhs: np.ndarray) -> np.ndarray:
-            y = band_solve(interleave(rhs))
-            y -= W @ sla.lu_solve(K_lu, corner @ y[N - rc:], check_finite=False)
-            return deinterleave(y, rhs.shape)
-
-        def solve_transposed(rhs: np.ndarray) -> np.ndarray:
-            if not adjoint:
-                last = np.zeros((N, rc))
-                last[N - rc + np.arange(rc), np.arange(rc)] = 1.0
-                Wt = band_solve(last, trans=1)
-                adjoint.extend([Wt, sla.lu_factor(np.eye(rc) + corner.T @ Wt[live], check_finite=False)])
-            Wt, Kt_lu = adjoint
-            y = band_solve(interleave(rhs), trans=1)
-            y -= Wt @ sla.lu_solve(Kt_lu, corner.T @ y[live], check_finite=False)
-            return deinterleave(y, rhs.shape)
-
-        return Factorization(solve, solve_transposed)
+        return Factorization(solver(0), solver(1))
 
     def interpolate(self, values: np.ndarray, phase: np.ndarray) -> np.ndarray:
         """Values (…, n) on the data grid or (…, points) on the model grid evaluated at
