@@ -13,7 +13,8 @@ Printed side by side:
     better accuracy).
 
 The machine may be shared: the per-fit figures are taken ``--repeat`` times and their
-minimum and median printed; ``--skip-transient`` leaves out the transient side (minutes).
+minimum and median printed, wall time and beside it CPU time (which other jobs' load
+inflates less); ``--skip-transient`` leaves out the transient side (minutes).
 
     python benchmarks/bench_fit.py [--repeat 5] [--skip-transient]
 """
@@ -23,6 +24,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import resource
 import subprocess
 import sys
 import tempfile
@@ -112,6 +114,12 @@ def import_seconds(env: dict[str, str]) -> float:
     return int(line.split("|")[1]) / 1e6
 
 
+def children_cpu() -> float:
+    """CPU seconds (user + system) of the finished child processes so far."""
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return usage.ru_utime + usage.ru_stime
+
+
 def spread(values: list[float], unit: float = 1.0, digits: int = 2) -> str:
     """Minimum and median of repeated figures, in ``unit`` (1e-3: ms)."""
     return f"min {min(values) / unit:.{digits}f}, median {float(np.median(values)) / unit:.{digits}f}"
@@ -137,26 +145,31 @@ def main() -> int:
         data = prepare_periodic(model, experiments, 800, outputs)
         theta = params.vector()
         t_joint, t_process, t_imports, solve_medians = [], [], [], []
+        cpu_joint, cpu_process, cpu_solve_medians = [], [], []
         solve_max, iterations = 0.0, []
         for _ in range(args.repeat):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             joint = fit_experiments(model, experiments, params, ESTIMATE)
             t_joint.append(time.perf_counter() - t0)
+            cpu_joint.append(time.process_time() - c0)
 
             solver = PeriodicSolver(model, Grid(800))
-            solve_times = []
+            solve_times, solve_cpu = [], []
             for d in data:
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 sol = solver.solve(d.inputs, d.frequency_hz, theta, label=d.label)
                 solve_times.append(time.perf_counter() - t0)
+                solve_cpu.append(time.process_time() - c0)
                 iterations.append(sol.iterations)
             solve_medians.append(float(np.median(solve_times)))
+            cpu_solve_medians.append(float(np.median(solve_cpu)))
             solve_max = max(solve_max, *solve_times)
 
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), children_cpu()
             proc = subprocess.run(fit_command(tmp, os.path.join(tmp, "R.json")), capture_output=True, text=True,
                                   env=env)
             t_process.append(time.perf_counter() - t0)
+            cpu_process.append(children_cpu() - c0)
             t_imports.append(import_seconds(env))
 
         if not args.skip_transient:
@@ -172,12 +185,15 @@ def main() -> int:
     print(f"  joint fit, 14 experiments:           {spread(t_joint)} s  ({joint.iterations} iterations; "
           f"target <= 0.3 s by the minimum: {'met' if min(t_joint) <= 0.3 else 'NOT met'})   "
           f"errors: {rel_errors({k: joint.value(k) for k in ESTIMATE}, truth)}")
+    print(f"  {'':37s}CPU {spread(cpu_joint)} s")
     print(f"  python -m identify fit (process):     {spread(t_process)} s  (exit {proc.returncode}; "
           f"target <= 1.0 s by the minimum: {'met' if min(t_process) <= 1.0 else 'NOT met'}; of it imports "
           f"{spread(t_imports)} s)")
+    print(f"  {'':37s}CPU {spread(cpu_process)} s")
     print(f"  periodic solve from the static guess: median of the 14 {spread(solve_medians, 1e-3, 1)} ms, "
           f"max {1e3 * solve_max:.0f} ms, {min(iterations)}-{max(iterations)} Newton iterations "
           f"(target median <= 10 ms by the minimum: {'met' if min(solve_medians) <= 0.01 else 'NOT met'})")
+    print(f"  {'':37s}CPU median of the 14 {spread(cpu_solve_medians, 1e-3, 1)} ms")
     if args.skip_transient:
         return 0
     print("  subset the transient side can afford: experiment h (0.5 Hz)")
