@@ -87,7 +87,8 @@ class Estimator:
 
     def __init__(self, model: CompiledModel, data: list[PeriodicData], params: Parameters, grid: Grid,
                  outputs: list[str], max_iterations: int = 40, step_tolerance: float = 0.05,
-                 progress: Callable[[int, float, np.ndarray], None] | None = None, stability: bool = False):
+                 progress: Callable[[int, float, np.ndarray], None] | None = None, stability: bool = False,
+                 time_limit_s: float | None = None):
         if not data:
             raise EstimationError("no periodic experiment to fit")
         if not params.varying():
@@ -105,6 +106,7 @@ class Estimator:
         self.progress = progress
         self.stability = stability  # Floquet multipliers of each solution in the result
         self._noise_at: _Evaluation | None = None  # where the noise model was last computed
+        self.time_limit_s = time_limit_s  # no new iteration starts after this long
 
     # ----------------------------------------------------------------------------------
     def _evaluate(self, theta: np.ndarray, start: _Evaluation | None, sensitivities: bool) -> _Evaluation:
@@ -252,7 +254,11 @@ class Estimator:
 
     # ----------------------------------------------------------------------------------
     def fit(self) -> FitResult:
-        """Run Gauss–Newton to convergence and return the result with uncertainties."""
+        """Run Gauss–Newton to convergence and return the result with uncertainties.
+
+        Stopped by the iteration cap, the time limit or Ctrl-C (KeyboardInterrupt, once
+        the start is evaluated), the result holds the last accepted iterate, not
+        converged, so that a fit started from it goes on from there."""
         t0 = time.perf_counter()
         theta = self.params.vector()
         try:
@@ -262,10 +268,30 @@ class Estimator:
         v = self._variances(ev)
         objective = self._objective(ev, v)
         history = [self._log_likelihood_objective(ev, v)]
+        self._last: tuple[_Evaluation, int] = (ev, 0)  # the last complete iterate and its number
+        interrupted = False
+        try:
+            converged, iterations, message, ev = self._iterate(ev, v, objective, history, t0)
+        except KeyboardInterrupt:
+            (ev, iterations), converged, interrupted = self._last, False, True
+            message = f"interrupted (Ctrl-C) after {iterations} iterations: the last iterate, not converged"
+        v = self._variances(ev)
+        result = self._result(ev, v, converged, iterations, message, history, time.perf_counter() - t0)
+        result.interrupted = interrupted
+        return result
+
+    def _iterate(self, ev: _Evaluation, v: np.ndarray, objective: float, history: list[float],
+                 t0: float) -> tuple[bool, int, str, _Evaluation]:
+        """Gauss–Newton from ev: (converged, iterations, message, last accepted evaluation)."""
+        theta = ev.theta
         converged = False
         message = f"stopped after {self.max_iterations} iterations without meeting the step tolerance"
         iterations = 0
         for it in range(1, self.max_iterations + 1):
+            if self.time_limit_s is not None and time.perf_counter() - t0 > self.time_limit_s:
+                message = (f"stopped at the time limit ({self.time_limit_s:g} s) after {iterations} iterations "
+                           f"without meeting the step tolerance")
+                break
             iterations = it
             A, g = self._normal_equations(ev, v)
             A_coupled = A - self._variance_coupling(ev, v)
@@ -302,6 +328,7 @@ class Estimator:
             v = self._variances(ev)
             objective = self._objective(ev, v)
             history.append(self._log_likelihood_objective(ev, v))
+            self._last = (ev, it)  # complete (sensitivities, weights): what an interrupted fit reports
             if self.progress:
                 self.progress(it, history[-1], theta[self.index])
             if np.all(np.abs(lam * step) <= self.step_tolerance * np.maximum(sigma, 1e-300)):
@@ -313,7 +340,7 @@ class Estimator:
                 message = (f"converged (the last step lowered χ² by {objective_before - trial_objective:.2g} "
                            f"< {CHI2_TOLERANCE:g})")
                 break
-        return self._result(ev, v, converged, iterations, message, history, time.perf_counter() - t0)
+        return converged, iterations, message, ev
 
     def _line_search(self, ev: _Evaluation, step: np.ndarray, v: np.ndarray,
                      objective: float) -> tuple[_Evaluation | None, float, float]:

@@ -82,6 +82,7 @@ class FitResult:
     std_residual: dict[str, float] | None = None
     priors: dict[str, float | None] = field(default_factory=dict)
     oversample: int = 1  # the model solved on n·oversample points per period
+    interrupted: bool = False  # stopped by Ctrl-C: the last iterate, not converged
 
     @classmethod
     def build(cls, *, model: CompiledModel, params: Parameters, estimated: list[str], std: np.ndarray,
@@ -193,6 +194,7 @@ class FitResult:
         return {
             "model": self.model,
             "converged": self.converged,
+            "interrupted": self.interrupted,
             "iterations": self.iterations,
             "message": self.message,
             "parameters": params,
@@ -267,13 +269,14 @@ class FitResult:
         for o in self.outputs:
             lines.append(f"    {o:18s} residual variance {self.channel_variances[o]:.4g}   "
                          f"(std {math.sqrt(self.channel_variances[o]):.4g})")
-        lines.append(f"[[Experiments]] residual mean +/- 2 sigma ({self.outputs[0]})")
+        lines.append(f"[[Experiments]] residual mean +/- 2 sigma per fitted output ({', '.join(self.outputs)})")
         for e in self.experiments:
-            mean, std = e.stats(self.outputs[0])
             stability = "" if e.floquet is None else (
                 f", Floquet |μ|max {np.abs(e.floquet[0]):.4g} ({'stable' if np.abs(e.floquet[0]) < 1 else 'UNSTABLE'})")
             started = f", started {e.start}" if e.start else ""
-            lines.append(f"    {e.label:12s} {e.frequency_hz:8.4g} Hz   {mean:+.4g} +/- {2 * std:.4g}"
+            residuals = "   ".join(f"{o} {mean:+.4g} +/- {2 * std:.4g}"
+                                   for o, (mean, std) in ((o, e.stats(o)) for o in self.outputs))
+            lines.append(f"    {e.label:12s} {e.frequency_hz:8.4g} Hz   {residuals}"
                          f"   ({e.newton_iterations} Newton iterations{started}{stability})")
         if self.warnings:
             lines.append("[[Warnings]]")

@@ -31,7 +31,8 @@ class Linear(ModelDeclaration):
     description = "m y'' + c y' + k y = u"
     states = (State("y", "m", 1e-4),)
     inputs = {"u": Channel("force_N", "N")}
-    outputs = {"displacement_mm": Channel("displacement_mm", "mm", scale=1e-3)}
+    outputs = {"displacement_mm": Channel("displacement_mm", "mm", scale=1e-3),
+               "acceleration_m_s2": Channel("acceleration_m_s2", "m/s^2")}
     default_outputs = ("displacement_mm",)
     parameters = (
         ParameterSpec("m", "mass", "kg", 2.0, "moving mass"%(mass_bounds)s),
@@ -43,7 +44,7 @@ class Linear(ModelDeclaration):
         return [s.m * s.y_tt + s.c * s.y_t + s.k * s.y - s.u]
 
     def output_equations(self, s):
-        return {"displacement_mm": s.y}
+        return {"displacement_mm": s.y, "acceleration_m_s2": s.y_tt}
 '''
 
 
@@ -56,25 +57,28 @@ def write_model(folder: Path, mass_bounds: str = "", damping_bounds: str = "") -
 
 
 def response(theta: dict[str, float], spectrum: np.ndarray, samples: int = SAMPLES,
-             rate_hz: float = RATE_HZ) -> tuple[np.ndarray, np.ndarray]:
-    """One period of force [N] and displacement [m] of the periodic steady state."""
+             rate_hz: float = RATE_HZ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One period of force [N], displacement [m] and acceleration [m/s²] of the periodic steady state."""
     w = 2 * np.pi * rate_hz / samples * np.arange(spectrum.size)
     h = 1.0 / (theta["k"] - theta["m"] * w**2 + 1j * theta["c"] * w)
-    return np.fft.irfft(spectrum, n=samples) * samples, np.fft.irfft(h * spectrum, n=samples) * samples
+    return tuple(np.fft.irfft(x, n=samples) * samples  # type: ignore[return-value]
+                 for x in (spectrum, h * spectrum, -w**2 * h * spectrum))
 
 
 def write_dataset(out: str | Path, theta: dict[str, float] | None = None, phase_seed: int = 1, periods: int = 3,
                   noise: float = 0.01, noise_seed: int = 0, label: str = "lin") -> Path:
     """A dataset folder with one periodic experiment: force as commanded, displacement
-    [mm] with white noise of ``noise`` times its RMS."""
+    [mm] and acceleration [m/s²], each with white noise of ``noise`` times its RMS."""
     theta = dict(TRUTH if theta is None else theta)
     out = Path(out)
-    u, y = response(theta, multisine(phase_seed, SAMPLES, RATE_HZ, BAND_HZ, RMS_N))
+    u, y, a = response(theta, multisine(phase_seed, SAMPLES, RATE_HZ, BAND_HZ, RMS_N))
     t = np.arange(periods * SAMPLES) / RATE_HZ
-    y_mm = 1e3 * np.tile(y, periods)
-    y_mm += noise * np.sqrt(np.mean(y_mm**2)) * np.random.default_rng(noise_seed).standard_normal(y_mm.size)
-    atomic_write_bytes(out / f"{label}.csv",
-                       csv_bytes({"time_s": t, "force_N": np.tile(u, periods), "displacement_mm": y_mm}, "%.12g"))
+    rng = np.random.default_rng(noise_seed)
+    columns = {"time_s": t, "force_N": np.tile(u, periods)}
+    for name, x in (("displacement_mm", 1e3 * y), ("acceleration_m_s2", a)):
+        x = np.tile(x, periods)
+        columns[name] = x + noise * np.sqrt(np.mean(x**2)) * rng.standard_normal(x.size)
+    atomic_write_bytes(out / f"{label}.csv", csv_bytes(columns, "%.12g"))
     write_manifest(out, {
         "format": FORMAT, "name": f"linear oscillator, random-phase multisine (seed {phase_seed})",
         "experiments": [{"label": label, "kind": "periodic", "file": f"{label}.csv",

@@ -39,3 +39,98 @@ def test_stability_under_the_spectral_scheme_gives_the_damped_oscillators_multip
     expected = math.exp(-p["c"]["value"] / (2 * p["m"]["value"]) * period)
     assert abs(doc["experiments"]["lin"]["floquet_max_multiplier"] / expected - 1) < 0.01
     assert "Floquet |μ|max" in proc.stdout
+
+
+def _fit(tmp_path: Path, name: str, data: Path, model: str, params: Path, *extra: str) -> tuple[int, dict, str]:
+    result = tmp_path / f"{name}.json"
+    proc = identify("fit", str(data), "--model", model, "--scheme", "spectral", "--params", str(params),
+                    "--estimate", "c,k,m", "--output", str(result), *extra)
+    return proc.returncode, json.loads(result.read_text()), proc.stdout + proc.stderr
+
+
+def test_a_fit_stopped_by_the_iteration_cap_restarts_from_its_result_to_the_same_estimates(tmp_path):
+    model = lin.write_model(tmp_path)
+    data = lin.write_dataset(tmp_path / "data")
+    start = _start(tmp_path, m=2.6, c=7.0, k=3.5e4)
+    code, full, out = _fit(tmp_path, "full", data, model, start, "--quiet")
+    assert code == 0 and full["converged"], out
+    assert full["iterations"] > 3  # else a cap of 2 would not interrupt it
+    code, cut, out = _fit(tmp_path, "cut", data, model, start, "--quiet", "--max-iterations", "2")
+    assert code == 1, out
+    assert cut["converged"] is False and cut["iterations"] == 2
+    assert cut["parameters"]["k"]["value"] not in (3.5e4, full["parameters"]["k"]["value"])  # an iterate, not the start
+    code, again, out = _fit(tmp_path, "again", data, model, tmp_path / "cut.json", "--quiet")
+    assert code == 0 and again["converged"], out
+    for name in ("m", "c", "k"):
+        p, q = full["parameters"][name], again["parameters"][name]
+        assert abs(p["value"] - q["value"]) < 0.1 * p["std"], name
+
+
+def test_a_time_limit_stops_the_fit_with_its_last_iterate(tmp_path):
+    model = lin.write_model(tmp_path)
+    data = lin.write_dataset(tmp_path / "data")
+    # A nanosecond has passed once the start is evaluated: no iteration begins.
+    code, doc, out = _fit(tmp_path, "r", data, model, _start(tmp_path, m=2.6, c=7.0, k=3.5e4), "--time-limit", "1e-9")
+    assert code == 1, out
+    assert doc["converged"] is False and doc["iterations"] == 0 and "time limit" in doc["message"]
+    assert doc["parameters"]["k"]["value"] == 3.5e4
+
+
+def test_ctrl_c_writes_the_last_iterate_and_exits_130(tmp_path, monkeypatch, capsys):
+    from identify import cli
+
+    model = lin.write_model(tmp_path)
+    data = lin.write_dataset(tmp_path / "data")
+    seen = []
+
+    def progress(console, params, estimate):
+        def report(iteration, objective, values):
+            seen.append(values.copy())
+            if iteration == 2:
+                raise KeyboardInterrupt  # as a Ctrl-C arriving while iteration 2 is reported
+        return report
+
+    monkeypatch.setattr(cli, "_progress", progress)
+    result = tmp_path / "R.json"
+    code = cli.main(["fit", str(data), "--model", model, "--scheme", "spectral", "--params",
+                     str(_start(tmp_path, m=2.6, c=7.0, k=3.5e4)), "--estimate", "m,c,k", "--output", str(result)])
+    assert code == 130
+    doc = json.loads(result.read_text())
+    assert doc["converged"] is False and doc["interrupted"] is True and doc["iterations"] == 2
+    # The estimator reports values in declaration order: m, c, k.
+    assert [doc["parameters"][n]["value"] for n in ("m", "c", "k")] == list(seen[-1])
+    assert "restart with --params RESULT.json" in capsys.readouterr().err
+
+
+def test_progress_columns_are_named_in_the_order_of_estimate(tmp_path):
+    model = lin.write_model(tmp_path)
+    data = lin.write_dataset(tmp_path / "data")
+    code, _, out = _fit(tmp_path, "r", data, model, _start(tmp_path, m=2.0, c=13.0, k=4.0e4), "--estimate", "k,c")
+    assert code == 0, out
+    lines = out.splitlines()
+    head = next(i for i, ln in enumerate(lines) if ln.split()[:2] == ["iteration", "objective"])
+    assert lines[head].split()[2:] == ["k", "c"]
+    rows = [ln.split() for ln in lines[head + 1:] if ln.split() and ln.split()[0].isdigit()]
+    assert rows
+    for row in rows:
+        assert float(row[2]) > 1000 > float(row[3])  # k (tens of thousands) under k, c (tens) under c
+
+
+def test_per_experiment_mode_prints_the_warnings(tmp_path):
+    model = lin.write_model(tmp_path)
+    data = lin.write_dataset(tmp_path / "data", noise=2.0)  # noise twice the signal: c poorly identifiable
+    code, doc, out = _fit(tmp_path, "r", data, model, _start(tmp_path), "--per-experiment", "--quiet")
+    warnings = doc["per_experiment"]["lin"]["warnings"]
+    assert warnings, out
+    assert f"warning (lin): {warnings[0]}" in " ".join(out.split())
+
+
+def test_the_experiments_table_lists_every_fitted_output(tmp_path):
+    model = lin.write_model(tmp_path)
+    data = lin.write_dataset(tmp_path / "data")
+    code, _, out = _fit(tmp_path, "r", data, model, _start(tmp_path, c=12.0), "--quiet",
+                        "--outputs", "displacement_mm,acceleration_m_s2")
+    assert code == 0, out
+    lines = out.splitlines()
+    table = lines[next(i for i, ln in enumerate(lines) if ln.startswith("[[Experiments]]")) + 1]
+    assert table.split()[0] == "lin" and "displacement_mm" in table and "acceleration_m_s2" in table
