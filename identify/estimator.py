@@ -107,6 +107,7 @@ class Estimator:
         self.stability = stability  # Floquet multipliers of each solution in the result
         self._noise_at: _Evaluation | None = None  # where the noise model was last computed
         self.time_limit_s = time_limit_s  # no new iteration starts after this long
+        self.lower, self.upper = (b[self.index] for b in params.bounds())
 
     # ----------------------------------------------------------------------------------
     def _evaluate(self, theta: np.ndarray, start: _Evaluation | None, sensitivities: bool) -> _Evaluation:
@@ -301,7 +302,7 @@ class Estimator:
             sigma = np.sqrt(np.abs(np.diag(scaled_pinv(A))))
             for A_step in ((A_coupled, A) if coupled else (A,)):
                 As = A_step * np.outer(scale, scale) + np.eye(len(scale))
-                step = scale * np.linalg.solve(As, g * scale)
+                step = self._bounded_step(theta[self.index], As, g * scale, scale)
                 small = bool(np.all(np.abs(step) <= self.step_tolerance * np.maximum(sigma, 1e-300)))
                 predicted = float(g @ step - 0.5 * step @ A @ step)
                 accepted, lam, trial_objective = self._line_search(ev, step, v, objective)
@@ -342,14 +343,36 @@ class Estimator:
                 break
         return converged, iterations, message, ev
 
+    def _bounded_step(self, x: np.ndarray, As: np.ndarray, gs: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """The Gauss–Newton step from x (solved in prior-std units) for projected
+        Gauss–Newton: a parameter on a bound that the step would push beyond it is held
+        there and the step re-solved for the others (clipping alone would keep their
+        share of the pull towards it); the line search then follows the step projected
+        onto the bounds, which goes downhill for small enough fractions (a step clipped
+        once and shortened after would not).  A transformation (log, logit) was not
+        taken: it would change the prior's shape and σ's meaning for every estimate, not
+        only at a bound."""
+        free = np.ones(x.size, bool)
+        step = np.zeros(x.size)
+        while free.any():
+            step[:] = 0.0
+            step[free] = scale[free] * np.linalg.solve(As[np.ix_(free, free)], gs[free])
+            held = free & (((x <= self.lower) & (step < 0)) | ((x >= self.upper) & (step > 0)))
+            if not held.any():
+                break
+            free &= ~held
+        if not free.any():
+            step[:] = 0.0
+        return step
+
     def _line_search(self, ev: _Evaluation, step: np.ndarray, v: np.ndarray,
                      objective: float) -> tuple[_Evaluation | None, float, float]:
-        """Backtracking along ``step`` from ev.theta until χ² (at the variances v) does not
-        rise: (the accepted evaluation or None, its step fraction, its χ²)."""
+        """Backtracking along ``step`` from ev.theta, projected onto the bounds, until χ²
+        (at the variances v) does not rise: (the accepted evaluation or None, its step fraction, its χ²)."""
         lam = 1.0
         while lam >= 1.0 / 64:
             trial = ev.theta.copy()
-            trial[self.index] += lam * step
+            trial[self.index] = np.clip(trial[self.index] + lam * step, self.lower, self.upper)
             try:
                 ev_t = self._evaluate(trial, ev, sensitivities=False)
             except ConvergenceError:

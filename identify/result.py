@@ -107,8 +107,26 @@ class FitResult:
             std_residual=None if std_residual is None else
             {nm: float(s) for nm, s in zip(estimated, std_residual, strict=True)},
         )
-        result.warnings = result._identifiability_warnings(sensitivity_matrix) + list(notes)
+        result.warnings = result._bound_warnings() + result._identifiability_warnings(sensitivity_matrix) + list(notes)
         return result
+
+    def _bound_warnings(self) -> list[str]:
+        """Estimates the bounds stopped: the data pull them beyond, where the model's
+        declaration says no physical value lies (negative mass or damping), or beyond the
+        START file's range."""
+        out = []
+        for nm in self.estimated:
+            p = self.params[nm]
+            side = p.at_bound()
+            if side is None:
+                continue
+            limit = p.minimum if side == "minimum" else p.maximum
+            physical = limit == p.physical[0 if side == "minimum" else 1]
+            out.append(f"{nm} ({p.alias}) ended on its {side} {limit:g} {p.unit}: the data pull it beyond, "
+                       + ("where no physical value lies (model error, or data that do not determine it)"
+                          if physical else "outside the range the START file allows")
+                       + "; its σ is that of a free parameter")
+        return out
 
     def _identifiability_warnings(self, Sw: np.ndarray) -> list[str]:
         out = []
@@ -172,6 +190,11 @@ class FitResult:
             }
             if est and self.std_residual is not None:
                 params[p.name]["std_residual"] = self.std_residual[p.name]
+            for key, bound in (("min", p.minimum), ("max", p.maximum)):
+                if bound is not None:
+                    params[p.name][key] = bound
+            if est and p.at_bound():
+                params[p.name]["at_bound"] = p.at_bound()
             if p.name in self.start:
                 params[p.name]["initial"] = self.start[p.name]
         corr = {a: {b: _finite(self.correlation[i, j]) for j, b in enumerate(self.estimated)}
@@ -243,8 +266,10 @@ class FitResult:
                 if self.std_residual is not None:
                     sr = self.std_residual[p.name]
                     residual = f"   [+/- {sr:.3g}" + (f" ({100 * sr / abs(p.value):.3g}%)" if p.value else "") + " *]"
+                side = p.at_bound()
+                bound = f"   [AT {side.upper()}, see warnings]" if side else ""
                 lines.append(f"    {p.name:8s} {p.alias:18s} {p.value: .8g} +/- {s:.3g} {rel} {p.unit} "
-                             f"{init_s}, {prior_s}" + residual)
+                             f"{init_s}, {prior_s}" + residual + bound)
         if self.std_residual is not None:
             lines.append(f"    * residual-based σ: the residuals exceed the measurement noise (see warnings), and "
                          f"the +/- before it covers the noise only.  It treats each experiment's misfit as one "

@@ -134,3 +134,33 @@ def test_the_experiments_table_lists_every_fitted_output(tmp_path):
     lines = out.splitlines()
     table = lines[next(i for i, ln in enumerate(lines) if ln.startswith("[[Experiments]]")) + 1]
     assert table.split()[0] == "lin" and "displacement_mm" in table and "acceleration_m_s2" in table
+
+
+def test_a_declared_minimum_holds_the_damping_at_zero_and_the_report_flags_it(tmp_path):
+    model = lin.write_model(tmp_path, damping_bounds=", minimum=0.0")
+    # Data that want a negative damping (an energy source), as model error can.
+    data = lin.write_dataset(tmp_path / "data", theta={"m": 2.0, "c": -0.5, "k": 5.0e4})
+    code, doc, out = _fit(tmp_path, "r", data, model, _start(tmp_path, c=5.0), "--quiet")
+    c = doc["parameters"]["c"]
+    assert c["value"] == 0.0 and c["at_bound"] == "minimum" and c["min"] == 0.0
+    assert any(w.startswith("c (damping) ended on its minimum 0") and "no physical value" in w
+               for w in doc["warnings"])
+    assert "[AT MINIMUM" in out
+
+
+def test_start_file_bounds_narrow_the_range_and_are_checked(tmp_path):
+    model = lin.write_model(tmp_path, damping_bounds=", minimum=0.0")
+    data = lin.write_dataset(tmp_path / "data")
+    start = tmp_path / "bounded.json"
+    start.write_text(json.dumps({"model": "linear-1dof", "parameters": {"k": {"value": 4.8e4, "max": 4.9e4}}}))
+    code, doc, out = _fit(tmp_path, "r", data, model, start, "--quiet")
+    k = doc["parameters"]["k"]
+    assert k["value"] == 4.9e4 and k["at_bound"] == "maximum"
+    assert any("outside the range the START file allows" in w for w in doc["warnings"])
+    for bad, says in (({"c": {"value": 1.0, "min": -1.0}}, "below its physical minimum 0"),
+                      ({"k": {"value": 6e4, "max": 5.5e4}}, "lies outside its bounds"),
+                      ({"k": {"value": 5e4, "min": 6e4, "max": 5.5e4}}, "above max")):
+        start.write_text(json.dumps({"model": "linear-1dof", "parameters": bad}))
+        proc = identify("fit", str(data), "--model", model, "--params", str(start), "--estimate", "c,k",
+                        "--output", str(tmp_path / "x.json"))
+        assert proc.returncode == 2 and says in proc.stderr and "Traceback" not in proc.stderr, proc.stderr
