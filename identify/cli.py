@@ -183,9 +183,14 @@ def _per_experiment_table(results: list[tuple[str, FitResult]]) -> None:
     for nm in names:
         table.add_column(nm, justify="right")
     for label, r in results:
+        mark = "*" if r.std_residual is not None else ""
         table.add_row(label, f"{r.experiments[0].frequency_hz:g}",
-                      *[f"{r.value(nm):.6g} ± {r.std[nm]:.2g}" for nm in names])
-    Console().print(table)  # stdout: the table is the command's result, progress went to stderr
+                      *[f"{r.value(nm):.6g} ± {r.honest_std(nm):.2g}{mark}" for nm in names])
+    console = Console()  # stdout: the table is the command's result, progress went to stderr
+    console.print(table)
+    if any(r.std_residual is not None for _, r in results):
+        console.print("* residual-based σ: residuals exceed the measurement noise, so this σ includes the model "
+                      "error (the noise-only σ is in RESULT.json as std)", highlight=False)
 
 
 def run_predict(args: argparse.Namespace) -> int:

@@ -54,6 +54,7 @@ MODEL_ERROR_RATIO = 2.0  # residual RMS over what the noise explains, above whic
 RANK = 8  # random responses whose span is taken as the dominant part of the input-noise response
 PROBES = 8  # random probes estimating the rest of it
 NOISE_REFRESH = 0.02  # the noise model follows θ once it has moved by this many prior standard deviations
+LINE_PULL_FLOOR = 1e-12  # a frequency line pulling less than this (relative) carries no residual: not a unit
 CHI2_TOLERANCE = 0.1  # a Gauss-Newton step promising less χ² decrease than this changes nothing that matters
 
 
@@ -66,6 +67,18 @@ def scaled_pinv(A: np.ndarray) -> np.ndarray:
     d = np.sqrt(np.abs(np.diag(A)))
     d = np.where(d > 0, 1 / np.where(d > 0, d, 1.0), 0.0)
     return d[:, None] * np.linalg.pinv(d[:, None] * A * d[None, :]) * d[None, :]
+
+def _line_pulls(Sw: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(lines, k) shares of the pull Σ_outputs Sw·r (Sw (n_out, n, k), r (n_out, n)) of
+    each frequency line of one period, summing to it (Parseval for real signals)."""
+    n = r.shape[1]
+    share = np.full(n // 2 + 1, 2.0 / n)
+    share[0] = 1.0 / n
+    if n % 2 == 0:
+        share[-1] = 1.0 / n
+    cross = np.conj(np.fft.rfft(Sw, axis=1)) * np.fft.rfft(r, axis=1)[:, :, None]  # (n_out, lines, k)
+    return cross.real.sum(axis=0) * share[:, None]
+
 
 class EstimationError(ComputationError):
     """The fit cannot start (e.g. no periodic solution at the starting parameters)."""
@@ -107,6 +120,7 @@ class Estimator:
         self.stability = stability  # Floquet multipliers of each solution in the result
         self._noise_at: _Evaluation | None = None  # where the noise model was last computed
         self.time_limit_s = time_limit_s  # no new iteration starts after this long
+        self.residual_units: tuple[str, float, float] | None = None  # of the last residual-based covariance
         self.lower, self.upper = (b[self.index] for b in params.bounds())
 
     # ----------------------------------------------------------------------------------
@@ -414,30 +428,47 @@ class Estimator:
             x = float(np.sqrt(excess[:, b].max()))
             if x > MODEL_ERROR_RATIO:
                 flagged.append((o, x, self.data[int(np.argmax(excess[:, b]))].label))
-        residual_cov = self._residual_covariance(ev, v, A_inv) if flagged else None
+        residual_cov, self.residual_units = self._residual_covariance(ev, v, A_inv) if flagged else (None, None)
         beside = ("; residual-based standard deviations, which include it, are given beside them"
                   if residual_cov is not None else
-                  f"; with {len(self.data)} experiments for {k} parameters no residual-based ones can be given")
+                  f"; with {len(self.data)} experiments for {k} parameters, and too few frequency lines carrying "
+                  f"the misfit, no residual-based ones can be given")
         for o, x, worst in flagged:
             notes.append(f"{o}: residuals up to {x:.1f}x what the measurement noise explains (worst: {worst}): "
                          f"systematic model or discretisation error; the standard deviations cover the noise only"
                          + beside)
         return A_inv @ B @ A_inv, residual_cov, notes
 
-    def _residual_covariance(self, ev: _Evaluation, v: np.ndarray, A_inv: np.ndarray) -> np.ndarray | None:
-        """Cluster sandwich A⁻¹·(E/(E−k))·Σ_α g_α·g_αᵀ·A⁻¹ over the E experiments, with
-        g_α = S_αᵀ·W·r_α the pull of experiment α's residuals on θ, whatever caused them.
+    def _residual_covariance(self, ev: _Evaluation, v: np.ndarray,
+                             A_inv: np.ndarray) -> tuple[np.ndarray | None, tuple[str, float, float] | None]:
+        """Cluster sandwich A⁻¹·(E/(E−k))·Σ_α g_α·g_αᵀ·A⁻¹ over E independent units, with
+        g_α = S_αᵀ·W·r_α the pull of unit α's residuals on θ, whatever caused them; and
+        the units (what they are, their effective number).
 
         Model error is systematic within an experiment but differs between experiments
-        (another frequency, another stroke range), so experiments are the independent
-        units and the scatter of their pulls measures what it does to θ.  It cannot be
-        formed from no more experiments than parameters (None)."""
+        (another frequency, another stroke range), so experiments are the units where
+        there are more of them than parameters.  Otherwise the frequency lines of the
+        records are (Parseval splits each pull line by line): under a random-phase
+        multisine the misfit of a wrong model structure varies with the phases from line
+        to line like noise (Pintelon & Schoukens, the best linear approximation's
+        stochastic distortions), so a second realisation moves θ by about what the
+        scatter of the line pulls says.  E is then the number of lines that pull at all
+        (no more of them than parameters: None).  Where a few lines carry most of the
+        misfit (an unmodelled resonance), the estimate rests on few draws; the effective
+        number returned beside E (the participation ratio of the lines' pulls in σ units)
+        says how few, and the report quotes σ's own uncertainty from it."""
         E, k = len(self.data), len(self.index)
-        if E <= k:
-            return None
-        g = np.array([np.einsum("onk,on->k", S / v[a][:, None, None], r)
-                      for a, (S, r) in enumerate(zip(ev.sensitivities, ev.residuals, strict=True))])  # (E, k)
-        return A_inv @ (g.T @ g * E / (E - k)) @ A_inv
+        pairs = list(zip(ev.sensitivities, ev.residuals, strict=True))
+        if E > k:
+            g = np.array([np.einsum("onk,on->k", S / v[a][:, None, None], r) for a, (S, r) in enumerate(pairs)])
+            return A_inv @ (g.T @ g * E / (E - k)) @ A_inv, ("experiments", float(E), float(E))
+        g = np.concatenate([_line_pulls(S / v[a][:, None, None], r) for a, (S, r) in enumerate(pairs)])
+        q = np.sum((g * np.sqrt(np.abs(np.diag(A_inv)))) ** 2, axis=1)  # each line's pull in σ² units
+        lines = int(np.count_nonzero(q > LINE_PULL_FLOOR * q.max()))
+        if lines <= k:
+            return None, None
+        return A_inv @ (g.T @ g * lines / (lines - k)) @ A_inv, ("frequency lines", float(lines),
+                                                                  float(np.sum(q) ** 2 / np.sum(q**2)))
 
     # ----------------------------------------------------------------------------------
     def _result(self, ev: _Evaluation, v: np.ndarray, converged: bool, iterations: int, message: str,
@@ -478,4 +509,5 @@ class Estimator:
             objective_history=history, elapsed_s=elapsed, n_grid=self.grid.n, scheme=self.grid.scheme,
             singular_values=singular, sensitivity_matrix=Sw, notes=notes,
             std_residual=None if residual_cov is None else np.sqrt(np.abs(np.diag(residual_cov))),
+            covariance_residual=residual_cov, residual_units=self.residual_units,
         )

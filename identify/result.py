@@ -82,6 +82,9 @@ class FitResult:
     std_residual: dict[str, float] | None = None
     priors: dict[str, float | None] = field(default_factory=dict)
     oversample: int = 1  # the model solved on n·oversample points per period
+    covariance_residual: np.ndarray | None = None  # beside std_residual
+    # Its independent units: what they are (experiments, frequency lines), their number, their effective number.
+    residual_units: tuple[str, float, float] | None = None
     interrupted: bool = False  # stopped by Ctrl-C: the last iterate, not converged
 
     @classmethod
@@ -90,7 +93,9 @@ class FitResult:
               experiments: list[ExperimentFit], converged: bool, iterations: int, message: str,
               objective_history: list[float], elapsed_s: float, n_grid: int, scheme: str,
               singular_values: np.ndarray, sensitivity_matrix: np.ndarray,
-              notes: Sequence[str] = (), std_residual: np.ndarray | None = None) -> FitResult:
+              notes: Sequence[str] = (), std_residual: np.ndarray | None = None,
+              covariance_residual: np.ndarray | None = None,
+              residual_units: tuple[str, float, float] | None = None) -> FitResult:
         n_par = len(estimated)
         variances = {}
         for o in outputs:
@@ -106,6 +111,7 @@ class FitResult:
             scheme=scheme, singular_values=singular_values,
             std_residual=None if std_residual is None else
             {nm: float(s) for nm, s in zip(estimated, std_residual, strict=True)},
+            covariance_residual=covariance_residual, residual_units=residual_units,
         )
         result.warnings = result._bound_warnings() + result._identifiability_warnings(sensitivity_matrix) + list(notes)
         return result
@@ -178,6 +184,11 @@ class FitResult:
         """The σ to quote: the residual-based one where model error was found, else the noise σ."""
         return self.std_residual[name] if self.std_residual is not None else self.std[name]
 
+    def honest_covariance(self) -> np.ndarray:
+        """The covariance to propagate (QC guard bands): the residual-based one where model
+        error was found, else the noise covariance."""
+        return self.covariance_residual if self.covariance_residual is not None else self.covariance
+
     def to_document(self) -> dict[str, Any]:
         """RESULT.json (contract: model, converged, iterations, parameters, correlation,
         channels, experiments; extended with report details)."""
@@ -230,6 +241,9 @@ class FitResult:
             "oversample": self.oversample,
             "elapsed_s": self.elapsed_s,
             "warnings": self.warnings,
+            **({"std_residual_units": dict(zip(("units", "number", "effective_number"), self.residual_units,
+                                               strict=True))}
+               if self.std_residual is not None and self.residual_units else {}),
         }
 
     def write_json(self, path: str | Path) -> None:
@@ -271,10 +285,16 @@ class FitResult:
                 lines.append(f"    {p.name:8s} {p.alias:18s} {p.value: .8g} +/- {s:.3g} {rel} {p.unit} "
                              f"{init_s}, {prior_s}" + residual + bound)
         if self.std_residual is not None:
+            E = float(len(self.experiments))
+            what, units, effective = self.residual_units or ("experiments", E, E)
+            draw = ("each experiment's misfit" if what == "experiments" else
+                    "the misfit at each frequency line (a random-phase multisine's other realisations)")
+            count = (f"{units:.0f} {what}" if units == effective else
+                     f"{units:.0f} {what}, the misfit carried by an effective {effective:.2g} of them")
             lines.append(f"    * residual-based σ: the residuals exceed the measurement noise (see warnings), and "
-                         f"the +/- before it covers the noise only.  It treats each experiment's misfit as one "
-                         f"random draw ({len(self.experiments)} experiments), is itself uncertain by about "
-                         f"±{100 / math.sqrt(2 * max(len(self.experiments) - len(self.estimated), 1)):.0f} %, "
+                         f"the +/- before it covers the noise only: quote the one marked *.  It treats {draw} as "
+                         f"one random draw ({count}), is itself uncertain by about "
+                         f"±{100 / math.sqrt(2 * max(effective - len(self.estimated), 1)):.0f} %, "
                          f"and does not cover a bias the model error may cause")
         calibration = _calibration_line(self.model)
         if calibration:

@@ -86,3 +86,32 @@ def write_dataset(out: str | Path, theta: dict[str, float] | None = None, phase_
                          "excitation": f"random-phase multisine {BAND_HZ[0]:g}-{BAND_HZ[1]:g} Hz, {RMS_N:g} N RMS"}],
     })
     return out
+
+
+TWO_MODES = {"m1": 1.0e-5, "m2": 0.5e-5, "k1": 1.0, "k2": 0.5, "c1": 2.0e-4, "c2": 2.0e-4}
+
+
+def write_two_mode_dataset(out: str | Path, phase_seed: int, periods: int = 3, noise: float = 1e-3,
+                           noise_seed: int = 0, rms: float = 0.5) -> Path:
+    """A record in the Duffing model's columns (``input``, ``output``) from a linear chain
+    of two masses (force on the first, output its displacement), under a random-phase
+    multisine: data a 1-dof Duffing cannot describe."""
+    p = TWO_MODES
+    spectrum = multisine(phase_seed, SAMPLES, RATE_HZ, (3.0, 100.0), rms)
+    w = 2 * np.pi * RATE_HZ / SAMPLES * np.arange(spectrum.size)
+    M, K = np.diag([p["m1"], p["m2"]]), np.array([[p["k1"] + p["k2"], -p["k2"]], [-p["k2"], p["k2"]]])
+    C = np.array([[p["c1"] + p["c2"], -p["c2"]], [-p["c2"], p["c2"]]])
+    h = np.array([np.linalg.inv(K - wi**2 * M + 1j * wi * C)[0, 0] for wi in w])
+    u, y = (np.fft.irfft(x, n=SAMPLES) * SAMPLES for x in (spectrum, h * spectrum))
+    y = np.tile(y, periods)
+    y += noise * np.sqrt(np.mean(y**2)) * np.random.default_rng(noise_seed).standard_normal(y.size)
+    out = Path(out)
+    atomic_write_bytes(out / "ms.csv", csv_bytes({"time_s": np.arange(y.size) / RATE_HZ, "input": np.tile(u, periods),
+                                                  "output": y}, "%.12g"))
+    write_manifest(out, {
+        "format": FORMAT, "name": f"two-mode chain, random-phase multisine (seed {phase_seed})",
+        "experiments": [{"label": "ms", "kind": "periodic", "file": "ms.csv", "frequency_Hz": RATE_HZ / SAMPLES,
+                         "sample_rate_Hz": RATE_HZ, "periods": periods,
+                         "excitation": f"random-phase multisine 3-100 Hz, {rms:g} V RMS"}],
+    })
+    return out
