@@ -160,7 +160,7 @@ def run_fit(args: argparse.Namespace) -> int:
         from identify.figures import write_figures
 
         for path in write_figures(result, Path(args.figures)):
-            console.print(f"figure {path}", highlight=False)
+            console.print(f"figure {path}", highlight=False, soft_wrap=True)  # a path whole, to copy
     return EXIT_INTERRUPTED if interrupted else EXIT_OK if result.converged else EXIT_NOT_CONVERGED
 
 
@@ -417,7 +417,8 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--time-limit", type=float, metavar="SECONDS",
                      help="start no iteration after this long (exit 1, RESULT.json holds the last iterate)")
     fit.add_argument("--report", help="also write the text report here")
-    fit.add_argument("--figures", help="folder for PNG figures (measured vs predicted, residual bands)")
+    fit.add_argument("--figures", help="folder for PNG figures (measured vs predicted, residual bands; multisine "
+                                                    "records: frequency response at the excited lines)")
     fit.add_argument("--quiet", action="store_true", help="no iteration progress")
     fit.add_argument("--friction", help="FRICTION.json: fixed per-experiment theta8, theta9, theta10")
     fit.add_argument("--stability", action="store_true",

@@ -79,6 +79,9 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
     result.start = {k: start[k] for k in result.estimated}
     result.priors = {k: params[k].prior_std for k in result.estimated}
     result.oversample = oversample
-    for e in result.experiments:
+    channels = list(model.declaration.inputs.values())
+    result.units = {ch.column: ch.unit for ch in [*channels, *(model.declaration.outputs[o] for o in outputs)]}
+    for e, d in zip(result.experiments, data, strict=True):
         e.start = estimator.solver.starts_used.get(e.label, "")
+        e.inputs = {ch.column: ch.from_si(u) for ch, u in zip(channels, d.inputs, strict=True)}
     return result

@@ -46,6 +46,7 @@ class ExperimentFit:
     newton_iterations: int
     floquet: np.ndarray | None = None  # multipliers, largest magnitude first (when asked for)
     start: str = ""  # where the first periodic solve started (identify.start: static, transient, ...)
+    inputs: dict[str, np.ndarray] = field(default_factory=dict)  # the model's inputs on the grid, column units
 
     def residual(self, column: str) -> np.ndarray:
         return self.measured[column] - self.predicted[column]
@@ -86,6 +87,7 @@ class FitResult:
     # Its independent units: what they are (experiments, frequency lines), their number, their effective number.
     residual_units: tuple[str, float, float] | None = None
     interrupted: bool = False  # stopped by Ctrl-C: the last iterate, not converged
+    units: dict[str, str] = field(default_factory=dict)  # of the input and output columns
 
     @classmethod
     def build(cls, *, model: CompiledModel, params: Parameters, estimated: list[str], std: np.ndarray,

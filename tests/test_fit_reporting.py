@@ -189,3 +189,22 @@ def test_under_a_wrong_model_structure_the_residual_based_sigma_covers_another_r
     for report in reports:
         assert "* residual-based σ" in report and "covers the noise only: quote the one marked *" in report
         assert "frequency lines" in report
+
+
+def test_multisine_records_get_a_frequency_response_figure_and_sines_do_not(tmp_path):
+    import numpy as np
+
+    from identify.preparation import MULTISINE_LINES, excited_lines
+
+    model = lin.write_model(tmp_path)
+    data = lin.write_dataset(tmp_path / "data")
+    figures = tmp_path / "figures"
+    code, _, out = _fit(tmp_path, "r", data, model, _start(tmp_path, c=12.0), "--quiet", "--figures", str(figures))
+    assert code == 0, out
+    assert (figures / "frf_displacement_mm.png").stat().st_size > 10_000
+    assert f"figure {figures / 'frf_displacement_mm.png'}" in " ".join(out.split())
+    tau = np.arange(800) / 800
+    sine = 3.0 + np.sin(2 * np.pi * tau) + 0.02 * np.sin(2 * np.pi * 3 * tau)  # a sine with a little distortion
+    assert excited_lines(sine[None]).tolist() == [1]
+    assert excited_lines(np.fft.irfft(lin.multisine(1, 256, 256.0, (2.0, 60.0), 1.0), n=256)).size == 59
+    assert MULTISINE_LINES > 1
