@@ -208,3 +208,23 @@ def test_multisine_records_get_a_frequency_response_figure_and_sines_do_not(tmp_
     assert excited_lines(sine[None]).tolist() == [1]
     assert excited_lines(np.fft.irfft(lin.multisine(1, 256, 256.0, (2.0, 60.0), 1.0), n=256)).size == 59
     assert MULTISINE_LINES > 1
+
+
+def test_qc_guard_bands_propagate_the_residual_based_covariance_where_the_fit_gives_one():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from identify.model import load_model
+    from identify.parameters import Parameters
+    from identify.result import FitResult
+    from rig.qc.characteristics import _propagate
+
+    model = load_model("2dof")
+    i = model.parameter_index("theta4")
+    for residual, expected in ((None, 1e-6), (np.array([[9e-12]]), 3e-6)):
+        fit = SimpleNamespace(params=Parameters(model), estimated=["theta4"], covariance=np.array([[1e-12]]),
+                              covariance_residual=residual)
+        fit.honest_covariance = lambda fit=fit: FitResult.honest_covariance(fit)
+        value, std = _propagate(model, fit, lambda theta: 2.0 * theta[i], integrated=False)
+        assert math.isclose(std, 2 * expected, rel_tol=1e-6)
