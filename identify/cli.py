@@ -308,11 +308,17 @@ def run_report(args: argparse.Namespace) -> int:
         raise UsageError(f"{args.result}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
     if not isinstance(doc, dict) or "parameters" not in doc:
         raise UsageError(f"{args.result}: not a RESULT.json (no 'parameters')")
-    lines = [f"model {doc.get('model')}  converged {doc.get('converged')}  iterations {doc.get('iterations')}"]
+    lines = [f"model {doc.get('model')}  converged {doc.get('converged')}  iterations {doc.get('iterations')}"
+             + ("  (interrupted: the last iterate)" if doc.get("interrupted") else "")]
     for name, p in doc["parameters"].items():
         if p.get("estimated"):
             rel = f"({100 * p['std'] / abs(p['value']):.3g}%)" if p.get("std") and p["value"] else ""
-            lines.append(f"  {name:8s} {p['value']: .8g} +/- {p.get('std') or 0:.3g} {rel} {p.get('unit', '')}")
+            residual = f"   [+/- {p['std_residual']:.3g} *]" if p.get("std_residual") is not None else ""
+            bound = f"   [AT {p['at_bound'].upper()}]" if p.get("at_bound") else ""
+            lines.append(f"  {name:8s} {p['value']: .8g} +/- {p.get('std') or 0:.3g} {rel} {p.get('unit', '')}"
+                         + residual + bound)
+    if any(p.get("std_residual") is not None for p in doc["parameters"].values()):
+        lines.append("  * residual-based σ (includes the model error; quote it): the residuals exceed the noise")
     for label, e in doc.get("experiments", {}).items():
         channels = e.get("channels") or {e.get("channel", ""): e}
         lines.append(f"  {label:12s} residual " + "   ".join(

@@ -146,6 +146,8 @@ def test_a_declared_minimum_holds_the_damping_at_zero_and_the_report_flags_it(tm
     assert any(w.startswith("c (damping) ended on its minimum 0") and "no physical value" in w
                for w in doc["warnings"])
     assert "[AT MINIMUM" in out
+    report = identify("report", str(tmp_path / "r.json"))
+    assert report.returncode == 0 and "[AT MINIMUM]" in report.stdout
 
 
 def test_start_file_bounds_narrow_the_range_and_are_checked(tmp_path):
