@@ -130,9 +130,9 @@ def run_fit(args: argparse.Namespace) -> int:
             console.print(f"[red]fit failed:[/red] {exc}", highlight=False)
             _write_failed(args.output, model, params, str(exc))
             return EXIT_NOT_CONVERGED
-        except KeyboardInterrupt:  # before a first iterate existed: the start is all there is
-            console.print("interrupted before the first iteration; RESULT.json holds the start", highlight=False)
-            _write_failed(args.output, model, params, "interrupted (Ctrl-C) before the first iteration")
+        except KeyboardInterrupt:  # while the start was evaluated, or a second Ctrl-C during the wrap-up
+            console.print("interrupted before the fit had a result; RESULT.json holds the start", highlight=False)
+            _write_failed(args.output, model, params, "interrupted (Ctrl-C) before the fit had a result")
             return EXIT_INTERRUPTED
         results.append((group[0].label if args.per_experiment else "joint", result))
         if result.interrupted:
