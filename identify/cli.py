@@ -290,6 +290,8 @@ def run_compare(args: argparse.Namespace) -> int:
     for name, fit in fits.items():
         if not fit.converged:
             print(f"warning: the {name} fit did not converge ({fit.message}); its residuals are not its best")
+        for w in fit.warnings:
+            print(f"warning ({name}): {w}")
     print(f"overall {column} residual RMS: 1-dof {rms['1dof']:.4g} mm, 2-dof {rms['2dof']:.4g} mm, "
           f"ratio 1-dof/2-dof {ratio:.3g}")
     if args.output:
