@@ -68,6 +68,7 @@ def scaled_pinv(A: np.ndarray) -> np.ndarray:
     d = np.where(d > 0, 1 / np.where(d > 0, d, 1.0), 0.0)
     return d[:, None] * np.linalg.pinv(d[:, None] * A * d[None, :]) * d[None, :]
 
+
 def _line_pulls(Sw: np.ndarray, r: np.ndarray) -> np.ndarray:
     """(lines, k) shares of the pull Σ_outputs Sw·r (Sw (n_out, n, k), r (n_out, n)) of
     each frequency line of one period, summing to it (Parseval for real signals)."""

@@ -53,6 +53,7 @@ def monodromy(model: CompiledModel, states: np.ndarray, dstates: np.ndarray, dds
     dyn = np.flatnonzero(orders >= 1)  # states with a derivative: position part of the phase space
     second = np.flatnonzero(orders == 2)  # ... and those whose velocity is a state too
     algebraic = np.flatnonzero(orders == 0)
+    first = np.flatnonzero(orders == 1)
     p = dyn.size + second.size
     if p == 0:
         return np.zeros((0, 0))
@@ -66,7 +67,6 @@ def monodromy(model: CompiledModel, states: np.ndarray, dstates: np.ndarray, dds
         gx, gdx, gddx = (j[:, :, 0] for j in model.residual_jacobian(v[:ns], v[ns:2 * ns], v[2 * ns:3 * ns],
                                                                    v[3 * ns:], theta))
         # Unknowns at this instant: δẋ of first-order states, δv̇ of second-order ones, δx of algebraic ones.
-        first = np.flatnonzero(orders == 1)
         M = np.concatenate([gdx[:, first], gddx[:, second], gx[:, algebraic]], axis=1)
         # What the phase-space variables contribute: g_x·δx (dyn states) and g_ẋ·δv (second-order states).
         R = -np.concatenate([gx[:, dyn], gdx[:, second]], axis=1)
