@@ -1,8 +1,11 @@
 """``python -m identify``: fit, compare, friction, predict, report, batch.
 
-Exit status: 0 success (a fit converged); 1 a fit did not converge (RESULT.json still
-written, ``converged`` false), or a session of a batch failed; 2 bad input (message
-names file and place, no traceback); 130 a batch interrupted (its results are kept).
+Exit status: 0 success (a fit converged); 1 a fit did not converge — the iteration cap
+(``--max-iterations``), the time limit (``--time-limit``) or a failed line search —
+with RESULT.json written all the same (``converged`` false, the last iterate, which
+``--params RESULT.json`` restarts from), or a session of a batch failed; 2 bad input
+(message names file and place, no traceback); 130 interrupted by Ctrl-C: a fit writes
+its last iterate as for 1 (``interrupted`` true), a batch keeps its results.
 """
 
 from __future__ import annotations
@@ -72,10 +75,18 @@ def _load_params(model: CompiledModel, path: str | None) -> Parameters:
     return Parameters.from_file(model, path) if path else Parameters(model)
 
 
-def _progress(console):
+def _progress(console, params: Parameters, estimate: list[str]):
+    """Per iteration a row of the estimates under a header naming them, in ``--estimate``
+    order (the estimator reports them in the model's declaration order)."""
+    declared = sorted(params.index(e) for e in estimate)
+    order = [declared.index(params.index(e)) for e in estimate]
+    width = max(12, *(len(e) for e in estimate))
+    console.print(f"  {'iteration':>9s}  {'objective':>12s}  " + "  ".join(f"{e:>{width}s}" for e in estimate),
+                  highlight=False)
+
     def report(iteration: int, objective: float, values: np.ndarray) -> None:
-        console.print(f"  iteration {iteration:2d}  objective {objective:.6g}  "
-                      + "  ".join(f"{v:.6g}" for v in values), highlight=False)
+        console.print(f"  {iteration:9d}  {objective:12.6g}  " + "  ".join(f"{values[i]:{width}.6g}" for i in order),
+                      highlight=False)
     return report
 
 
@@ -98,7 +109,8 @@ def run_fit(args: argparse.Namespace) -> int:
                   f"({grid.scheme}, n = {grid.n})", highlight=False)
     for note in notes:
         console.print(f"  {note}", highlight=False)
-    progress = _progress(console) if not args.quiet else None
+    if args.time_limit is not None and not args.time_limit > 0:
+        raise UsageError(f"--time-limit {args.time_limit:g}: must be a positive number of seconds")
     results: list[tuple[str, FitResult]] = []
     groups = [[e] for e in ds.select(labels)] if args.per_experiment else [ds.select(labels)]
     fixed = None
@@ -107,21 +119,37 @@ def run_fit(args: argparse.Namespace) -> int:
 
         fixed = load_fixed(args.friction, params.names())
     for group in groups:
+        if args.per_experiment:
+            console.print(f"experiment {group[0].label}", highlight=False)
+        progress = _progress(console, params, estimate) if not args.quiet else None
         try:
             result = fit_experiments(model, group, params, estimate, n=n, scheme=args.scheme, outputs=outputs,
                                      max_iterations=args.max_iterations, progress=progress, fixed=fixed,
-                                     stability=args.stability, oversample=oversample)
+                                     stability=args.stability, oversample=oversample, time_limit_s=args.time_limit)
         except EstimationError as exc:
             console.print(f"[red]fit failed:[/red] {exc}", highlight=False)
             _write_failed(args.output, model, params, str(exc))
             return EXIT_NOT_CONVERGED
+        except KeyboardInterrupt:  # while the start was evaluated, or a second Ctrl-C during the wrap-up
+            console.print("interrupted before the fit had a result; RESULT.json holds the start", highlight=False)
+            _write_failed(args.output, model, params, "interrupted (Ctrl-C) before the fit had a result")
+            return EXIT_INTERRUPTED
         results.append((group[0].label if args.per_experiment else "joint", result))
+        if result.interrupted:
+            break
+    interrupted = any(r.interrupted for _, r in results)
+    if interrupted:
+        console.print("interrupted: RESULT.json holds the last iterate (converged false); restart with "
+                      "--params RESULT.json", highlight=False, soft_wrap=True)
     if args.per_experiment:
         _per_experiment_table(results)
-        doc = {"model": model.name, "converged": all(r.converged for _, r in results),
-               "per_experiment": {lb: r.to_document() for lb, r in results}}
+        for label, r in results:
+            for w in r.warnings:
+                print(f"warning ({label}): {w}")
+        doc = {"model": model.name, "converged": all(r.converged for _, r in results) and len(results) == len(groups),
+               "interrupted": interrupted, "per_experiment": {lb: r.to_document() for lb, r in results}}
         atomic_write_bytes(Path(args.output), (json.dumps(doc, indent=2) + "\n").encode())
-        return EXIT_OK if doc["converged"] else EXIT_NOT_CONVERGED
+        return EXIT_INTERRUPTED if interrupted else EXIT_OK if doc["converged"] else EXIT_NOT_CONVERGED
     result = results[0][1]
     result.write_json(args.output)
     report = result.fit_report()
@@ -132,8 +160,8 @@ def run_fit(args: argparse.Namespace) -> int:
         from identify.figures import write_figures
 
         for path in write_figures(result, Path(args.figures)):
-            console.print(f"figure {path}", highlight=False)
-    return EXIT_OK if result.converged else EXIT_NOT_CONVERGED
+            console.print(f"figure {path}", highlight=False, soft_wrap=True)  # a path whole, to copy
+    return EXIT_INTERRUPTED if interrupted else EXIT_OK if result.converged else EXIT_NOT_CONVERGED
 
 
 def _write_failed(path: str, model: CompiledModel, params: Parameters, message: str) -> None:
@@ -155,9 +183,14 @@ def _per_experiment_table(results: list[tuple[str, FitResult]]) -> None:
     for nm in names:
         table.add_column(nm, justify="right")
     for label, r in results:
+        mark = "*" if r.std_residual is not None else ""
         table.add_row(label, f"{r.experiments[0].frequency_hz:g}",
-                      *[f"{r.value(nm):.6g} ± {r.std[nm]:.2g}" for nm in names])
-    Console().print(table)  # stdout: the table is the command's result, progress went to stderr
+                      *[f"{r.value(nm):.6g} ± {r.honest_std(nm):.2g}{mark}" for nm in names])
+    console = Console()  # stdout: the table is the command's result, progress went to stderr
+    console.print(table)
+    if any(r.std_residual is not None for _, r in results):
+        console.print("* residual-based σ: residuals exceed the measurement noise, so this σ includes the model "
+                      "error (the noise-only σ is in RESULT.json as std)", highlight=False)
 
 
 def run_predict(args: argparse.Namespace) -> int:
@@ -257,6 +290,8 @@ def run_compare(args: argparse.Namespace) -> int:
     for name, fit in fits.items():
         if not fit.converged:
             print(f"warning: the {name} fit did not converge ({fit.message}); its residuals are not its best")
+        for w in fit.warnings:
+            print(f"warning ({name}): {w}")
     print(f"overall {column} residual RMS: 1-dof {rms['1dof']:.4g} mm, 2-dof {rms['2dof']:.4g} mm, "
           f"ratio 1-dof/2-dof {ratio:.3g}")
     if args.output:
@@ -275,13 +310,22 @@ def run_report(args: argparse.Namespace) -> int:
         raise UsageError(f"{args.result}: not valid JSON (line {exc.lineno}: {exc.msg})") from None
     if not isinstance(doc, dict) or "parameters" not in doc:
         raise UsageError(f"{args.result}: not a RESULT.json (no 'parameters')")
-    lines = [f"model {doc.get('model')}  converged {doc.get('converged')}  iterations {doc.get('iterations')}"]
+    lines = [f"model {doc.get('model')}  converged {doc.get('converged')}  iterations {doc.get('iterations')}"
+             + ("  (interrupted: the last iterate)" if doc.get("interrupted") else "")]
     for name, p in doc["parameters"].items():
         if p.get("estimated"):
             rel = f"({100 * p['std'] / abs(p['value']):.3g}%)" if p.get("std") and p["value"] else ""
-            lines.append(f"  {name:8s} {p['value']: .8g} +/- {p.get('std') or 0:.3g} {rel} {p.get('unit', '')}")
+            residual = f"   [+/- {p['std_residual']:.3g} *]" if p.get("std_residual") is not None else ""
+            bound = f"   [AT {p['at_bound'].upper()}]" if p.get("at_bound") else ""
+            lines.append(f"  {name:8s} {p['value']: .8g} +/- {p.get('std') or 0:.3g} {rel} {p.get('unit', '')}"
+                         + residual + bound)
+    if any(p.get("std_residual") is not None for p in doc["parameters"].values()):
+        lines.append("  * residual-based σ (includes the model error; quote it): the residuals exceed the noise")
     for label, e in doc.get("experiments", {}).items():
-        lines.append(f"  {label:12s} residual {e['residual_mean']:+.4g} +/- {2 * e['residual_std']:.4g} (2 sigma)")
+        channels = e.get("channels") or {e.get("channel", ""): e}
+        lines.append(f"  {label:12s} residual " + "   ".join(
+            f"{o} {c['residual_mean']:+.4g} +/- {2 * c['residual_std']:.4g}" for o, c in channels.items())
+            + " (2 sigma)")
     for w in doc.get("warnings", []):
         lines.append(f"  warning: {w}")
     print("\n".join(lines))
@@ -377,9 +421,13 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--experiments", help="comma-separated labels or letters (default: all periodic)")
     fit.add_argument("--outputs", help="fitted output columns (default: the model's, e.g. stroke_mm,pressure_bar)")
     fit.add_argument("--per-experiment", action="store_true", help="fit each experiment on its own, print a table")
-    fit.add_argument("--max-iterations", type=int, default=40)
+    fit.add_argument("--max-iterations", type=int, default=40,
+                     help="stop after this many iterations (exit 1, RESULT.json holds the last iterate)")
+    fit.add_argument("--time-limit", type=float, metavar="SECONDS",
+                     help="start no iteration after this long (exit 1, RESULT.json holds the last iterate)")
     fit.add_argument("--report", help="also write the text report here")
-    fit.add_argument("--figures", help="folder for PNG figures (measured vs predicted, residual bands)")
+    fit.add_argument("--figures", help="folder for PNG figures (measured vs predicted, residual bands; multisine "
+                                                    "records: frequency response at the excited lines)")
     fit.add_argument("--quiet", action="store_true", help="no iteration progress")
     fit.add_argument("--friction", help="FRICTION.json: fixed per-experiment theta8, theta9, theta10")
     fit.add_argument("--stability", action="store_true",

@@ -54,6 +54,7 @@ MODEL_ERROR_RATIO = 2.0  # residual RMS over what the noise explains, above whic
 RANK = 8  # random responses whose span is taken as the dominant part of the input-noise response
 PROBES = 8  # random probes estimating the rest of it
 NOISE_REFRESH = 0.02  # the noise model follows θ once it has moved by this many prior standard deviations
+LINE_PULL_FLOOR = 1e-12  # a frequency line pulling less than this (relative) carries no residual: not a unit
 CHI2_TOLERANCE = 0.1  # a Gauss-Newton step promising less χ² decrease than this changes nothing that matters
 
 
@@ -66,6 +67,19 @@ def scaled_pinv(A: np.ndarray) -> np.ndarray:
     d = np.sqrt(np.abs(np.diag(A)))
     d = np.where(d > 0, 1 / np.where(d > 0, d, 1.0), 0.0)
     return d[:, None] * np.linalg.pinv(d[:, None] * A * d[None, :]) * d[None, :]
+
+
+def _line_pulls(Sw: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """(lines, k) shares of the pull Σ_outputs Sw·r (Sw (n_out, n, k), r (n_out, n)) of
+    each frequency line of one period, summing to it (Parseval for real signals)."""
+    n = r.shape[1]
+    share = np.full(n // 2 + 1, 2.0 / n)
+    share[0] = 1.0 / n
+    if n % 2 == 0:
+        share[-1] = 1.0 / n
+    cross = np.conj(np.fft.rfft(Sw, axis=1)) * np.fft.rfft(r, axis=1)[:, :, None]  # (n_out, lines, k)
+    return cross.real.sum(axis=0) * share[:, None]
+
 
 class EstimationError(ComputationError):
     """The fit cannot start (e.g. no periodic solution at the starting parameters)."""
@@ -87,7 +101,8 @@ class Estimator:
 
     def __init__(self, model: CompiledModel, data: list[PeriodicData], params: Parameters, grid: Grid,
                  outputs: list[str], max_iterations: int = 40, step_tolerance: float = 0.05,
-                 progress: Callable[[int, float, np.ndarray], None] | None = None, stability: bool = False):
+                 progress: Callable[[int, float, np.ndarray], None] | None = None, stability: bool = False,
+                 time_limit_s: float | None = None):
         if not data:
             raise EstimationError("no periodic experiment to fit")
         if not params.varying():
@@ -105,6 +120,9 @@ class Estimator:
         self.progress = progress
         self.stability = stability  # Floquet multipliers of each solution in the result
         self._noise_at: _Evaluation | None = None  # where the noise model was last computed
+        self.time_limit_s = time_limit_s  # no new iteration starts after this long
+        self.residual_units: tuple[str, float, float] | None = None  # of the last residual-based covariance
+        self.lower, self.upper = (b[self.index] for b in params.bounds())
 
     # ----------------------------------------------------------------------------------
     def _evaluate(self, theta: np.ndarray, start: _Evaluation | None, sensitivities: bool) -> _Evaluation:
@@ -252,7 +270,11 @@ class Estimator:
 
     # ----------------------------------------------------------------------------------
     def fit(self) -> FitResult:
-        """Run Gauss–Newton to convergence and return the result with uncertainties."""
+        """Run Gauss–Newton to convergence and return the result with uncertainties.
+
+        Stopped by the iteration cap, the time limit or Ctrl-C (KeyboardInterrupt, once
+        the start is evaluated), the result holds the last accepted iterate, not
+        converged, so that a fit started from it goes on from there."""
         t0 = time.perf_counter()
         theta = self.params.vector()
         try:
@@ -262,10 +284,30 @@ class Estimator:
         v = self._variances(ev)
         objective = self._objective(ev, v)
         history = [self._log_likelihood_objective(ev, v)]
+        self._last: tuple[_Evaluation, int] = (ev, 0)  # the last complete iterate and its number
+        interrupted = False
+        try:
+            converged, iterations, message, ev = self._iterate(ev, v, objective, history, t0)
+        except KeyboardInterrupt:
+            (ev, iterations), converged, interrupted = self._last, False, True
+            message = f"interrupted (Ctrl-C) after {iterations} iterations: the last iterate, not converged"
+        v = self._variances(ev)
+        result = self._result(ev, v, converged, iterations, message, history, time.perf_counter() - t0)
+        result.interrupted = interrupted
+        return result
+
+    def _iterate(self, ev: _Evaluation, v: np.ndarray, objective: float, history: list[float],
+                 t0: float) -> tuple[bool, int, str, _Evaluation]:
+        """Gauss–Newton from ev: (converged, iterations, message, last accepted evaluation)."""
+        theta = ev.theta
         converged = False
         message = f"stopped after {self.max_iterations} iterations without meeting the step tolerance"
         iterations = 0
         for it in range(1, self.max_iterations + 1):
+            if self.time_limit_s is not None and time.perf_counter() - t0 > self.time_limit_s:
+                message = (f"stopped at the time limit ({self.time_limit_s:g} s) after {iterations} iterations "
+                           f"without meeting the step tolerance")
+                break
             iterations = it
             A, g = self._normal_equations(ev, v)
             A_coupled = A - self._variance_coupling(ev, v)
@@ -275,7 +317,7 @@ class Estimator:
             sigma = np.sqrt(np.abs(np.diag(scaled_pinv(A))))
             for A_step in ((A_coupled, A) if coupled else (A,)):
                 As = A_step * np.outer(scale, scale) + np.eye(len(scale))
-                step = scale * np.linalg.solve(As, g * scale)
+                step = self._bounded_step(theta[self.index], As, g * scale, scale)
                 small = bool(np.all(np.abs(step) <= self.step_tolerance * np.maximum(sigma, 1e-300)))
                 predicted = float(g @ step - 0.5 * step @ A @ step)
                 accepted, lam, trial_objective = self._line_search(ev, step, v, objective)
@@ -302,6 +344,7 @@ class Estimator:
             v = self._variances(ev)
             objective = self._objective(ev, v)
             history.append(self._log_likelihood_objective(ev, v))
+            self._last = (ev, it)  # complete (sensitivities, weights): what an interrupted fit reports
             if self.progress:
                 self.progress(it, history[-1], theta[self.index])
             if np.all(np.abs(lam * step) <= self.step_tolerance * np.maximum(sigma, 1e-300)):
@@ -313,16 +356,38 @@ class Estimator:
                 message = (f"converged (the last step lowered χ² by {objective_before - trial_objective:.2g} "
                            f"< {CHI2_TOLERANCE:g})")
                 break
-        return self._result(ev, v, converged, iterations, message, history, time.perf_counter() - t0)
+        return converged, iterations, message, ev
+
+    def _bounded_step(self, x: np.ndarray, As: np.ndarray, gs: np.ndarray, scale: np.ndarray) -> np.ndarray:
+        """The Gauss–Newton step from x (solved in prior-std units) for projected
+        Gauss–Newton: a parameter on a bound that the step would push beyond it is held
+        there and the step re-solved for the others (clipping alone would keep their
+        share of the pull towards it); the line search then follows the step projected
+        onto the bounds, which goes downhill for small enough fractions (a step clipped
+        once and shortened after would not).  A transformation (log, logit) was not
+        taken: it would change the prior's shape and σ's meaning for every estimate, not
+        only at a bound."""
+        free = np.ones(x.size, bool)
+        step = np.zeros(x.size)
+        while free.any():
+            step[:] = 0.0
+            step[free] = scale[free] * np.linalg.solve(As[np.ix_(free, free)], gs[free])
+            held = free & (((x <= self.lower) & (step < 0)) | ((x >= self.upper) & (step > 0)))
+            if not held.any():
+                break
+            free &= ~held
+        if not free.any():
+            step[:] = 0.0
+        return step
 
     def _line_search(self, ev: _Evaluation, step: np.ndarray, v: np.ndarray,
                      objective: float) -> tuple[_Evaluation | None, float, float]:
-        """Backtracking along ``step`` from ev.theta until χ² (at the variances v) does not
-        rise: (the accepted evaluation or None, its step fraction, its χ²)."""
+        """Backtracking along ``step`` from ev.theta, projected onto the bounds, until χ²
+        (at the variances v) does not rise: (the accepted evaluation or None, its step fraction, its χ²)."""
         lam = 1.0
         while lam >= 1.0 / 64:
             trial = ev.theta.copy()
-            trial[self.index] += lam * step
+            trial[self.index] = np.clip(trial[self.index] + lam * step, self.lower, self.upper)
             try:
                 ev_t = self._evaluate(trial, ev, sensitivities=False)
             except ConvergenceError:
@@ -364,30 +429,47 @@ class Estimator:
             x = float(np.sqrt(excess[:, b].max()))
             if x > MODEL_ERROR_RATIO:
                 flagged.append((o, x, self.data[int(np.argmax(excess[:, b]))].label))
-        residual_cov = self._residual_covariance(ev, v, A_inv) if flagged else None
+        residual_cov, self.residual_units = self._residual_covariance(ev, v, A_inv) if flagged else (None, None)
         beside = ("; residual-based standard deviations, which include it, are given beside them"
                   if residual_cov is not None else
-                  f"; with {len(self.data)} experiments for {k} parameters no residual-based ones can be given")
+                  f"; with {len(self.data)} experiments for {k} parameters, and too few frequency lines carrying "
+                  f"the misfit, no residual-based ones can be given")
         for o, x, worst in flagged:
             notes.append(f"{o}: residuals up to {x:.1f}x what the measurement noise explains (worst: {worst}): "
                          f"systematic model or discretisation error; the standard deviations cover the noise only"
                          + beside)
         return A_inv @ B @ A_inv, residual_cov, notes
 
-    def _residual_covariance(self, ev: _Evaluation, v: np.ndarray, A_inv: np.ndarray) -> np.ndarray | None:
-        """Cluster sandwich A⁻¹·(E/(E−k))·Σ_α g_α·g_αᵀ·A⁻¹ over the E experiments, with
-        g_α = S_αᵀ·W·r_α the pull of experiment α's residuals on θ, whatever caused them.
+    def _residual_covariance(self, ev: _Evaluation, v: np.ndarray,
+                             A_inv: np.ndarray) -> tuple[np.ndarray | None, tuple[str, float, float] | None]:
+        """Cluster sandwich A⁻¹·(E/(E−k))·Σ_α g_α·g_αᵀ·A⁻¹ over E independent units, with
+        g_α = S_αᵀ·W·r_α the pull of unit α's residuals on θ, whatever caused them; and
+        the units (what they are, their effective number).
 
         Model error is systematic within an experiment but differs between experiments
-        (another frequency, another stroke range), so experiments are the independent
-        units and the scatter of their pulls measures what it does to θ.  It cannot be
-        formed from no more experiments than parameters (None)."""
+        (another frequency, another stroke range), so experiments are the units where
+        there are more of them than parameters.  Otherwise the frequency lines of the
+        records are (Parseval splits each pull line by line): under a random-phase
+        multisine the misfit of a wrong model structure varies with the phases from line
+        to line like noise (Pintelon & Schoukens, the best linear approximation's
+        stochastic distortions), so a second realisation moves θ by about what the
+        scatter of the line pulls says.  E is then the number of lines that pull at all
+        (no more of them than parameters: None).  Where a few lines carry most of the
+        misfit (an unmodelled resonance), the estimate rests on few draws; the effective
+        number returned beside E (the participation ratio of the lines' pulls in σ units)
+        says how few, and the report quotes σ's own uncertainty from it."""
         E, k = len(self.data), len(self.index)
-        if E <= k:
-            return None
-        g = np.array([np.einsum("onk,on->k", S / v[a][:, None, None], r)
-                      for a, (S, r) in enumerate(zip(ev.sensitivities, ev.residuals, strict=True))])  # (E, k)
-        return A_inv @ (g.T @ g * E / (E - k)) @ A_inv
+        pairs = list(zip(ev.sensitivities, ev.residuals, strict=True))
+        if E > k:
+            g = np.array([np.einsum("onk,on->k", S / v[a][:, None, None], r) for a, (S, r) in enumerate(pairs)])
+            return A_inv @ (g.T @ g * E / (E - k)) @ A_inv, ("experiments", float(E), float(E))
+        g = np.concatenate([_line_pulls(S / v[a][:, None, None], r) for a, (S, r) in enumerate(pairs)])
+        q = np.sum((g * np.sqrt(np.abs(np.diag(A_inv)))) ** 2, axis=1)  # each line's pull in σ² units
+        lines = int(np.count_nonzero(q > LINE_PULL_FLOOR * q.max()))
+        if lines <= k:
+            return None, None
+        return A_inv @ (g.T @ g * lines / (lines - k)) @ A_inv, ("frequency lines", float(lines),
+                                                                  float(np.sum(q) ** 2 / np.sum(q**2)))
 
     # ----------------------------------------------------------------------------------
     def _result(self, ev: _Evaluation, v: np.ndarray, converged: bool, iterations: int, message: str,
@@ -428,4 +510,5 @@ class Estimator:
             objective_history=history, elapsed_s=elapsed, n_grid=self.grid.n, scheme=self.grid.scheme,
             singular_values=singular, sensitivity_matrix=Sw, notes=notes,
             std_residual=None if residual_cov is None else np.sqrt(np.abs(np.diag(residual_cov))),
+            covariance_residual=residual_cov, residual_units=self.residual_units,
         )

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from identify.result import FitResult
+from identify.preparation import MULTISINE_LINES, excited_lines
+from identify.result import ExperimentFit, FitResult
 
 
 def axis_label(column: str) -> str:
@@ -16,8 +17,9 @@ def axis_label(column: str) -> str:
 
 
 def write_figures(result: FitResult, folder: Path) -> list[Path]:
-    """Write ``fit_<output>.png`` (measured vs predicted over the phase of each experiment)
-    and ``residuals.png`` (mean ± 2σ of the primary output per experiment)."""
+    """Write ``fit_<output>.png`` (measured vs predicted over the phase of each experiment),
+    ``residuals.png`` (mean ± 2σ of the primary output per experiment) and, for
+    multisine records, ``frf_<output>.png`` (frequency response at the excited lines)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -47,6 +49,9 @@ def write_figures(result: FitResult, folder: Path) -> list[Path]:
         fig.savefig(path, dpi=110)
         plt.close(fig)
         written.append(path)
+    broadband = [e for e in exps if e.inputs and excited_lines(_first(e.inputs)).size >= MULTISINE_LINES]
+    for out in result.outputs if broadband else []:
+        written.append(_frf_figure(result, out, broadband, folder / f"frf_{out}.png"))
     primary = result.outputs[0]
     stats = np.array([e.stats(primary) for e in exps])
     fig, ax = plt.subplots(figsize=(max(4, 0.5 * len(exps) + 2), 3))
@@ -61,6 +66,68 @@ def write_figures(result: FitResult, folder: Path) -> list[Path]:
     plt.close(fig)
     written.append(path)
     return written
+
+
+def _first(inputs: dict[str, np.ndarray]) -> np.ndarray:
+    return next(iter(inputs.values()))
+
+
+def _label(column: str, units: dict[str, str]) -> str:
+    """A column's name and unit: the declared unit where known, else from the column name."""
+    unit = units.get(column)
+    if unit is None:
+        return axis_label(column)
+    name = column[:-len(unit) - 1] if column.endswith("_" + unit) else column
+    return f"{name.replace('_', ' ')} [{unit}]"
+
+
+def _frf_figure(result: FitResult, out: str, exps: list[ExperimentFit], path: Path) -> Path:
+    """Frequency response, output over the (first) input, of measured and model at each
+    record's excited lines: amplitude (log scale, with the misfit's) and phase.  One
+    period of a many-line multisine in time shows nothing; its lines show where the
+    model departs, and over the input they no longer carry its random phases."""
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import MultipleLocator
+
+    cols = min(3, len(exps))
+    rows = 2 * int(np.ceil(len(exps) / cols))  # amplitude above phase
+    fig, axes = plt.subplots(rows, cols, figsize=(4.8 * cols, 2.8 * rows), squeeze=False)
+    column = next(iter(exps[0].inputs))
+    out_name, in_name = _label(out, result.units), _label(column, result.units)
+    out_unit, in_unit = (result.units.get(c) or axis_label(c).rpartition("[")[2].rstrip("]") for c in (out, column))
+    for j in range(len(exps), rows // 2 * cols):  # spare cells of the last row pair
+        g, c = divmod(j, cols)
+        axes[2 * g, c].axis("off")
+        axes[2 * g + 1, c].axis("off")
+    for j, e in enumerate(exps):
+        g, c = divmod(j, cols)
+        u = np.fft.rfft(_first(e.inputs))
+        lines = excited_lines(_first(e.inputs))
+        f = lines * e.frequency_hz
+        measured, predicted = (np.fft.rfft(x)[lines] / u[lines] for x in (e.measured[out], e.predicted[out]))
+        amp, ph = axes[2 * g, c], axes[2 * g + 1, c]
+        amp.semilogy(f, np.abs(measured), ".", ms=3, label="measured")
+        amp.semilogy(f, np.abs(predicted), "-", lw=1, label="model")
+        amp.semilogy(f, np.abs(measured - predicted), "x", ms=2.5, color="#c03030", label="measured − model")
+        # The model's phase unwrapped along the lines, the measured one as its offset from
+        # it: a measured line just across ±180° from the model stays beside it.
+        model_phase = np.unwrap(np.angle(predicted))
+        ph.plot(f, np.degrees(model_phase + np.angle(measured / predicted)), ".", ms=3, label="measured")
+        ph.plot(f, np.degrees(model_phase), "-", lw=1, label="model")
+        amp.set_title(f"{e.label}: {lines.size} excited lines, {f[0]:g}–{f[-1]:g} Hz", fontsize=8)
+        amp.set_ylabel(f"|{out.split('_')[0]} / {column.split('_')[0]}| [{out_unit}/{in_unit}]", fontsize=8)
+        ph.set_ylabel("phase [°]", fontsize=8)
+        ph.yaxis.set_major_locator(MultipleLocator(90))
+        ph.set_xlabel("frequency [Hz]", fontsize=8)
+        for ax in (amp, ph):
+            ax.grid(alpha=0.3)
+            ax.tick_params(labelsize=7)
+    axes[0, 0].legend(fontsize=7)
+    fig.suptitle(f"{result.model}: frequency response\n{out_name} / {in_name} at the excited lines", fontsize=9)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 def friction_figure(result, path: Path) -> Path:

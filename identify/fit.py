@@ -48,14 +48,17 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
                     max_iterations: int = 40,
                     progress: Callable[[int, float, np.ndarray], None] | None = None,
                     fixed: dict[str, dict[int, float]] | None = None, stability: bool = False,
-                    oversample: int | None = 1, linear_solver: str = "auto") -> FitResult:
+                    oversample: int | None = 1, linear_solver: str = "auto",
+                    time_limit_s: float | None = None) -> FitResult:
     """Joint Bayesian fit of ``estimate`` over all ``experiments`` (shared parameters).
 
     ``params`` gives the start values and priors; it is not modified.  ``fixed`` holds
     per-experiment values of fixed parameters ({label: {parameter index: value}}, e.g.
     friction from :mod:`identify.friction`).  ``n`` or ``oversample`` None: chosen
     (:func:`choose_grid`); ``linear_solver`` as for :class:`Grid`.  Each experiment of
-    the result names the start of its first periodic solve (:mod:`identify.start`)."""
+    the result names the start of its first periodic solve (:mod:`identify.start`).
+    Stopped by ``max_iterations``, ``time_limit_s`` or Ctrl-C, the result is the last
+    iterate, not converged (``interrupted`` for Ctrl-C)."""
     params = params.copy()
     start = params.as_dict()
     params.set_estimated(estimate)
@@ -70,11 +73,15 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
             if clash:
                 raise InputError(f"{', '.join(clash)}: estimated and also fixed per experiment")
     estimator = Estimator(model, data, params.copy(), Grid(n, scheme, linear_solver, oversample), outputs,
-                          max_iterations=max_iterations, progress=progress, stability=stability)
+                          max_iterations=max_iterations, progress=progress, stability=stability,
+                          time_limit_s=time_limit_s)
     result = estimator.fit()
     result.start = {k: start[k] for k in result.estimated}
     result.priors = {k: params[k].prior_std for k in result.estimated}
     result.oversample = oversample
-    for e in result.experiments:
+    channels = list(model.declaration.inputs.values())
+    result.units = {ch.column: ch.unit for ch in [*channels, *(model.declaration.outputs[o] for o in outputs)]}
+    for e, d in zip(result.experiments, data, strict=True):
         e.start = estimator.solver.starts_used.get(e.label, "")
+        e.inputs = {ch.column: ch.from_si(u) for ch, u in zip(channels, d.inputs, strict=True)}
     return result

@@ -32,13 +32,17 @@ GENERATOR_VERSION = "6"
 
 @dataclass(frozen=True)
 class ParameterSpec:
-    """A model parameter as declared: stable name, descriptive alias, SI unit, nominal value."""
+    """A model parameter as declared: stable name, descriptive alias, SI unit, nominal
+    value, and the physical range the estimator keeps it in (``minimum=0.0`` for a mass
+    or a damping coefficient; None: unbounded)."""
 
     name: str
     alias: str
     unit: str
     nominal: float
     description: str = ""
+    minimum: float | None = None
+    maximum: float | None = None
 
 
 @dataclass(frozen=True)

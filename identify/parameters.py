@@ -35,6 +35,17 @@ class Parameter:
     nominal: float
     vary: bool = False
     prior_std: float | None = None  # None: a scale-aware default (see estimator)
+    minimum: float | None = None  # bounds the estimator respects; None: unbounded
+    maximum: float | None = None
+    physical: tuple[float | None, float | None] = (None, None)  # the declaration's bounds
+
+    def at_bound(self) -> str | None:
+        """"minimum" or "maximum" where the value sits on that bound, else None."""
+        if self.minimum is not None and self.value <= self.minimum:
+            return "minimum"
+        if self.maximum is not None and self.value >= self.maximum:
+            return "maximum"
+        return None
 
 
 class Parameters:
@@ -42,7 +53,8 @@ class Parameters:
 
     def __init__(self, model: CompiledModel, values: dict[str, float] | None = None):
         self.model_name = model.name
-        self._items = [Parameter(p.name, p.alias, p.unit, p.nominal, p.nominal) for p in model.parameter_specs]
+        self._items = [Parameter(p.name, p.alias, p.unit, p.nominal, p.nominal, minimum=p.minimum, maximum=p.maximum,
+                                 physical=(p.minimum, p.maximum)) for p in model.parameter_specs]
         self._index = {}
         for i, p in enumerate(self._items):
             self._index[p.name] = i
@@ -135,18 +147,51 @@ class Parameters:
                 raise ParameterError(f"{source}: unknown parameter {key!r} for model {model.name!r}")
             prior = None
             value = raw
-            if isinstance(raw, dict):  # RESULT.json entry or {"value", "prior_std"}
+            p = params[key]
+            if isinstance(raw, dict):  # RESULT.json entry or {"value", "prior_std", "min", "max"}
                 value = raw.get("value")
                 prior = raw.get("prior_std")
+                for bound in ("min", "max"):
+                    if raw.get(bound) is not None:
+                        _set_bound(p, bound, raw[bound], source)
             if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value):
                 raise ParameterError(f"{source}: parameter {key!r} must be a finite number, got {value!r}")
-            params[key].value = float(value)
+            p.value = float(value)
             if prior is not None:
                 if not isinstance(prior, (int, float)) or not prior > 0:
                     raise ParameterError(f"{source}: prior_std of {key!r} must be a positive number")
-                params[key].prior_std = float(prior)
+                p.prior_std = float(prior)
+            if p.minimum is not None and p.maximum is not None and p.minimum > p.maximum:
+                raise ParameterError(f"{source}: parameter {key!r} has min {p.minimum:g} above max {p.maximum:g}")
+            lo, hi = p.minimum, p.maximum
+            if (lo is not None and p.value < lo) or (hi is not None and p.value > hi):
+                raise ParameterError(f"{source}: parameter {key!r} = {p.value:g} lies outside its bounds "
+                                     f"[{'-inf' if lo is None else f'{lo:g}'}, {'inf' if hi is None else f'{hi:g}'}] "
+                                     f"{p.unit}")
         return params
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Lower and upper bounds of every parameter (±inf where there is none)."""
+        return (np.array([-math.inf if p.minimum is None else p.minimum for p in self._items]),
+                np.array([math.inf if p.maximum is None else p.maximum for p in self._items]))
 
     def to_document(self) -> dict[str, Any]:
         """START.json form."""
         return {"model": self.model_name, "parameters": self.as_dict()}
+
+
+def _set_bound(p: Parameter, bound: str, raw: Any, source: str) -> None:
+    """A START file's min or max for p: it may narrow the declared physical range, not widen it."""
+    if not isinstance(raw, (int, float)) or isinstance(raw, bool) or not math.isfinite(raw):
+        raise ParameterError(f"{source}: {bound} of {p.name!r} must be a finite number, got {raw!r}")
+    lo, hi = p.physical
+    if bound == "min":
+        if lo is not None and raw < lo:
+            raise ParameterError(f"{source}: min {raw:g} of {p.name!r} is below its physical minimum {lo:g} {p.unit} "
+                                 f"(the model's declaration)")
+        p.minimum = float(raw)
+    else:
+        if hi is not None and raw > hi:
+            raise ParameterError(f"{source}: max {raw:g} of {p.name!r} is above its physical maximum {hi:g} {p.unit} "
+                                 f"(the model's declaration)")
+        p.maximum = float(raw)

@@ -199,14 +199,20 @@ class PeriodicSolver:
         return -solution.reshape(m.n_states, n, len(indices))
 
     def floquet_multipliers(self, sol: PeriodicSolution, theta: np.ndarray) -> np.ndarray:
-        """Floquet multipliers of the periodic solution, largest magnitude first: the
-        eigenvalues of the one-period map of the linearised BDF2 recursion around it
-        (|μ| < 1 for all: stable; Newton can also land on an unstable orbit).
+        """Floquet multipliers of the periodic solution, largest magnitude first (|μ| < 1
+        for all: stable; Newton can also land on an unstable orbit).  On the bdf2 grid the
+        eigenvalues of the one-period map of the linearised BDF2 recursion around it.
 
         The recursion A0·x_μ + A1·x_{μ-1} + A2·x_{μ-2} + A3·x_{μ-3} = 0 has 3·n_states
         roots; the stencils' parasitic roots (1/3 and 1/2 per step) vanish over a period,
-        so the Σ orders largest are the physical multipliers."""
+        so the Σ orders largest are the physical multipliers.  The spectral scheme has no
+        such recursion: its multipliers come from the variational equation integrated in
+        time along the solution (:mod:`identify.floquet`)."""
         m, grid, f = self.model, self.grid, sol.frequency_hz
+        if grid.scheme == "spectral":
+            from identify import floquet  # scipy's integrators: only when asked for
+
+            return floquet.multipliers(m, sol.states, sol.dstates, sol.ddstates, sol.inputs, theta, f)
         gx, gdx, gddx = m.residual_jacobian(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         h = 1.0 / grid.points
         c1 = BDF2_D1 / h * f

@@ -122,3 +122,14 @@ def choose_points(model: CompiledModel, experiments: list[Experiment], outputs: 
                      f"in {why}: {needed} points would resolve it)")
     return needed, (f"n = {needed}, the power of two above 2 x {SIGNAL_MARGIN:g} x the highest harmonic with signal "
                     f"({best}, in {why})")
+
+
+EXCITED_FRACTION = 0.1  # a line of the input within 20 dB of its strongest is excited
+MULTISINE_LINES = 4  # a record exciting at least this many lines is broadband (a multisine), not a sine
+
+
+def excited_lines(inputs: np.ndarray) -> np.ndarray:
+    """Harmonics (indices of one period's rfft, DC excluded) where some input
+    ((n_inputs,) n) is within EXCITED_FRACTION of its strongest line."""
+    amplitude = np.abs(np.fft.rfft(np.atleast_2d(inputs), axis=-1))[:, 1:]
+    return 1 + np.flatnonzero(np.any(amplitude >= EXCITED_FRACTION * amplitude.max(axis=1, keepdims=True), axis=0))

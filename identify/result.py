@@ -46,6 +46,7 @@ class ExperimentFit:
     newton_iterations: int
     floquet: np.ndarray | None = None  # multipliers, largest magnitude first (when asked for)
     start: str = ""  # where the first periodic solve started (identify.start: static, transient, ...)
+    inputs: dict[str, np.ndarray] = field(default_factory=dict)  # the model's inputs on the grid, column units
 
     def residual(self, column: str) -> np.ndarray:
         return self.measured[column] - self.predicted[column]
@@ -82,6 +83,11 @@ class FitResult:
     std_residual: dict[str, float] | None = None
     priors: dict[str, float | None] = field(default_factory=dict)
     oversample: int = 1  # the model solved on n·oversample points per period
+    covariance_residual: np.ndarray | None = None  # beside std_residual
+    # Its independent units: what they are (experiments, frequency lines), their number, their effective number.
+    residual_units: tuple[str, float, float] | None = None
+    interrupted: bool = False  # stopped by Ctrl-C: the last iterate, not converged
+    units: dict[str, str] = field(default_factory=dict)  # of the input and output columns
 
     @classmethod
     def build(cls, *, model: CompiledModel, params: Parameters, estimated: list[str], std: np.ndarray,
@@ -89,7 +95,9 @@ class FitResult:
               experiments: list[ExperimentFit], converged: bool, iterations: int, message: str,
               objective_history: list[float], elapsed_s: float, n_grid: int, scheme: str,
               singular_values: np.ndarray, sensitivity_matrix: np.ndarray,
-              notes: Sequence[str] = (), std_residual: np.ndarray | None = None) -> FitResult:
+              notes: Sequence[str] = (), std_residual: np.ndarray | None = None,
+              covariance_residual: np.ndarray | None = None,
+              residual_units: tuple[str, float, float] | None = None) -> FitResult:
         n_par = len(estimated)
         variances = {}
         for o in outputs:
@@ -105,9 +113,28 @@ class FitResult:
             scheme=scheme, singular_values=singular_values,
             std_residual=None if std_residual is None else
             {nm: float(s) for nm, s in zip(estimated, std_residual, strict=True)},
+            covariance_residual=covariance_residual, residual_units=residual_units,
         )
-        result.warnings = result._identifiability_warnings(sensitivity_matrix) + list(notes)
+        result.warnings = result._bound_warnings() + result._identifiability_warnings(sensitivity_matrix) + list(notes)
         return result
+
+    def _bound_warnings(self) -> list[str]:
+        """Estimates the bounds stopped: the data pull them beyond, where the model's
+        declaration says no physical value lies (negative mass or damping), or beyond the
+        START file's range."""
+        out = []
+        for nm in self.estimated:
+            p = self.params[nm]
+            side = p.at_bound()
+            if side is None:
+                continue
+            limit = p.minimum if side == "minimum" else p.maximum
+            physical = limit == p.physical[0 if side == "minimum" else 1]
+            out.append(f"{nm} ({p.alias}) ended on its {side} {limit:g} {p.unit}: the data pull it beyond, "
+                       + ("where no physical value lies (model error, or data that do not determine it)"
+                          if physical else "outside the range the START file allows")
+                       + "; its σ is that of a free parameter")
+        return out
 
     def _identifiability_warnings(self, Sw: np.ndarray) -> list[str]:
         out = []
@@ -159,6 +186,11 @@ class FitResult:
         """The σ to quote: the residual-based one where model error was found, else the noise σ."""
         return self.std_residual[name] if self.std_residual is not None else self.std[name]
 
+    def honest_covariance(self) -> np.ndarray:
+        """The covariance to propagate (QC guard bands): the residual-based one where model
+        error was found, else the noise covariance."""
+        return self.covariance_residual if self.covariance_residual is not None else self.covariance
+
     def to_document(self) -> dict[str, Any]:
         """RESULT.json (contract: model, converged, iterations, parameters, correlation,
         channels, experiments; extended with report details)."""
@@ -171,6 +203,11 @@ class FitResult:
             }
             if est and self.std_residual is not None:
                 params[p.name]["std_residual"] = self.std_residual[p.name]
+            for key, bound in (("min", p.minimum), ("max", p.maximum)):
+                if bound is not None:
+                    params[p.name][key] = bound
+            if est and p.at_bound():
+                params[p.name]["at_bound"] = p.at_bound()
             if p.name in self.start:
                 params[p.name]["initial"] = self.start[p.name]
         corr = {a: {b: _finite(self.correlation[i, j]) for j, b in enumerate(self.estimated)}
@@ -193,6 +230,7 @@ class FitResult:
         return {
             "model": self.model,
             "converged": self.converged,
+            "interrupted": self.interrupted,
             "iterations": self.iterations,
             "message": self.message,
             "parameters": params,
@@ -205,6 +243,9 @@ class FitResult:
             "oversample": self.oversample,
             "elapsed_s": self.elapsed_s,
             "warnings": self.warnings,
+            **({"std_residual_units": dict(zip(("units", "number", "effective_number"), self.residual_units,
+                                               strict=True))}
+               if self.std_residual is not None and self.residual_units else {}),
         }
 
     def write_json(self, path: str | Path) -> None:
@@ -241,13 +282,21 @@ class FitResult:
                 if self.std_residual is not None:
                     sr = self.std_residual[p.name]
                     residual = f"   [+/- {sr:.3g}" + (f" ({100 * sr / abs(p.value):.3g}%)" if p.value else "") + " *]"
+                side = p.at_bound()
+                bound = f"   [AT {side.upper()}, see warnings]" if side else ""
                 lines.append(f"    {p.name:8s} {p.alias:18s} {p.value: .8g} +/- {s:.3g} {rel} {p.unit} "
-                             f"{init_s}, {prior_s}" + residual)
+                             f"{init_s}, {prior_s}" + residual + bound)
         if self.std_residual is not None:
+            E = float(len(self.experiments))
+            what, units, effective = self.residual_units or ("experiments", E, E)
+            draw = ("each experiment's misfit" if what == "experiments" else
+                    "the misfit at each frequency line (a random-phase multisine's other realisations)")
+            count = (f"{units:.0f} {what}" if units == effective else
+                     f"{units:.0f} {what}, the misfit carried by an effective {effective:.2g} of them")
             lines.append(f"    * residual-based σ: the residuals exceed the measurement noise (see warnings), and "
-                         f"the +/- before it covers the noise only.  It treats each experiment's misfit as one "
-                         f"random draw ({len(self.experiments)} experiments), is itself uncertain by about "
-                         f"±{100 / math.sqrt(2 * max(len(self.experiments) - len(self.estimated), 1)):.0f} %, "
+                         f"the +/- before it covers the noise only: quote the one marked *.  It treats {draw} as "
+                         f"one random draw ({count}), is itself uncertain by about "
+                         f"±{100 / math.sqrt(2 * max(effective - len(self.estimated), 1)):.0f} %, "
                          f"and does not cover a bias the model error may cause")
         calibration = _calibration_line(self.model)
         if calibration:
@@ -267,13 +316,14 @@ class FitResult:
         for o in self.outputs:
             lines.append(f"    {o:18s} residual variance {self.channel_variances[o]:.4g}   "
                          f"(std {math.sqrt(self.channel_variances[o]):.4g})")
-        lines.append(f"[[Experiments]] residual mean +/- 2 sigma ({self.outputs[0]})")
+        lines.append(f"[[Experiments]] residual mean +/- 2 sigma per fitted output ({', '.join(self.outputs)})")
         for e in self.experiments:
-            mean, std = e.stats(self.outputs[0])
             stability = "" if e.floquet is None else (
                 f", Floquet |μ|max {np.abs(e.floquet[0]):.4g} ({'stable' if np.abs(e.floquet[0]) < 1 else 'UNSTABLE'})")
             started = f", started {e.start}" if e.start else ""
-            lines.append(f"    {e.label:12s} {e.frequency_hz:8.4g} Hz   {mean:+.4g} +/- {2 * std:.4g}"
+            residuals = "   ".join(f"{o} {mean:+.4g} +/- {2 * std:.4g}"
+                                   for o, (mean, std) in ((o, e.stats(o)) for o in self.outputs))
+            lines.append(f"    {e.label:12s} {e.frequency_hz:8.4g} Hz   {residuals}"
                          f"   ({e.newton_iterations} Newton iterations{started}{stability})")
         if self.warnings:
             lines.append("[[Warnings]]")

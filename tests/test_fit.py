@@ -112,6 +112,7 @@ def test_compare_1dof_and_2dof_table_and_ratio(standard_dataset, tmp_path):
     assert [r["label"][-1] for r in doc["experiments"]] == ["a", "b", "j", "c"]
     assert doc["ratio_1dof_2dof"] > 5            # the thermal model explains what the polytropic one cannot
     assert "ratio 1-dof/2-dof" in proc.stdout
+    assert "warning (1dof): stroke_mm: residuals up to" in proc.stdout  # the fits' warnings are not dropped
 
 
 @pytest.mark.slow

@@ -23,8 +23,8 @@ class BoucWen(ModelDeclaration):
     outputs = {"displacement_mm": Channel("displacement_mm", "mm", scale=1e-3)}
     default_outputs = ("displacement_mm",)
     parameters = (
-        ParameterSpec("m", "mass", "kg", 2.0, "moving mass"),
-        ParameterSpec("c", "damping", "N s/m", 10.0, "viscous damping"),
+        ParameterSpec("m", "mass", "kg", 2.0, "moving mass", minimum=0.0),
+        ParameterSpec("c", "damping", "N s/m", 10.0, "viscous damping", minimum=0.0),
         ParameterSpec("k", "stiffness", "N/m", 5.0e4, "linear (elastic) stiffness"),
         ParameterSpec("alpha", "hysteretic_stiffness", "N/m", 5.0e4, "initial stiffness of the hysteretic force"),
         ParameterSpec("beta_gamma", "loop_shape_abs", "1/m", 800.0, "weight of |y'| z in z'"),

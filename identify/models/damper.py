@@ -17,10 +17,10 @@ TEMPERATURE = Channel("gas_temperature_C", "degC", offset=273.15)
 
 def _parameters(gas_const: ParameterSpec, gas_exponent: ParameterSpec) -> tuple[ParameterSpec, ...]:
     return (
-        ParameterSpec("theta1", "mass", "kg", 20.0, "moving mass (drop test: dropped mass)"),
+        ParameterSpec("theta1", "mass", "kg", 20.0, "moving mass (drop test: dropped mass)", minimum=0.0),
         ParameterSpec("theta2", "gravity", "m/s^2", 9.81, "gravitational acceleration, sign = orientation"),
-        ParameterSpec("theta3", "damping", "N s^2/m^2", 5.0e3, "velocity-squared orifice damping"),
-        ParameterSpec("theta4", "area", "m^2", 5.0e-3, "pneumatic piston area"),
+        ParameterSpec("theta3", "damping", "N s^2/m^2", 5.0e3, "velocity-squared orifice damping", minimum=0.0),
+        ParameterSpec("theta4", "area", "m^2", 5.0e-3, "pneumatic piston area", minimum=0.0),
         gas_const,
         ParameterSpec("theta6", "volume_slope", "1/m", -3.0, "-A/V0, relative gas volume change per metre"),
         gas_exponent,
@@ -31,8 +31,9 @@ def _parameters(gas_const: ParameterSpec, gas_exponent: ParameterSpec) -> tuple[
         ParameterSpec("theta12", "stroke_offset", "m", 0.0, "offset of the stroke output"),
         ParameterSpec("theta13", "unused13", "-", 0.0, "not in the paper's models; numbering kept"),
         ParameterSpec("theta14", "unused14", "-", 0.0, "not in the paper's models; numbering kept"),
-        ParameterSpec("theta15", "heat_capacity", "J/K", 8.5, "gas heat capacity m*c_v"),
-        ParameterSpec("theta16", "heat_transfer", "W/K", 0.85, "wall heat transfer coefficient x area at q = 0"),
+        ParameterSpec("theta15", "heat_capacity", "J/K", 8.5, "gas heat capacity m*c_v", minimum=0.0),
+        ParameterSpec("theta16", "heat_transfer", "W/K", 0.85, "wall heat transfer coefficient x area at q = 0",
+                      minimum=0.0),
         ParameterSpec("theta17", "ambient", "K", -293.15, "minus the ambient temperature"),
     )
 

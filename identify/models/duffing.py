@@ -16,8 +16,8 @@ class Duffing(ModelDeclaration):
     outputs = {"output": Channel("output", "V")}
     default_outputs = ("output",)
     parameters = (
-        ParameterSpec("m", "mass", "V s^2", 1.0e-5, "inertia"),
-        ParameterSpec("d", "damping", "V s", 1.0e-3, "viscous damping"),
+        ParameterSpec("m", "mass", "V s^2", 1.0e-5, "inertia", minimum=0.0),
+        ParameterSpec("d", "damping", "V s", 1.0e-3, "viscous damping", minimum=0.0),
         ParameterSpec("k", "stiffness", "-", 1.0, "linear stiffness"),
         ParameterSpec("k2", "quadratic", "1/V", 0.0, "quadratic stiffness"),
         ParameterSpec("k3", "cubic", "1/V^2", 0.0, "cubic stiffness"),

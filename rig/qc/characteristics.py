@@ -146,7 +146,9 @@ def _propagate(model: CompiledModel, fit: FitResult, f: Callable[[np.ndarray], f
             down = theta.copy()
             down[i] -= h
             J[col] = (f(up) - f(down)) / (2 * h)
-    return value, float(np.sqrt(max(J @ fit.covariance @ J, 0.0)))
+    # The residual-based covariance where the fit found model error: a guard band of the
+    # noise-only σ would pass units on a precision the model does not have.
+    return value, float(np.sqrt(max(J @ fit.honest_covariance() @ J, 0.0)))
 
 
 def loop_energy(exp: Experiment) -> tuple[float, float]:
