@@ -224,3 +224,31 @@ def test_closing_mid_run_is_a_safe_stop_and_the_session_resumes(qtbot, tmp_path,
     assert json.loads((folder / "session.json").read_text())["status"] == "complete"
     assert len(json.loads((folder / "dataset.json").read_text())["experiments"]) == 2
     assert hashlib.sha256(first.read_bytes()).hexdigest() == digest
+
+
+def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path):
+    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--out", str(tmp_path))
+    connected(qtbot, window)
+    verdict = find(window, QtWidgets.QLabel, "verdictLabel")
+    window.qc.serial.setText("SN-4242")
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "qcTestButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: verdict.text() == "TESTING…", timeout=30_000)
+    assert window.left_tabs.currentWidget() is window.qc
+    qtbot.waitUntil(lambda: window.qc.last is not None, timeout=600_000)
+    done = window.qc.last
+    assert done.shown in ("PASS", "FAIL", "RETEST"), (done, list(window.simulated.log)[-5:])
+    assert verdict.text() == done.shown
+    # The record `rig qc run` writes, with the same verdict (RETEST is the INCONCLUSIVE's remedy).
+    record = json.loads((done.report.parent / "qc-record.json").read_text())
+    assert {"PASS": "PASS", "FAIL": "FAIL", "RETEST": "INCONCLUSIVE"}[done.shown] == record["verdict"]
+    assert record["serial"] == "SN-4242" and record["status"] == "COMPLETE"
+    assert done.report.parent.parent == (tmp_path / "qc").resolve() and done.report.is_file()
+    assert done.report.resolve().as_uri() in find(window, QtWidgets.QLabel, "qcReportLink").text()
+    assert json.loads((done.report.parent / "session.json").read_text())["status"] == "complete"
+    # The verdict stays until the next unit; a refused unit (a serial not in the spec's format) is said, nothing runs.
+    qtbot.waitUntil(lambda: window.station.shaker is not None, timeout=30_000)     # the console's links back
+    window.qc.serial.setText("4243")                                                # not the spec's format
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "qcTestButton"), QtCore.Qt.MouseButton.LeftButton)
+    assert verdict.text() == "REFUSED" and "format of spec" in find(window, QtWidgets.QLabel, "qcReason").text()
+    assert not window.station.session_running and window.station.shaker is not None
+    closed(qtbot, window)

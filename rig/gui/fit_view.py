@@ -110,10 +110,6 @@ class FitView(QtWidgets.QWidget):
         self.compare_table.verticalHeader().setVisible(False)
         self.compare_table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.Stretch)
         self.compare_table.setVisible(False)
-        # The QC engineer's pass/fail verdict goes here once rig.qc exists; until then it says so
-        # rather than showing a verdict nobody computed.
-        self.verdict = QtWidgets.QLabel("QC verdict: none (no pass/fail criteria in this build)")
-        self.verdict.setObjectName("verdictLabel")
 
         side = QtWidgets.QVBoxLayout()
         side.addWidget(QtWidgets.QLabel("Estimated parameters"))
@@ -121,7 +117,6 @@ class FitView(QtWidgets.QWidget):
         side.addWidget(self.notes, 1)
         side.addWidget(self.compare_label)
         side.addWidget(self.compare_table, 2)
-        side.addWidget(self.verdict)
         side_box = QtWidgets.QWidget()
         side_box.setLayout(side)
         split = QtWidgets.QSplitter()
