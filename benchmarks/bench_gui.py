@@ -6,8 +6,11 @@
    share.  Target: at least 30 redraws/s.
 2. Event-loop latency: how late a 10 ms QTimer fires in the console's GUI thread while
    a session runs on the simulator at 20x (live view shown) and identification of the
-   standard set (14 experiments, 2-dof) runs again and again on the fit thread.
-   Target: p99 at most 50 ms.
+   standard set (14 experiments, 2-dof) runs again and again in the fit process.
+   Target: p99 at most 50 ms.  Beside it, how much of each delay the GUI thread spent
+   runnable but waiting for a CPU (Linux's run-queue time, /proc/thread-self/schedstat):
+   that part is the machine's other load, the rest is this program's own (its GUI
+   thread's work, the interpreter lock held by its worker threads).
 
     python benchmarks/bench_gui.py [--seconds 10]
 
@@ -104,7 +107,16 @@ def idle_latency(seconds: float) -> np.ndarray:
     return np.array(late) * 1e3
 
 
-def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, int, float]:
+def run_queue_s() -> float:
+    """Time the calling thread has spent runnable but not running, since it started [s] (NaN off Linux)."""
+    try:
+        with open("/proc/thread-self/schedstat") as f:
+            return int(f.read().split()[1]) / 1e9
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
+def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.ndarray, float, float]:
     from identify.plans import STANDARD_SET
     from rig.gui.station import FitDone, IdentifySettings
     from simulator.generate import generate
@@ -136,25 +148,34 @@ def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, int,
     if fit:
         window.station.refit(dataset, IdentifySettings())
     late: list[float] = []
+    waited: list[float] = []                 # run-queue time of the GUI thread within each delay
     period_ms = 10
     due = [time.monotonic() + period_ms / 1e3]
+    queued = [run_queue_s()]
 
     probe = QtCore.QTimer()
     probe.setSingleShot(True)
     probe.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
 
     def tick() -> None:
-        now = time.monotonic()
+        now, q = time.monotonic(), run_queue_s()
         late.append(now - due[0])
-        due[0] = now + period_ms / 1e3
+        waited.append(q - queued[0])
+        due[0], queued[0] = now + period_ms / 1e3, q
         probe.start(period_ms)
     probe.timeout.connect(tick)
     probe.start(period_ms)
     t0, c0 = time.monotonic(), time.process_time()
     loop = QtCore.QEventLoop()              # the window's own event loop, as in the application
     check = QtCore.QTimer()
-    check.timeout.connect(lambda: loop.quit() if not window.station.session_running and window.plan.progress
-                          and time.monotonic() - t0 > seconds_min else None)
+    checks = {"all": 0, "fitting": 0}
+
+    def check_done() -> None:
+        checks["all"] += 1
+        checks["fitting"] += window.station.fitting
+        if not window.station.session_running and window.plan.progress and time.monotonic() - t0 > seconds_min:
+            loop.quit()
+    check.timeout.connect(check_done)
     check.start(100)
     loop.exec()
     check.stop()
@@ -164,9 +185,10 @@ def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, int,
     window.close()
     while window.isVisible():
         app.processEvents(QtCore.QEventLoop.ProcessEventsFlag.WaitForMoreEvents, 50)
-    print(f"  session at 20x: {status}; {fits['done']} fits of the standard set finished meanwhile; "
-          f"{wall:.1f} s, GUI process CPU {100 * cpu / wall:.0f} % of one core")
-    return np.array(late) * 1e3, fits["done"], wall
+    fitting = checks["fitting"] / max(checks["all"], 1)
+    print(f"  session at 20x: {status}; a fit of the standard set running {100 * fitting:.0f} % of the time, "
+          f"{fits['done']} finished meanwhile; {wall:.1f} s, GUI process CPU {100 * cpu / wall:.0f} % of one core")
+    return np.array(late) * 1e3, np.array(waited) * 1e3, fitting, wall
 
 
 def main() -> int:
@@ -181,12 +203,19 @@ def main() -> int:
     idle = idle_latency(min(args.seconds, 5.0))
     print(f"baseline, an empty event loop: late by p50 {np.percentile(idle, 50):.1f} ms, p99 "
           f"{np.percentile(idle, 99):.1f} ms; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    late_ms, fits, _ = loop_latency(args.seconds, fit=not args.no_fit)
+    late_ms, waited_ms, fitting, _ = loop_latency(args.seconds, fit=not args.no_fit)
     p50, p99, worst = np.percentile(late_ms, [50, 99, 100])
     print(f"event loop (10 ms timer, {len(late_ms)} samples): late by p50 {p50:.1f} ms, p99 {p99:.1f} ms, "
           f"max {worst:.1f} ms")
+    if not np.isnan(waited_ms).all():
+        # A thread that sleeps until its timer is not on the run queue: what it waited there
+        # within an interval is part of the delay (the frames it drew meanwhile included).
+        own = np.maximum(late_ms - waited_ms, 0.0)
+        print(f"  of which the GUI thread waited for a CPU (other programs' load): p99 "
+              f"{np.percentile(waited_ms, 99):.1f} ms; delay beyond that wait, this program's own: p50 "
+              f"{np.percentile(own, 50):.1f} ms, p99 {np.percentile(own, 99):.1f} ms")
     print(f"render: {fps:.0f} fps, event-loop p99 {p99:.0f} ms")
-    return 0 if fps >= 30 and p99 <= 50 and (fits >= 1 or args.no_fit) else 1
+    return 0 if fps >= 30 and p99 <= 50 and (fitting >= 0.9 or args.no_fit) else 1
 
 
 if __name__ == "__main__":

@@ -518,6 +518,10 @@ class Station:
             self.post(Notice(f"internal error in the session: {result.error!r}", "error"))
         return result
 
+    @property
+    def fitting(self) -> bool:
+        return self._fits.busy
+
     def wait_session(self, timeout_s: float | None = None) -> bool:
         """True once no session runs (for closing the window and for tests)."""
         thread = self._session
