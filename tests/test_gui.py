@@ -1,7 +1,7 @@
 """The operator's console (``rig.gui``), offscreen, against the simulator at 50x: a plan
 to the end with its fit, the E-STOP, a refused manual command, the session browser on
-a CLI session, and closing the window mid-run.  Every wait is on the window's state
-(qtbot.waitUntil), never a sleep."""
+a CLI session, closing the window mid-run, and QC mode's verdict.  Every wait is on the
+window's state (qtbot.waitUntil) or on the station's events, never a sleep."""
 
 from __future__ import annotations
 

@@ -129,7 +129,9 @@ class FitView(QtWidgets.QWidget):
         split.addWidget(side_box)
         split.setStretchFactor(0, 1)
         split.setStretchFactor(1, 1)
-        split.setSizes([520, 540])         # the parameter table's six columns need about half
+        # The parameter table's six columns need about 460 px; the two columns of plots, with
+        # their titles and axes, the rest (a narrower view clips them instead of shrinking them).
+        split.setSizes([600, 460])
         layout = QtWidgets.QVBoxLayout(self)
         layout.addLayout(head)
         layout.addWidget(split, 1)
@@ -210,7 +212,7 @@ class FitView(QtWidgets.QWidget):
                 p.plot(t, e1.predicted[out], pen=pg.mkPen("#2ca02c", width=2, style=QtCore.Qt.PenStyle.DashLine),
                        name="model 1dof").setZValue(11)
             r = labelled(self.plots.addPlot(row=1, col=col), f"residual [{unit}]", "time in the period [s]",
-                         "measured − model, ±2σ band")
+                         "measured − model, ±2σ")
             sigma = math.sqrt(result.channel_variances[out])
             upper = r.plot(t[[0, -1]], [2 * sigma, 2 * sigma], pen=pg.mkPen("#9e9e9e", width=1))
             lower = r.plot(t[[0, -1]], [-2 * sigma, -2 * sigma], pen=pg.mkPen("#9e9e9e", width=1))

@@ -63,10 +63,10 @@ def application() -> QtWidgets.QApplication:
     # computes (the session's settling prediction, the DAQ parser at 20x) for up to the
     # switch interval: at the default 5 ms a frame took 30-95 ms instead of 17 ms, and
     # 0.5 ms gives the window back its frames at the workers' cost of more switches.
-    sys.setswitchinterval(GIL_SWITCH_S)
     app = QtWidgets.QApplication.instance()
     if isinstance(app, QtWidgets.QApplication):
         return app
+    sys.setswitchinterval(GIL_SWITCH_S)
     return QtWidgets.QApplication(sys.argv[:1])
 
 
