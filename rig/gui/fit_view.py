@@ -37,6 +37,7 @@ def fill_parameter_table(table: QtWidgets.QTableWidget, doc: dict[str, Any]) -> 
                  "" if p.get("initial") is None else f"{p['initial']:.6g}")
         for j, text in enumerate(cells):
             item = QtWidgets.QTableWidgetItem(text)
+            item.setToolTip(text)
             if j in (1, 2, 3, 5):
                 item.setTextAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
             if rel > RELATIVE_STD_WARNING:
@@ -58,8 +59,10 @@ def parameter_table() -> QtWidgets.QTableWidget:
     table.setHorizontalHeaderLabels(PARAMETER_COLUMNS)
     table.verticalHeader().setVisible(False)
     table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
-    table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
-    table.horizontalHeader().setStretchLastSection(True)
+    header = table.horizontalHeader()
+    header.setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+    # The numbers whole; the name takes what is left (elided, whole in its tooltip).
+    header.setSectionResizeMode(0, QtWidgets.QHeaderView.ResizeMode.Stretch)
     return table
 
 
@@ -129,9 +132,9 @@ class FitView(QtWidgets.QWidget):
         split.addWidget(side_box)
         split.setStretchFactor(0, 1)
         split.setStretchFactor(1, 1)
-        # The parameter table's six columns need about 460 px; the two columns of plots, with
-        # their titles and axes, the rest (a narrower view clips them instead of shrinking them).
-        split.setSizes([600, 460])
+        # Half each: the two columns of plots need that much for their titles and axes (a
+        # narrower view clips them instead of shrinking them); the parameter table's names elide.
+        split.setSizes([530, 530])
         layout = QtWidgets.QVBoxLayout(self)
         layout.addLayout(head)
         layout.addWidget(split, 1)
