@@ -3,11 +3,17 @@
 1. Render rate: the live view redrawn as fast as it goes with 4 channels x 10 s at
    2 kHz (80,000 points) plus the work loop and force-velocity plots, new samples
    arriving between redraws; the achieved redraws per second and the process's CPU
-   share.  Target: at least 30 redraws/s.
+   share.  Target: at least 30 redraws/s.  Then a frame's time with a CPU-bound Python
+   thread beside the window, at the default interpreter switch interval and at the
+   console's (why the console sets its own).
 2. Event-loop latency: how late a 10 ms QTimer fires in the console's GUI thread while
    a session runs on the simulator at 20x (live view shown) and identification of the
-   standard set (14 experiments, 2-dof) runs again and again on the fit thread.
-   Target: p99 at most 50 ms.
+   standard set (14 experiments, 2-dof) runs again and again in the fit process.
+   Target: p99 at most 50 ms.  Beside it, how much of each delay the GUI thread spent
+   runnable but waiting for a CPU (Linux's run-queue time, /proc/thread-self/schedstat):
+   that part is the machine's load; the rest is the GUI thread's own work and its waits
+   for the interpreter lock (whose holder, a worker thread, may itself be waiting for a
+   CPU on a loaded machine).
 
     python benchmarks/bench_gui.py [--seconds 10]
 
@@ -20,6 +26,7 @@ import argparse
 import os
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 from typing import cast
@@ -31,7 +38,7 @@ import numpy as np  # noqa: E402
 from PySide6 import QtCore  # noqa: E402
 
 from rig.daq import Daq, RingBuffer  # noqa: E402
-from rig.gui.main_window import MainWindow, application  # noqa: E402
+from rig.gui.main_window import GIL_SWITCH_S, MainWindow, application  # noqa: E402
 
 RATE = 2000.0
 
@@ -54,7 +61,10 @@ class FakeDaq:
         self.next += n
 
 
-def render_rate(seconds: float) -> tuple[float, float]:
+def render_rate(seconds: float, worker_switch_s: float | None = None) -> tuple[float, float, np.ndarray]:
+    """Redraws per second, the process's CPU share, and each frame's time [ms]; with
+    ``worker_switch_s``, a CPU-bound Python thread runs beside the window (as a session's
+    or a parser's computation does) at that switch interval of the interpreter lock."""
     window = MainWindow.from_args(["--out", tempfile.mkdtemp()])
     window.timer.stop()                          # the benchmark draws itself, as fast as it can
     window.show()
@@ -64,7 +74,12 @@ def render_rate(seconds: float) -> tuple[float, float]:
     daq.produce(int(10 * RATE))
     app = application()
     app.processEvents()
-    frames, t0, c0 = 0, time.monotonic(), time.process_time()
+    stop = threading.Event()
+    if worker_switch_s is not None:
+        sys.setswitchinterval(worker_switch_s)
+        threading.Thread(target=_compute, args=(stop,), daemon=True).start()
+    frames: list[float] = []
+    t0, c0 = time.monotonic(), time.process_time()
     last = t0
     while time.monotonic() - t0 < seconds:
         now = time.monotonic()
@@ -73,12 +88,31 @@ def render_rate(seconds: float) -> tuple[float, float]:
         live.refresh(cast(Daq, daq))
         live.layout_widget.repaint()             # a full, synchronous render of all six plots
         app.processEvents()
-        frames += 1
+        frames.append(time.monotonic() - now)
     wall, cpu = time.monotonic() - t0, time.process_time() - c0
+    stop.set()
     t, v = live.history.latest(live.window_s)
     assert len(t) == 10 * RATE and v.shape == (10 * RATE, 4)   # every sample of the window went into the plot
     window.close()
-    return frames / wall, cpu / wall
+    return len(frames) / wall, cpu / wall, np.array(frames) * 1e3
+
+
+def _compute(stop: threading.Event) -> None:
+    x = 0
+    while not stop.is_set():
+        for i in range(1000):
+            x += i * i
+
+
+def convoy(seconds: float) -> None:
+    """A frame's time with a CPU-bound thread beside the window, at Python's default
+    switch interval and at the console's (rig.gui.main_window.GIL_SWITCH_S): a frame
+    re-enters Python dozens of times and each time waits for the lock up to the interval."""
+    for interval in (0.005, GIL_SWITCH_S):
+        _, _, ms = render_rate(seconds, worker_switch_s=interval)
+        print(f"  a frame beside a CPU-bound thread, switch interval {interval * 1e3:g} ms: p50 "
+              f"{np.percentile(ms, 50):.1f} ms, p99 {np.percentile(ms, 99):.1f} ms")
+    sys.setswitchinterval(GIL_SWITCH_S)
 
 
 def idle_latency(seconds: float) -> np.ndarray:
@@ -104,7 +138,16 @@ def idle_latency(seconds: float) -> np.ndarray:
     return np.array(late) * 1e3
 
 
-def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, int, float]:
+def run_queue_s() -> float:
+    """Time the calling thread has spent runnable but not running, since it started [s] (NaN off Linux)."""
+    try:
+        with open("/proc/thread-self/schedstat") as f:
+            return int(f.read().split()[1]) / 1e9
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
+def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.ndarray, float, float]:
     from identify.plans import STANDARD_SET
     from rig.gui.station import FitDone, IdentifySettings
     from simulator.generate import generate
@@ -136,25 +179,34 @@ def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, int,
     if fit:
         window.station.refit(dataset, IdentifySettings())
     late: list[float] = []
+    waited: list[float] = []                 # run-queue time of the GUI thread within each delay
     period_ms = 10
     due = [time.monotonic() + period_ms / 1e3]
+    queued = [run_queue_s()]
 
     probe = QtCore.QTimer()
     probe.setSingleShot(True)
     probe.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
 
     def tick() -> None:
-        now = time.monotonic()
+        now, q = time.monotonic(), run_queue_s()
         late.append(now - due[0])
-        due[0] = now + period_ms / 1e3
+        waited.append(q - queued[0])
+        due[0], queued[0] = now + period_ms / 1e3, q
         probe.start(period_ms)
     probe.timeout.connect(tick)
     probe.start(period_ms)
     t0, c0 = time.monotonic(), time.process_time()
     loop = QtCore.QEventLoop()              # the window's own event loop, as in the application
     check = QtCore.QTimer()
-    check.timeout.connect(lambda: loop.quit() if not window.station.session_running and window.plan.progress
-                          and time.monotonic() - t0 > seconds_min else None)
+    checks = {"all": 0, "fitting": 0}
+
+    def check_done() -> None:
+        checks["all"] += 1
+        checks["fitting"] += window.station.fitting
+        if not window.station.session_running and window.plan.progress and time.monotonic() - t0 > seconds_min:
+            loop.quit()
+    check.timeout.connect(check_done)
     check.start(100)
     loop.exec()
     check.stop()
@@ -164,9 +216,10 @@ def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, int,
     window.close()
     while window.isVisible():
         app.processEvents(QtCore.QEventLoop.ProcessEventsFlag.WaitForMoreEvents, 50)
-    print(f"  session at 20x: {status}; {fits['done']} fits of the standard set finished meanwhile; "
-          f"{wall:.1f} s, GUI process CPU {100 * cpu / wall:.0f} % of one core")
-    return np.array(late) * 1e3, fits["done"], wall
+    fitting = checks["fitting"] / max(checks["all"], 1)
+    print(f"  session at 20x: {status}; a fit of the standard set running {100 * fitting:.0f} % of the time, "
+          f"{fits['done']} finished meanwhile; {wall:.1f} s, GUI process CPU {100 * cpu / wall:.0f} % of one core")
+    return np.array(late) * 1e3, np.array(waited) * 1e3, fitting, wall
 
 
 def main() -> int:
@@ -176,17 +229,26 @@ def main() -> int:
     parser.add_argument("--latency-only", action="store_true")
     args = parser.parse_args()
     application()
-    fps, cpu = render_rate(args.seconds) if not args.latency_only else (float("nan"), float("nan"))
+    fps, cpu = render_rate(args.seconds)[:2] if not args.latency_only else (float("nan"), float("nan"))
     print(f"render: {fps:.1f} redraws/s of 4 x 10 s at 2 kHz + loops; GUI process CPU {100 * cpu:.0f} % of one core")
+    if not args.latency_only:
+        convoy(min(args.seconds, 3.0))
     idle = idle_latency(min(args.seconds, 5.0))
     print(f"baseline, an empty event loop: late by p50 {np.percentile(idle, 50):.1f} ms, p99 "
           f"{np.percentile(idle, 99):.1f} ms; load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
-    late_ms, fits, _ = loop_latency(args.seconds, fit=not args.no_fit)
+    late_ms, waited_ms, fitting, _ = loop_latency(args.seconds, fit=not args.no_fit)
     p50, p99, worst = np.percentile(late_ms, [50, 99, 100])
     print(f"event loop (10 ms timer, {len(late_ms)} samples): late by p50 {p50:.1f} ms, p99 {p99:.1f} ms, "
           f"max {worst:.1f} ms")
+    if not np.isnan(waited_ms).all():
+        # A thread that sleeps until its timer is not on the run queue: what it waited there
+        # within an interval is part of the delay (the frames it drew meanwhile included).
+        own = np.maximum(late_ms - waited_ms, 0.0)
+        print(f"  of which the GUI thread waited for a CPU (the machine's load): p99 "
+              f"{np.percentile(waited_ms, 99):.1f} ms; the rest (its own work, waits for the interpreter lock): "
+              f"p50 {np.percentile(own, 50):.1f} ms, p99 {np.percentile(own, 99):.1f} ms")
     print(f"render: {fps:.0f} fps, event-loop p99 {p99:.0f} ms")
-    return 0 if fps >= 30 and p99 <= 50 and (fits >= 1 or args.no_fit) else 1
+    return 0 if fps >= 30 and p99 <= 50 and (fitting >= 0.9 or args.no_fit) else 1
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ from importlib import metadata
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import pandas as pd
 
 from identify.dataset import FORMAT, Experiment, csv_bytes, write_manifest
@@ -30,6 +31,7 @@ from rig.errors import BadInput
 from rig.events import Event
 
 SESSION_FILE = "session.json"
+CSV_SLICE_ROWS = 1000                # rows per pandas call when an experiment is written (see _csv_in_slices)
 
 
 class SessionError(BadInput):
@@ -134,7 +136,7 @@ class Session:
     def write_experiment(self, record: ExperimentRecord) -> Experiment:
         """CSV then manifest, each atomically; returns the experiment as identify reads it."""
         columns = {"time_s": record.time_s, **{c: record.values[:, i] for i, c in enumerate(CHANNELS)}}
-        payload = csv_bytes(columns)
+        payload = _csv_in_slices(columns)
         file = f"{record.label}.csv"
         atomic_write_bytes(self.path / file, payload)
         entry = {"label": record.label, "file": file, **record.spec.metadata(), "sample_rate_Hz": record.rate_hz,
@@ -178,3 +180,18 @@ class SessionLog:
 
     def close(self) -> None:
         self._file.close()
+
+
+def _csv_in_slices(columns: dict[str, np.ndarray]) -> bytes:
+    """:func:`identify.dataset.csv_bytes`, byte for byte, :data:`CSV_SLICE_ROWS` rows at a time.
+
+    pandas writes a whole CSV in one C call that holds the interpreter lock: 60 ms for a
+    24,000-row experiment on an idle machine, several times that under load, during which
+    every other thread of the process waits (the console's window, the DAQ reader).  A
+    slice at a time lets them in between."""
+    n = len(next(iter(columns.values())))
+    parts = []
+    for start in range(0, max(n, 1), CSV_SLICE_ROWS):
+        text = csv_bytes({name: values[start:start + CSV_SLICE_ROWS] for name, values in columns.items()})
+        parts.append(text if start == 0 else text.split(b"\n", 1)[1])
+    return b"".join(parts)

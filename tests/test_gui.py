@@ -1,7 +1,7 @@
 """The operator's console (``rig.gui``), offscreen, against the simulator at 50x: a plan
 to the end with its fit, the E-STOP, a refused manual command, the session browser on
-a CLI session, and closing the window mid-run.  Every wait is on the window's state
-(qtbot.waitUntil), never a sleep."""
+a CLI session, closing the window mid-run, and QC mode's verdict.  Every wait is on the
+window's state (qtbot.waitUntil) or on the station's events, never a sleep."""
 
 from __future__ import annotations
 
@@ -9,7 +9,6 @@ import hashlib
 import json
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -66,6 +65,17 @@ def raw_client(url: str) -> ModbusTcpClient:
     return client
 
 
+def status_reads(qtbot, window: MainWindow, n: int) -> None:
+    """Wait for ``n`` more of the console's reads of the controller's status."""
+    seen = [window.status]
+
+    def more() -> bool:
+        if window.status is not seen[-1]:
+            seen.append(window.status)
+        return len(seen) > n
+    qtbot.waitUntil(more, timeout=30_000)
+
+
 def closed(qtbot, window: MainWindow) -> None:
     window.close()
     qtbot.waitUntil(lambda: not window.isVisible(), timeout=60_000)
@@ -111,18 +121,21 @@ def test_estop_during_settling_stops_motion_and_hydraulics_within_0_3_s(qtbot, t
         qtbot.mouseClick(find(window, QtWidgets.QPushButton, "runPlanButton"), QtCore.Qt.MouseButton.LeftButton)
         qtbot.waitUntil(lambda: row_status(window, 0) == "settling", timeout=30_000)
         assert client.read_input_registers(0, count=1).registers[0] == STATE_RUNNING
-        t0 = time.monotonic()
         qtbot.mouseClick(find(window, QtWidgets.QPushButton, "estopButton"), QtCore.Qt.MouseButton.LeftButton)
-        state, hydraulics = STATE_RUNNING, True
-        while time.monotonic() - t0 < 0.3 and (state != STATE_OFF or hydraulics):
-            state = client.read_input_registers(0, count=2).registers[0]
-            hydraulics = client.read_coils(0, count=1).bits[0]
-        elapsed = time.monotonic() - t0
-        assert (state, hydraulics) == (STATE_OFF, False), f"after {elapsed:.3f} s"
-        position = client.read_input_registers(2, count=1).registers[0]
+        # The E-STOP path says when the controller has answered both writes, timed from the press.
+        assert window.station.estop_done.wait(10)
+        done = window.station.last_estop
+        state, hydraulics = client.read_input_registers(0, count=1).registers[0], client.read_coils(0, count=1).bits[0]
+        assert (state, hydraulics) == (STATE_OFF, False)
+        assert not done.failures and done.line == "E-STOP line"
+        assert done.elapsed_s <= 0.3, f"STOP and hydraulics off answered {done.elapsed_s:.3f} s after the press"
         qtbot.waitUntil(lambda: "E-STOP" in find(window, QtWidgets.QLabel, "alarmBanner").text(), timeout=5_000)
         qtbot.waitUntil(lambda: not window.station.session_running, timeout=60_000)
-        assert client.read_input_registers(2, count=1).registers[0] == position      # held, not moving
+        # Held, not moving: the same position across two of the console's status reads (the
+        # actuator's own deceleration right after STOP is over by the end of the safe stop).
+        position = client.read_input_registers(2, count=1).registers[0]
+        status_reads(qtbot, window, 2)
+        assert client.read_input_registers(2, count=1).registers[0] == position
         assert client.read_coils(0, count=1).bits[0] is False
     finally:
         client.close()
@@ -224,3 +237,31 @@ def test_closing_mid_run_is_a_safe_stop_and_the_session_resumes(qtbot, tmp_path,
     assert json.loads((folder / "session.json").read_text())["status"] == "complete"
     assert len(json.loads((folder / "dataset.json").read_text())["experiments"]) == 2
     assert hashlib.sha256(first.read_bytes()).hexdigest() == digest
+
+
+def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path):
+    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--out", str(tmp_path))
+    connected(qtbot, window)
+    verdict = find(window, QtWidgets.QLabel, "verdictLabel")
+    window.qc.serial.setText("SN-4242")
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "qcTestButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: verdict.text() == "TESTING…", timeout=30_000)
+    assert window.left_tabs.currentWidget() is window.qc
+    qtbot.waitUntil(lambda: window.qc.last is not None, timeout=600_000)
+    done = window.qc.last
+    assert done.shown in ("PASS", "FAIL", "RETEST"), (done, list(window.simulated.log)[-5:])
+    assert verdict.text() == done.shown
+    # The record `rig qc run` writes, with the same verdict (RETEST is the INCONCLUSIVE's remedy).
+    record = json.loads((done.report.parent / "qc-record.json").read_text())
+    assert {"PASS": "PASS", "FAIL": "FAIL", "RETEST": "INCONCLUSIVE"}[done.shown] == record["verdict"]
+    assert record["serial"] == "SN-4242" and record["status"] == "COMPLETE"
+    assert done.report.parent.parent == (tmp_path / "qc").resolve() and done.report.is_file()
+    assert done.report.resolve().as_uri() in find(window, QtWidgets.QLabel, "qcReportLink").text()
+    assert json.loads((done.report.parent / "session.json").read_text())["status"] == "complete"
+    # The verdict stays until the next unit; a refused unit (a serial not in the spec's format) is said, nothing runs.
+    qtbot.waitUntil(lambda: window.station.shaker is not None, timeout=30_000)     # the console's links back
+    window.qc.serial.setText("4243")                                                # not the spec's format
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "qcTestButton"), QtCore.Qt.MouseButton.LeftButton)
+    assert verdict.text() == "REFUSED" and "format of spec" in find(window, QtWidgets.QLabel, "qcReason").text()
+    assert not window.station.session_running and window.station.shaker is not None
+    closed(qtbot, window)

@@ -37,6 +37,7 @@ def fill_parameter_table(table: QtWidgets.QTableWidget, doc: dict[str, Any]) -> 
                  "" if p.get("initial") is None else f"{p['initial']:.6g}")
         for j, text in enumerate(cells):
             item = QtWidgets.QTableWidgetItem(text)
+            item.setToolTip(text)
             if j in (1, 2, 3, 5):
                 item.setTextAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
             if rel > RELATIVE_STD_WARNING:
@@ -58,8 +59,10 @@ def parameter_table() -> QtWidgets.QTableWidget:
     table.setHorizontalHeaderLabels(PARAMETER_COLUMNS)
     table.verticalHeader().setVisible(False)
     table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
-    table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
-    table.horizontalHeader().setStretchLastSection(True)
+    header = table.horizontalHeader()
+    header.setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+    # The numbers whole; the name takes what is left (elided, whole in its tooltip).
+    header.setSectionResizeMode(0, QtWidgets.QHeaderView.ResizeMode.Stretch)
     return table
 
 
@@ -110,10 +113,6 @@ class FitView(QtWidgets.QWidget):
         self.compare_table.verticalHeader().setVisible(False)
         self.compare_table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.Stretch)
         self.compare_table.setVisible(False)
-        # The QC engineer's pass/fail verdict goes here once rig.qc exists; until then it says so
-        # rather than showing a verdict nobody computed.
-        self.verdict = QtWidgets.QLabel("QC verdict: none (no pass/fail criteria in this build)")
-        self.verdict.setObjectName("verdictLabel")
 
         side = QtWidgets.QVBoxLayout()
         side.addWidget(QtWidgets.QLabel("Estimated parameters"))
@@ -121,7 +120,6 @@ class FitView(QtWidgets.QWidget):
         side.addWidget(self.notes, 1)
         side.addWidget(self.compare_label)
         side.addWidget(self.compare_table, 2)
-        side.addWidget(self.verdict)
         side_box = QtWidgets.QWidget()
         side_box.setLayout(side)
         split = QtWidgets.QSplitter()
@@ -134,7 +132,9 @@ class FitView(QtWidgets.QWidget):
         split.addWidget(side_box)
         split.setStretchFactor(0, 1)
         split.setStretchFactor(1, 1)
-        split.setSizes([520, 540])         # the parameter table's six columns need about half
+        # Half each: the two columns of plots need that much for their titles and axes (a
+        # narrower view clips them instead of shrinking them); the parameter table's names elide.
+        split.setSizes([530, 530])
         layout = QtWidgets.QVBoxLayout(self)
         layout.addLayout(head)
         layout.addWidget(split, 1)
@@ -215,7 +215,7 @@ class FitView(QtWidgets.QWidget):
                 p.plot(t, e1.predicted[out], pen=pg.mkPen("#2ca02c", width=2, style=QtCore.Qt.PenStyle.DashLine),
                        name="model 1dof").setZValue(11)
             r = labelled(self.plots.addPlot(row=1, col=col), f"residual [{unit}]", "time in the period [s]",
-                         "measured − model, ±2σ band")
+                         "measured − model, ±2σ")
             sigma = math.sqrt(result.channel_variances[out])
             upper = r.plot(t[[0, -1]], [2 * sigma, 2 * sigma], pen=pg.mkPen("#9e9e9e", width=1))
             lower = r.plot(t[[0, -1]], [-2 * sigma, -2 * sigma], pen=pg.mkPen("#9e9e9e", width=1))

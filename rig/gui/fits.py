@@ -159,6 +159,12 @@ class FitRunner:
             process.join(timeout=5)
             self._process = None
 
+    @property
+    def busy(self) -> bool:
+        """A fit process is running."""
+        process = self._process
+        return process is not None and process.is_alive()
+
     def close(self) -> None:
         """End the fit that runs (its result is not wanted any more) and the runner."""
         self._closed.set()

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import math
+import threading
 from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
@@ -15,7 +16,7 @@ from rig.daq import CHANNELS
 from rig.events import Event
 from rig.gui import analysis
 from rig.gui.plan_state import ExperimentRow, PlanProgress
-from rig.plans import load_plan
+from rig.plans import Plan, load_plan
 
 STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "skipped": "#ffe0b2", "interrupted": "#ffe0b2",
                   "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb", "stopping": "#e3f2fd"}
@@ -93,6 +94,7 @@ class PlanPanel(QtWidgets.QWidget):
     runRequested = QtCore.Signal()
     resumeRequested = QtCore.Signal(str)
     abortRequested = QtCore.Signal()
+    _previewed = QtCore.Signal(int, object, object)     # preview number, Plan, PlanProgress (from its thread)
 
     def __init__(self, config: RigConfig, plan: str, experiments: str | None, out: Path,
                  parent: QtWidgets.QWidget | None = None) -> None:
@@ -100,6 +102,8 @@ class PlanPanel(QtWidgets.QWidget):
         self.config, self.out = config, out
         self.progress: PlanProgress | None = None
         self._rows: list[ExperimentRow] = []
+        self._preview_number = 0
+        self._previewed.connect(self._show_preview)
         form = QtWidgets.QFormLayout()
         plan_row = QtWidgets.QHBoxLayout()
         self.plan = QtWidgets.QLineEdit(plan)
@@ -182,7 +186,9 @@ class PlanPanel(QtWidgets.QWidget):
             self.resumeRequested.emit(path)
 
     def preview(self) -> None:
-        """The chosen plan's experiments, all pending, before anything runs."""
+        """The chosen plan's experiments, all pending, before anything runs.  Their times
+        come from a thread: predicting the standard plan's settling is seconds of Python
+        (rig.settling), which in the GUI thread would freeze the window at every edit."""
         if self.progress is not None and self.progress.ended is None:
             return
         try:
@@ -190,7 +196,16 @@ class PlanPanel(QtWidgets.QWidget):
         except Exception as exc:  # noqa: BLE001 — the plan is checked again, with its reasons, on Run
             self.eta.setText(f"plan: {exc}")
             return
-        self.show_progress(PlanProgress(plan, self.config, "", 1.0))
+        self._preview_number += 1
+        number = self._preview_number
+        self.eta.setText(f"{len(plan.experiments)} experiments; estimating the rig time…")
+        threading.Thread(target=lambda: self._previewed.emit(number, plan, PlanProgress(plan, self.config, "", 1.0)),
+                         name="plan-preview", daemon=True).start()
+
+    def _show_preview(self, number: int, plan: Plan, progress: PlanProgress) -> None:
+        if number != self._preview_number or (self.progress is not None and self.progress.ended is None):
+            return          # a later edit, or a session started meanwhile
+        self.show_progress(progress)
         self.progress = None
         self.eta.setText(f"{len(plan.experiments)} experiments, about "
                          f"{_clock(sum(r.estimate_s for r in self._rows))} of rig time")

@@ -1,6 +1,6 @@
 """``make screenshots``: the console's main views as PNG files, from a real session on the
 simulated rig (offscreen): settling, capturing, the fit view with the 1-dof/2-dof
-comparison, an alarm (an e-stop trip during a manual sine), the session browser.
+comparison, an alarm (an e-stop trip during a manual sine), the session browser, and a QC verdict.
 
     python -m rig.gui.screenshots [--out out/screenshots] [--speed 20] [--readme docs/gui.png]
 """
@@ -104,6 +104,19 @@ def main() -> int:
     shoot(alarm, out / "alarm.png")
     alarm.close()
     wait("the window to close", lambda: not alarm.isVisible(), 60)
+
+    # QC mode: one unit through python -m rig qc run, its verdict on screen.
+    qc = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--out", str(sessions)])
+    qc.show()
+    wait("the connection", lambda: qc.status is not None)
+    qc.qc.serial.setText("SN-0042")
+    qc.qc.test_button.click()
+    wait("the QC verdict", lambda: qc.qc.last is not None, 600)
+    wait("the console's links back", lambda: qc.station.shaker is not None and qc.status is not None, 60)
+    settle_view(1.0)
+    shoot(qc, out / "qc-verdict.png")
+    qc.close()
+    wait("the window to close", lambda: not qc.isVisible(), 60)
     print(f"sessions of this run: {sessions}; first view {settling}")
     return 0
 

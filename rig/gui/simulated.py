@@ -4,6 +4,7 @@ package never imports the simulator; it talks to it over Modbus and the DAQ line
 
 from __future__ import annotations
 
+import atexit
 import signal
 import subprocess
 import sys
@@ -34,6 +35,9 @@ class SimulatedRig:
         for fault in self.faults:
             cmd += ["--fault", fault]
         self._proc = proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # Stopped with this program even when its window never closed (a failing test, an
+        # exception): an orphaned simulator would hold its ports and a core.
+        atexit.register(self.stop)
         assert proc.stdout is not None and proc.stderr is not None  # both are pipes
         # stderr is read all along: a full pipe would block the simulator.
         threading.Thread(target=self._read_stderr, name="simulator-stderr", daemon=True).start()

@@ -7,10 +7,13 @@ Threads:
 
 ``rig-command``   manual commands, connecting, reconnecting after a session (one at a time)
 ``rig-status``    reads the controller's status and the DAQ's counters, 4 times a second
-``rig-session``   prepare → connect → :class:`rig.run.SessionRunner` → tear down, as ``rig run``
+``rig-session``   prepare → connect → :class:`rig.run.SessionRunner` → tear down, as ``rig run``;
+                  or QC mode's ``python -m rig qc run`` as a child process (:mod:`rig.gui.qc`)
 ``fit``           identification and re-fits, one at a time, each in a process of its own
                   (:mod:`rig.gui.fits`: a fit in this process would stall the window)
-``e-stop``        one per press: mode STOP and hydraulics off, never queued behind the others
+``e-stop``        waits for a press, then writes mode STOP and hydraulics off on a Modbus
+                  connection of its own, opened in advance and used for nothing else: the
+                  E-STOP never waits behind a session's or the status poll's requests
 
 Outside a session the console holds its own links: the controller with its watchdog
 fed (if this program dies, the controller trips and holds), and the DAQ streaming for
@@ -22,9 +25,12 @@ takes one client at a time) and takes them back after the safe stop.
 from __future__ import annotations
 
 import io
+import signal
+import subprocess
 import threading
 import time
 import traceback
+from collections import deque
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -40,6 +46,7 @@ from rig.events import EventBus
 from rig.gui import fits
 from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
+from rig.gui.qc import QcDone, QcRequest, outcome, qc_command
 from rig.registers import RegisterMap, load_register_map
 from rig.run import (
     EXIT_OK,
@@ -56,6 +63,7 @@ from rig.shaker import Shaker, ShakerStatus, check_waveform
 
 STATUS_PERIOD_S = 0.25
 CONSOLE_RECONNECT_S = 2.0
+ESTOP_TIMEOUT_S = 0.25        # per request on the E-STOP's own line: a dead line falls back to the others quickly
 
 
 # ----- what is posted to the window ---------------------------------------------------------------------
@@ -122,7 +130,13 @@ class ComparisonDone:
 @dataclass(frozen=True)
 class EstopDone:
     failures: list[str]
-    elapsed_s: float
+    elapsed_s: float                       # from the press to both writes answered by the controller
+    line: str                              # which connection carried them
+
+
+@dataclass(frozen=True)
+class QcStarted:
+    request: QcRequest
 
 
 @dataclass(frozen=True)
@@ -154,8 +168,17 @@ class Station:
         self._fits = FitRunner(lambda title, it, objective: post(FitProgress(title, it, objective)),
                                lambda title, text: post(Notice(f"{title} failed: {text}", "error")))
         self._session: threading.Thread | None = None
+        self._qc: subprocess.Popen | None = None
+        self._estop_line: Shaker | None = None
+        self._estop_lock = threading.Lock()          # the line is swapped, never used, under it
+        self._estop_pressed = threading.Event()
+        self._estop_pressed_at = 0.0
+        self.last_estop: EstopDone | None = None
+        self.estop_done = threading.Event()          # set once an E-STOP's writes are answered (or failed)
         self._poller = threading.Thread(target=self._poll, name="rig-status", daemon=True)
         self._poller.start()
+        self._estopper = threading.Thread(target=self._estop_loop, name="e-stop", daemon=True)
+        self._estopper.start()
 
     # ----- state ----------------------------------------------------------------------------------------
     @property
@@ -189,6 +212,7 @@ class Station:
         daq = Daq(self.daq_url, self.calibration, rate_hz=self.config.daq_rate_hz, reconnect_s=CONSOLE_RECONNECT_S,
                   on_event=self._link_event)
         try:
+            self._open_estop_line(self.shaker_url)
             shaker.connect()        # limits written, watchdog on and fed: if this program dies, the rig holds
             identity = daq.open()
             daq.start()             # the live view streams whenever no session does
@@ -283,35 +307,89 @@ class Station:
 
     # ----- E-STOP -----------------------------------------------------------------------------------------
     def estop(self) -> None:
-        """STOP and hydraulics off at once, no fade, on a thread of its own; a session is
-        told to stop too (its safe stop then finds the rig at rest)."""
+        """STOP and hydraulics off at once, no fade, on the E-STOP's thread and line; a
+        session (or a QC run) is told to stop too (its safe stop then finds the rig at rest)."""
+        self._estop_pressed_at = time.monotonic()
+        self.estop_done.clear()
+        self._estop_pressed.set()
         self._abort.set()
         runner = self.runner
         if runner is not None:
             runner.acquisition.stop_requested.set()
             runner.bus.publish("log", message="E-STOP pressed by the operator: STOP and hydraulics off")
-        threading.Thread(target=self._estop, name="e-stop", daemon=True).start()
+        self._interrupt_qc()
+
+    def _open_estop_line(self, url: str | None) -> None:
+        """The E-STOP's own Modbus connection (no heartbeat, used for nothing else), kept
+        open while the console runs.  A serial line takes one client: there the E-STOP
+        shares the session's or the console's link instead."""
+        if not url or url.startswith("rtu:"):
+            return
+        with self._estop_lock:
+            line = self._estop_line
+            if line is not None and line.url == url:
+                return
+            self._estop_line = None
+        if line is not None:
+            line.close()
+        line = Shaker(url, self.config.limits, self.register_map, timeout_s=ESTOP_TIMEOUT_S,
+                     reconnect_s=ESTOP_TIMEOUT_S)
+        try:
+            line.connect(heartbeat=False)
+        except RigError as exc:
+            self.post(Notice(f"E-STOP line to {url} not opened ({exc}); the E-STOP will use the session's link"))
+            line.close()
+            return
+        with self._estop_lock:
+            self._estop_line = line
+
+    def _estop_loop(self) -> None:
+        while True:
+            self._estop_pressed.wait()
+            if self._closed.is_set():
+                return
+            self._estop_pressed.clear()
+            self._estop()
 
     def _estop(self) -> None:
-        t0, failures = time.monotonic(), []
-        shaker, own = self.active_shaker(), None
+        """Each write on the first link that answers: the E-STOP's line, the active link, a new one."""
+        failures: list[str] = []
+        used: list[str] = []
+        with self._estop_lock:
+            line = self._estop_line
+        own: Shaker | None = None
+        candidates: list[tuple[str, Callable[[], Shaker | None]]] = [
+            ("E-STOP line", lambda: line), ("session/console link", self.active_shaker), ("new link", lambda: own)]
         try:
-            if shaker is None:      # between the console's links and a session's: a line of its own
-                if not self.shaker_url:
-                    raise RigError("no controller address")
-                own = shaker = Shaker(self.shaker_url, self.config.limits, self.register_map, reconnect_s=0.5)
-                shaker.connect(heartbeat=False)
-            for name, step in (("STOP", shaker.stop), ("hydraulics off", lambda: shaker.hydraulics(False))):
-                try:
-                    step()
-                except Exception as exc:  # noqa: BLE001 — the next step is tried all the same
-                    failures.append(f"{name}: {exc}")
-        except Exception as exc:  # noqa: BLE001 — said on the banner; the watchdog is the last guard
-            failures.append(str(exc))
+            for name, step in (("STOP", lambda s: s.stop()), ("hydraulics off", lambda s: s.hydraulics(False))):
+                errors = []
+                for which, get in candidates:
+                    link = get()
+                    if link is None and which == "new link" and self.shaker_url:
+                        own = link = Shaker(self.shaker_url, self.config.limits, self.register_map, reconnect_s=0.5)
+                        try:
+                            own.connect(heartbeat=False)
+                        except Exception as exc:  # noqa: BLE001 — said on the banner; the watchdog is the last guard
+                            errors.append(f"{which}: {exc}")
+                            continue
+                    if link is None:
+                        continue
+                    try:
+                        step(link)
+                    except Exception as exc:  # noqa: BLE001 — the next link is tried
+                        errors.append(f"{which}: {exc}")
+                        continue
+                    used.append(which)
+                    break
+                else:
+                    failures.append(f"{name}: " + ("; ".join(errors) or "no controller address"))
         finally:
             if own is not None:
                 own.close()
-        self.post(EstopDone(failures, time.monotonic() - t0))
+        done = EstopDone(failures, time.monotonic() - self._estop_pressed_at, ", ".join(dict.fromkeys(used)))
+        self.last_estop = done
+        self.estop_done.set()
+        self.post(done)
 
     # ----- sessions ---------------------------------------------------------------------------------------
     def run_plan(self, opt: RunOptions, identify: IdentifySettings | None) -> bool:
@@ -331,6 +409,65 @@ class Station:
         if runner is not None:
             runner.bus.publish("log", message=f"{why}: safe stop")
             runner.acquisition.stop_requested.set()
+        self._interrupt_qc()
+
+    # ----- QC mode ----------------------------------------------------------------------------------------
+    def run_qc(self, request: QcRequest) -> bool:
+        """Test one unit with ``python -m rig qc run`` (False if a session or a QC run is going)."""
+        if self.session_running:
+            return False
+        self._abort.clear()
+        self._session = threading.Thread(target=self._run_qc, args=(request,), name="rig-session", daemon=True)
+        self._session.start()
+        return True
+
+    def _run_qc(self, request: QcRequest) -> None:
+        done: QcDone | None = None
+        try:
+            if not self.shaker_url or not self.daq_url:
+                raise BadInput("give the controller's and the DAQ's addresses (--shaker, --daq) or --simulate")
+            self._open_estop_line(self.shaker_url)
+            self._was_connected = self.shaker is not None
+            self._commands.submit(self._release).result()      # the DAQ takes one client: the child's
+            cmd = qc_command(request, self.shaker_url, self.daq_url, self.config_files)
+            self.post(QcStarted(request))
+            if self._abort.is_set():
+                raise RigError("aborted before the QC run started")
+            # Its own process group: Ctrl-C in the console's terminal reaches the console,
+            # whose safe stop then interrupts the child once.
+            proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                    start_new_session=True)
+            self._qc = proc
+            if self._abort.is_set():
+                self._interrupt_qc()
+            stdout: list[str] = []
+            reader = threading.Thread(target=lambda: stdout.extend(proc.stdout or ()), name="qc-stdout", daemon=True)
+            reader.start()
+            tail: deque[str] = deque(maxlen=20)
+            for line in proc.stderr or ():
+                line = line.rstrip()
+                tail.append(line)
+                if line:
+                    self.post(Notice(f"QC {request.serial}: {line}"))
+            proc.wait()
+            reader.join()
+            done = outcome(request, proc.returncode, "".join(stdout), list(tail))
+        except (BadInput, RigError) as exc:
+            done = QcDone(request.serial, -1, "REFUSED", reason=str(exc))
+        except Exception as exc:  # noqa: BLE001 — a bug: shown with its traceback, the console goes on
+            done = QcDone(request.serial, -1, "ERROR", reason=f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}")
+        finally:
+            self._qc = None
+            if done is not None:
+                self.post(done)
+            if self._was_connected and not self.closing:
+                self._commands.submit(self._job, "reconnect", self._connect)
+
+    def _interrupt_qc(self) -> None:
+        """A QC run's safe stop: SIGINT, as Ctrl-C in its terminal (recorded ABORTED, no verdict)."""
+        proc = self._qc
+        if proc is not None and proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
 
     def _run_session(self, opt: RunOptions, identify: IdentifySettings | None) -> None:
         result: RunResult | None = None
@@ -351,6 +488,7 @@ class Station:
 
     def _session_steps(self, opt: RunOptions) -> RunResult | None:
         prep = prepare(opt)                      # refused here: nothing written, nothing sent
+        self._open_estop_line(prep.shaker_url)
         self._was_connected = self.shaker is not None
         self._commands.submit(self._release).result()
         bus = EventBus()
@@ -379,6 +517,10 @@ class Station:
         if result.error is not None:
             self.post(Notice(f"internal error in the session: {result.error!r}", "error"))
         return result
+
+    @property
+    def fitting(self) -> bool:
+        return self._fits.busy
 
     def wait_session(self, timeout_s: float | None = None) -> bool:
         """True once no session runs (for closing the window and for tests)."""
@@ -438,6 +580,12 @@ class Station:
         self.abort("the console is closing")
         self.wait_session(timeout_s)
         self._closed.set()
+        self._estop_pressed.set()
+        self._estopper.join(timeout=2)
+        with self._estop_lock:
+            line, self._estop_line = self._estop_line, None
+        if line is not None:
+            line.close()
         self._commands.submit(self._release)
         self._commands.shutdown(wait=True)
         self._fits.close()

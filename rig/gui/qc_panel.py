@@ -1,0 +1,145 @@
+"""QC mode: the unit's serial number, Test unit, and the verdict in letters large enough
+to read from the rig — PASS, FAIL or RETEST — which stays until the next unit is tested,
+with the characteristics, the likely causes and a link to the report."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from PySide6 import QtCore, QtWidgets
+
+from rig.gui.qc import QcDone, QcRequest
+
+# (background, text) per verdict; no verdict (ABORTED, REFUSED, ERROR) is grey, never green.
+COLOURS = {"PASS": ("#2e7d32", "white"), "FAIL": ("#c62828", "white"), "RETEST": ("#f9a825", "black"),
+           "testing": ("#e3f2fd", "#0d47a1")}
+NO_VERDICT = ("#9e9e9e", "white")
+
+
+class QcPanel(QtWidgets.QWidget):
+    testRequested = QtCore.Signal(object)      # QcRequest
+    abortRequested = QtCore.Signal()
+
+    def __init__(self, out: Path, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.out = out
+        self.last: QcDone | None = None
+        form = QtWidgets.QFormLayout()
+        self.serial = QtWidgets.QLineEdit()
+        self.serial.setObjectName("qcSerial")
+        self.serial.setPlaceholderText("scan or type the unit's serial number")
+        self.serial.returnPressed.connect(self._test)
+        form.addRow("Serial number", self.serial)
+        self.spec = QtWidgets.QLineEdit("default")
+        self.spec.setObjectName("qcSpec")
+        self.spec.setToolTip("default, or a QC.toml spec file")
+        form.addRow("Spec", self.spec)
+        self.operator = QtWidgets.QLineEdit()
+        self.operator.setPlaceholderText("default: the login name")
+        form.addRow("Operator", self.operator)
+        self.folder = QtWidgets.QLineEdit(str(out / "qc"))
+        self.folder.setObjectName("qcFolder")
+        self.folder.setToolTip("the station's folder: a session folder per unit, and qc-records.sqlite")
+        form.addRow("Station folder", self.folder)
+
+        buttons = QtWidgets.QHBoxLayout()
+        self.test_button = QtWidgets.QPushButton("Test unit")
+        self.test_button.setObjectName("qcTestButton")
+        self.test_button.clicked.connect(self._test)
+        self.retest_button = QtWidgets.QPushButton("Retest")
+        self.retest_button.setObjectName("qcRetestButton")
+        self.retest_button.setToolTip("the same unit with the spec's retest periods (an INCONCLUSIVE's remedy)")
+        self.retest_button.clicked.connect(self._retest)
+        self.retest_button.setEnabled(False)
+        self.abort_button = QtWidgets.QPushButton("Abort (safe stop)")
+        self.abort_button.setObjectName("qcAbortButton")
+        self.abort_button.clicked.connect(self.abortRequested.emit)
+        self.abort_button.setEnabled(False)
+        for b in (self.test_button, self.retest_button, self.abort_button):
+            buttons.addWidget(b)
+
+        self.unit = QtWidgets.QLabel("")
+        self.unit.setObjectName("qcUnit")
+        self.unit.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
+        self.unit.setStyleSheet("font-size: 13pt; font-weight: bold")
+        self.verdict = QtWidgets.QLabel("—")
+        self.verdict.setObjectName("verdictLabel")
+        self.verdict.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
+        self.verdict.setMinimumHeight(130)
+        self.reason = QtWidgets.QLabel("No unit tested yet.")
+        self.reason.setObjectName("qcReason")
+        self.reason.setWordWrap(True)
+        self.report = QtWidgets.QLabel("")
+        self.report.setObjectName("qcReportLink")
+        self.report.setOpenExternalLinks(True)
+        self.report.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextBrowserInteraction)
+        self.summary = QtWidgets.QPlainTextEdit()
+        self.summary.setObjectName("qcSummary")
+        self.summary.setReadOnly(True)
+        self.summary.setLineWrapMode(QtWidgets.QPlainTextEdit.LineWrapMode.NoWrap)
+        font = self.summary.font()
+        font.setFamily("monospace")
+        font.setStyleHint(font.StyleHint.Monospace)
+        self.summary.setFont(font)
+
+        layout = QtWidgets.QVBoxLayout(self)
+        layout.addLayout(form)
+        layout.addLayout(buttons)
+        layout.addWidget(self.unit)
+        layout.addWidget(self.verdict)
+        layout.addWidget(self.reason)
+        layout.addWidget(self.report)
+        layout.addWidget(self.summary, 1)
+        self._paint("—", NO_VERDICT)
+
+    def _request(self, periods: int | None = None) -> QcRequest:
+        return QcRequest(self.serial.text().strip(), self.spec.text().strip() or "default",
+                         Path(self.folder.text().strip() or str(self.out / "qc")),
+                         self.operator.text().strip() or None, periods)
+
+    def _test(self) -> None:
+        if self.test_button.isEnabled():
+            self.testRequested.emit(self._request())
+
+    def _retest(self) -> None:
+        if self.last is not None and self.last.retest_periods:
+            self.serial.setText(self.last.serial)
+            self.testRequested.emit(self._request(self.last.retest_periods))
+
+    def set_running(self, running: bool) -> None:
+        self.test_button.setEnabled(not running)
+        self.abort_button.setEnabled(running)
+        self.retest_button.setEnabled(not running and self.last is not None and bool(self.last.retest_periods))
+
+    def show_started(self, request: QcRequest) -> None:
+        """The next unit: the last verdict goes only now."""
+        self.last = None
+        self.unit.setText(f"Unit {request.serial}" + (f" — retest, {request.periods} periods" if request.periods
+                                                      else ""))
+        self._paint("TESTING…", COLOURS["testing"], size_pt=36)
+        self.reason.setText("The spec's plan runs, then identification and judging (python -m rig qc run).")
+        self.report.setText("")
+        self.summary.setPlainText("")
+        self.set_running(True)
+
+    def show_done(self, done: QcDone) -> None:
+        self.last = done
+        self.unit.setText(f"Unit {done.serial}")
+        self._paint(done.shown, COLOURS.get(done.shown, NO_VERDICT))
+        reason = {"PASS": "Every characteristic within its limits, uncertainty included.",
+                  "FAIL": "At least one characteristic outside its limits, uncertainty included.",
+                  "RETEST": "Inconclusive: a characteristic's uncertainty straddles a limit. Test again with "
+                            f"more periods ({done.retest_periods or 'the spec’s retest'} periods): Retest."}
+        self.reason.setText(reason.get(done.shown, f"No verdict: {done.reason}"))
+        if done.report is not None:
+            self.report.setText(f'<a href="{done.report.resolve().as_uri()}">Open the report</a> — {done.report}')
+        else:
+            self.report.setText("")
+        self.summary.setPlainText("\n".join(done.summary))
+        self.set_running(False)
+
+    def _paint(self, text: str, colours: tuple[str, str], size_pt: int = 64) -> None:
+        background, colour = colours
+        self.verdict.setText(text)
+        self.verdict.setStyleSheet(f"background: {background}; color: {colour}; font-size: {size_pt}pt; "
+                                   "font-weight: bold; border-radius: 10px; padding: 8px")
