@@ -1,11 +1,12 @@
 """The virtual rig as a child process: ``python -m simulator serve`` on free loopback
 ports, exactly as an operator would start it by hand, with its endpoints, its log and
 its clean stop.  The rig package never imports the simulator; it talks to it over
-Modbus and the DAQ line only.  Used by the pytest plugin (``rig.testing``) and the
-demo (``examples/demo.py``)."""
+Modbus and the DAQ line only.  Used by the pytest plugin (``rig.testing``), the demo
+(``examples/demo.py``) and ``rig gui --simulate``."""
 
 from __future__ import annotations
 
+import atexit
 import json
 import re
 import signal
@@ -15,6 +16,8 @@ import tempfile
 import threading
 from collections.abc import Sequence
 from pathlib import Path
+
+from rig.errors import BadInput, RigFault
 
 START_TIMEOUT_S = 60.0
 
@@ -42,6 +45,9 @@ class VirtualRig:
         cmd += list(extra_args)
         self.command = cmd
         self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        # Stopped with this program even when nobody called stop() (a failing test, an
+        # exception in a window): an orphaned simulator would hold its ports and a core.
+        atexit.register(self.stop)
         self._lines: list[str] = []
         self._lock = threading.Lock()
         # The log is drained continuously: a simulator blocked on a full pipe would stall the rig.
@@ -66,7 +72,10 @@ class VirtualRig:
         threading.Thread(target=read, daemon=True).start()
         if not ready.wait(START_TIMEOUT_S) or not {"modbus", "daq"} <= found.keys():
             self.stop()
-            raise RuntimeError(f"the virtual rig did not start ({' '.join(self.command)}):\n{self.log()}")
+            said = [line.strip().removeprefix("error: ") for line in self.log().splitlines() if line.strip()]
+            why = f"the virtual rig did not start (simulator exit {self.returncode}): {(said or ['no output'])[-1]}"
+            # The simulator's exit 2 is input it refused (a truth file, a fault): the caller's mistake.
+            raise BadInput(why) if self.returncode == 2 else RigFault(why)
         return found["modbus"], found["daq"]
 
     def _read_log(self) -> None:

@@ -30,7 +30,6 @@ from rig.gui.live import LiveView
 from rig.gui.plan_panel import PlanPanel
 from rig.gui.qc import QcDone, QcRequest
 from rig.gui.qc_panel import QcPanel
-from rig.gui.simulated import SimulatedRig
 from rig.gui.station import (
     ComparisonDone,
     EstopDone,
@@ -49,6 +48,7 @@ from rig.gui.station import (
 from rig.qc.spec import load_spec
 from rig.run import EXIT_BAD_INPUT, RunOptions
 from rig.shaker import ShakerStatus
+from rig.virtual import VirtualRig
 
 REDRAW_HZ = 30
 DRAIN_MAX = 5000                 # records taken from the queue per tick, so a flood cannot freeze the window
@@ -75,11 +75,10 @@ class MainWindow(QtWidgets.QMainWindow):
         super().__init__()
         if args.simulate and (args.shaker or args.daq):
             raise BadInput("gui: either --simulate or --shaker/--daq, not both")
-        self.simulated: SimulatedRig | None = None
+        self.simulated: VirtualRig | None = None
         shaker, daq = args.shaker, args.daq
         if args.simulate:
-            self.simulated = SimulatedRig(args.speed, args.params, list(args.fault))
-            self.simulated.start()
+            self.simulated = VirtualRig(speed=args.speed, params=args.params, faults=list(args.fault))
             shaker, daq = self.simulated.modbus_url, self.simulated.daq_url
         self.queue: queue.Queue[object] = queue.Queue()
         try:
@@ -152,7 +151,8 @@ class MainWindow(QtWidgets.QMainWindow):
         banner_row = QtWidgets.QHBoxLayout()
         banner_row.addWidget(self.banner, 1)
         banner_row.addWidget(self.reset_button)
-        self.sim_label = QtWidgets.QLabel(self.simulated.describe() if self.simulated else "")
+        self.sim_label = QtWidgets.QLabel(
+            f"SIMULATED RIG (python -m simulator serve at {args.speed:g}x, not hardware)" if self.simulated else "")
         self.sim_label.setObjectName("simulatedLabel")
         self.sim_label.setStyleSheet("background: #fff3cd; color: #7a5200; font-weight: bold; padding: 3px")
         self.sim_label.setVisible(self.simulated is not None)
