@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import io
 import json
+import re
 import resource
 import subprocess
 import sys
@@ -50,7 +51,7 @@ def run_case(name: str, hold_cycles: int, out: Path) -> dict:
     from tests.virtual_rig_inprocess import DAQ_URL, SHAKER_URL, InProcessRig
 
     criterion, order, faults = CASES[name]
-    text = DEFAULT_RIG_CONFIG.read_text().replace('criterion = "drift"', f'criterion = "{criterion}"')
+    text = re.sub(r'(?m)^criterion = "\w+"', f'criterion = "{criterion}"', DEFAULT_RIG_CONFIG.read_text())
     if hold_cycles:   # thresholds that are never met: the experiment is held to max_cycles
         text = text.replace("max_cycles = 1500", f"max_cycles = {hold_cycles}").replace(
             "stroke_mm = 0.02", "stroke_mm = 0.0")

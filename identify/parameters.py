@@ -19,6 +19,10 @@ import numpy as np
 from identify.errors import InputError
 from identify.model import CompiledModel
 
+# What a parameter's entry may hold: START.json's own keys and what RESULT.json adds
+# (so that a result restarts a fit as it is).
+ENTRY_KEYS = frozenset({"value", "prior_std", "min", "max", "std", "std_residual", "estimated", "unit", "alias",
+                        "at_bound", "initial"})
 
 class ParameterError(InputError):
     """A parameter file or name that does not fit the model."""
@@ -149,6 +153,11 @@ class Parameters:
             value = raw
             p = params[key]
             if isinstance(raw, dict):  # RESULT.json entry or {"value", "prior_std", "min", "max"}
+                unknown = sorted(set(raw) - ENTRY_KEYS)
+                if unknown:
+                    # A misspelt bound ("minimum") would otherwise be dropped without a word.
+                    raise ParameterError(f"{source}: parameter {key!r} has unknown key {unknown[0]!r} "
+                                         f"(known: value, prior_std, min, max)")
                 value = raw.get("value")
                 prior = raw.get("prior_std")
                 for bound in ("min", "max"):

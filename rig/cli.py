@@ -192,7 +192,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--periods", type=_positive_int, help="whole periods to capture (default: the plan's)")
     run.add_argument("--order", choices=("thermal", "fixed"),
                      help="thermal: the order of least predicted rig time; fixed: as listed (default: the plan's "
-                          "order, thermal unless it says fixed; a --experiments list as given)")
+                          "order, as listed unless it says order = \"thermal\"; a --experiments list as given)")
     run.add_argument("--resume", action="store_true",
                      help="continue an interrupted session in --out (addresses default to the session's)")
     run.add_argument("--reset-alarm", action="store_true",

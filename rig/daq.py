@@ -60,6 +60,10 @@ def check_daq_address(url: str) -> None:
     ``socket://`` without host and port.  A device path is only known once opened."""
     scheme, sep, rest = url.partition("://")
     if not sep:
+        if re.match(r"[A-Za-z][\w+.-]*:/?[^/]", url):
+            # socket:/host:port or socket:host:port: a URL with its slashes mistyped, not a device path.
+            raise AddressError(f"DAQ address {url!r}: not a device path nor a URL (expected a device path, "
+                               "socket://HOST:PORT or another pyserial URL)")
         return
     if not scheme.isidentifier() or importlib.util.find_spec(f"serial.urlhandler.protocol_{scheme}") is None:
         raise AddressError(f"DAQ address {url!r}: unknown scheme {scheme!r} (expected a device path, "

@@ -5,6 +5,7 @@ the thermal settling predicted from the damper model (:mod:`rig.settling`)."""
 
 from __future__ import annotations
 
+import difflib
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -21,6 +22,7 @@ from rig.shaker import check_waveform
 from rig.tomlfile import read_toml
 
 EXPERIMENT_KEYS = {"label", "group", "static_mm", "amplitude_mm", "frequency_Hz", "waveform", "periods"}
+PLAN_KEYS = {"name", "periods", "order", "experiment"}
 
 
 class PlanError(BadInput):
@@ -38,7 +40,7 @@ class Plan:
     name: str
     experiments: tuple[ExperimentSpec, ...]
     text: str = ""
-    order: str = "thermal"
+    order: str = "fixed"
 
     def select(self, letters: list[str] | None) -> Plan:
         if not letters:
@@ -68,11 +70,17 @@ class Plan:
 
 
 def load_plan(source: str) -> Plan:
-    """``standard`` or the path of a plan TOML file."""
+    """``standard`` or the path of a plan TOML file.  A QC spec is a plan file with more
+    tables (it checks its own keys), so a top-level key is refused only when it is a near
+    miss of a plan key."""
     if source == "standard":
         return Plan("standard", STANDARD_SET, "standard")
     path = Path(source)
     text, doc = read_toml(path, PlanError, "plan ")
+    for key in sorted(set(doc) - PLAN_KEYS):
+        meant = difflib.get_close_matches(key, PLAN_KEYS, n=1)
+        if meant:   # a misspelt order (ordr) would silently run the plan as listed
+            raise PlanError(f"plan {path}: unknown key {key!r} (did you mean {meant[0]!r}?)")
     entries = doc.get("experiment", [])
     if not entries:
         raise PlanError(f"plan {path}: no [[experiment]] tables")
@@ -95,7 +103,7 @@ def load_plan(source: str) -> Plan:
             raise PlanError(f"{where}: label {spec.letter!r} used twice")
         seen.add(spec.letter)
         experiments.append(spec)
-    order = str(doc.get("order", "thermal"))
+    order = str(doc.get("order", "fixed"))
     if order not in ORDERS:
         raise PlanError(f"plan {path}: order {order!r} is not one of {', '.join(ORDERS)}")
     return Plan(str(doc.get("name", path.stem)), tuple(experiments), text, order)

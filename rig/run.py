@@ -160,9 +160,9 @@ def prepare(opt: RunOptions) -> Prepared:
     if problems:
         raise PlanRefused(config.source, problems)
     if stored is None:
-        # Settling is most of a session and depends on the experiment before: the order of
-        # least predicted rig time (a resumed session keeps the order it began with; a list
-        # of experiments the operator typed runs as typed unless --order thermal).
+        # Settling is most of a session and depends on the experiment before: on request
+        # the order of least predicted rig time (a resumed session keeps the order it began
+        # with; a list of experiments the operator typed runs as typed unless --order thermal).
         order = opt.order or ("fixed" if opt.experiments else plan.order)
         plan = replace(plan, order=order).ordered(config)
     if opt.identify:

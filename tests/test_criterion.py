@@ -70,10 +70,13 @@ def test_blocks_noisier_than_stated_widen_the_errors():
     assert bound(noisy) > 3 * bound(quiet)
 
 
-def test_default_config_has_the_drift_criterion_and_bad_settings_get_one_line(tmp_path):
-    ss = load_rig_config().steady_state
+def test_default_config_selects_the_drift_criterion_in_one_line_and_bad_settings_get_one_line(tmp_path):
+    assert load_rig_config().steady_state.criterion == "change"
+    text = DEFAULT_RIG_CONFIG.read_text().replace('criterion = "change"', 'criterion = "drift"')
+    path = tmp_path / "drift.toml"
+    path.write_text(text)
+    ss = load_rig_config(path).steady_state
     assert ss.criterion == "drift" and ss.drift is not None and set(ss.drift.noise) == set(NOISE)
-    text = DEFAULT_RIG_CONFIG.read_text()
     for old, new, message in [('criterion = "drift"', 'criterion = "slow"', "criterion 'slow' is not one of"),
                               ("drift_fit_cycles = 40", "drift_fit_cycles = 2", "drift_fit_cycles at least 4"),
                               ("drift_sigma_fraction =", "sigma_fraction =", "missing key 'drift_sigma_fraction'")]:

@@ -161,7 +161,8 @@ def test_start_file_bounds_narrow_the_range_and_are_checked(tmp_path):
     assert any("outside the range the START file allows" in w for w in doc["warnings"])
     for bad, says in (({"c": {"value": 1.0, "min": -1.0}}, "below its physical minimum 0"),
                       ({"k": {"value": 6e4, "max": 5.5e4}}, "lies outside its bounds"),
-                      ({"k": {"value": 5e4, "min": 6e4, "max": 5.5e4}}, "above max")):
+                      ({"k": {"value": 5e4, "min": 6e4, "max": 5.5e4}}, "above max"),
+                      ({"k": {"value": 5e4, "minimum": 4e4}}, "unknown key 'minimum'")):
         start.write_text(json.dumps({"model": "linear-1dof", "parameters": bad}))
         proc = identify("fit", str(data), "--model", model, "--params", str(start), "--estimate", "c,k",
                         "--output", str(tmp_path / "x.json"))

@@ -120,7 +120,9 @@ def test_estop_during_settling_stops_motion_and_hydraulics_within_0_3_s(qtbot, t
     try:
         qtbot.mouseClick(find(window, QtWidgets.QPushButton, "runPlanButton"), QtCore.Qt.MouseButton.LeftButton)
         qtbot.waitUntil(lambda: row_status(window, 0) == "settling", timeout=30_000)
-        assert client.read_input_registers(0, count=1).registers[0] == STATE_RUNNING
+        # The row says settling from RUN's command on; the controller is RUNNING once its move ends.
+        qtbot.waitUntil(lambda: client.read_input_registers(0, count=1).registers[0] == STATE_RUNNING,
+                        timeout=30_000)
         qtbot.mouseClick(find(window, QtWidgets.QPushButton, "estopButton"), QtCore.Qt.MouseButton.LeftButton)
         # The E-STOP path says when the controller has answered both writes, timed from the press.
         assert window.station.estop_done.wait(10)

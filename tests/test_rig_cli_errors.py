@@ -40,6 +40,7 @@ CASES = {
     "shaker scheme": (dict(shaker="tpc://127.0.0.1:5020"), [], 2, "shaker address 'tpc://127.0.0.1:5020'"),
     "daq scheme": (dict(daq="sokcet://127.0.0.1:5021"), [], 2, "unknown scheme 'sokcet'"),
     "daq without port": (dict(daq="socket://127.0.0.1"), [], 2, "expected socket://HOST:PORT"),
+    "daq slashes": (dict(daq="socket:/127.0.0.1:5021"), [], 2, "'socket:/127.0.0.1:5021': not a device path nor a URL"),
     "missing plan": ({}, ["--plan", "no/such/plan.toml"], 2, "plan no/such/plan.toml: cannot be read"),
     "unknown letter": ({}, ["--experiments", "a,z"], 2, "has no experiment z"),
     "zero periods": ({}, ["--periods", "0"], 2, "--periods: 0: must be at least 1"),
@@ -86,6 +87,11 @@ def test_a_misspelt_key_in_a_plan_is_refused(tmp_path):
     r, out = rig_run(tmp_path, "--plan", str(plan))
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert f"plan {plan}, experiment 1: unknown key period (known: " in r.stderr, r.stderr
+    assert not out.exists()
+    plan.write_text('ordr = "thermal"\n[[experiment]]\nlabel = "x"\nstatic_mm = 133\namplitude_mm = 5\n'
+                    'frequency_Hz = 2\n')
+    r, out = rig_run(tmp_path, "--plan", str(plan))
+    assert r.returncode == 2 and f"plan {plan}: unknown key 'ordr' (did you mean 'order'?)" in r.stderr
     assert not out.exists()
 
 

@@ -9,6 +9,7 @@ rig.settling, which works from identify's compiled model.
 from __future__ import annotations
 
 import math
+import tomllib
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -17,7 +18,7 @@ import pytest
 from identify.model import load_model
 from identify.parameters import Parameters
 from identify.plans import STANDARD_SET, ExperimentSpec, select
-from rig.config import SteadyStateCriteria, load_rig_config
+from rig.config import DEFAULT_RIG_CONFIG, ConfigError, SteadyStateCriteria, load_rig_config, steady_state_from_table
 from rig.criterion import bias_bound
 from rig.daq import CHANNELS
 from rig.plans import Plan, estimate_duration_s, estimate_experiment_durations, load_plan
@@ -26,8 +27,9 @@ from simulator.controller import ShakerController, State
 from simulator.physics import Actuator, StreamingPlant
 from simulator.truth import load_truth
 
-DRIFT = load_rig_config()       # the default: the drift criterion (rig.criterion)
-CONFIG = replace(DRIFT, steady_state=replace(DRIFT.steady_state, criterion="change", drift=None))
+CONFIG = load_rig_config()      # the default: the change criterion
+DRIFT = replace(CONFIG, steady_state=steady_state_from_table(   # the drift criterion (rig.criterion)
+    {**tomllib.loads(DEFAULT_RIG_CONFIG.read_text())["steady_state"], "criterion": "drift"}, "drift", ConfigError))
 REFERENCE_RATE_HZ = 500.0   # samples of the reference (block means of whole cycles do not need 2 kHz)
 CHUNK_S = 0.4               # plant blocks: short enough for its temperature iteration to converge
 
@@ -234,7 +236,8 @@ def test_thermal_order_session_estimate_within_10_percent_of_the_simulated_rig_t
 
 def test_thermal_order_is_quicker_than_the_listed_one_and_fixed_keeps_it():
     plan = load_plan("standard")
-    ordered = plan.ordered(DRIFT)
+    assert plan.ordered(DRIFT) == plan                # as listed unless asked
+    ordered = replace(plan, order="thermal").ordered(DRIFT)
     assert sorted(e.letter for e in ordered.experiments) == sorted(e.letter for e in plan.experiments)
     listed_s = estimate_duration_s(plan, DRIFT)
     assert estimate_duration_s(ordered, DRIFT) < listed_s - 60
@@ -248,9 +251,9 @@ def test_a_plan_file_pins_its_order_or_is_refused_with_one_line(tmp_path):
                    f"amplitude_mm = {e.amplitude_mm}\nfrequency_Hz = {e.frequency_hz}\n"
                    for e in select(STANDARD_SET, ["c", "j"]))
     path = tmp_path / "plan.toml"
-    path.write_text('order = "fixed"\n' + body)
-    assert [e.letter for e in load_plan(str(path)).ordered(DRIFT).experiments] == ["c", "j"]
     path.write_text(body)
+    assert [e.letter for e in load_plan(str(path)).ordered(DRIFT).experiments] == ["c", "j"]
+    path.write_text('order = "thermal"\n' + body)
     assert [e.letter for e in load_plan(str(path)).ordered(DRIFT).experiments] == ["j", "c"]
     path.write_text('order = "sideways"\n' + body)
     with pytest.raises(PlanError, match="order 'sideways' is not one of thermal, fixed"):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
+import os
 import queue
 import signal
 import sys
@@ -21,6 +22,7 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from rig.daq import check_daq_address
 from rig.errors import BadInput
 from rig.events import Event
 from rig.gui.browser import SessionBrowser
@@ -45,9 +47,10 @@ from rig.gui.station import (
     Station,
     session_options,
 )
+from rig.plans import load_plan
 from rig.qc.spec import load_spec
 from rig.run import EXIT_BAD_INPUT, RunOptions
-from rig.shaker import ShakerStatus
+from rig.shaker import ShakerAddress, ShakerStatus
 from rig.virtual import VirtualRig
 
 REDRAW_HZ = 30
@@ -75,6 +78,13 @@ class MainWindow(QtWidgets.QMainWindow):
         super().__init__()
         if args.simulate and (args.shaker or args.daq):
             raise BadInput("gui: either --simulate or --shaker/--daq, not both")
+        # What the command line names is checked as `rig run` checks it: a typo is one line
+        # and exit 2 before any window or simulator, not a message inside the window.
+        load_plan(args.plan).select([x.strip() for x in args.experiments.split(",")] if args.experiments else None)
+        if args.shaker:
+            ShakerAddress.parse(args.shaker)
+        if args.daq:
+            check_daq_address(args.daq)
         self.simulated: VirtualRig | None = None
         shaker, daq = args.shaker, args.daq
         if args.simulate:
@@ -433,6 +443,11 @@ class MainWindow(QtWidgets.QMainWindow):
 
 
 def run_gui(args: argparse.Namespace) -> int:
+    if (sys.platform.startswith("linux") and not os.environ.get("QT_QPA_PLATFORM")
+            and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))):
+        # Qt would abort the process (exit 134) with a page about platform plugins.
+        raise BadInput("gui: no display (neither DISPLAY nor WAYLAND_DISPLAY is set): run it in a desktop "
+                       "session, or with QT_QPA_PLATFORM=offscreen for screenshots")
     app = application()
     window = MainWindow(args)
     # Ctrl-C or SIGTERM in the terminal close the window, which is a safe stop; the
