@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import atexit
 import json
+import os
 import re
 import signal
 import subprocess
@@ -27,7 +28,10 @@ class VirtualRig:
 
     def __init__(self, *, speed: float = 50.0, params: str | Path | dict[str, float] | None = None, seed: int = 1,
                  faults: Sequence[str] = (), daq: str = "tcp", rig: str = "shaker", modbus: str = "tcp",
-                 unit: str | None = None, unit_seed: int | None = None, extra_args: Sequence[str] = ()) -> None:
+                 unit: str | None = None, unit_seed: int | None = None, extra_args: Sequence[str] = (),
+                 nice: int = 0) -> None:
+        """``nice``: the simulator's lower scheduling priority, for a console that must stay
+        responsive on the machine that also plays the rig's hardware."""
         self._tmp = tempfile.TemporaryDirectory(prefix="virtual-rig-")
         if isinstance(params, dict):
             truth = Path(self._tmp.name) / "truth.json"
@@ -44,7 +48,8 @@ class VirtualRig:
             cmd += ["--fault", fault]
         cmd += list(extra_args)
         self.command = cmd
-        self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+        self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                                      preexec_fn=(lambda: os.nice(nice)) if nice else None)
         # Stopped with this program even when nobody called stop() (a failing test, an
         # exception in a window): an orphaned simulator would hold its ports and a core.
         atexit.register(self.stop)

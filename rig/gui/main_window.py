@@ -58,6 +58,7 @@ DRAIN_MAX = 5000                 # records taken from the queue per tick, so a f
 LOGGED_EVENTS = ("session-start", "phase", "experiment-done", "experiment-failed", "alarm", "log", "session-end")
 ESTOP_KEYS = ("Esc", "F12")
 GIL_SWITCH_S = 0.0005
+SIMULATOR_NICE = 5
 
 
 def application() -> QtWidgets.QApplication:
@@ -88,7 +89,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.simulated: VirtualRig | None = None
         shaker, daq = args.shaker, args.daq
         if args.simulate:
-            self.simulated = VirtualRig(speed=args.speed, params=args.params, faults=list(args.fault))
+            # The simulated hardware yields the CPU to the console, as real hardware would not need it.
+            self.simulated = VirtualRig(speed=args.speed, params=args.params, faults=list(args.fault),
+                                        nice=SIMULATOR_NICE)
             shaker, daq = self.simulated.modbus_url, self.simulated.daq_url
         self.queue: queue.Queue[object] = queue.Queue()
         try:
