@@ -94,7 +94,7 @@ def _progress(console, params: Parameters, estimate: list[str]):
 def run_fit(args: argparse.Namespace) -> int:
     from rich.console import Console
 
-    console = Console(stderr=True)
+    console = Console(stderr=True, soft_wrap=True)   # log lines unbroken when stderr is a file
     model = load_model(args.model)
     outputs = resolve_outputs(model, _csv_list(args.outputs))
     labels = _chosen_labels(args.dataset, args.experiments)
@@ -106,7 +106,8 @@ def run_fit(args: argparse.Namespace) -> int:
     params.copy().set_estimated(estimate)  # names checked before the (slower) folding
     n, oversample, notes = choose_grid(model, ds.select(labels), outputs, args.n, args.scheme, args.oversample)
     grid = Grid(n, args.scheme, oversample=oversample)
-    console.print(f"fitting {', '.join(estimate)} of model {model.name} on {len(labels)} experiments "
+    plural = "s" if len(labels) != 1 else ""
+    console.print(f"fitting {', '.join(estimate)} of model {model.name} on {len(labels)} experiment{plural} "
                   f"({grid.scheme}, n = {grid.n})", highlight=False)
     for note in notes:
         console.print(f"  {note}", highlight=False)
@@ -260,7 +261,7 @@ def run_compare(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    console = Console(stderr=True)
+    console = Console(stderr=True, soft_wrap=True)   # log lines unbroken when stderr is a file
     labels = _chosen_labels(args.dataset, args.experiments)
     column = "stroke_mm"
     fits: dict[str, FitResult] = {}
@@ -339,7 +340,7 @@ def run_batch(args: argparse.Namespace) -> int:
 
     from identify import batch
 
-    console = Console(stderr=True)
+    console = Console(stderr=True, soft_wrap=True)   # log lines unbroken when stderr is a file
     named = list(args.sessions) + (batch.read_session_list(args.list) if args.list else [])
     sessions = batch.check_sessions(named)
     settings = batch.FitSettings.resolve(args.model, args.params, _csv_list(args.estimate) or [], n=args.n,

@@ -290,7 +290,7 @@ class FitResult:
             E = float(len(self.experiments))
             what, units, effective = self.residual_units or ("experiments", E, E)
             draw = ("each experiment's misfit" if what == "experiments" else
-                    "the misfit at each frequency line (a random-phase multisine's other realisations)")
+                    "the misfit at each excited frequency line of the records")
             count = (f"{units:.0f} {what}" if units == effective else
                      f"{units:.0f} {what}, the misfit carried by an effective {effective:.2g} of them")
             lines.append(f"    * residual-based σ: the residuals exceed the measurement noise (see warnings), and "

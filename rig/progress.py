@@ -24,8 +24,9 @@ class ConsoleProgress:
         self.total, self.done, self.done_s = len(estimates_s), 0, 0.0
         self.started = time.monotonic()
         self._captured = 0.0
-        console.print(f"session: {self.total} experiments, about {sum(estimates_s.values()) / 60:.0f} min of rig time",
-                      highlight=False)
+        plural = "s" if self.total != 1 else ""
+        console.print(f"session: {self.total} experiment{plural}, about {sum(estimates_s.values()) / 60:.0f} min of "
+                      "rig time", highlight=False)
 
     def _eta(self) -> str:
         if not self.done_s:
