@@ -345,7 +345,11 @@ class MainWindow(QtWidgets.QMainWindow):
             if item.kind in LOGGED_EVENTS:
                 self._log_event(item)
         elif isinstance(item, Snapshot):
+            was = self.status
             self.status = item.status
+            if item.status is not None and item.status.state == "ALARM" and (was is None or was.state != "ALARM"):
+                # A trip outside a session (a manual sine) has no acquisition event to log it.
+                self._say(f"controller tripped: {item.status.alarm}", "error")
             self.controller.show_snapshot(item)
             self.live.show_health(item)
             self._show_banner(item.error)
