@@ -18,7 +18,7 @@ def axis_label(column: str) -> str:
 
 def write_figures(result: FitResult, folder: Path) -> list[Path]:
     """Write ``fit_<output>.png`` (measured vs predicted over the phase of each experiment),
-    ``residuals.png`` (mean ± 2σ of the primary output per experiment) and, for
+    ``residuals.png`` (mean ± 2σ of each fitted output per experiment) and, for
     multisine records, ``frf_<output>.png`` (frequency response at the excited lines)."""
     import matplotlib
 
@@ -52,14 +52,17 @@ def write_figures(result: FitResult, folder: Path) -> list[Path]:
     broadband = [e for e in exps if e.inputs and excited_lines(_first(e.inputs)).size >= MULTISINE_LINES]
     for out in result.outputs if broadband else []:
         written.append(_frf_figure(result, out, broadband, folder / f"frf_{out}.png"))
-    primary = result.outputs[0]
-    stats = np.array([e.stats(primary) for e in exps])
-    fig, ax = plt.subplots(figsize=(max(4, 0.5 * len(exps) + 2), 3))
+    outputs = result.outputs
+    fig, axes = plt.subplots(len(outputs), 1, figsize=(max(4, 0.5 * len(exps) + 2), 0.4 + 2.6 * len(outputs)),
+                             sharex=True, squeeze=False)
     x = np.arange(len(exps))
-    ax.errorbar(x, stats[:, 0], yerr=2 * stats[:, 1], fmt="o", capsize=3)
-    ax.axhline(0, color="k", lw=0.5)
-    ax.set_xticks(x, [e.label for e in exps], rotation=60, fontsize=7)
-    ax.set_ylabel(f"residual {axis_label(primary)}, mean ± 2σ")
+    for ax, out in zip(axes[:, 0], outputs, strict=True):
+        stats = np.array([e.stats(out) for e in exps])
+        ax.errorbar(x, stats[:, 0], yerr=2 * stats[:, 1], fmt="o", capsize=3)
+        ax.axhline(0, color="k", lw=0.5)
+        ax.set_ylabel(f"residual {axis_label(out)}\nmean ± 2σ", fontsize=8)
+    axes[-1, 0].set_xticks(x, [e.label for e in exps], rotation=60, fontsize=7)
+    axes[-1, 0].set_xlabel("experiment", fontsize=8)
     fig.tight_layout()
     path = folder / "residuals.png"
     fig.savefig(path, dpi=110)
