@@ -28,6 +28,7 @@ from identify.errors import InputError
 from rig.config import load_rig_config
 from rig.daq import Calibration, Daq
 from rig.errors import BadInput, RigFault
+from rig.plans import comma_list
 from rig.qc.cli import add_parser as add_qc_parser
 from rig.registers import load_register_map
 from rig.run import (
@@ -52,10 +53,6 @@ def _positive_int(text: str) -> int:
     return value
 
 
-def _csv(text: str | None) -> list[str] | None:
-    return [x.strip() for x in text.split(",") if x.strip()] if text else None
-
-
 def _shaker(args: argparse.Namespace) -> Shaker:
     """A connection for one manual command.  Nothing feeds the watchdog once the command
     returns, so manual commands switch it off; ``run`` switches it on again."""
@@ -70,10 +67,11 @@ def cmd_run(args: argparse.Namespace) -> int:
     if not args.resume and not (args.shaker and args.daq):
         raise BadInput("run: --shaker and --daq are needed (only --resume takes them from the session)")
     opt = RunOptions(plan=args.plan, shaker=args.shaker, daq=args.daq, out=Path(args.out),
-                     experiments=_csv(args.experiments), periods=args.periods, order=args.order, resume=args.resume,
+                     experiments=comma_list(args.experiments), periods=args.periods, order=args.order,
+                     resume=args.resume,
                      reset_alarm=args.reset_alarm, identify=args.identify, on_alarm=args.on_alarm,
                      rig_config=args.rig_config, calibration=args.calibration, register_map=args.register_map,
-                     model=args.model, params=args.params, estimate=_csv(args.estimate) or [], date=args.date,
+                     model=args.model, params=args.params, estimate=comma_list(args.estimate) or [], date=args.date,
                      unit_serial=args.unit)
     return run_session(opt)
 

@@ -69,6 +69,11 @@ class Plan:
         return replace(self, experiments=tuple(replace(e, periods=periods) for e in self.experiments))
 
 
+def comma_list(text: str | None) -> list[str] | None:
+    """A comma-separated list as typed (``a, h,`` -> ['a', 'h']); None when it names nothing."""
+    return [x.strip() for x in text.split(",") if x.strip()] or None if text else None
+
+
 def load_plan(source: str) -> Plan:
     """``standard`` or the path of a plan TOML file.  A QC spec is a plan file with more
     tables (it checks its own keys), so a top-level key is refused only when it is a near

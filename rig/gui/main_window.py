@@ -47,7 +47,7 @@ from rig.gui.station import (
     Station,
     session_options,
 )
-from rig.plans import load_plan
+from rig.plans import comma_list, load_plan
 from rig.qc.spec import load_spec
 from rig.run import EXIT_BAD_INPUT, RunOptions
 from rig.shaker import ShakerAddress, ShakerStatus
@@ -81,7 +81,7 @@ class MainWindow(QtWidgets.QMainWindow):
             raise BadInput("gui: either --simulate or --shaker/--daq, not both")
         # What the command line names is checked as `rig run` checks it: a typo is one line
         # and exit 2 before any window or simulator, not a message inside the window.
-        load_plan(args.plan).select([x.strip() for x in args.experiments.split(",")] if args.experiments else None)
+        load_plan(args.plan).select(comma_list(args.experiments))
         if args.shaker:
             ShakerAddress.parse(args.shaker)
         if args.daq:

@@ -16,7 +16,7 @@ from rig.daq import CHANNELS
 from rig.events import Event
 from rig.gui import analysis
 from rig.gui.plan_state import ExperimentRow, PlanProgress
-from rig.plans import Plan, load_plan
+from rig.plans import Plan, comma_list, load_plan
 
 STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "skipped": "#ffe0b2", "interrupted": "#ffe0b2",
                   "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb", "stopping": "#e3f2fd"}
@@ -168,7 +168,7 @@ class PlanPanel(QtWidgets.QWidget):
 
     # ----- choosing --------------------------------------------------------------------------------
     def letters(self) -> list[str] | None:
-        return [x.strip() for x in self.experiments.text().split(",") if x.strip()] or None
+        return comma_list(self.experiments.text())
 
     def new_folder(self) -> None:
         stamp = _dt.datetime.now().strftime("%y%m%d-%H%M%S")
