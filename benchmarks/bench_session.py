@@ -1,5 +1,6 @@
-"""Rig time of the standard session: today's criterion in the listed order against the
-drift criterion in the thermal order, and the latter with lost samples on the line.
+"""Rig time of the standard session: the change criterion with direct moves (before the
+rig-time work) against the shipped default, the drift criterion with model-planned
+conditioning holds (rig/settling.py), and the latter with lost samples on the line.
 
 Runs on the in-process virtual rig on simulated time (tests/virtual_rig_inprocess.py:
 the rig package's drivers against the simulator, nominal truth, its fixed seed), which
@@ -28,13 +29,15 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-CASES = {
-    "today": ("change", "fixed", []),
-    "new": ("drift", "thermal", []),
-    "new+faults": ("drift", "thermal", ["corrupt=0.001", "drop=0.0005"]),
-    "change+order": ("change", "thermal", []),
+CASES = {   # criterion, order, faults, conditioning holds
+    "today": ("change", "fixed", [], False),           # the criterion and lead-in before rig-time work
+    "new": ("drift", "fixed", [], True),               # the shipped default
+    "new+faults": ("drift", "fixed", ["corrupt=0.001", "drop=0.0005"], True),
+    "change+holds": ("change", "fixed", [], True),
+    "drift": ("drift", "fixed", [], False),
+    "drift+thermal": ("drift", "thermal", [], False),
     # the drift bound of a fast decay falls without end: the change criterion holds
-    "hold": ("change", "fixed", []),
+    "hold": ("change", "fixed", [], False),
 }
 SIDE_BY_SIDE = ("today", "new", "new+faults")
 ESTIMATE = ["theta4", "theta6", "theta16"]
@@ -45,13 +48,14 @@ def run_case(name: str, hold_cycles: int, out: Path) -> dict:
     """One session in this process; returns its figures (JSON-able)."""
     from rich.console import Console
 
-    from identify.plans import STANDARD_SET
     from rig.config import DEFAULT_RIG_CONFIG
     from rig.run import Links, RunOptions, SessionRunner, fit_session, prepare, session_estimates_s
     from tests.virtual_rig_inprocess import DAQ_URL, SHAKER_URL, InProcessRig
 
-    criterion, order, faults = CASES[name]
+    criterion, order, faults, holds = CASES[name]
     text = re.sub(r'(?m)^criterion = "\w+"', f'criterion = "{criterion}"', DEFAULT_RIG_CONFIG.read_text())
+    if not holds:
+        text = re.sub(r'(?m)^max_hold_s = .*$', "max_hold_s = 0.0", text)
     if hold_cycles:   # thresholds that are never met: the experiment is held to max_cycles
         text = text.replace("max_cycles = 1500", f"max_cycles = {hold_cycles}").replace(
             "stroke_mm = 0.02", "stroke_mm = 0.0")
@@ -65,13 +69,11 @@ def run_case(name: str, hold_cycles: int, out: Path) -> dict:
         letters = ["a"] if hold_cycles else None
         prep = prepare(RunOptions(plan="standard", shaker=SHAKER_URL, daq=DAQ_URL, out=out / "session",
                                   experiments=letters, rig_config=str(config), date="261122"))
-        if order == "fixed":
-            prep = replace(prep, plan=replace(prep.plan, experiments=tuple(
-                e for e in STANDARD_SET if e.letter in {x.letter for x in prep.plan.experiments})))
+        prep = replace(prep, plan=replace(prep.plan, order=order).ordered(prep.config))
         runner = SessionRunner(prep, Links(rig.shaker, rig.daq, rig.identity, None), rig.bus,
                                Console(file=io.StringIO()))
         session = runner.open_session()
-        eta = sum(session_estimates_s(prep, session, rig.shaker.status().position_m).values())
+        eta = sum(session_estimates_s(prep, session, rig.shaker.status().position_m, runner.probe_pace()).values())
         t0 = rig.clock.monotonic()
         result = runner.run(session)
         taken = rig.clock.monotonic() - t0

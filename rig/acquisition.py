@@ -29,6 +29,7 @@ from rig.criterion import bias_bound
 from rig.daq import CHANNELS, Daq, Samples
 from rig.errors import RigFault
 from rig.events import EventBus, Phase
+from rig.settling import Hold, move_duration_s
 from rig.shaker import AlarmError, Shaker, ShakerTimeout
 
 POLL_S = 0.05
@@ -38,6 +39,14 @@ POLL_S = 0.05
 HARMONICS_IN_BLOCK_MEAN = 12
 MAX_LOST_IN_BLOCK = 0.2
 QUICK_RECONNECT_S = 0.5
+MOVE_TIMEOUT_S = 30.0           # beyond twice the move profile's duration: the controller is stuck
+# A hold ends on the gas temperature of a line fitted through this much of the stream,
+# or at the model's duration times this factor plus the margin, whichever comes first.
+HOLD_TEMPERATURE_FIT_S = 0.25
+HOLD_CAP_FACTOR = 2.0
+HOLD_CAP_MARGIN_S = 5.0
+PACE_PROBE_S = 0.2             # of this clock, streaming, to measure the links' pace
+ARRIVED_MM = 0.2                # the stroke channel this near a static position: there (noise 0.01 mm)
 
 
 class AcquisitionError(RigFault):
@@ -168,9 +177,12 @@ class Acquisition:
         if self.stop_requested.is_set():
             raise Interrupted()
 
-    def run_experiment(self, spec: ExperimentSpec, label: str) -> ExperimentRecord:
-        """Capture one experiment; raises :class:`AlarmError`, :class:`Interrupted`,
-        :class:`AcquisitionError` or a link error, leaving the shaker to :meth:`safe_stop`."""
+    def run_experiment(self, spec: ExperimentSpec, label: str, hold: Hold | None = None,
+                       time_constant_s: float | None = None) -> ExperimentRecord:
+        """Capture one experiment (by way of a conditioning ``hold``, if given;
+        ``time_constant_s``: the gas's relaxation the model predicts there); raises
+        :class:`AlarmError`, :class:`Interrupted`, :class:`AcquisitionError` or a link
+        error, leaving the shaker to :meth:`safe_stop`."""
         # A stop asked between experiments (an operator's E-STOP switched the hydraulics off)
         # must not be answered by switching them on again for the next one.
         self._check_stop()
@@ -182,18 +194,22 @@ class Acquisition:
             raise AlarmError(st)
         if st.state == "OFF":
             self.shaker.hydraulics(True)
-        self.shaker.move_to(static)
-        timeout = 30.0 + math.pi * abs(static - st.position_m) / (2 * 0.05) * 2
-        self._wait_state({"AT_STATIC"}, timeout)
+        position = st.position_m
+        lost0 = self.daq.counters.lost_samples   # the hold's stream and the experiment's
+        if hold is not None:
+            self._hold(hold, label, position, static)
+            position = hold.position_m
+        else:
+            self.shaker.move_to(static)
+        self._wait_state({"AT_STATIC"}, MOVE_TIMEOUT_S + 2 * move_duration_s(static - position))
         self._check_stop()
 
         self._enter(Phase.SETTLING, label)
         self._recorder = recorder = Recorder()
-        lost0 = self.daq.counters.lost_samples
         self.daq.start()
         self.shaker.run(static, amp, spec.frequency_hz, spec.waveform, ss.ramp_time_s)
         try:
-            record = self._settle_and_capture(spec, label, recorder)
+            record = self._settle_and_capture(spec, label, recorder, time_constant_s)
         finally:
             issued = self.daq.stop()
             self._recorder = None
@@ -207,6 +223,96 @@ class Acquisition:
         self._enter(Phase.IDLE, label)
         return record
 
+    def _hold(self, hold: Hold, label: str, from_m: float, then_m: float) -> None:
+        """The conditioning hold (the stroke coming from ``from_m``), then the move on to ``then_m``.
+
+        The hold ends when the measured gas temperature reaches the one the model says
+        brings the gas to the experiment's periodic state: a fixed time would land
+        tenths of a kelvin off, the controller's and the link's latencies being a good
+        part of a short hold.  So the DAQ streams from before the move, arrival is read
+        off the stroke channel (not a status poll), a crossing due before the next look
+        is waited for on the temperature's line, and the move on is commanded at once.
+        The gas temperature measured up to that command is logged.  Bounded,
+        in the DAQ's samples (the rig's own time at any link speed), should the damper
+        not follow the model; the steady-state criterion decides the rest either way."""
+        target_c = hold.end_temperature_k - 273.15
+        self.bus.publish("log", label, message=f"conditioning: holding at {hold.position_m * 1e3:.1f} mm until the "
+                                               f"gas is at {target_c:.2f} °C (model: {hold.duration_s:.1f} s)")
+        rate = self.daq.rate_hz
+        side = math.copysign(1.0, hold.arrival_temperature_k - hold.end_temperature_k)
+        tail, step = round(HOLD_TEMPERATURE_FIT_S * rate), max(1, round(POLL_S * rate))
+        gas = CHANNELS.index("gas_temperature_C")
+        self._recorder = rec = Recorder()
+        self.daq.start()
+        t0 = self.clock.monotonic()
+        try:
+            self.shaker.move_to(hold.position_m)
+            arrived = self._wait_for_stroke(rec, hold.position_m, label,
+                                            MOVE_TIMEOUT_S + 2 * move_duration_s(hold.position_m - from_m))
+            cap = arrived + round((HOLD_CAP_FACTOR * hold.duration_s + HOLD_CAP_MARGIN_S) * rate)
+            while rec.end < cap:
+                self._wait_samples(rec, min(rec.end + step, cap), label)
+                end = rec.end
+                if end - arrived < tail:
+                    continue
+                values, present, _ = rec.window(end - tail, end)
+                rec.forget_before(end - tail)
+                if np.count_nonzero(present) < tail // 2:
+                    continue    # a hole in the stream: the next poll reads on
+                t = np.flatnonzero(present) - (tail - 1)
+                slope, now_c = np.polyfit(t, values[present, gas], 1)
+                if (now_c - target_c) * side <= 0:
+                    break
+                to_go = (target_c - now_c) / slope / rate if slope else math.inf
+                pace = end / rate / max(self.clock.monotonic() - t0, 1e-9)   # rig seconds per clock second
+                if 0 <= to_go < POLL_S * pace:
+                    self.clock.sleep(to_go / pace)
+                    break
+            self.shaker.move_to(then_m)
+            left = rec.end
+            values, present, _ = rec.window(max(left - tail, rec.base, arrived), left)
+        finally:
+            self.daq.stop()
+            self._recorder = None
+        t = np.flatnonzero(present)
+        left_c = np.polyval(np.polyfit(t - t[-1], values[present, gas], 1), 0.0) if len(t) > 1 else math.nan
+        self.bus.publish("log", label, message=f"conditioning: the gas was at {left_c:.2f} °C (wanted "
+                                               f"{target_c:.2f} °C) when the move on was commanded, after "
+                                               f"{(left - arrived) / rate:.1f} s at {hold.position_m * 1e3:.1f} mm")
+
+    def _wait_for_stroke(self, rec: Recorder, position_m: float, label: str, timeout_s: float) -> int:
+        """Index of the first sample whose stroke is at ``position_m`` (within
+        ARRIVED_MM); AcquisitionError after ``timeout_s`` of the rig's time without."""
+        column, rate = CHANNELS.index("stroke_mm"), self.daq.rate_hz
+        looked, limit = 0, rec.end + round(timeout_s * rate)
+        while True:
+            self._wait_samples(rec, min(rec.end + 1, limit), label)
+            values, present, _ = rec.window(max(looked, rec.base), rec.end)
+            near = np.abs(values[:, column] - position_m * 1e3) <= ARRIVED_MM
+            hit = np.flatnonzero(present & near)
+            if len(hit):
+                return max(looked, rec.base) + int(hit[0])
+            looked = rec.end
+            if looked >= limit:
+                raise AcquisitionError(f"experiment {label}: the stroke did not reach {position_m * 1e3:.1f} mm "
+                                       f"within {timeout_s:.0f} s")
+
+    def measure_pace(self) -> float:
+        """Rig seconds per second of this clock: 1 on a rig, the speed of a simulator
+        that runs faster than its time (from a short stream of the DAQ's samples; its
+        count, and what the line lost of it, are logged)."""
+        lost0 = self.daq.counters.lost_samples
+        self.daq.start()
+        t0 = self.clock.monotonic()
+        self.clock.sleep(PACE_PROBE_S)
+        elapsed = self.clock.monotonic() - t0
+        issued = self.daq.stop()
+        pace = max(1.0, issued / self.daq.rate_hz / max(elapsed, 1e-9))
+        self.bus.publish("log", None, message=f"pace probe: {issued} samples taken, "
+                                              f"{self.daq.counters.lost_samples - lost0} lost in the stream; "
+                                              f"the links run {pace:.3g} rig seconds per second")
+        return pace
+
     def _wait_state(self, states: set[str], timeout_s: float) -> None:
         """Wait for a controller state in short slices, so that Ctrl-C is honoured."""
         deadline = self.clock.monotonic() + timeout_s
@@ -219,7 +325,8 @@ class Acquisition:
                 if self.clock.monotonic() > deadline:
                     raise
 
-    def _settle_and_capture(self, spec: ExperimentSpec, label: str, rec: Recorder) -> ExperimentRecord:
+    def _settle_and_capture(self, spec: ExperimentSpec, label: str, rec: Recorder,
+                            time_constant_s: float | None) -> ExperimentRecord:
         ss, rate = self.config.steady_state, self.daq.rate_hz
         spp = rate / spec.frequency_hz                       # samples per period
         start = int(math.ceil((ss.ramp_time_s + 0.5) * rate))  # after the fade-in (+ the actuator's lag)
@@ -249,7 +356,7 @@ class Acquisition:
                 history = (history + [means[fitted]])[-drift.fit_cycles:]
                 if len(history) >= 4:
                     fit = bias_bound(drift, tuple(drift.noise), np.array(history), m / spec.frequency_hz, m * spp,
-                                     spec.periods / m)
+                                     spec.periods / m, time_constant_s)
                     # the cycle-to-cycle change too: what the console and the GUI show of settling
                     change = np.abs(means - prev_means) if prev_means is not None else np.full(len(CHANNELS), np.nan)
                     self.bus.publish("progress", label, phase=Phase.SETTLING.value, cycles=cycles,

@@ -98,7 +98,8 @@ class Session:
         self._folder = folder = runner.open_session()
         session_log = SessionLog(folder.path / "session.log")
         bus.subscribe(session_log, inline=True)
-        estimates = session_estimates_s(self._prepared, folder, links.shaker.status().position_m)
+        estimates = session_estimates_s(self._prepared, folder, links.shaker.status().position_m,
+                                        runner.probe_pace())
         folder.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
         if self._progress == "bar" or (self._progress == "auto" and _in_notebook()):
             bus.subscribe(ProgressBar(estimates))

@@ -63,8 +63,10 @@ def steady_state_from_table(ss: dict, where: str, error: type[BadInput]) -> Stea
         if criterion == "drift":
             noise = {str(k): float(v) for k, v in ss["drift_noise"].items()}
             drift = DriftCriterion(float(ss["drift_sigma_fraction"]), int(ss["drift_fit_cycles"]),
-                                   float(ss["drift_max_time_constant_s"]), noise)
+                                   float(ss["drift_max_time_constant_s"]), noise,
+                                   float(ss.get("drift_model_time_constant_factor", 0.0)))
             if not (drift.fraction > 0 and drift.fit_cycles >= 4 and drift.max_time_constant_s > 0 and noise
+                    and drift.model_time_constant_factor >= 0
                     and all(v > 0 for v in noise.values())):
                 raise error(f"{where}: drift_sigma_fraction, drift_max_time_constant_s and every drift_noise must be "
                             "positive, drift_fit_cycles at least 4")
@@ -84,6 +86,8 @@ class RigConfig:
     steady_state: SteadyStateCriteria
     reconnect_s: float = 20.0
     text: str = field(repr=False, default="")
+    max_hold_s: float = 0.0     # longest thermal conditioning hold before an experiment (0: none)
+    min_hold_s: float = 1.0     # shortest, on a link at the rig's own pace
 
 
 def load_rig_config(path: str | Path | None = None) -> RigConfig:
@@ -96,10 +100,15 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
         criteria = steady_state_from_table(ss, f"{path}: [steady_state]", ConfigError)
         rate = int(doc["daq"]["rate_Hz"])
         reconnect = float(doc.get("link", {}).get("reconnect_s", 20.0))
+        # A rig file from before conditioning existed runs as it did.
+        max_hold = float(doc.get("conditioning", {}).get("max_hold_s", 0.0))
+        min_hold = float(doc.get("conditioning", {}).get("min_hold_s", 1.0))
     except KeyError as exc:
         raise ConfigError(f"{path}: missing key {exc.args[0]!r}") from None
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: {exc}") from None
     if limits.stroke_low_m >= limits.stroke_high_m:
         raise ConfigError(f"{path}: [limits] stroke_low_mm must be below stroke_high_mm")
-    return RigConfig(str(path), limits, rate, criteria, reconnect, text)
+    if max_hold < 0 or min_hold <= 0:
+        raise ConfigError(f"{path}: [conditioning] max_hold_s must be 0 (no holds) or positive, min_hold_s positive")
+    return RigConfig(str(path), limits, rate, criteria, reconnect, text, max_hold, min_hold)

@@ -49,6 +49,20 @@ class DriftCriterion:
     fit_cycles: int                  # block means fitted with the geometric law (the latest ones)
     max_time_constant_s: float       # slowest thermal relaxation looked for: bounds r at low frequencies
     noise: dict[str, float]          # transducer noise per sample of each fitted channel (engineering units)
+    # the slowest relaxation looked for is at most this multiple of the damper model's
+    # prediction for the experiment (0: max_time_constant_s alone)
+    model_time_constant_factor: float = 0.0
+
+    def time_constant_range_s(self, model_time_constant_s: float | None) -> tuple[float, float]:
+        """The relaxations looked for: within the factor of the model's prediction, no
+        slower than max_time_constant_s.  The fastest matters as much as the slowest: a
+        large transient's first blocks decay faster than its tail (the ramp, the gas
+        far from its periodic state), and a fit free to take their pace reads the tail
+        as settled."""
+        f = self.model_time_constant_factor
+        if f > 0 and model_time_constant_s and math.isfinite(model_time_constant_s):
+            return model_time_constant_s / f, min(self.max_time_constant_s, f * model_time_constant_s)
+        return 0.0, self.max_time_constant_s
 
 
 @dataclass(frozen=True)
@@ -59,9 +73,9 @@ class DriftFit:
 
 
 def window_drift(means: np.ndarray, mean_std: np.ndarray, window_blocks: float,
-                 max_ratio: float = 1.0) -> tuple[float, np.ndarray, np.ndarray]:
+                 max_ratio: float = 1.0, min_ratio: float = 0.0) -> tuple[float, np.ndarray, np.ndarray]:
     """Fit y_k = y∞ + A r^k to consecutive block means (K, C), each channel's noise std
-    ``mean_std`` (C,), with r ≤ ``max_ratio`` per block.  Returns the fitted r, each
+    ``mean_std`` (C,), with ``min_ratio`` ≤ r ≤ ``max_ratio`` per block.  Returns the fitted r, each
     channel's mean departure from y∞ over the capture window (``window_blocks`` long,
     right after the last block), and its upper bound: over every r the data do not
     reject (residual within GUARD² of the best), the largest |A| + GUARD standard
@@ -74,7 +88,7 @@ def window_drift(means: np.ndarray, mean_std: np.ndarray, window_blocks: float,
     # Normal equations of [1, u] for every r at once (2×2, in closed form).
     s1, su, suu = float(count), u.sum(axis=1), (u * u).sum(axis=1)
     det = s1 * suu - su**2
-    ok = (det > 1e-12 * s1 * suu) & (RATIO_GRID <= max_ratio)
+    ok = (det > 1e-12 * s1 * suu) & (RATIO_GRID <= max_ratio) & (RATIO_GRID >= min_ratio)
     ty, tuy = y.sum(axis=0), u @ y                              # (C,), (R, C)
     with np.errstate(divide="ignore", invalid="ignore"):
         a = (s1 * tuy - su[:, None] * ty) / det[:, None]        # amplitude per r and channel
@@ -97,14 +111,17 @@ def window_drift(means: np.ndarray, mean_std: np.ndarray, window_blocks: float,
 
 
 def bias_bound(criterion: DriftCriterion, channels: tuple[str, ...], means: np.ndarray, block_s: float,
-               samples_per_block: float, window_blocks: float) -> DriftFit:
+               samples_per_block: float, window_blocks: float, model_time_constant_s: float | None = None
+               ) -> DriftFit:
     """The criterion on the latest block means (K, len(channels)) of the fitted channels,
-    blocks of ``block_s`` seconds (whole cycles), the capture window ``window_blocks`` long."""
+    blocks of ``block_s`` seconds (whole cycles), the capture window ``window_blocks`` long;
+    ``model_time_constant_s``: the gas's relaxation the damper model predicts."""
     sigma = np.array([criterion.noise[c] for c in channels])
     # A few blocks cannot tell a slow relaxation from a straight line; physics can: no
-    # gas relaxes slower than max_time_constant_s.
-    max_ratio = math.exp(-block_s / criterion.max_time_constant_s)
+    # gas relaxes slower than max_time_constant_s, nor much slower than the model says.
+    fastest, slowest = criterion.time_constant_range_s(model_time_constant_s)
     r, drift, upper = window_drift(means[-criterion.fit_cycles:], sigma / math.sqrt(samples_per_block),
-                                   window_blocks, max_ratio)
+                                   window_blocks, math.exp(-block_s / slowest),
+                                   math.exp(-block_s / fastest) if fastest > 0 else 0.0)
     z = upper * math.sqrt(window_blocks * samples_per_block) / sigma
     return DriftFit(r, drift, float(np.sqrt(np.sum(z**2))))

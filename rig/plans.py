@@ -17,7 +17,7 @@ from identify.parameters import Parameters
 from identify.plans import STANDARD_SET, ExperimentSpec
 from rig.config import RigConfig
 from rig.errors import BadInput
-from rig.settling import PAUSE_S, first_block_s, move_duration_s, predict_settling
+from rig.settling import PAUSE_S, Conditioning, Hold, first_block_s, move_duration_s, predict_settling
 from rig.shaker import check_waveform
 from rig.tomlfile import read_toml
 
@@ -132,38 +132,62 @@ class ExperimentDuration:
 
     letter: str
     pause_s: float        # at rest before it: commands, handshakes, writing the previous data
-    move_s: float         # to its static position (the controller's profile)
+    move_s: float         # to its static position (the controller's profile), by way of the hold
     lead_in_s: float      # RUN to the first comparison block (amplitude ramp + the acquisition's wait)
     settle_cycles: int    # predicted by rig.settling
     settle_s: float       # the comparison blocks until the criterion passes
     capture_s: float      # the captured periods
     fade_s: float         # the waveform faded out to the static position
+    hold: Hold | None = None   # the thermal conditioning hold on the way, if any
+    time_constant_s: float = math.nan   # the gas's relaxation there, predicted
 
     @property
     def total_s(self) -> float:
-        return self.pause_s + self.move_s + self.lead_in_s + self.settle_s + self.capture_s + self.fade_s
+        hold_s = self.hold.duration_s if self.hold else 0.0
+        return self.pause_s + self.move_s + hold_s + self.lead_in_s + self.settle_s + self.capture_s + self.fade_s
+
+
+def conditioning_for(plan: Plan, config: RigConfig, pace: float = 1.0) -> Conditioning | None:
+    """Where conditioning holds may go: within the stroke the plan's experiments sweep
+    anyway (and the rig's limits), so that a hold takes the damper nowhere new; and how
+    short a hold may be on a link that runs ``pace`` rig seconds per second (a simulator
+    at 50x): a hold ends on the measured temperature, which the acquisition sees and
+    answers a few tenths of a second late, tenths of a kelvin in a short hold and
+    fifty times as much, in the rig's time, at 50x."""
+    if config.max_hold_s <= 0 or not plan.experiments:
+        return None
+    low = min(e.static_position_mm - e.amplitude_mm for e in plan.experiments) * 1e-3
+    high = max(e.static_position_mm + e.amplitude_mm for e in plan.experiments) * 1e-3
+    return Conditioning((max(low, config.limits.stroke_low_m), min(high, config.limits.stroke_high_m)),
+                        config.max_hold_s, max(config.min_hold_s, config.min_hold_s * pace))
 
 
 def estimate_experiment_durations(plan: Plan, config: RigConfig, start_position_m: float = 0.0,
                                   params: Parameters | None = None, *, start_temperature_k: float | None = None,
-                                  pause_s: float | Sequence[float] = PAUSE_S) -> list[ExperimentDuration]:
+                                  pause_s: float | Sequence[float] = PAUSE_S, pace: float = 1.0
+                                  ) -> list[ExperimentDuration]:
     """Per experiment, in plan order, the rig time it will take when the plan runs from
     the damper resting at ``start_position_m`` (and ``start_temperature_k``, default
     ambient).  ``params``: the damper's parameters for the settling prediction
     (default: the 2-dof model's nominal values); ``pause_s``: the rig's time at rest
-    before each experiment (one for all, or one per experiment)."""
+    before each experiment (one for all, or one per experiment); ``pace``: the link's
+    rig seconds per second (see :func:`conditioning_for`)."""
     ss, rate = config.steady_state, config.daq_rate_hz
     settling = predict_settling(plan.experiments, ss, rate, params, start_position_m=start_position_m,
-                                start_temperature_k=start_temperature_k, pause_s=pause_s)
+                                start_temperature_k=start_temperature_k, pause_s=pause_s,
+                                conditioning=conditioning_for(plan, config, pace))
     pauses = np.broadcast_to(np.asarray(pause_s, dtype=float), len(plan.experiments))
     out, position = [], start_position_m
     for e, s, pause in zip(plan.experiments, settling, pauses, strict=True):
         static = e.static_position_mm * 1e-3
         samples_per_period = rate / e.frequency_hz
         # Blocks and the capture are whole samples, as the acquisition cuts them.
-        out.append(ExperimentDuration(e.letter, float(pause), move_duration_s(static - position),
+        move_s = (move_duration_s(s.hold.position_m - position) + move_duration_s(static - s.hold.position_m)
+                  if s.hold else move_duration_s(static - position))
+        out.append(ExperimentDuration(e.letter, float(pause), move_s,
                                       first_block_s(ss, rate), s.cycles, round(s.cycles * samples_per_period) / rate,
-                                      math.ceil(e.periods * samples_per_period) / rate, ss.ramp_time_s))
+                                      math.ceil(e.periods * samples_per_period) / rate, ss.ramp_time_s, s.hold,
+                                      s.time_constant_s))
         position = static
     return out
 

@@ -28,6 +28,7 @@ import shlex
 import signal
 import threading
 from collections.abc import Callable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -43,7 +44,7 @@ from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq, check_daq_address
 from rig.errors import RigError, RigFault
 from rig.events import EventBus
-from rig.plans import Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
+from rig.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
 from rig.progress import ConsoleProgress
 from rig.registers import RegisterMap, load_register_map
 from rig.session import Session, SessionError, SessionLog
@@ -238,6 +239,9 @@ class SessionRunner:
     def __init__(self, prep: Prepared, links: Links, bus: EventBus, console: Console) -> None:
         self.prep, self.links, self.bus, self.console = prep, links, bus, console
         self.state = "connected"
+        self.pace: float | None = None     # rig seconds per second of the links (probe_pace)
+        self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="session-writer")
+        self._writing: tuple[str, ExperimentRecord, Future[Experiment]] | None = None
         # One time line for the rig: the acquisition waits on the shaker's clock (the wall
         # clock, or a simulated one when a test drives an in-process simulator).
         self.acquisition = Acquisition(links.shaker, links.daq, prep.config, bus, links.shaker.clock)
@@ -263,6 +267,12 @@ class SessionRunner:
         self.links.daq.attach_journal(session.journal_path)
         return session
 
+    def probe_pace(self) -> float:
+        """The links' rig seconds per second (measured once, with the session's log on)."""
+        if self.pace is None:
+            self.pace = self.acquisition.measure_pace()
+        return self.pace
+
     def run(self, session: Session) -> RunResult:
         prep, bus, acq = self.prep, self.bus, self.acquisition
         todo = [e for e in prep.plan.experiments if e.letter not in session.completed()]
@@ -278,11 +288,19 @@ class SessionRunner:
                                        f"({', '.join(kept) or 'none'}), {len(todo)} to do")
         self.state = "running"
         reason = "end of session"
+        planned = {d.letter: d for d in session_durations(prep, session, self.links.start_position_m,
+                                                          self.probe_pace())}
+        previous = ""
         try:
             with _interrupt_on_signals(acq.stop_requested) as received:
                 try:
                     for spec in todo:
-                        self._experiment(spec, session, result)
+                        # A hold is planned from the periodic state the experiment before
+                        # leaves: after one skipped on an alarm, the gas is elsewhere.
+                        after_skip = bool(result.skipped) and result.skipped[-1] == previous
+                        self._experiment(spec, session, result, planned[spec.letter], after_skip)
+                        previous = session.label(spec.letter)
+                    self._written(result)
                 except Interrupted:
                     name = signal.Signals(received[-1]).name if received else "SIGINT"
                     reason = f"interrupted by the operator ({name})"
@@ -303,6 +321,11 @@ class SessionRunner:
                         result.status = "complete"
                 self.state = "stopping"
                 result.safe_stop_failures = acq.safe_stop(reason)
+                if self._writing is not None:     # an experiment captured before the session ended
+                    try:
+                        self._written(result)
+                    except Exception as exc:  # noqa: BLE001 — the status says what was lost
+                        result.status += f"; {self._writing[0]} was captured but could not be written ({exc})"
         finally:
             if result.status == "running":  # only a failure inside the safe stop itself gets here
                 result.status, result.exit_code = "aborted: the safe stop failed", EXIT_INTERNAL
@@ -318,10 +341,12 @@ class SessionRunner:
             bus.publish("session-end", message=result.status)
         return result
 
-    def _experiment(self, spec: Any, session: Session, result: RunResult) -> None:
+    def _experiment(self, spec: Any, session: Session, result: RunResult, planned: ExperimentDuration,
+                    after_skip: bool) -> None:
         label = session.label(spec.letter)
         try:
-            record: ExperimentRecord = self.acquisition.run_experiment(spec, label)
+            record: ExperimentRecord = self.acquisition.run_experiment(
+                spec, label, None if after_skip else planned.hold, planned.time_constant_s)
         except AlarmError as exc:
             self.bus.publish("alarm", label, message=str(exc))
             if self.prep.options.on_alarm != "skip":
@@ -336,7 +361,22 @@ class SessionRunner:
             result.skipped.append(label)
             self.bus.publish("experiment-failed", label, message=f"{label} skipped after the alarm ({exc})")
             return
-        experiment = session.write_experiment(record)
+        # Written while the next experiment moves and settles: at rest between
+        # experiments the gas cools (on a simulator at 50x, the second a CSV takes to
+        # write is 50 s of the rig's time).  One write at a time, each on disk before the
+        # next is handed over and before the session ends.
+        self._written(result)
+        self._writing = (label, record, self._writer.submit(session.write_experiment, record))
+
+    def _written(self, result: RunResult) -> None:
+        """Wait for the experiment being written; it is then captured (raises what the write raised)."""
+        if self._writing is None:
+            return
+        label, record, future = self._writing
+        try:
+            experiment = future.result()
+        finally:
+            self._writing = None
         result.captured.append(experiment)
         self.bus.publish("experiment-done", label, file=experiment.file, samples=len(record.index),
                          lost=record.lost_samples, flags=record.flags)
@@ -397,7 +437,7 @@ def execute(prep: Prepared, console: Console) -> RunResult:
         session = runner.open_session()
         log = SessionLog(session.path / "session.log")
         bus.subscribe(log, inline=True)
-        estimates = session_estimates_s(prep, session, links.start_position_m)
+        estimates = session_estimates_s(prep, session, links.start_position_m, runner.probe_pace())
         # On record, so that the estimate can be checked against what the session took.
         session.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
         bus.subscribe(ConsoleProgress(console, estimates))
@@ -410,14 +450,22 @@ def execute(prep: Prepared, console: Console) -> RunResult:
     return result
 
 
-def session_estimates_s(prep: Prepared, session: Session, start_position_m: float) -> dict[str, float]:
-    """Rig time per experiment still to do, in plan order: each starts where the one
-    before it leaves the actuator and the gas (rig.settling), which is what makes the
-    standard session's settling, most of its time, predictable.  The damper is taken
-    as nominal: an identification's start file is a guess meant to be off."""
+def session_durations(prep: Prepared, session: Session, start_position_m: float,
+                      pace: float = 1.0) -> list[ExperimentDuration]:
+    """Rig time per experiment still to do, in plan order, with its conditioning hold:
+    each starts where the one before it leaves the actuator and the gas (rig.settling),
+    which is what makes the standard session's settling, most of its time, predictable
+    and, with the holds, short.  The damper is taken as nominal: an identification's
+    start file is a guess meant to be off.  ``pace``: the links' rig seconds per second."""
     todo = tuple(e for e in prep.plan.experiments if e.letter not in session.completed())
-    durations = estimate_experiment_durations(replace(prep.plan, experiments=todo), prep.config, start_position_m)
-    return {session.label(d.letter): d.total_s for d in durations}
+    return estimate_experiment_durations(replace(prep.plan, experiments=todo), prep.config, start_position_m,
+                                         pace=pace)
+
+
+def session_estimates_s(prep: Prepared, session: Session, start_position_m: float,
+                        pace: float = 1.0) -> dict[str, float]:
+    """Rig time per experiment still to do, by label (see :func:`session_durations`)."""
+    return {session.label(d.letter): d.total_s for d in session_durations(prep, session, start_position_m, pace)}
 
 
 def resume_command(session: Session, opt: RunOptions) -> str:

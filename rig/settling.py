@@ -52,6 +52,45 @@ CHEBYSHEV_DEGREE = 6
 GRID_SPAN_K = (-150.0, 600.0)
 MOVE_STEPS = 16               # the half-cosine move is smooth: within 1e-4 K of 256 steps
 REST_STEPS = 16               # a relaxation (time constant >= 10 s): within 0.2 % for pauses up to a minute
+# Conditioning holds: candidate positions evenly over the allowed range; secant steps on
+# the map from a hold's end temperature to the first block's (nearly affine: two steps
+# land within microkelvin); RK4 steps for a hold, a few per second of it (time constants
+# of 10 s and more); and what a hold must save beyond its own time to be worth its
+# extra commands, handshakes and the DAQ's start and stop.
+HOLD_CANDIDATES = 27
+SECANT_STEP_K = 1.0
+SECANT_ITERATIONS = 2
+HOLD_STEPS_PER_S = 2.0
+HOLD_STEPS_MAX = 2048
+HOLD_OVERHEAD_S = 2.0
+# The drift criterion's prediction: noisy draws of the predicted block means (odd: a median).
+DRIFT_DRAWS = 7
+DRIFT_SEED = 20261123
+
+
+@dataclass(frozen=True)
+class Conditioning:
+    """Where and how long the lead-in may hold the damper to pre-condition the gas:
+    ``range_m`` (low, high) static positions, ``max_hold_s`` the longest hold."""
+
+    range_m: tuple[float, float]
+    max_hold_s: float
+    min_hold_s: float = 1.0   # shorter holds land poorly: latencies are then a large part of them
+
+
+@dataclass(frozen=True)
+class Hold:
+    """A stop at a static position on the way to an experiment's own.  Settling waits for
+    the gas to relax to the experiment's periodic temperature, slowest where the gas is
+    compressed and its wall area small; compressed (or expanded) further than the
+    experiment's position, the gas is further from that temperature and so gains or
+    loses heat faster, and once it holds the heat the periodic state needs, the move on
+    brings it there at once: settling starts near its end."""
+
+    position_m: float
+    duration_s: float             # predicted: the acquisition ends the hold on the measured temperature
+    arrival_temperature_k: float  # the gas's, predicted on arrival at the hold
+    end_temperature_k: float      # the gas's at the end of the hold, that brings it to the periodic state
 
 
 @dataclass(frozen=True)
@@ -66,6 +105,8 @@ class SettlingPrediction:
     periodic_temperature_k: float  # gas temperature at the same phase in the periodic state
     multiplier: float             # per-cycle decay of a temperature deviation (Floquet multiplier)
     limiting_channel: str         # closest to its threshold at the last comparison ("" without a thermal state)
+    hold: Hold | None = None      # the conditioning hold on the way to it, where one saves rig time
+    time_constant_s: float = math.nan  # of the gas's relaxation to the periodic state
 
 
 def move_duration_s(distance_m: float) -> float:
@@ -114,7 +155,8 @@ class GasThermalModel:
         n = (self.model.n_states,) + shape
         return np.zeros(n), np.zeros(n), np.zeros(n), np.zeros((len(self.model.input_names),) + shape)
 
-    def temperature_rate(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, T: np.ndarray) -> np.ndarray:
+    def temperature_rate(self, q: np.ndarray | float, v: np.ndarray | float, a: np.ndarray | float,
+                         T: np.ndarray) -> np.ndarray:
         """dT/dt [K/s] under the imposed stroke q, q̇, q̈ (SI)."""
         # The residual at Ṫ = 0 and Ṫ = 1 in one call: Ṫ = -g(0) / (g(1) - g(0)).
         X, DX, DDX, U = self._states((2,) + np.broadcast_shapes(*map(np.shape, (q, v, a, T))))
@@ -227,15 +269,19 @@ class _Runs:
 
 def predict_settling(experiments: Sequence[ExperimentSpec], criteria: SteadyStateCriteria, rate_hz: float,
                      params: Parameters | None = None, *, start_position_m: float = 0.0,
-                     start_temperature_k: float | None = None, pause_s: float | Sequence[float] = PAUSE_S
+                     start_temperature_k: float | None = None, pause_s: float | Sequence[float] = PAUSE_S,
+                     conditioning: Conditioning | None = None, noise_draws: int = DRIFT_DRAWS
                      ) -> list[SettlingPrediction]:
     """Settle cycles of each experiment run in this order, the damper resting at
     ``start_position_m`` and ``start_temperature_k`` (default: ambient) before the first.
 
     Each experiment's lead-in starts from the previous one's periodic state (where it
     settled and was captured): its fade-out, ``pause_s`` at rest (one for all, or one
-    per experiment), the move, the amplitude ramp and the wait before the first block.
-    ``params``: the damper's parameters (default: the 2-dof model's nominal values).
+    per experiment), the move (by way of a conditioning hold where ``conditioning``
+    allows one and it is predicted to save rig time), the amplitude ramp and the wait
+    before the first block.
+    ``params``: the damper's parameters (default: the 2-dof model's nominal values);
+    ``noise_draws``: see :func:`_apply_drift_criterion`.
     """
     params = params if params is not None else Parameters(load_model("2dof"))
     gas = GasThermalModel(params)
@@ -248,20 +294,104 @@ def predict_settling(experiments: Sequence[ExperimentSpec], criteria: SteadyStat
     runs = _Runs.of(experiments)
     t0 = first_block_s(criteria, rate_hz)
     period_map = _PeriodMap(gas, runs, t0)
-    T_start = _lead_in(gas, runs, period_map, criteria, t0, start_position_m,
-                       gas.ambient_k if start_temperature_k is None else start_temperature_k,
-                       np.broadcast_to(np.asarray(pause_s, dtype=float), len(experiments)))
-    thresholds = np.array([criteria.thresholds.get(c, math.inf) for c in gas.channels])
+    prev_static, T_rest = _after_previous(gas, runs, period_map, criteria, t0, start_position_m,
+                                          gas.ambient_k if start_temperature_k is None else start_temperature_k,
+                                          np.broadcast_to(np.asarray(pause_s, dtype=float), len(experiments)))
+    T_start = _run_in(gas, runs, criteria, t0, _move(gas, prev_static, runs.static_m, T_rest))
     m = np.array([block_cycles(criteria, e.frequency_hz) for e in experiments])
-    if criteria.criterion == "drift":
-        cycles, settled, limiting = _apply_drift_criterion(period_map, T_start, m, gas.channels, criteria, runs,
-                                                           [e.periods for e in experiments], rate_hz)
-    else:
-        cycles, settled, limiting = _apply_criterion(period_map, T_start, m, thresholds, criteria)
+    cycles, settled, limiting = _settle(period_map, T_start, m, gas.channels, criteria, runs, experiments, rate_hz,
+                                        noise_draws)
+    holds: list[Hold | None] = [None] * len(experiments)
+    if conditioning is not None:
+        position, duration, arrival_k, end_k = _plan_holds(gas, runs, period_map, criteria, t0, prev_static, T_rest,
+                                                conditioning)
+        planned = np.isfinite(duration)
+        if planned.any():
+            steps = int(min(HOLD_STEPS_MAX, REST_STEPS + HOLD_STEPS_PER_S * np.nanmax(duration)))
+            T_held = _run_in(gas, runs, criteria, t0, _move(gas, position, runs.static_m, _rest(
+                gas, position, _move(gas, prev_static, position, T_rest), np.where(planned, duration, 0.0), steps)))
+            held = _settle(period_map, T_held, m, gas.channels, criteria, runs, experiments, rate_hz, noise_draws)
+            period = 1.0 / runs.frequency_hz
+            direct_s = _move_s(prev_static, runs.static_m) + cycles * period
+            held_s = (_move_s(prev_static, position) + np.where(planned, duration, 0.0)
+                      + _move_s(position, runs.static_m) + held[0] * period)
+            # A hold must pay for itself by more than the commands and waits it adds.
+            better = planned & (held_s < direct_s - HOLD_OVERHEAD_S)
+            T_start = np.where(better, T_held, T_start)
+            cycles, settled, limiting = (np.where(better, h, d) for h, d in zip(held, (cycles, settled, limiting),
+                                                                                   strict=True))
+            holds = [Hold(float(position[i]), float(duration[i]), float(arrival_k[i]), float(end_k[i]))
+                     if better[i] else None
+                     for i in range(len(experiments))]
+    tau = time_constants_s(period_map.multiplier, runs.frequency_hz)
     return [SettlingPrediction(e.letter, int(cycles[i]), bool(settled[i]), int(m[i]), float(T_start[i]),
                                float(period_map.fixed_point_k[i]), float(period_map.multiplier[i]),
-                               gas.channels[limiting[i]])
+                               gas.channels[limiting[i]], holds[i], float(tau[i]))
             for i, e in enumerate(experiments)]
+
+
+def time_constants_s(multiplier: np.ndarray, frequency_hz: np.ndarray) -> np.ndarray:
+    """The relaxation's time constant [s] from its per-cycle Floquet multiplier."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where((multiplier > 0) & (multiplier < 1), -1 / (frequency_hz * np.log(multiplier)), np.inf)
+
+
+def _move_s(from_m: np.ndarray, to_m: np.ndarray) -> np.ndarray:
+    return np.pi * np.abs(to_m - from_m) / (2 * MOVE_PEAK_SPEED_M_S)
+
+
+def _settle(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray, channels: tuple[str, ...],
+            criteria: SteadyStateCriteria, runs: _Runs, experiments: Sequence[ExperimentSpec],
+            rate_hz: float, draws: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The criterion's settle cycles, whether it passes, and the limiting channel."""
+    if criteria.criterion == "drift":
+        return _apply_drift_criterion(period_map, T_start, m, channels, criteria, runs,
+                                      [e.periods for e in experiments], rate_hz, draws)
+    thresholds = np.array([criteria.thresholds.get(c, math.inf) for c in channels])
+    return _apply_criterion(period_map, T_start, m, thresholds, criteria)
+
+
+def _plan_holds(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria: SteadyStateCriteria,
+                t0_s: float, prev_static: np.ndarray, T_rest: np.ndarray,
+                conditioning: Conditioning) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per experiment, the quickest hold that brings the gas to the experiment's periodic
+    temperature at its first block: position [m], duration [s] (inf: none within
+    ``conditioning``'s range and longest hold), the gas temperature on arrival and at
+    the end [K].
+
+    At each candidate position the temperature needed at the end of the hold is found by
+    secant steps on the (nearly affine) map from there to the first block; the hold is
+    the time the gas takes at rest to get from its temperature on arrival to that one,
+    in the exponential relaxation a static gas spring's energy balance gives (the
+    prediction is then integrated as the acquisition will run it)."""
+    col = np.s_[:, None]
+    lo, hi = conditioning.range_m
+    position = np.broadcast_to(np.linspace(lo, hi, HOLD_CANDIDATES), (len(T_rest), HOLD_CANDIDATES))
+    target, wanted = runs.static_m[col], period_map.fixed_point_k[col]
+    T_arrive = _move(gas, prev_static[col], position, T_rest[col])
+
+    def to_first_block(T_end: np.ndarray) -> np.ndarray:
+        return _run_in(gas, runs, criteria, t0_s, _move(gas, position, target, T_end), col)
+
+    a, fa = T_arrive, to_first_block(T_arrive)
+    b = T_arrive - SECANT_STEP_K
+    fb = to_first_block(b)
+    for _ in range(SECANT_ITERATIONS):
+        new = a + (wanted - fa) * (a - b) / (fa - fb)
+        a, fa, b, fb = new, to_first_block(new), a, fa
+    needed = a
+    r_arrive = gas.temperature_rate(position, 0.0, 0.0, T_arrive)
+    r_needed = gas.temperature_rate(position, 0.0, 0.0, needed)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        k = (r_arrive - r_needed) / (T_arrive - needed)          # the relaxation's rate [1/s], negative
+        rest_k = T_arrive - r_arrive / k                          # where the gas would come to rest there
+        hold = np.log((needed - rest_k) / (T_arrive - rest_k)) / k
+    reachable = (k < 0) & np.isfinite(hold) & (hold >= conditioning.min_hold_s) & (hold <= conditioning.max_hold_s)
+    total = np.where(reachable, _move_s(prev_static[col], position) + hold + _move_s(position, target), np.inf)
+    best = np.argmin(total, axis=1)
+    rows = np.arange(len(T_rest))
+    return (position[rows, best], np.where(np.isfinite(total[rows, best]), hold[rows, best], np.inf),
+            T_arrive[rows, best], needed[rows, best])
 
 
 class _PeriodMap:
@@ -322,14 +452,15 @@ class _PeriodMap:
         return chebyshev.chebval(x, self.end, tensor=False), chebyshev.chebval(x[:, None], self.means, tensor=False)
 
 
-def _lead_in(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria: SteadyStateCriteria,
-             t0_s: float, start_position_m: float, start_temperature_k: float, pause_s: np.ndarray) -> np.ndarray:
-    """Gas temperature at each experiment's first block.
+def _after_previous(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria: SteadyStateCriteria,
+                    t0_s: float, start_position_m: float, start_temperature_k: float,
+                    pause_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Where each experiment's lead-in starts: the previous experiment's static position
+    and the gas temperature after its fade-out and the pause at rest.
 
     The previous experiment ends its capture at the first block's phase (whole cycles
-    later) in its periodic state; it fades out over the ramp time, rests ``pause_s``,
-    the controller moves to the new static position, and the new waveform ramps in.
-    Before the first experiment the damper rests at the start position and temperature."""
+    later) in its periodic state and fades out over the ramp time.  Before the first
+    experiment the damper rests at the start position and temperature."""
     n = len(runs.static_m)
     ramp = criteria.ramp_time_s
     prev = np.r_[-1, np.arange(n - 1)]
@@ -347,72 +478,103 @@ def _lead_in(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria
         return gas.temperature_rate(*prev_runs.stroke(t, 1 - (t - t0_s) / ramp, -1 / ramp), T)
 
     T = _rk4_waveform(fade, T, np.full(n, t0_s), np.where(first, 0.0, ramp), prev_runs.frequency_hz)
+    return prev_static, _rest(gas, prev_static, T, pause_s, REST_STEPS)
 
+
+def _rest(gas: GasThermalModel, position_m: np.ndarray, T: np.ndarray, duration_s: np.ndarray,
+          steps: int) -> np.ndarray:
+    """The gas temperature after ``duration_s`` at rest at a static position."""
     def rest(t, T):
-        return gas.temperature_rate(prev_static, 0.0, 0.0, T)
+        return gas.temperature_rate(position_m, 0.0, 0.0, T)
 
-    T = _rk4(rest, T, pause_s, REST_STEPS)
+    return _rk4(rest, T, duration_s, steps)
 
-    distance = runs.static_m - prev_static
-    duration = np.array([move_duration_s(d) for d in distance])
 
+def _move(gas: GasThermalModel, from_m: np.ndarray, to_m: np.ndarray, T: np.ndarray) -> np.ndarray:
+    """The gas temperature after the controller's half-cosine move (arrays broadcast)."""
+    distance = to_m - from_m
+    duration = np.pi * np.abs(distance) / (2 * MOVE_PEAK_SPEED_M_S)     # move_duration_s, elementwise
     omega = np.pi / np.maximum(duration, 1e-12)  # a zero-length move takes zero time and has zero distance
 
     def move(t, T):
-        # The controller's half-cosine profile.
-        q = prev_static + distance * 0.5 * (1 - np.cos(omega * t))
+        q = from_m + distance * 0.5 * (1 - np.cos(omega * t))
         v = distance * 0.5 * omega * np.sin(omega * t)
         a = distance * 0.5 * omega**2 * np.cos(omega * t)
         return gas.temperature_rate(q, v, a, T)
 
-    T = _rk4(move, T, duration, MOVE_STEPS)
+    duration, T = np.broadcast_arrays(duration, T)
+    return _rk4(move, T, duration, MOVE_STEPS)
+
+
+def _run_in(gas: GasThermalModel, runs: _Runs, criteria: SteadyStateCriteria, t0_s: float, T: np.ndarray,
+            col: Any = np.s_[:]) -> np.ndarray:
+    """The gas temperature at the first block, from RUN at the static position: the
+    amplitude ramp and the acquisition's wait (``col`` indexes the runs to T's shape)."""
+    ramp = criteria.ramp_time_s
+    shape = np.shape(T)
+    f = np.broadcast_to(runs.frequency_hz[col], shape)
 
     def ramp_in(t, T):
-        return gas.temperature_rate(*runs.stroke(t, t / ramp, 1 / ramp), T)
+        return gas.temperature_rate(*runs.stroke(t, t / ramp, 1 / ramp, col), T)
 
-    T = _rk4_waveform(ramp_in, T, np.zeros(n), np.full(n, ramp), runs.frequency_hz)
+    T = _rk4_waveform(ramp_in, T, np.zeros(shape), np.full(shape, ramp), f)
 
     def until_first_block(t, T):
-        return gas.temperature_rate(*runs.stroke(t, 1.0, 0.0), T)
+        return gas.temperature_rate(*runs.stroke(t, 1.0, 0.0, col), T)
 
-    return _rk4_waveform(until_first_block, T, np.full(n, ramp), np.full(n, t0_s - ramp), runs.frequency_hz)
+    return _rk4_waveform(until_first_block, T, np.full(shape, ramp), np.full(shape, t0_s - ramp), f)
 
 
 def _apply_drift_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray, channels: tuple[str, ...],
-                           criteria: SteadyStateCriteria, runs: _Runs, periods: list[int], rate_hz: float
-                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                           criteria: SteadyStateCriteria, runs: _Runs, periods: list[int], rate_hz: float,
+                           draws: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The acquisition's drift criterion (rig.criterion) on the predicted block means:
-    settle cycles, whether it passed, and the fitted channel with the largest drift."""
+    settle cycles, whether it passed, and the fitted channel with the largest drift.
+
+    The criterion bounds what its data cannot exclude, so the transducers' noise (its
+    own figures, averaged over a block) sets when it passes as much as the transient
+    does: it is applied to ``draws`` noisy copies of the predicted means (fixed seed)
+    and the median draw is the prediction (0 draws: the noise-free means alone)."""
     drift = criteria.drift
     assert drift is not None   # a drift criterion always has its settings (rig.config)
+    tau = time_constants_s(period_map.multiplier, runs.frequency_hz)
     fitted = [channels.index(c) for c in drift.noise]
     sigma = np.array(list(drift.noise.values()))
     n = len(T_start)
     last = np.array([_last_block_cycles(criteria, int(k)) for k in m])
-    cycles, settled, limiting = last.copy(), np.zeros(n, dtype=bool), np.zeros(n, dtype=int)
-    open_ = np.ones(n, dtype=bool)
-    history: list[list[np.ndarray]] = [[] for _ in range(n)]
+    scale, draws = (1.0, draws) if draws > 0 else (0.0, 1)
+    passed = np.tile(last[:, None], (1, draws))                     # cycle each draw passed (or gave up) at
+    ok = np.zeros((n, draws), dtype=bool)
+    open_ = np.ones((n, draws), dtype=bool)
+    limiting = np.zeros(n, dtype=int)
+    history: list[list[np.ndarray]] = [[] for _ in range(n)]        # (draws, channels) per block
+    rng = np.random.default_rng(DRIFT_SEED)
     T = T_start.copy()
     block_sum = np.zeros((n, len(channels)))
     for cycle in range(1, int(last.max()) + 1):
         T, means = period_map.step(T)
         block_sum += means
-        for i in np.flatnonzero(open_ & (cycle % m == 0)):
-            history[i] = (history[i] + [block_sum[i, fitted] / m[i]])[-drift.fit_cycles:]
+        for i in np.flatnonzero(open_.any(axis=1) & (cycle % m == 0)):
+            spp = rate_hz / runs.frequency_hz[i]
+            noise = scale * sigma / math.sqrt(m[i] * spp) * rng.standard_normal((draws, len(sigma)))
+            history[i] = (history[i] + [block_sum[i, fitted] / m[i] + noise])[-drift.fit_cycles:]
             block_sum[i] = 0.0
-            if len(history[i]) >= 4:
-                spp = rate_hz / runs.frequency_hz[i]
-                fit = bias_bound(drift, tuple(drift.noise), np.array(history[i]), m[i] / runs.frequency_hz[i],
-                                 m[i] * spp, periods[i] / m[i])
-                limiting[i] = fitted[int(np.argmax(np.abs(fit.drift) / sigma))]
-                if cycle >= criteria.min_cycles and fit.bias_sigma < drift.fraction:
-                    cycles[i], settled[i], open_[i] = cycle, True, False
-                    continue
-            if cycle >= last[i]:
-                open_[i] = False
+            for d in np.flatnonzero(open_[i]):
+                if len(history[i]) >= 4:
+                    fit = bias_bound(drift, tuple(drift.noise), np.array([h[d] for h in history[i]]),
+                                     m[i] / runs.frequency_hz[i], m[i] * spp, periods[i] / m[i], float(tau[i]))
+                    if d == 0:
+                        limiting[i] = fitted[int(np.argmax(np.abs(fit.drift) / sigma))]
+                    if cycle >= criteria.min_cycles and fit.bias_sigma < drift.fraction:
+                        passed[i, d], ok[i, d], open_[i, d] = cycle, True, False
+                        continue
+                if cycle >= last[i]:
+                    open_[i, d] = False
         if not open_.any():
             break
-    return cycles, settled, limiting
+    median = np.argsort(passed, axis=1)[:, draws // 2]
+    rows = np.arange(n)
+    return passed[rows, median], ok[rows, median], limiting
 
 
 def _apply_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray, thresholds: np.ndarray,

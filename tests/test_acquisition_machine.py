@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from identify.plans import STANDARD_SET
-from rig.acquisition import Acquisition, ExperimentRecord, Recorder
+from rig.acquisition import Acquisition, ExperimentRecord, Interrupted, Recorder
 from rig.config import DEFAULT_RIG_CONFIG, load_rig_config
 from rig.daq import CHANNELS
 from rig.run import EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK
@@ -36,9 +36,10 @@ LINK_GONE = f"Modbus link to {SHAKER_URL} lost and not back within 3 s ({RESET})
 # Once the safe stop found the link gone, each remaining step gets one quick try.
 LINK_STILL_GONE = f"Modbus link to {SHAKER_URL} lost and not back within 0.5 s ({RESET})"
 # Steady-state criteria loose enough that j settles after about half a minute of simulated
-# time (the default ones take 150 s), on the default change criterion (the machine, not
-# the criterion, is tested here); a Modbus link may be away 3 s.
-TEST_CONFIG = {"force_N = 5.0": "force_N = 50.0", "pressure_bar = 0.0005": "pressure_bar = 0.1",
+# time (the default ones take 150 s), on the change criterion without conditioning holds
+# (the machine, not the criterion, is tested here); a Modbus link may be away 3 s.
+TEST_CONFIG = {'criterion = "drift"': 'criterion = "change"', "max_hold_s = 300.0": "max_hold_s = 0.0",
+               "force_N = 5.0": "force_N = 50.0", "pressure_bar = 0.0005": "pressure_bar = 0.1",
                "gas_temperature_C = 0.003": "gas_temperature_C = 3.0", "max_cycles = 1500": "max_cycles = 200",
                "reconnect_s = 20.0": "reconnect_s = 3.0"}
 
@@ -289,13 +290,14 @@ def test_a_bug_in_the_acquisition_still_ends_in_the_safe_stop(vrig, tmp_path, mo
     assert session_meta(tmp_path / "s")[0]["status"] == result.status
 
 
-def shipped_config(tmp_path: Path, criterion: str) -> Path:
+def shipped_config(tmp_path: Path, criterion: str, holds: bool = False) -> Path:
     """The default rig configuration with ``criterion`` selected: the real thresholds and
-    drift settings, not the tests' relaxed ones."""
+    drift settings, not the tests' relaxed ones (conditioning holds only if asked)."""
     from rig.config import DEFAULT_RIG_CONFIG
 
-    path = tmp_path / f"rig-{criterion}.toml"
-    path.write_text(re.sub(r'(?m)^criterion = "\w+"', f'criterion = "{criterion}"', DEFAULT_RIG_CONFIG.read_text()))
+    path = tmp_path / f"rig-{criterion}{'-holds' if holds else ''}.toml"
+    text = re.sub(r'(?m)^criterion = "\w+"', f'criterion = "{criterion}"', DEFAULT_RIG_CONFIG.read_text())
+    path.write_text(text if holds else text.replace("max_hold_s = 300.0", "max_hold_s = 0.0"))
     return path
 
 
@@ -355,3 +357,64 @@ def test_a_stall_while_settling_does_not_pass_the_drift_criterion_early(tmp_path
 
     clean, stalled = run([]), run(["stall=3"])
     assert clean <= stalled <= 1.2 * clean, (clean, stalled)
+
+
+def hold_before(config: Path, letters: str) -> tuple[list, list]:
+    """The plan of ``letters`` on ``config`` (from rest at 0 mm): its experiments and their
+    predicted durations, each with its conditioning hold."""
+    from identify.plans import select
+    from rig.plans import Plan, estimate_experiment_durations
+
+    specs = select(STANDARD_SET, list(letters))
+    return specs, estimate_experiment_durations(Plan("t", tuple(specs)), load_rig_config(config))
+
+
+@pytest.mark.slow
+def test_a_conditioning_hold_lands_the_gas_and_settling_is_short(tmp_path):
+    """c after j: the move up compresses the gas by ~90 K, which relaxes slowly where the wall
+    area is small (335 s on the change criterion).  The planned hold, above c's position,
+    ends on the measured gas temperature the model asks for, and the drift criterion
+    settles c in a fraction of the cycles it needs from a direct move."""
+    config = shipped_config(tmp_path, "drift", holds=True)
+    specs, planned = hold_before(config, "jc")
+    hold = planned[1].hold
+    assert hold is not None and hold.position_m > specs[1].static_position_mm * 1e-3
+
+    def settle_c(with_hold: bool) -> tuple[int, list[str]]:
+        rig = InProcessRig(config)
+        rig.connect()
+        try:
+            acq = acquisition(rig)
+            acq.run_experiment(specs[0], "261122j", planned[0].hold, planned[0].time_constant_s)
+            record = acq.run_experiment(specs[1], "261122c", hold if with_hold else None, planned[1].time_constant_s)
+            return record.settle_cycles, [e.data["message"] for _, e in rig.events if e.kind == "log"
+                                          and e.experiment == "261122c" and "conditioning" in e.data["message"]]
+        finally:
+            rig.close()
+
+    held, log = settle_c(True)
+    direct, none = settle_c(False)
+    assert none == [] and len(log) == 2 and "the gas was at" in log[1], log
+    landed = float(re.search(r"the gas was at (-?[\d.]+) °C", log[1]).group(1))
+    assert landed == pytest.approx(hold.end_temperature_k - 273.15, abs=0.2)
+    assert held < 0.6 * direct, (held, direct)
+
+
+def test_ctrl_c_during_a_conditioning_hold_ends_in_the_safe_stop(tmp_path):
+    config = shipped_config(tmp_path, "change", holds=True)
+    specs, planned = hold_before(config, "jc")
+    assert planned[1].hold is not None
+    vrig = InProcessRig(config)
+    vrig.connect()
+    try:
+        acq = acquisition(vrig)
+        acq.run_experiment(specs[0], "261122j")
+        vrig.when("moving", 1.0, acq.stop_requested.set, experiment="261122c")
+        with pytest.raises(Interrupted):
+            acq.run_experiment(specs[1], "261122c", planned[1].hold)
+        assert any("conditioning: holding" in m for m in vrig.messages())
+        assert acq.safe_stop("interrupted") == []
+        assert vrig.messages()[-1] == SAFE_STOP_DONE
+        assert_at_rest(vrig)
+    finally:
+        vrig.close()

@@ -26,10 +26,12 @@ SPEED = "50"
 
 @pytest.fixture
 def relaxed_config(tmp_path: Path) -> Path:
-    """The default rig with looser settling thresholds, so that the tests' experiments settle in
-    a few seconds of wall time (the criteria themselves are the acquisition's tests' business)."""
+    """The default rig on the change criterion with looser thresholds and no conditioning
+    holds, so that the tests' experiments settle in a few seconds of wall time (the criteria
+    and holds themselves are the acquisition's tests' business)."""
     text = DEFAULT_RIG_CONFIG.read_text()
-    for key, value in (("pressure_bar", "0.005"), ("gas_temperature_C", "0.03"), ("force_N", "20.0")):
+    for key, value in (("pressure_bar", "0.005"), ("gas_temperature_C", "0.03"), ("force_N", "20.0"),
+                       ("criterion", '"change"'), ("max_hold_s", "0.0")):
         text = "\n".join(f"{key} = {value}" if line.startswith(f"{key} =") else line for line in text.splitlines())
     path = tmp_path / "rig-relaxed.toml"
     path.write_text(text + "\n")

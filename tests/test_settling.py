@@ -21,15 +21,17 @@ from identify.plans import STANDARD_SET, ExperimentSpec, select
 from rig.config import DEFAULT_RIG_CONFIG, ConfigError, SteadyStateCriteria, load_rig_config, steady_state_from_table
 from rig.criterion import bias_bound
 from rig.daq import CHANNELS
-from rig.plans import Plan, estimate_duration_s, estimate_experiment_durations, load_plan
+from rig.plans import Plan, conditioning_for, estimate_duration_s, estimate_experiment_durations, load_plan
 from rig.settling import PAUSE_S, predict_settling
 from simulator.controller import ShakerController, State
 from simulator.physics import Actuator, StreamingPlant
 from simulator.truth import load_truth
 
-CONFIG = load_rig_config()      # the default: the change criterion
-DRIFT = replace(CONFIG, steady_state=steady_state_from_table(   # the drift criterion (rig.criterion)
-    {**tomllib.loads(DEFAULT_RIG_CONFIG.read_text())["steady_state"], "criterion": "drift"}, "drift", ConfigError))
+SHIPPED = load_rig_config()     # the default: the drift criterion, conditioning holds
+# The lead-in and the criteria without holds: the change criterion, and the drift criterion (rig.criterion)
+CONFIG = replace(SHIPPED, max_hold_s=0.0, steady_state=steady_state_from_table(
+    {**tomllib.loads(DEFAULT_RIG_CONFIG.read_text())["steady_state"], "criterion": "change"}, "change", ConfigError))
+DRIFT = replace(CONFIG, steady_state=SHIPPED.steady_state)
 REFERENCE_RATE_HZ = 500.0   # samples of the reference (block means of whole cycles do not need 2 kHz)
 CHUNK_S = 0.4               # plant blocks: short enough for its temperature iteration to converge
 
@@ -72,9 +74,10 @@ class ReferenceRig:
         while self.controller.state != state:
             self.advance(int(0.01 * self.rate))
 
-    def run(self, e: ExperimentSpec, pause_s: float, ss: SteadyStateCriteria = CONFIG.steady_state
-            ) -> ReferenceExperiment:
-        """The acquisition's sequence: move, RUN, blocks until settled, capture, fade, STOP."""
+    def run(self, e: ExperimentSpec, pause_s: float, ss: SteadyStateCriteria = CONFIG.steady_state,
+            time_constant_s: float | None = None) -> ReferenceExperiment:
+        """The acquisition's sequence: move, RUN, blocks until settled, capture, fade, STOP
+        (``time_constant_s``: the gas's relaxation the planner gives the drift criterion)."""
         c, t_begin = self.controller, self.t
         self.advance(int(round(pause_s * self.rate)))
         c.write_holding(2, [round(e.static_position_mm * 100)])
@@ -99,7 +102,7 @@ class ReferenceRig:
                 history.append(means[fitted])
                 # the DAQ's rate, not the reference's: the criterion weighs the DAQ's noise
                 fit = bias_bound(ss.drift, tuple(ss.drift.noise), np.array(history), m / e.frequency_hz,
-                                 m * DRIFT.daq_rate_hz / e.frequency_hz, e.periods / m)
+                                 m * DRIFT.daq_rate_hz / e.frequency_hz, e.periods / m, time_constant_s)
                 if len(history) >= 4 and cycles >= ss.min_cycles and fit.bias_sigma < ss.drift.fraction:
                     settled = True
                     break
@@ -172,8 +175,36 @@ def test_criterion_bounds_follow_the_acquisition():
 
 def test_one_dof_model_has_no_thermal_settling():
     params = Parameters(load_model("1dof"))
-    predicted = predict_settling(select(STANDARD_SET, ["c"]), CONFIG.steady_state, CONFIG.daq_rate_hz, params)
-    assert predicted[0].cycles == 20 and predicted[0].settled
+    conditioning = conditioning_for(load_plan("standard"), SHIPPED)
+    predicted = predict_settling(select(STANDARD_SET, ["c"]), CONFIG.steady_state, CONFIG.daq_rate_hz, params,
+                                 conditioning=conditioning)
+    assert predicted[0].cycles == 20 and predicted[0].settled and predicted[0].hold is None
+
+
+def test_conditioning_holds_land_the_gas_on_its_periodic_state_within_the_plans_stroke():
+    """The planner's holds, integrated as the acquisition runs them, bring every held
+    experiment's gas within 10 mK of its periodic temperature at the first block; they
+    stay inside the stroke the plan sweeps and within the longest hold, and the plan's
+    predicted rig time falls by more than a third (on the same criterion)."""
+    plan = load_plan("standard")
+    with_holds = replace(CONFIG, max_hold_s=SHIPPED.max_hold_s)
+    conditioning = conditioning_for(plan, with_holds)
+    assert conditioning is not None and conditioning_for(plan, CONFIG) is None
+    low, high = conditioning.range_m
+    assert (low, high) == pytest.approx((-0.005, 0.260))      # m: 17 - 22 mm, 133 + 127 mm
+    predicted = predict_settling(STANDARD_SET, CONFIG.steady_state, CONFIG.daq_rate_hz, conditioning=conditioning)
+    held = [p for p in predicted if p.hold]
+    assert len(held) >= len(predicted) // 2
+    for p in held:
+        assert p.start_temperature_k == pytest.approx(p.periodic_temperature_k, abs=0.01), p.letter
+        assert low <= p.hold.position_m <= high and 1.0 <= p.hold.duration_s <= conditioning.max_hold_s
+    assert estimate_duration_s(plan, with_holds) < 0.67 * estimate_duration_s(plan, CONFIG)
+    # On links fifty times faster than the rig's time the temperature is answered late
+    # in rig seconds: only holds long enough for that are planned.
+    fast = conditioning_for(plan, with_holds, pace=50.0)
+    assert fast is not None and fast.min_hold_s == 50.0
+    slow_link = predict_settling(STANDARD_SET, CONFIG.steady_state, CONFIG.daq_rate_hz, conditioning=fast)
+    assert all(p.hold.duration_s >= 50.0 for p in slow_link if p.hold) and any(p.hold for p in slow_link)
 
 
 def test_damper_parameters_change_the_prediction():
@@ -214,14 +245,16 @@ def drift_reference() -> tuple[tuple[ExperimentSpec, ...], list[ReferenceExperim
     """The standard plan in its thermal order, under the drift criterion."""
     plan = load_plan("standard").ordered(DRIFT)
     rig = ReferenceRig()
-    return plan.experiments, [rig.run(e, PAUSE_S, DRIFT.steady_state) for e in plan.experiments]
+    tau = [p.time_constant_s for p in predict_settling(plan.experiments, DRIFT.steady_state, DRIFT.daq_rate_hz)]
+    return plan.experiments, [rig.run(e, PAUSE_S, DRIFT.steady_state, t) for e, t in zip(plan.experiments, tau,
+                                                                                          strict=True)]
 
 
 def test_drift_criterion_settle_cycles_match_the_simulated_physics(drift_reference):
     """The block means the DAQ's 2 kHz would give (noise left out on both sides, as the
     prediction does): the same cycles within one block or 5 %."""
     experiments, reference = drift_reference
-    predicted = predict_settling(experiments, DRIFT.steady_state, DRIFT.daq_rate_hz)
+    predicted = predict_settling(experiments, DRIFT.steady_state, DRIFT.daq_rate_hz, noise_draws=0)
     for p, ref in zip(predicted, reference, strict=True):
         assert p.settled and ref.settled
         assert abs(p.cycles - ref.settle_cycles) <= max(p.block_cycles, 0.05 * ref.settle_cycles), \

@@ -164,7 +164,8 @@ def _steady_state(doc: dict[str, Any], where: str) -> SteadyStateCriteria:
     ss = _table(doc, "steady_state", where)
     at = f"{where}, [steady_state]"
     channels = ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")
-    drift = ("criterion", "drift_sigma_fraction", "drift_fit_cycles", "drift_max_time_constant_s", "drift_noise")
+    drift = ("criterion", "drift_sigma_fraction", "drift_fit_cycles", "drift_max_time_constant_s", "drift_noise",
+             "drift_model_time_constant_factor")
     _no_unknown(ss, ("block_s", "min_cycles", "max_cycles", "max_recaptures", "ramp_time_s", *channels, *drift), at)
     return steady_state_from_table(ss, at, SpecError)
 
