@@ -15,6 +15,10 @@ reads a manifest and a result per session, not the data.
 Failures stay in their task: a session that cannot be read or fitted is written and
 reported as ``failed: <reason>``; it is tried again on the next run (only converged
 results count as done).
+
+A result sink (identify.sinks, e.g. the QC records database of ``--db``) gets every
+converged result, this run's and those an earlier run left, on the client as it arrives;
+work it asks for runs on the cluster as one more task, ahead of the remaining fits.
 """
 
 from __future__ import annotations
@@ -32,7 +36,7 @@ import time
 import traceback
 import uuid
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from importlib.util import find_spec
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -46,6 +50,7 @@ from identify.fit import DEFAULT_POINTS, fit_experiments
 from identify.model import load_model
 from identify.parameters import Parameters
 from identify.preparation import model_columns, resolve_outputs
+from identify.sinks import Delivery, ResultSink, Task
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -115,6 +120,7 @@ class SessionOutcome:
     fit_s: float | None = None
     values: dict[str, float] = field(default_factory=dict)
     stds: dict[str, float | None] = field(default_factory=dict)
+    delivery: Delivery | None = None  # what the result sink did with it (with a sink, for a converged result)
 
     @property
     def failed(self) -> bool:
@@ -352,9 +358,12 @@ def dashboard_link(client: Client) -> str | None:
 
 
 def run_batch(client: Client, sessions: Sequence[Path], settings: FitSettings, out: Path,
-              on_outcome: Callable[[SessionOutcome], None] | None = None) -> list[SessionOutcome]:
+              on_outcome: Callable[[SessionOutcome], None] | None = None,
+              sink: ResultSink | None = None) -> list[SessionOutcome]:
     """Fit every session on the client's cluster; write RESULTS_DIR/summary.csv and return
-    its rows in the order of ``sessions`` (as given by :func:`check_sessions`)."""
+    its rows in the order of ``sessions`` (as given by :func:`check_sessions`).  With a
+    sink, each converged result (fitted now or skipped as done) is delivered to it on
+    the client as it arrives (``on_outcome`` sees the fit; the row gets the delivery)."""
     from distributed import as_completed
 
     out = Path(out).resolve()
@@ -364,20 +373,63 @@ def run_batch(client: Client, sessions: Sequence[Path], settings: FitSettings, o
     futures = client.map(fit_session, paths, key=[f"identify-batch-{run_id}-{i}" for i in range(len(paths))],
                          settings=settings, out_dir=str(out), run_id=run_id, pure=False)
     by_key = {f.key: p for f, p in zip(futures, sessions, strict=True)}
+    sink_tasks: dict[str, tuple[SessionOutcome, Task]] = {}
     outcomes: dict[str, SessionOutcome] = {}
-    for future in as_completed(futures):
+    arrivals = as_completed(futures)
+    for future in arrivals:
+        if sink is not None and future.key in sink_tasks:  # a sink's work for a result that arrived earlier
+            outcome, task = sink_tasks.pop(future.key)
+            try:
+                value = future.result()
+            except Exception as exc:  # raised by the task, or the task lost with its workers
+                value = exc
+            future.release()
+            outcomes[outcome.session] = replace(outcome, delivery=finish(sink, outcome, task, value))
+            continue
         path = by_key[future.key]
         try:
             outcome = future.result()
         except Exception as exc:  # the task itself was lost, e.g. its worker died on every allowed attempt
             outcome = SessionOutcome(path.name, str(path), f"failed: {type(exc).__name__}: {exc}")
         future.release()  # nothing more is wanted from it: the scheduler may forget it
+        if sink is not None and outcome.state in ("ok", "skipped"):
+            step = deliver(sink, outcome, out)
+            if isinstance(step, Task):
+                # Ahead of the fits still queued (priority), so that records follow the results
+                # instead of all waiting for the last fit.
+                key = f"identify-sink-{run_id}-{outcome.session}"
+                work = client.submit(step.function, *step.args, key=key, priority=1, pure=False)
+                sink_tasks[key] = (outcome, step)
+                arrivals.add(work)
+            else:
+                outcome = replace(outcome, delivery=step)
         outcomes[outcome.session] = outcome
         if on_outcome is not None:
             on_outcome(outcome)
     rows = [outcomes[p.name] for p in sessions]
     atomic_write_bytes(out / SUMMARY, summary_csv(rows, settings.estimate))
     return rows
+
+
+def deliver(sink: ResultSink, outcome: SessionOutcome, out: Path) -> Delivery | Task:
+    """One converged result to the sink, read back from RESULTS_DIR (the file is the
+    result; the outcome is only its summary row).  Nothing the sink meets stops the batch."""
+    path = Path(out) / f"{outcome.session}.json"
+    doc = _read_json(path)
+    if _batch_block(doc).get("status") != "ok":
+        return Delivery("failed", f"{path}: the result cannot be read back")
+    try:
+        return sink.deliver(outcome, doc)
+    except Exception as exc:  # a sink's bug met by one result is that session's failure, as a fit's is
+        return Delivery("failed", f"internal error in {sink.name}: {type(exc).__name__}: {exc}")
+
+
+def finish(sink: ResultSink, outcome: SessionOutcome, task: Task, value: Any) -> Delivery:
+    """The sink's delivery once its task is done (``value`` may be the task's exception)."""
+    try:
+        return sink.finish(outcome, task, value)
+    except Exception as exc:
+        return Delivery("failed", f"internal error in {sink.name}: {type(exc).__name__}: {exc}")
 
 
 def summary_csv(rows: Sequence[SessionOutcome], estimate: Sequence[str]) -> bytes:

@@ -5,7 +5,9 @@ Exit status: 0 success (a fit converged); 1 a fit did not converge — the itera
 with RESULT.json written all the same (``converged`` false, the last iterate, which
 ``--params RESULT.json`` restarts from), or a session of a batch failed; 2 bad input
 (message names file and place, no traceback); 130 interrupted by Ctrl-C: a fit writes
-its last iterate as for 1 (``interrupted`` true), a batch keeps its results.
+its last iterate as for 1 (``interrupted`` true), a batch keeps its results.  A batch
+with ``--db`` also exits 1 when a session's result could not be written to the QC
+records database.
 """
 
 from __future__ import annotations
@@ -33,7 +35,9 @@ from identify.result import FitResult
 from identify.transient import drop_test
 
 if TYPE_CHECKING:
-    from identify import batch
+    from rich.console import Console
+
+    from identify import batch, sinks
 
 EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 TABLE_ROWS = 40  # a longer batch shows only its failed sessions on the terminal (summary.csv has all)
@@ -336,9 +340,8 @@ def run_report(args: argparse.Namespace) -> int:
 
 def run_batch(args: argparse.Namespace) -> int:
     from rich.console import Console
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from identify import batch
+    from identify import batch, sinks
 
     console = Console(stderr=True, soft_wrap=True)   # log lines unbroken when stderr is a file
     named = list(args.sessions) + (batch.read_session_list(args.list) if args.list else [])
@@ -349,6 +352,21 @@ def run_batch(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise UsageError(f"--out {out}: exists and is not a folder")
+    # Opened before the cluster: a missing database or a wrong URL costs no fit.
+    sink = sinks.open_sink("db", args.db) if args.db is not None else None
+    try:
+        return _run_batch(args, console, sessions, settings, out, sink)
+    finally:
+        if sink is not None:
+            sink.close()
+
+
+def _run_batch(args: argparse.Namespace, console: Console, sessions: list[Path], settings: batch.FitSettings,
+               out: Path, sink: sinks.ResultSink | None) -> int:
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from identify import batch
+
     counts = {"ok": 0, "failed": 0, "skipped": 0}
     try:
         with batch.connect(args.scheduler, args.workers) as client:
@@ -360,7 +378,8 @@ def run_batch(args: argparse.Namespace) -> int:
             link = batch.dashboard_link(client)
             console.print(f"identifying {', '.join(settings.estimate)} of model {settings.model_name} in "
                           f"{len(sessions)} sessions on {workers} workers"
-                          + (f"; dashboard {link}" if link else ""), highlight=False)
+                          + (f"; dashboard {link}" if link else "")
+                          + (f"; results to {sink.name} too" if sink else ""), highlight=False)
             columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
             with Progress(*columns, console=console) as progress:
                 bar = progress.add_task("sessions", total=len(sessions))
@@ -369,7 +388,7 @@ def run_batch(args: argparse.Namespace) -> int:
                     counts[outcome.state] += 1
                     progress.update(bar, advance=1, description=", ".join(f"{v} {k}" for k, v in counts.items()))
 
-                rows = batch.run_batch(client, sessions, settings, out, advance)
+                rows = batch.run_batch(client, sessions, settings, out, advance, sink)
     except KeyboardInterrupt:
         console.print(f"interrupted with {sum(counts.values())} of {len(sessions)} sessions reported; every result "
                       f"written is kept in {out}, and the same command goes on from there", highlight=False)
@@ -377,7 +396,13 @@ def run_batch(args: argparse.Namespace) -> int:
     _batch_table(rows, settings.estimate)
     print(f"{len(rows)} sessions: " + ", ".join(f"{v} {k}" for k, v in counts.items())
           + f"; results in {out}, summary {out / batch.SUMMARY}")
-    return EXIT_NOT_CONVERGED if counts["failed"] else EXIT_OK
+    undelivered = [(r.session, r.delivery.text) for r in rows if r.delivery and r.delivery.state == "failed"]
+    if sink is not None:
+        for line in sink.summary():
+            print(line)
+        for session, reason in undelivered:  # each on its own line, whole, as a failed fit's
+            print(f"{session}: not written to {sink.name}: {reason}")
+    return EXIT_NOT_CONVERGED if counts["failed"] or undelivered else EXIT_OK
 
 
 def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) -> None:
@@ -474,6 +499,11 @@ def build_parser() -> argparse.ArgumentParser:
     where = bat.add_mutually_exclusive_group()
     where.add_argument("--scheduler", help="address of a running Dask scheduler, tcp://HOST:8786")
     where.add_argument("--workers", type=int, help="worker processes of a local cluster (default: one per core)")
+    bat.add_argument("--db", metavar="URL",
+                     help="an existing QC records database (sqlite:///FILE or postgresql://USER@HOST:PORT/DB): "
+                          "each converged session whose data has a QC record is re-judged with this fit, under "
+                          "the spec of its latest record when that spec's model and estimated set are the "
+                          "batch's; a new record refers to the first, once per result (a rerun adds none)")
     bat.set_defaults(func=run_batch)
 
     rep = sub.add_parser("report", help="print a RESULT.json as a report")

@@ -235,6 +235,13 @@ class FitResult:
             "message": self.message,
             "parameters": params,
             "correlation": corr,
+            # The matrices themselves, in the order of "estimated": whoever propagates the
+            # fit to another quantity (QC's characteristics, from a stored batch result)
+            # needs the residual-based one's off-diagonal terms, which std and the noise
+            # correlation do not give.
+            "covariance": {"estimated": list(self.estimated), "noise": _matrix(self.covariance),
+                           "residual": None if self.covariance_residual is None else
+                           _matrix(self.covariance_residual)},
             "channels": {o: {"variance": self.channel_variances[o]} for o in self.outputs},
             "experiments": experiments,
             "objective": self.objective_history[-1] if self.objective_history else None,
@@ -346,3 +353,8 @@ def _calibration_line(model: str) -> str | None:
 
 def _finite(x: float) -> float | None:
     return float(x) if np.isfinite(x) else None
+
+
+def _matrix(m: np.ndarray) -> list[list[float | None]]:
+    """A matrix as JSON (a non-finite entry as null, as in the correlation)."""
+    return [[_finite(x) for x in row] for row in np.asarray(m, dtype=float)]

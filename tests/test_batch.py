@@ -1,9 +1,11 @@
 """identify batch on a LocalCluster of 2 single-threaded workers: 30 generated sessions
 identified within 3 σ of their truths, a corrupt one failing alone, a rerun that fits
-nothing, and a worker killed mid-batch without a result lost or written twice.
+nothing, and a worker killed mid-batch without a result lost or written twice.  With
+--db, the sessions that have a QC record are re-judged in the records database, once.
 
 The sessions are small (experiments h and j, 3 periods at 1 kHz, n = 400) and generated
-once for the module, on the same cluster."""
+once for the module, on the same cluster; those of --db are production units on the
+default QC spec's plan."""
 
 from __future__ import annotations
 
@@ -14,6 +16,7 @@ import os
 import shutil
 import signal
 import socket
+import sqlite3
 import subprocess
 import sys
 from pathlib import Path
@@ -21,13 +24,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from identify import batch
+from identify import batch, sinks
 from identify.cli import main
 from identify.model import load_model
 from identify.parameters import Parameters
 from identify.plans import STANDARD_SET, select
+from rig.qc.records import Records
+from rig.qc.run import qc_judge
+from rig.qc.spec import load_spec
 from simulator.generate import generate
 from simulator.physics import Damper
+from simulator.truth import load_truth
 
 ESTIMATE = ("theta4", "theta6", "theta16")
 N_SESSIONS = 30
@@ -212,6 +219,104 @@ def test_the_command_runs_a_list_on_the_plants_scheduler(client, sessions, tmp_p
     assert [s["session"] for s in read_summary(tmp_path / "out")] == ["unit-02", "unit-03"]
 
 
+# ------------------------------------------------------------------------------------------
+# --db: re-judgements in the QC records database
+
+QC_SPEC = load_spec("default")
+QC_UNITS = {"good-3": ("good", 3), "leak-4": ("gas-leak", 4), "good-5": ("good", 5)}  # good-5 has no record
+
+
+@pytest.fixture(scope="module")
+def qc_station(client, tmp_path_factory) -> tuple[list[Path], Path]:
+    """Three units measured on the default spec's plan; the first two judged by `qc judge`
+    into a records database (its first records), the third never judged."""
+    root = tmp_path_factory.mktemp("station")
+    folders = [root / name for name in QC_UNITS]
+    plan = list(QC_SPEC.plan.experiments)
+    client.gather(client.map(lambda folder, unit, seed: generate(folder, plan, load_truth(None, "2dof", unit, seed),
+                                                                 periods=None, seed=seed, date="261122",
+                                                                 serial=f"SN-{seed:04d}"),
+                             folders, *zip(*QC_UNITS.values(), strict=True), pure=False))
+    db = root / "records.sqlite"
+    Records.open(str(db)).close()   # one process creates the schema; the judges then write side by side
+    verdicts = client.gather(client.map(lambda folder: qc_judge(folder, "default", str(db), "qe"), folders[:2],
+                                        pure=False))
+    assert verdicts == [0, 1]      # PASS, FAIL (gas leak)
+    with sqlite3.connect(db) as conn, sqlite3.connect(root / "first-records.sqlite") as copy:
+        conn.backup(copy)          # the first records alone, whatever the tests then add to db
+    (root / "results").mkdir()     # the batch's results, shared: a test after the first fits nothing again
+    return folders, db
+
+
+def _batch_db(client, sessions: list[Path], out: Path, db: str, *estimate: str) -> subprocess.CompletedProcess[str]:
+    client.wait_for_workers(2)     # a worker killed above may still be restarting
+    return subprocess.run([sys.executable, "-m", "identify", "batch", *map(str, sessions), "--estimate",
+                           ",".join(estimate or QC_SPEC.estimate), "--n", "800", "--out", str(out), "--db", db,
+                           "--scheduler", client.scheduler.address], capture_output=True, text=True, timeout=300)
+
+
+def test_db_adds_a_rejudgement_that_refers_to_the_first_record_once(client, qc_station, tmp_path):
+    folders, db = qc_station
+    proc = _batch_db(client, folders, db.parent / "results", str(db))
+    assert proc.returncode == 0, proc.stdout + proc.stderr
+    assert (f"QC records in sqlite:///{db}: 2 sessions re-judged (1 FAIL, 1 PASS), 0 re-judged before, "
+            "1 without a QC record, 0 not re-judged, 0 failed") in proc.stdout, proc.stdout
+    records = Records.open(str(db))
+    found = records.find()
+    firsts = {r.serial: r for r in found[:2]}             # judged side by side: in either order
+    new = sorted(found[2:], key=lambda r: r.serial)       # written in the order the results arrived
+    assert [(r.serial, r.verdict, r.rejudges) for r in new] == [("SN-0003", "PASS", firsts["SN-0003"].uid),
+                                                                 ("SN-0004", "FAIL", firsts["SN-0004"].uid)]
+    for r in new:
+        first = firsts[r.serial]
+        assert (r.data_sha256, r.spec_sha256, r.status) == (first.data_sha256, QC_SPEC.sha256, "COMPLETE")
+        assert any(n.startswith("identified by identify batch: result key ") for n in r.notes), r.notes
+        # The batch fitted what qc judge fits (model, estimated set, start, grid): the same
+        # numbers, σ propagated from the stored covariance (the residual-based one for the leak)
+        for c, d in zip(first.characteristics, r.characteristics, strict=True):
+            assert (d.name, d.outcome) == (c.name, c.outcome)
+            assert d.value == pytest.approx(c.value, rel=1e-9) and d.std_fit == pytest.approx(c.std_fit, rel=1e-6)
+    assert not list(folders[2].glob("qc-record*"))        # nothing written into a session folder by the batch
+
+    again = _batch_db(client, folders, db.parent / "results", str(db))
+    assert again.returncode == 0, again.stdout + again.stderr
+    assert "3 sessions: 0 ok, 0 failed, 3 skipped" in again.stdout
+    assert "0 sessions re-judged, 2 re-judged before (1 FAIL, 1 PASS), 1 without a QC record" in again.stdout
+    assert len(records.find()) == 4                       # no duplicate of the same result
+    records.close()
+
+
+def test_db_re_judges_only_where_the_spec_applies_and_reports_what_it_could_not_write(client, qc_station,
+                                                                                     tmp_path):
+    folders, db = qc_station
+    pristine = shutil.copy(db.parent / "first-records.sqlite", tmp_path / "records.sqlite")
+    other = _batch_db(client, folders[:1], tmp_path / "other", str(pristine), "theta3", "theta5", "theta6")
+    assert other.returncode == 0, other.stdout + other.stderr
+    assert "0 sessions re-judged, 0 re-judged before, 0 without a QC record, 1 not re-judged, 0 failed" in other.stdout
+    assert ("1 not re-judged (good-3): spec default 1.0.0 estimates theta15, theta3, theta5, theta6, theta8; "
+            "the batch theta3, theta5, theta6") in other.stdout
+
+    with sqlite3.connect(pristine) as conn:               # a database that refuses every new record
+        conn.execute("CREATE TRIGGER full BEFORE INSERT ON qc_record BEGIN SELECT RAISE(ABORT, 'disk full'); END")
+    refused = _batch_db(client, folders, db.parent / "results", str(pristine))
+    assert refused.returncode == 1, refused.stdout + refused.stderr
+    assert {s["status"] for s in read_summary(db.parent / "results")} <= {"ok", "skipped"}   # the fits did not fail
+    assert "0 sessions re-judged, 0 re-judged before, 1 without a QC record, 0 not re-judged, 2 failed" \
+        in refused.stdout
+    for name in ("good-3", "leak-4"):
+        assert f"{name}: not written to sqlite:///{pristine}: records database sqlite:///{pristine} refused the " \
+               "record: disk full" in refused.stdout
+    assert "Traceback" not in refused.stdout + refused.stderr
+
+
+def test_identify_imports_no_rig():
+    """rig uses identify, never the other way: the batch finds the records sink by entry point."""
+    code = ("import sys, identify.cli, identify.batch, identify.sinks; "
+            "print(sorted(m for m in sys.modules if m == 'rig' or m.startswith('rig.')))")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0 and proc.stdout.strip() == "[]", proc.stdout + proc.stderr
+
+
 def _closed_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -236,4 +341,35 @@ def test_bad_input_is_one_line_and_exit_2(args, message, tmp_path, capsys):
     assert main(["batch", *argv, "--out", str(tmp_path / "out")]) == 2
     err = capsys.readouterr().err
     assert err.startswith("error: ") and err.count("\n") == 1 and message in err, err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("db, message", [
+    ("{tmp}/missing.sqlite", "--db: records database sqlite:///{tmp}/missing.sqlite does not exist"),
+    ("sqlite:///{tmp}/missing.sqlite", "does not exist (qc run and qc judge create one"),
+    ("{tmp}/plain.sqlite", "--db: sqlite:///{tmp}/plain.sqlite is not a QC records database (no qc_schema table)"),
+    ("mysql://qe@db.plant/qc", "unsupported database 'mysql' (sqlite or postgresql)"),
+    ("postgresql://qe:s3cret@127.0.0.1:{port}/qc", "records database postgresql+psycopg://qe:***@127.0.0.1"),
+])
+def test_a_database_that_is_not_there_is_one_line_and_exit_2_before_any_fit(db, message, tmp_path, capsys):
+    sqlite3.connect(tmp_path / "plain.sqlite").close()    # an SQLite file, but no one's QC records
+    port = _closed_port()
+    argv = ["batch", str(tmp_path / "a" / "unit"), "--estimate", "theta4", "--out", str(tmp_path / "out"),
+            "--db", db.format(tmp=tmp_path, port=port)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and err.count("\n") == 1 and message.format(tmp=tmp_path) in err, err
+    assert "s3cret" not in err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "missing.sqlite").exists()
+
+
+def test_without_the_records_sink_installed_db_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch):
+    monkeypatch.setattr(sinks, "GROUP", "identify.result_sinks.none")   # as if identify were installed alone
+    db = tmp_path / "records.sqlite"
+    Records.open(str(db)).close()
+    assert main(["batch", str(tmp_path / "unit"), "--estimate", "theta4", "--out", str(tmp_path / "out"),
+                 "--db", str(db)]) == 2
+    err = capsys.readouterr().err
+    assert err == ("error: --db: no result sink 'db' is installed (entry point group identify.result_sinks.none); "
+                   "it comes with the damper-rig project's rig package: install the project, not identify alone\n")
     assert not (tmp_path / "out").exists()

@@ -44,6 +44,27 @@ class Measured:
     note: str = ""
 
 
+@dataclass(frozen=True)
+class Identified:
+    """What the model-based characteristics need of a converged identification: the
+    whole parameter vector (SI), the estimated names and the covariance to propagate
+    (theirs, in that order).  From a fit in this process, or from a stored result
+    (``identify batch``'s, re-judged)."""
+
+    theta: np.ndarray
+    estimated: tuple[str, ...]
+    covariance: np.ndarray
+
+    @classmethod
+    def from_fit(cls, fit: FitResult | None) -> Identified | None:
+        """None for a fit that did not converge (or did not happen)."""
+        if fit is None or not fit.converged:
+            return None
+        # The residual-based covariance where the fit found model error: a guard band of the
+        # noise-only σ would pass units on a precision the model does not have.
+        return cls(fit.params.vector(), tuple(fit.estimated), fit.honest_covariance())
+
+
 def check_model(spec: Spec) -> CompiledModel:
     """The spec's model, with every name the spec relies on present (refused with one line)."""
     try:
@@ -64,8 +85,9 @@ def check_model(spec: Spec) -> CompiledModel:
     return model
 
 
-def measure(spec: Spec, model: CompiledModel, fit: FitResult | None, experiments: list[Experiment]) -> list[Measured]:
-    """Every characteristic of the spec; model-based ones need a converged ``fit``."""
+def measure(spec: Spec, model: CompiledModel, identified: Identified | None,
+            experiments: list[Experiment]) -> list[Measured]:
+    """Every characteristic of the spec; model-based ones need a converged identification."""
     out = []
     for c in spec.characteristics:
         if c.kind == "loop_energy":
@@ -74,11 +96,11 @@ def measure(spec: Spec, model: CompiledModel, fit: FitResult | None, experiments
                 out.append(_missing(c, f"no experiment {c.args['experiment']!r} in the session"))
                 continue
             value, std = loop_energy(exp)
-        elif fit is None or not fit.converged:
+        elif identified is None:
             out.append(_missing(c, "the identification did not converge"))
             continue
         else:
-            value, std = _propagate(model, fit, _model_function(model, c), c.kind == "drop_peak_force")
+            value, std = _propagate(model, identified, _model_function(model, c), c.kind == "drop_peak_force")
         scale = c.si_factor
         std_fit = std / scale
         out.append(Measured(c.name, c.unit, value / scale, math.hypot(std_fit, c.u_cal), std_fit, c.u_cal))
@@ -130,12 +152,12 @@ def drop_peak_force(model: CompiledModel, theta: np.ndarray, mass_kg: float, vel
     return float(f1 - (f2 - f0) ** 2 / (8 * curvature)) if curvature < 0 else float(f1)
 
 
-def _propagate(model: CompiledModel, fit: FitResult, f: Callable[[np.ndarray], float],
+def _propagate(model: CompiledModel, identified: Identified, f: Callable[[np.ndarray], float],
                integrated: bool) -> tuple[float, float]:
-    theta = fit.params.vector()
+    theta = identified.theta
     value = f(theta)
-    J = np.empty(len(fit.estimated))
-    for col, name in enumerate(fit.estimated):
+    J = np.empty(len(identified.estimated))
+    for col, name in enumerate(identified.estimated):
         i = model.parameter_index(name)
         h = (1e-3 if integrated else RELATIVE_STEP) * (abs(theta[i]) or 1.0)
         up = theta.copy()
@@ -146,9 +168,7 @@ def _propagate(model: CompiledModel, fit: FitResult, f: Callable[[np.ndarray], f
             down = theta.copy()
             down[i] -= h
             J[col] = (f(up) - f(down)) / (2 * h)
-    # The residual-based covariance where the fit found model error: a guard band of the
-    # noise-only σ would pass units on a precision the model does not have.
-    return value, float(np.sqrt(max(J @ fit.honest_covariance() @ J, 0.0)))
+    return value, float(np.sqrt(max(J @ identified.covariance @ J, 0.0)))
 
 
 def loop_energy(exp: Experiment) -> tuple[float, float]:

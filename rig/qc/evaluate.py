@@ -1,7 +1,8 @@
 """From a session folder to a judgement: read the captured experiments, identify the
 spec's parameters, compute the characteristics, judge them.  ``qc run`` and ``qc judge``
 both come here, reading the files, so that a re-judgement of the same data under the
-same spec gives the same numbers."""
+same spec gives the same numbers; ``identify batch --db`` comes with its own fit
+(:func:`evaluate_identified`)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from identify.model import CompiledModel
 from identify.parameters import Parameters
 from identify.preparation import model_columns, resolve_outputs
 from identify.result import FitResult
-from rig.qc.characteristics import Measured, check_model, measure
+from rig.qc.characteristics import Identified, Measured, check_model, measure
 from rig.qc.judge import Judgement, judge
 from rig.qc.spec import Spec
 
@@ -35,9 +36,7 @@ class Evaluation:
 def evaluate(spec: Spec, session: Path) -> Evaluation:
     t0 = time.perf_counter()
     model = check_model(spec)
-    columns = model_columns(model, resolve_outputs(model, None))
-    dataset = read_dataset(session, columns)
-    experiments = [e for e in dataset.experiments if e.kind == "periodic"]
+    experiments = _periodic(model, session)
     params = Parameters.from_file(model, spec.start) if spec.start else Parameters(model)
     notes: list[str] = []
     fit: FitResult | None = None
@@ -48,6 +47,25 @@ def evaluate(spec: Spec, session: Path) -> Evaluation:
             notes.append(f"identification did not converge: {fit.message}")
     except IdentifyError as exc:
         notes.append(f"identification failed: {exc}")
-    measured = measure(spec, model, fit, experiments)
+    return _judge(spec, model, experiments, fit, Identified.from_fit(fit), notes, t0)
+
+
+def evaluate_identified(spec: Spec, session: Path, identified: Identified, notes: list[str]) -> Evaluation:
+    """The same judgement from an identification made elsewhere (a batch's stored result,
+    whose model and estimated set are the spec's): no fit here, the measured data read
+    for the characteristics that come from them."""
+    t0 = time.perf_counter()
+    model = check_model(spec)
+    return _judge(spec, model, _periodic(model, session), None, identified, list(notes), t0)
+
+
+def _periodic(model: CompiledModel, session: Path) -> list[Experiment]:
+    columns = model_columns(model, resolve_outputs(model, None))
+    return [e for e in read_dataset(session, columns).experiments if e.kind == "periodic"]
+
+
+def _judge(spec: Spec, model: CompiledModel, experiments: list[Experiment], fit: FitResult | None,
+           identified: Identified | None, notes: list[str], t0: float) -> Evaluation:
+    measured = measure(spec, model, identified, experiments)
     notes += [f"{m.name}: {m.note}" for m in measured if m.note]
     return Evaluation(model, experiments, fit, measured, judge(spec, measured), time.perf_counter() - t0, notes)

@@ -241,9 +241,15 @@ class Records:
         self._secrets = secrets_for(url)
 
     @classmethod
-    def open(cls, url: str) -> Records:
+    def open(cls, url: str, create: bool = True) -> Records:
+        """The database at ``url``, made with its schema when new; with ``create`` false
+        only an existing records database is opened (``identify batch --db`` adds to the
+        records of a station, and a mistyped path must not start an empty one)."""
         parsed = parse_url(url)
         if parsed.get_backend_name() == "sqlite":
+            if not create and not Path(str(parsed.database)).is_file():
+                raise RecordsError(f"records database {safe_url(parsed)} does not exist (qc run and qc judge "
+                                   f"create one; give the URL of an existing one)")
             Path(str(parsed.database)).parent.mkdir(parents=True, exist_ok=True)
             engine = create_engine(parsed, connect_args={"timeout": SQLITE_WAIT_S})
             event.listen(engine, "connect", _sqlite_connect)
@@ -251,8 +257,12 @@ class Records:
         else:
             engine = create_engine(parsed, pool_pre_ping=True)
         records = cls(engine, parsed)
-        with records._errors("cannot be opened"):
-            records._ensure_schema()
+        try:
+            with records._errors("cannot be opened"):
+                records._ensure_schema(create)
+        except RecordsError:
+            records.close()
+            raise
         return records
 
     def close(self) -> None:
@@ -267,11 +277,13 @@ class Records:
             first = reason[0] if reason else type(exc).__name__
             raise RecordsError(redact(f"records database {self.name} {what}: {first}", self._secrets)) from None
 
-    def _ensure_schema(self) -> None:
+    def _ensure_schema(self, create: bool) -> None:
         with self.engine.begin() as conn:
             if conn.dialect.name == "postgresql":
                 conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": PG_SCHEMA_LOCK})
             if not inspect(conn).has_table("qc_schema"):
+                if not create:
+                    raise RecordsError(f"{self.name} is not a QC records database (no qc_schema table)")
                 metadata.create_all(conn)
                 _create_triggers(conn)
                 conn.execute(schema_table.insert().values(version=SCHEMA_VERSION))
@@ -323,6 +335,13 @@ class Records:
         with self._errors("cannot be read"), self.engine.connect() as conn:
             row = conn.execute(query.limit(1)).mappings().first()
         return _record(row, ()) if row else None
+
+    def for_data(self, data_sha256: str) -> list[QcRecord]:
+        """Every record of the same measured data, first written first, without their
+        characteristics: the first (which re-judgements refer to) and the latest."""
+        query = select(record_table).where(record_table.c.data_sha256 == data_sha256).order_by(record_table.c.id)
+        with self._errors("cannot be read"), self.engine.connect() as conn:
+            return [_record(row, ()) for row in conn.execute(query).mappings()]
 
 
 def _record(row: Any, characteristics: tuple[CharacteristicRecord, ...]) -> QcRecord:

@@ -33,7 +33,7 @@ from rig.qc.judge import Outcome
 from rig.qc.records import CharacteristicRecord, QcRecord, Records, default_url
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
-from rig.qc.trace import now_utc, software_version, trace_session
+from rig.qc.trace import SessionTrace, now_utc, software_version, trace_session
 from rig.run import EXIT_INTERRUPTED, EXIT_OK, RunOptions, execute, prepare
 
 EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
@@ -95,7 +95,7 @@ def qc_run(opt: QcOptions, console: Console) -> int:
         retest = shlex.join(["python", "-m", "rig", "qc", "run", "--spec", opt.spec, "--serial", opt.serial,
                              "--shaker", opt.shaker, "--daq", opt.daq, "--out", str(opt.out),
                              "--periods", str(spec.retest_periods())])
-        record = _judged(spec, session, evaluation, retest, rejudges=None, **identity)
+        record = judged_record(spec, trace_session(session), evaluation, retest, rejudges=None, **identity)
         return _conclude(records, record, spec, evaluation, session / "qc-report.html", session / "qc-record.json")
     finally:
         records.close()
@@ -116,10 +116,10 @@ def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str 
         serial = first.serial if first else str(manifest.get("unit", {}).get("serial", "unknown"))
         rig = first.rig if first else str(manifest.get("source", {}).get("generator", "unknown"))
         evaluation = evaluate(spec, session)
-        retest = f"retest the unit with more periods (qc run … --periods {spec.retest_periods()})"
-        record = _judged(spec, session, evaluation, retest, rejudges=first.uid if first else None, serial=serial,
-                         operator=first.operator if first else operator or getpass.getuser(), rig=rig,
-                         started=trace.started, finished=trace.finished)
+        retest = rejudge_remedy(spec)
+        record = judged_record(spec, trace, evaluation, retest, rejudges=first.uid if first else None,
+                               serial=serial, operator=first.operator if first else operator or getpass.getuser(),
+                               rig=rig, started=trace.started, finished=trace.finished)
         tag = f"{record.judged.replace(':', '').replace('-', '')[:15]}-{record.uid[:8]}"
         return _conclude(records, record, spec, evaluation, session / f"qc-report-{tag}.html",
                          session / f"qc-record-{tag}.json")
@@ -157,27 +157,32 @@ def _store(records: Records, record: QcRecord, spec: Spec) -> None:
                        (json.dumps(_document(record), indent=2) + "\n").encode())
 
 
-def _base(spec: Spec, session: Path, **identity: str | None) -> dict:
-    trace = trace_session(session)
-    return dict(uid=str(uuid.uuid4()), judged=now_utc(), software=software_version(), spec_name=spec.name,
+def rejudge_remedy(spec: Spec) -> str:
+    """The remedy of an INCONCLUSIVE re-judgement (no rig at hand to name in a command)."""
+    return f"retest the unit with more periods (qc run … --periods {spec.retest_periods()})"
+
+
+def _base(spec: Spec, trace: SessionTrace, uid: str | None = None, **identity: str | None) -> dict:
+    return dict(uid=uid or str(uuid.uuid4()), judged=now_utc(), software=software_version(), spec_name=spec.name,
                 spec_version=spec.version, spec_sha256=spec.sha256, calibration_sha256=trace.calibration_sha256,
                 register_map_sha256=trace.register_map_sha256, session=trace.path, data_sha256=trace.data_sha256,
                 files=trace.files, **identity)
 
 
 def _unjudged(spec: Spec, session: Path, status: str, notes: list[str], **identity: str | None) -> QcRecord:
-    return QcRecord(**_base(spec, session, **identity), verdict=None, status=status, characteristics=(),
-                    notes=tuple(notes))
+    return QcRecord(**_base(spec, trace_session(session), **identity), verdict=None, status=status,
+                    characteristics=(), notes=tuple(notes))
 
 
-def _judged(spec: Spec, session: Path, evaluation: Evaluation, retest: str, rejudges: str | None,
-            **identity: str | None) -> QcRecord:
+def judged_record(spec: Spec, trace: SessionTrace, evaluation: Evaluation, retest: str, rejudges: str | None,
+                  uid: str | None = None, **identity: str | None) -> QcRecord:
+    """The record of a verdict (``uid``: a new random one unless the caller keys it)."""
     j = evaluation.judgement
     characteristics = tuple(
         CharacteristicRecord(c.name, c.measured.unit, c.measured.value, c.measured.std, c.measured.std_fit,
                              c.measured.u_cal, c.low, c.high, c.nominal, c.outcome.value)
         for c in j.characteristics)
-    return QcRecord(**_base(spec, session, **identity), verdict=j.verdict.value, status="COMPLETE",
+    return QcRecord(**_base(spec, trace, uid, **identity), verdict=j.verdict.value, status="COMPLETE",
                     characteristics=characteristics, diagnosis=tuple(j.diagnosis),
                     remedy=retest if j.verdict is Outcome.INCONCLUSIVE else None, notes=tuple(evaluation.notes),
                     rejudges=rejudges)

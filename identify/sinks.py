@@ -1,0 +1,109 @@
+"""Result sinks: where a batch's results go beyond RESULTS_DIR, as they arrive.
+
+``identify batch --db URL`` hands each converged result to a sink that some other
+package provides: the QC records database belongs to ``rig``, which ``identify`` does not
+import (dependencies point one way).  A package offers a sink through the entry point
+group ``identify.result_sinks``; the entry point's name is the option's (``db`` for
+``--db``) and its object a factory ``(url) -> ResultSink``.  The factory checks its
+destination at once (the batch opens it before any task runs, so a wrong URL costs no
+fit) and raises :class:`SinkError` when it cannot be used.
+
+A sink runs in the batch's client process, one result at a time in the order they
+arrive, and only there does it write: it needs no locking of its own, and a worker that
+dies cannot leave half a delivery.  Work too long for the client (QC's characteristics
+integrate the drop test: seconds per session, as long as a fit) a sink hands back as a
+:class:`Task`, which the batch runs on the cluster ahead of the remaining fits and whose
+value it gives to :meth:`ResultSink.finish`, on the client again.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from importlib.metadata import entry_points
+from typing import TYPE_CHECKING, Any, Literal, Protocol
+
+from identify.errors import InputError
+
+if TYPE_CHECKING:
+    from identify.batch import SessionOutcome
+
+GROUP = "identify.result_sinks"
+
+
+class SinkError(InputError):
+    """A sink that cannot be loaded or opened (exit 2, before any task runs)."""
+
+
+@dataclass(frozen=True)
+class Delivery:
+    """What a sink did with one session's result.
+
+    ``written``  the result went in (``text``: what it became, e.g. a verdict);
+    ``present``  an earlier run already put this very result in (nothing written);
+    ``passed``   the result does not belong there (``text`` says why: no record of the
+                 data, another model...): nothing written, nothing wrong;
+    ``failed``   it belonged there and could not be written (``text``: the reason);
+                 the batch exits 1, and the next run tries again.
+    """
+
+    state: Literal["written", "present", "passed", "failed"]
+    text: str = ""
+
+
+@dataclass(frozen=True)
+class Task:
+    """Work a sink wants done on the cluster before it writes: ``function(*args)`` as a
+    Dask task.  The function must be importable on the workers (a module-level function
+    of a package installed there, as the batch's own is) and its arguments and value
+    picklable; an exception it raises reaches :meth:`ResultSink.finish` as the value."""
+
+    function: Callable[..., Any]
+    args: tuple[Any, ...]
+
+
+class ResultSink(Protocol):
+    """A destination for a batch's converged results."""
+
+    name: str  # where the results go, as it may be shown (no credentials)
+
+    def deliver(self, outcome: SessionOutcome, result: dict[str, Any]) -> Delivery | Task:
+        """Take one session's converged result (its RESULT.json document, ``batch``
+        block included): deliver it, or ask for a :class:`Task` first.  The session's
+        own faults are a ``failed`` delivery, never an exception: one session cannot
+        stop the others."""
+        ...
+
+    def finish(self, outcome: SessionOutcome, task: Task, value: Any) -> Delivery:
+        """Deliver ``outcome``'s result with the value of the task that :meth:`deliver`
+        asked for (an exception if the task raised one or was lost)."""
+        ...
+
+    def summary(self) -> list[str]:
+        """Lines for the terminal once the batch is over: what was delivered, with counts."""
+        ...
+
+    def close(self) -> None: ...
+
+
+SinkFactory = Callable[[str], ResultSink]
+
+
+def open_sink(option: str, url: str) -> ResultSink:
+    """The sink installed under ``option``'s name, opened on ``url``.  The URL is not
+    repeated in the messages raised here: it may carry a password, and only the sink
+    knows how to show it without."""
+    found = {ep.value: ep for ep in entry_points(group=GROUP, name=option)}  # one per target, however installed
+    if not found:
+        raise SinkError(f"--{option}: no result sink {option!r} is installed (entry point group {GROUP}); "
+                        f"it comes with the damper-rig project's rig package: install the project, not identify alone")
+    if len(found) > 1:
+        raise SinkError(f"--{option}: several result sinks {option!r} are installed ({', '.join(sorted(found))}); "
+                        f"uninstall all but one")
+    (ep,) = found.values()
+    try:
+        factory = ep.load()
+    except (ImportError, AttributeError) as exc:
+        raise SinkError(f"--{option}: the result sink {ep.value} cannot be loaded ({exc})") from None
+    sink: ResultSink = factory(url)
+    return sink
