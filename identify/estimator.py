@@ -189,7 +189,7 @@ class Estimator:
         exact = su * d.folded.noise_factor_t(self.solver.input_adjoint(sol, theta, self.output_idx, basis))
         exact = np.sum(exact.reshape(n_in, m, n_out, RANK) ** 2, axis=(0, 1, 3))
         G = responses[:, :, RANK:]
-        rest = G - np.einsum("onr,orp->onp", Q, np.einsum("onr,onp->orp", Q, G))
+        rest = G - Q @ (np.swapaxes(Q, 1, 2) @ G)  # BLAS; einsum's loop over the grid took 30x longer
         return (exact + np.sum(rest**2, axis=(1, 2)) / PROBES) / self.grid.n
 
     def _input_draws(self, d: PeriodicData) -> np.ndarray:
