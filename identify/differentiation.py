@@ -218,17 +218,20 @@ class Grid:
         ddx = np.fft.irfft(X * (f * f * self._s2), n=self.points, axis=-1)
         return dx, ddx
 
-    def derivatives_transposed(self, w: np.ndarray, frequency_hz: float) -> tuple[np.ndarray, np.ndarray]:
-        """D1ᵀ·w and D2ᵀ·w along the last axis (the adjoints of :meth:`derivatives`)."""
+    def derivatives_transposed(self, w1: np.ndarray, w2: np.ndarray,
+                               frequency_hz: float) -> tuple[np.ndarray, np.ndarray]:
+        """D1ᵀ·w1 and D2ᵀ·w2 along the last axis (the adjoints of :meth:`derivatives`);
+        one operator each, as an adjoint needs, not both of each (half the work)."""
         f = frequency_hz
         if self.scheme == "bdf2":
-            w0, w1, w2, w3 = _shifts(w, +1)
             c1, c2 = self._c1, self._c2
-            return (f * (c1[0] * w0 + c1[1] * w1 + c1[2] * w2),
-                    f * f * (c2[0] * w0 + c2[1] * w1 + c2[2] * w2 + c2[3] * w3))
-        W = np.fft.rfft(w, axis=-1)
-        return (np.fft.irfft(W * (f * np.conj(self._s1)), n=self.points, axis=-1),
-                np.fft.irfft(W * (f * f * np.conj(self._s2)), n=self.points, axis=-1))
+            a0, a1, a2, _ = _shifts(w1, +1)
+            b0, b1, b2, b3 = _shifts(w2, +1)
+            return (f * (c1[0] * a0 + c1[1] * a1 + c1[2] * a2),
+                    f * f * (c2[0] * b0 + c2[1] * b1 + c2[2] * b2 + c2[3] * b3))
+        W1, W2 = np.fft.rfft(w1, axis=-1), np.fft.rfft(w2, axis=-1)
+        return (np.fft.irfft(W1 * (f * np.conj(self._s1)), n=self.points, axis=-1),
+                np.fft.irfft(W2 * (f * f * np.conj(self._s2)), n=self.points, axis=-1))
 
     def apply_derivative_operators(self, dz: np.ndarray, frequency_hz: float) -> tuple[np.ndarray, np.ndarray]:
         """Derivatives of a stack of state perturbations dz with shape (n_states, n, k)."""

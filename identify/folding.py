@@ -60,9 +60,13 @@ class FoldedRecord:
         noise of a unit-variance white sample noise."""
         m = len(self.filled_counts)
         moved = np.moveaxis(x, -2, 0)  # (n, …, k)
-        out = np.zeros((m,) + moved.shape[1:])
-        for bins, w in zip(self.interp_bins, self.interp_weights, strict=True):
-            np.add.at(out, bins, w.reshape((-1,) + (1,) * (moved.ndim - 1)) * moved)
+        columns = moved.reshape(self.n, -1)  # (n, P): every other axis flattened
+        P = columns.shape[1]
+        # One bincount over both interpolation weights, each grid point's two bins in turn:
+        # np.add.at's order (so its sums to the last bit), at a tenth of its cost.
+        index = (self.interp_bins.reshape(-1, 1) * P + np.arange(P)).ravel()
+        terms = (self.interp_weights.reshape(2, -1, 1) * columns).ravel()
+        out = np.bincount(index, terms, minlength=m * P).reshape((m,) + moved.shape[1:])
         return np.moveaxis(out, 0, -2) / np.sqrt(self.filled_counts)[:, None]
 
     @property

@@ -260,9 +260,9 @@ class PeriodicSolver:
         hx, hdx, hddx = m.output_jacobian(*args)
         wk = np.moveaxis(w, 1, -1)  # (nout, k, n)
         lam = np.einsum("ojn,okn->jkn", hx[outputs], wk)
-        d1, d2 = self.grid.derivatives_transposed(
-            np.stack([np.einsum("ojn,okn->jkn", hdx[outputs], wk), np.einsum("ojn,okn->jkn", hddx[outputs], wk)]), f)
-        lam = np.moveaxis(lam + d1[0] + d2[1], -1, 1)  # (n_states, n, k)
+        d1, d2 = self.grid.derivatives_transposed(np.einsum("ojn,okn->jkn", hdx[outputs], wk),
+                                                  np.einsum("ojn,okn->jkn", hddx[outputs], wk), f)
+        lam = np.moveaxis(lam + d1 + d2, -1, 1)  # (n_states, n, k)
         k = w.shape[2]
         mu = sol.factorization.solve_transposed(lam.reshape(-1, k)).reshape(m.n_states, self.grid.points, k)
         gu = m.residual_dinput(*args)
