@@ -377,7 +377,8 @@ def _run_batch(args: argparse.Namespace, console: Console, sessions: list[Path],
             workers = len(client.scheduler_info().get("workers", {}))
             link = batch.dashboard_link(client)
             console.print(f"identifying {', '.join(settings.estimate)} of model {settings.model_name} in "
-                          f"{len(sessions)} sessions on {workers} workers"
+                          f"{len(sessions)} session{'s' if len(sessions) != 1 else ''} on {workers} "
+                          f"worker{'s' if workers != 1 else ''}"
                           + (f"; dashboard {link}" if link else "")
                           + (f"; results to {sink.name} too" if sink else ""), highlight=False)
             columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())

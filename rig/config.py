@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -90,6 +91,17 @@ class RigConfig:
     min_hold_s: float = 1.0     # shortest, on a link at the rig's own pace
 
 
+def _seconds(table: dict, key: str, default: float, path: Path) -> float:
+    """A finite number of seconds from a table (the key named when it is not one)."""
+    try:
+        value = float(table.get(key, default))
+    except (TypeError, ValueError):
+        raise ConfigError(f"{path}: [conditioning] {key} = {table[key]!r}: not a number of seconds") from None
+    if not math.isfinite(value):
+        raise ConfigError(f"{path}: [conditioning] {key} = {value}: not a finite number of seconds")
+    return value
+
+
 def load_rig_config(path: str | Path | None = None) -> RigConfig:
     path = Path(path) if path else DEFAULT_RIG_CONFIG
     text, doc = read_toml(path, ConfigError)
@@ -101,14 +113,18 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
         rate = int(doc["daq"]["rate_Hz"])
         reconnect = float(doc.get("link", {}).get("reconnect_s", 20.0))
         # A rig file from before conditioning existed runs as it did.
-        max_hold = float(doc.get("conditioning", {}).get("max_hold_s", 0.0))
-        min_hold = float(doc.get("conditioning", {}).get("min_hold_s", 1.0))
+        conditioning = doc.get("conditioning", {})
+        max_hold = _seconds(conditioning, "max_hold_s", 0.0, path)
+        min_hold = _seconds(conditioning, "min_hold_s", 1.0, path)
     except KeyError as exc:
         raise ConfigError(f"{path}: missing key {exc.args[0]!r}") from None
     except (TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: {exc}") from None
     if limits.stroke_low_m >= limits.stroke_high_m:
         raise ConfigError(f"{path}: [limits] stroke_low_mm must be below stroke_high_mm")
-    if max_hold < 0 or min_hold <= 0:
-        raise ConfigError(f"{path}: [conditioning] max_hold_s must be 0 (no holds) or positive, min_hold_s positive")
+    if max_hold < 0:
+        raise ConfigError(f"{path}: [conditioning] max_hold_s = {max_hold:g}: must be 0 (no holds) or positive")
+    if min_hold <= 0 or (max_hold > 0 and min_hold > max_hold):
+        raise ConfigError(f"{path}: [conditioning] min_hold_s = {min_hold:g}: must be positive and at most "
+                          f"max_hold_s ({max_hold:g})")
     return RigConfig(str(path), limits, rate, criteria, reconnect, text, max_hold, min_hold)

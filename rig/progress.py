@@ -41,7 +41,8 @@ class ConsoleProgress:
         number = self.done if e.kind == "experiment-done" else min(self.done + 1, self.total)
         head = f"[{number:2d}/{self.total}] {e.experiment or '':<8}"
         if e.kind == "phase":
-            extra = "".join(f" {k}={v}" for k, v in e.data.items() if k != "phase")
+            extra = ("".join(f" {k}={v}" for k, v in e.data.items() if k != "phase")
+                     if e.data["phase"] != "capturing" else f" after {e.data.get('cycles')} settling cycles")
             self._captured = 0.0
             self.console.print(f"{head} {e.data['phase']}{extra}", highlight=False)
         elif e.kind == "progress" and e.data.get("phase") == "settling":

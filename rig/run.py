@@ -241,7 +241,7 @@ class SessionRunner:
         self.state = "connected"
         self.pace: float | None = None     # rig seconds per second of the links (probe_pace)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="session-writer")
-        self._writing: tuple[str, ExperimentRecord, Future[Experiment]] | None = None
+        self._writing: tuple[str, Future[None]] | None = None
         # One time line for the rig: the acquisition waits on the shaker's clock (the wall
         # clock, or a simulated one when a test drives an in-process simulator).
         self.acquisition = Acquisition(links.shaker, links.daq, prep.config, bus, links.shaker.clock)
@@ -366,20 +366,23 @@ class SessionRunner:
         # write is 50 s of the rig's time).  One write at a time, each on disk before the
         # next is handed over and before the session ends.
         self._written(result)
-        self._writing = (label, record, self._writer.submit(session.write_experiment, record))
+        self._writing = (label, self._writer.submit(self._write, session, record, result))
+
+    def _write(self, session: Session, record: ExperimentRecord, result: RunResult) -> None:
+        """On the writer's thread: the experiment on disk, then captured, then announced."""
+        experiment = session.write_experiment(record)
+        result.captured.append(experiment)
+        self.bus.publish("experiment-done", record.label, file=experiment.file, samples=len(record.index),
+                         lost=record.lost_samples, flags=record.flags)
 
     def _written(self, result: RunResult) -> None:
-        """Wait for the experiment being written; it is then captured (raises what the write raised)."""
+        """Wait for the experiment being written (raises what the write raised)."""
         if self._writing is None:
             return
-        label, record, future = self._writing
         try:
-            experiment = future.result()
+            self._writing[1].result()
         finally:
             self._writing = None
-        result.captured.append(experiment)
-        self.bus.publish("experiment-done", label, file=experiment.file, samples=len(record.index),
-                         lost=record.lost_samples, flags=record.flags)
 
 
 @contextmanager

@@ -291,3 +291,22 @@ def test_a_plan_file_pins_its_order_or_is_refused_with_one_line(tmp_path):
     path.write_text('order = "sideways"\n' + body)
     with pytest.raises(PlanError, match="order 'sideways' is not one of thermal, fixed"):
         load_plan(str(path))
+
+
+@pytest.mark.parametrize(("line", "says"), [
+    ("max_hold_s = -1.0", "max_hold_s = -1: must be 0 (no holds) or positive"),
+    ("max_hold_s = nan", "max_hold_s = nan: not a finite number"),
+    ('max_hold_s = "abc"', "max_hold_s = 'abc': not a number of seconds"),
+    ("min_hold_s = 0.0", "min_hold_s = 0: must be positive"),
+    ("min_hold_s = inf", "min_hold_s = inf: not a finite number"),
+    ("min_hold_s = 500.0", "min_hold_s = 500: must be positive and at most max_hold_s (300)"),
+])
+def test_conditioning_settings_are_refused_in_one_line_naming_the_key(tmp_path, line, says):
+    key = line.split()[0]
+    text = "\n".join(line if row.startswith(f"{key} =") else row
+                     for row in DEFAULT_RIG_CONFIG.read_text().splitlines())
+    path = tmp_path / "rig.toml"
+    path.write_text(text + "\n")
+    with pytest.raises(ConfigError) as refused:
+        load_rig_config(path)
+    assert str(refused.value).startswith(f"{path}: [conditioning] {says}")

@@ -55,7 +55,7 @@ def open_sink(url: str) -> Rejudgements:
     try:
         return Rejudgements(Records.open(url, create=False))
     except RecordsError as exc:
-        raise SinkError(f"--db: {exc}") from None
+        raise SinkError(str(exc) if str(exc).startswith("--db") else f"--db: {exc}") from None
 
 
 class NotApplicable(RigError):
