@@ -49,7 +49,7 @@ def run_case(name: str, hold_cycles: int, out: Path) -> dict:
     from rich.console import Console
 
     from rig.config import DEFAULT_RIG_CONFIG
-    from rig.run import Links, RunOptions, SessionRunner, fit_session, prepare, session_estimates_s
+    from rig.run import Links, RunOptions, SessionRunner, fit_session, prepare
     from tests.virtual_rig_inprocess import DAQ_URL, SHAKER_URL, InProcessRig
 
     criterion, order, faults, holds = CASES[name]
@@ -73,7 +73,7 @@ def run_case(name: str, hold_cycles: int, out: Path) -> dict:
         runner = SessionRunner(prep, Links(rig.shaker, rig.daq, rig.identity, None), rig.bus,
                                Console(file=io.StringIO()))
         session = runner.open_session()
-        eta = sum(session_estimates_s(prep, session, rig.shaker.status().position_m, runner.probe_pace()).values())
+        eta = sum(runner.estimates_s(session, rig.shaker.status().position_m).values())
         t0 = rig.clock.monotonic()
         result = runner.run(session)
         taken = rig.clock.monotonic() - t0

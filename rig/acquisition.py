@@ -154,6 +154,13 @@ def block_means(values: np.ndarray, present: np.ndarray, phase_rad: np.ndarray) 
     return coefficients[0]
 
 
+def _line_at_end(values: np.ndarray, present: np.ndarray) -> tuple[float, float]:
+    """Slope per sample and value at the window's last sample of a straight line through
+    the samples present (a noisy channel's trend, read where it is now)."""
+    slope, at_end = np.polyfit(np.flatnonzero(present) - (len(values) - 1), values[present], 1)
+    return float(slope), float(at_end)
+
+
 class Acquisition:
     """Runs experiments on a connected shaker and DAQ, publishing events on ``bus``."""
 
@@ -259,8 +266,7 @@ class Acquisition:
                 rec.forget_before(end - tail)
                 if np.count_nonzero(present) < tail // 2:
                     continue    # a hole in the stream: the next poll reads on
-                t = np.flatnonzero(present) - (tail - 1)
-                slope, now_c = np.polyfit(t, values[present, gas], 1)
+                slope, now_c = _line_at_end(values[:, gas], present)
                 if (now_c - target_c) * side <= 0:
                     break
                 to_go = (target_c - now_c) / slope / rate if slope else math.inf
@@ -274,8 +280,7 @@ class Acquisition:
         finally:
             self.daq.stop()
             self._recorder = None
-        t = np.flatnonzero(present)
-        left_c = np.polyval(np.polyfit(t - t[-1], values[present, gas], 1), 0.0) if len(t) > 1 else math.nan
+        left_c = _line_at_end(values[:, gas], present)[1] if np.count_nonzero(present) > 1 else math.nan
         self.bus.publish("log", label, message=f"conditioning: the gas was at {left_c:.2f} °C (wanted "
                                                f"{target_c:.2f} °C) when the move on was commanded, after "
                                                f"{(left - arrived) / rate:.1f} s at {hold.position_m * 1e3:.1f} mm")

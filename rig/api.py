@@ -44,7 +44,6 @@ from rig.run import (
     fit_session,
     open_links,
     prepare,
-    session_estimates_s,
 )
 from rig.session import Session as SessionFolder
 from rig.session import SessionLog
@@ -98,8 +97,7 @@ class Session:
         self._folder = folder = runner.open_session()
         session_log = SessionLog(folder.path / "session.log")
         bus.subscribe(session_log, inline=True)
-        estimates = session_estimates_s(self._prepared, folder, links.shaker.status().position_m,
-                                        runner.probe_pace())
+        estimates = runner.estimates_s(folder, links.shaker.status().position_m)
         folder.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
         if self._progress == "bar" or (self._progress == "auto" and _in_notebook()):
             bus.subscribe(ProgressBar(estimates))

@@ -49,8 +49,8 @@ class DriftCriterion:
     fit_cycles: int                  # block means fitted with the geometric law (the latest ones)
     max_time_constant_s: float       # slowest thermal relaxation looked for: bounds r at low frequencies
     noise: dict[str, float]          # transducer noise per sample of each fitted channel (engineering units)
-    # the slowest relaxation looked for is at most this multiple of the damper model's
-    # prediction for the experiment (0: max_time_constant_s alone)
+    # the relaxations looked for are within this factor of the damper model's prediction
+    # for the experiment (0: any up to max_time_constant_s)
     model_time_constant_factor: float = 0.0
 
     def time_constant_range_s(self, model_time_constant_s: float | None) -> tuple[float, float]:

@@ -240,6 +240,7 @@ class SessionRunner:
         self.prep, self.links, self.bus, self.console = prep, links, bus, console
         self.state = "connected"
         self.pace: float | None = None     # rig seconds per second of the links (probe_pace)
+        self._durations: list[ExperimentDuration] | None = None   # the plan's prediction (durations)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="session-writer")
         self._writing: tuple[str, Future[None]] | None = None
         # One time line for the rig: the acquisition waits on the shaker's clock (the wall
@@ -267,6 +268,24 @@ class SessionRunner:
         self.links.daq.attach_journal(session.journal_path)
         return session
 
+    def durations(self, session: Session, start_position_m: float) -> list[ExperimentDuration]:
+        """Rig time per experiment still to do, in plan order, with its conditioning hold:
+        each starts where the one before it leaves the actuator and the gas (rig.settling),
+        which is what makes the standard session's settling, most of its time, predictable
+        and, with the holds, short.  The damper is taken as nominal: an identification's
+        start file is a guess meant to be off.  Computed once, so that the ETA announced
+        and the holds run are the same prediction."""
+        if self._durations is None:
+            todo = tuple(e for e in self.prep.plan.experiments if e.letter not in session.completed())
+            self._durations = estimate_experiment_durations(replace(self.prep.plan, experiments=todo),
+                                                            self.prep.config, start_position_m,
+                                                            pace=self.probe_pace())
+        return self._durations
+
+    def estimates_s(self, session: Session, start_position_m: float) -> dict[str, float]:
+        """Rig time per experiment still to do, by label (see :meth:`durations`)."""
+        return {session.label(d.letter): d.total_s for d in self.durations(session, start_position_m)}
+
     def probe_pace(self) -> float:
         """The links' rig seconds per second (measured once, with the session's log on)."""
         if self.pace is None:
@@ -288,8 +307,7 @@ class SessionRunner:
                                        f"({', '.join(kept) or 'none'}), {len(todo)} to do")
         self.state = "running"
         reason = "end of session"
-        planned = {d.letter: d for d in session_durations(prep, session, self.links.start_position_m,
-                                                          self.probe_pace())}
+        planned = {d.letter: d for d in self.durations(session, self.links.start_position_m)}
         previous = ""
         try:
             with _interrupt_on_signals(acq.stop_requested) as received:
@@ -440,7 +458,7 @@ def execute(prep: Prepared, console: Console) -> RunResult:
         session = runner.open_session()
         log = SessionLog(session.path / "session.log")
         bus.subscribe(log, inline=True)
-        estimates = session_estimates_s(prep, session, links.start_position_m, runner.probe_pace())
+        estimates = runner.estimates_s(session, links.start_position_m)
         # On record, so that the estimate can be checked against what the session took.
         session.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
         bus.subscribe(ConsoleProgress(console, estimates))
@@ -451,24 +469,6 @@ def execute(prep: Prepared, console: Console) -> RunResult:
         if log is not None:
             log.close()
     return result
-
-
-def session_durations(prep: Prepared, session: Session, start_position_m: float,
-                      pace: float = 1.0) -> list[ExperimentDuration]:
-    """Rig time per experiment still to do, in plan order, with its conditioning hold:
-    each starts where the one before it leaves the actuator and the gas (rig.settling),
-    which is what makes the standard session's settling, most of its time, predictable
-    and, with the holds, short.  The damper is taken as nominal: an identification's
-    start file is a guess meant to be off.  ``pace``: the links' rig seconds per second."""
-    todo = tuple(e for e in prep.plan.experiments if e.letter not in session.completed())
-    return estimate_experiment_durations(replace(prep.plan, experiments=todo), prep.config, start_position_m,
-                                         pace=pace)
-
-
-def session_estimates_s(prep: Prepared, session: Session, start_position_m: float,
-                        pace: float = 1.0) -> dict[str, float]:
-    """Rig time per experiment still to do, by label (see :func:`session_durations`)."""
-    return {session.label(d.letter): d.total_s for d in session_durations(prep, session, start_position_m, pace)}
 
 
 def resume_command(session: Session, opt: RunOptions) -> str:

@@ -24,7 +24,7 @@ import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from functools import partial
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.polynomial import chebyshev
@@ -35,6 +35,7 @@ from identify.plans import ExperimentSpec
 from rig.config import SteadyStateCriteria
 from rig.criterion import bias_bound
 
+FloatOrArray = TypeVar("FloatOrArray", float, np.ndarray)
 MOVE_PEAK_SPEED_M_S = 0.05     # the controller's half-cosine profile for moves to a static position
 DAQ_LAG_S = 0.5                # the acquisition skips ramp + this before its first block
 PAUSE_S = 1.0                  # at rest between experiments: commands, handshakes, writing the data
@@ -109,7 +110,7 @@ class SettlingPrediction:
     time_constant_s: float = math.nan  # of the gas's relaxation to the periodic state
 
 
-def move_duration_s(distance_m: float) -> float:
+def move_duration_s(distance_m: FloatOrArray) -> FloatOrArray:
     """Duration of the controller's move profile (half cosine, peak speed fixed)."""
     return math.pi * abs(distance_m) / (2 * MOVE_PEAK_SPEED_M_S)
 
@@ -307,14 +308,14 @@ def predict_settling(experiments: Sequence[ExperimentSpec], criteria: SteadyStat
                                                 conditioning)
         planned = np.isfinite(duration)
         if planned.any():
-            steps = int(min(HOLD_STEPS_MAX, REST_STEPS + HOLD_STEPS_PER_S * np.nanmax(duration)))
+            steps = int(min(HOLD_STEPS_MAX, REST_STEPS + HOLD_STEPS_PER_S * duration[planned].max()))
             T_held = _run_in(gas, runs, criteria, t0, _move(gas, position, runs.static_m, _rest(
                 gas, position, _move(gas, prev_static, position, T_rest), np.where(planned, duration, 0.0), steps)))
             held = _settle(period_map, T_held, m, gas.channels, criteria, runs, experiments, rate_hz, noise_draws)
             period = 1.0 / runs.frequency_hz
-            direct_s = _move_s(prev_static, runs.static_m) + cycles * period
-            held_s = (_move_s(prev_static, position) + np.where(planned, duration, 0.0)
-                      + _move_s(position, runs.static_m) + held[0] * period)
+            direct_s = move_duration_s(runs.static_m - prev_static) + cycles * period
+            held_s = (move_duration_s(position - prev_static) + np.where(planned, duration, 0.0)
+                      + move_duration_s(runs.static_m - position) + held[0] * period)
             # A hold must pay for itself by more than the commands and waits it adds.
             better = planned & (held_s < direct_s - HOLD_OVERHEAD_S)
             T_start = np.where(better, T_held, T_start)
@@ -334,10 +335,6 @@ def time_constants_s(multiplier: np.ndarray, frequency_hz: np.ndarray) -> np.nda
     """The relaxation's time constant [s] from its per-cycle Floquet multiplier."""
     with np.errstate(divide="ignore", invalid="ignore"):
         return np.where((multiplier > 0) & (multiplier < 1), -1 / (frequency_hz * np.log(multiplier)), np.inf)
-
-
-def _move_s(from_m: np.ndarray, to_m: np.ndarray) -> np.ndarray:
-    return np.pi * np.abs(to_m - from_m) / (2 * MOVE_PEAK_SPEED_M_S)
 
 
 def _settle(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray, channels: tuple[str, ...],
@@ -387,7 +384,8 @@ def _plan_holds(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, crite
         rest_k = T_arrive - r_arrive / k                          # where the gas would come to rest there
         hold = np.log((needed - rest_k) / (T_arrive - rest_k)) / k
     reachable = (k < 0) & np.isfinite(hold) & (hold >= conditioning.min_hold_s) & (hold <= conditioning.max_hold_s)
-    total = np.where(reachable, _move_s(prev_static[col], position) + hold + _move_s(position, target), np.inf)
+    moves_s = move_duration_s(position - prev_static[col]) + move_duration_s(target - position)
+    total = np.where(reachable, moves_s + hold, np.inf)
     best = np.argmin(total, axis=1)
     rows = np.arange(len(T_rest))
     return (position[rows, best], np.where(np.isfinite(total[rows, best]), hold[rows, best], np.inf),
@@ -493,7 +491,7 @@ def _rest(gas: GasThermalModel, position_m: np.ndarray, T: np.ndarray, duration_
 def _move(gas: GasThermalModel, from_m: np.ndarray, to_m: np.ndarray, T: np.ndarray) -> np.ndarray:
     """The gas temperature after the controller's half-cosine move (arrays broadcast)."""
     distance = to_m - from_m
-    duration = np.pi * np.abs(distance) / (2 * MOVE_PEAK_SPEED_M_S)     # move_duration_s, elementwise
+    duration = move_duration_s(distance)
     omega = np.pi / np.maximum(duration, 1e-12)  # a zero-length move takes zero time and has zero distance
 
     def move(t, T):
