@@ -46,6 +46,7 @@ HOLD_TEMPERATURE_FIT_S = 0.25
 HOLD_CAP_FACTOR = 2.0
 HOLD_CAP_MARGIN_S = 5.0
 PACE_PROBE_S = 0.2             # of this clock, streaming, to measure the links' pace
+RESPONSE_MIN_MOVE_MM = 5.0       # shorter moves are too slow at their midpoint to time the stroke's delay
 ARRIVED_MM = 0.2                # the stroke channel this near a static position: there (noise 0.01 mm)
 
 
@@ -154,6 +155,23 @@ def block_means(values: np.ndarray, present: np.ndarray, phase_rad: np.ndarray) 
     return coefficients[0]
 
 
+def _response_delay(rec: Recorder, commanded: int, arrived: int, from_m: float, to_m: float, rate_hz: float) -> float:
+    """Rig seconds from a move's command to the stroke following the controller's profile,
+    as the acquisition sees it: the stroke's crossing of the move's midpoint, where it is
+    fastest, against the profile's (the link's delivery, the controller's reaction and the
+    actuator's lag, all in one).  0 for a move too short to time."""
+    distance_mm = (to_m - from_m) * 1e3
+    if abs(distance_mm) < RESPONSE_MIN_MOVE_MM or arrived <= commanded:
+        return 0.0
+    values, present, _ = rec.window(max(commanded, rec.base), arrived + 1)
+    past = np.flatnonzero(present & ((values[:, CHANNELS.index("stroke_mm")] - from_m * 1e3 - distance_mm / 2)
+                                     * math.copysign(1.0, distance_mm) >= 0))
+    if not len(past):
+        return 0.0
+    crossed = max(commanded, rec.base) + int(past[0])
+    return max(0.0, (crossed - commanded) / rate_hz - move_duration_s(to_m - from_m) / 2)
+
+
 def _line_at_end(values: np.ndarray, present: np.ndarray) -> tuple[float, float]:
     """Slope per sample and value at the window's last sample of a straight line through
     the samples present (a noisy channel's trend, read where it is now)."""
@@ -254,8 +272,10 @@ class Acquisition:
         t0 = self.clock.monotonic()
         try:
             self.shaker.move_to(hold.position_m)
+            commanded = rec.end
             arrived = self._wait_for_stroke(rec, hold.position_m, label,
                                             MOVE_TIMEOUT_S + 2 * move_duration_s(hold.position_m - from_m))
+            lead = _response_delay(rec, commanded, arrived, from_m, hold.position_m, rate)
             cap = arrived + round((HOLD_CAP_FACTOR * hold.duration_s + HOLD_CAP_MARGIN_S) * rate)
             while rec.end < cap:
                 self._wait_samples(rec, min(rec.end + step, cap), label)
@@ -269,10 +289,10 @@ class Acquisition:
                 slope, now_c = _line_at_end(values[:, gas], present)
                 if (now_c - target_c) * side <= 0:
                     break
-                to_go = (target_c - now_c) / slope / rate if slope else math.inf
+                to_go = (target_c - now_c) / slope / rate - lead if slope else math.inf
                 pace = end / rate / max(self.clock.monotonic() - t0, 1e-9)   # rig seconds per clock second
-                if 0 <= to_go < POLL_S * pace:
-                    self.clock.sleep(to_go / pace)
+                if to_go < POLL_S * pace:
+                    self.clock.sleep(max(to_go, 0.0) / pace)
                     break
             self.shaker.move_to(then_m)
             left = rec.end
@@ -283,7 +303,9 @@ class Acquisition:
         left_c = _line_at_end(values[:, gas], present)[1] if np.count_nonzero(present) > 1 else math.nan
         self.bus.publish("log", label, message=f"conditioning: the gas was at {left_c:.2f} °C (wanted "
                                                f"{target_c:.2f} °C) when the move on was commanded, after "
-                                               f"{(left - arrived) / rate:.1f} s at {hold.position_m * 1e3:.1f} mm")
+                                               f"{(left - arrived) / rate:.1f} s at {hold.position_m * 1e3:.1f} mm, "
+                                               f"{lead * 1e3:.0f} ms ahead of the crossing (the stroke's delay on "
+                                               f"the move there)")
 
     def _wait_for_stroke(self, rec: Recorder, position_m: float, label: str, timeout_s: float) -> int:
         """Index of the first sample whose stroke is at ``position_m`` (within
