@@ -25,7 +25,7 @@ import numpy as np
 from identify.plans import ExperimentSpec
 from rig.clock import WALL_CLOCK, Clock
 from rig.config import RigConfig
-from rig.criterion import bias_bound
+from rig.criterion import MIN_BLOCKS, bias_bound
 from rig.daq import CHANNELS, Daq, Samples
 from rig.errors import RigFault
 from rig.events import EventBus, Phase
@@ -381,7 +381,7 @@ class Acquisition:
                                                        f"{np.count_nonzero(~present)} samples lost, not compared")
             elif drift is not None:
                 history = (history + [means[fitted]])[-drift.fit_cycles:]
-                if len(history) >= 4:
+                if len(history) >= MIN_BLOCKS:
                     fit = bias_bound(drift, tuple(drift.noise), np.array(history), m / spec.frequency_hz, m * spp,
                                      spec.periods / m, time_constant_s)
                     # the cycle-to-cycle change too: what the console and the GUI show of settling

@@ -39,6 +39,9 @@ import numpy as np
 # area), where 1 - r spans 1e-4 (a time constant of 10^4 cycles) to 1.
 RATIO_GRID = 1.0 - np.geomspace(1e-4, 0.99, 240)
 GUARD = 2.0     # standard errors added to the fitted amplitude (one-sided, ~98 %)
+# Block means before the law is fitted: three determine y∞, A and r, and the bound
+# then takes the worst of every ratio in the model's range, all of them fitting.
+MIN_BLOCKS = 3
 
 
 @dataclass(frozen=True)

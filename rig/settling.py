@@ -33,7 +33,7 @@ from identify.model import CompiledModel, load_model
 from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
 from rig.config import SteadyStateCriteria
-from rig.criterion import bias_bound
+from rig.criterion import MIN_BLOCKS, bias_bound
 
 FloatOrArray = TypeVar("FloatOrArray", float, np.ndarray)
 MOVE_PEAK_SPEED_M_S = 0.05     # the controller's half-cosine profile for moves to a static position
@@ -558,7 +558,7 @@ def _apply_drift_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.nd
             history[i] = (history[i] + [block_sum[i, fitted] / m[i] + noise])[-drift.fit_cycles:]
             block_sum[i] = 0.0
             for d in np.flatnonzero(open_[i]):
-                if len(history[i]) >= 4:
+                if len(history[i]) >= MIN_BLOCKS:
                     fit = bias_bound(drift, tuple(drift.noise), np.array([h[d] for h in history[i]]),
                                      m[i] / runs.frequency_hz[i], m[i] * spp, periods[i] / m[i], float(tau[i]))
                     if d == 0:
