@@ -1,6 +1,7 @@
 """Rig time of the standard session: the change criterion with direct moves (before the
 rig-time work) against the shipped default, the drift criterion with model-planned
-conditioning holds (rig/settling.py), and the latter with lost samples on the line.
+conditioning holds (rig/settling.py), the same in the order of least predicted rig time
+(``--order thermal``, rig/ordering.py), and the shipped default with lost samples on the line.
 
 Runs on the in-process virtual rig on simulated time (tests/virtual_rig_inprocess.py:
 the rig package's drivers against the simulator, nominal truth, its fixed seed), which
@@ -8,7 +9,7 @@ gives the same rig time as ``simulator serve`` at any speed and takes a few minu
 wall time, where a served simulator at 50x takes 50 s per thousand rig seconds and more
 on a busy machine.  Each case runs in its own process, so that its peak RSS is its own.
 
-    python benchmarks/bench_session.py                 # the three cases, side by side
+    python benchmarks/bench_session.py                 # the four cases, side by side
     python benchmarks/bench_session.py --hold 60       # and a held 0.04 Hz experiment (memory)
 """
 
@@ -36,10 +37,11 @@ CASES = {   # criterion, order, faults, conditioning holds
     "change+holds": ("change", "fixed", [], True),
     "drift": ("drift", "fixed", [], False),
     "drift+thermal": ("drift", "thermal", [], False),
+    "new+thermal": ("drift", "thermal", [], True),
     # the drift bound of a fast decay falls without end: the change criterion holds
     "hold": ("change", "fixed", [], False),
 }
-SIDE_BY_SIDE = ("today", "new", "new+faults")
+SIDE_BY_SIDE = ("today", "new", "new+thermal", "new+faults")
 ESTIMATE = ["theta4", "theta6", "theta16"]
 START = ROOT / "examples" / "start-2dof.json"
 
@@ -56,6 +58,8 @@ def run_case(name: str, hold_cycles: int, out: Path) -> dict:
     text = re.sub(r'(?m)^criterion = "\w+"', f'criterion = "{criterion}"', DEFAULT_RIG_CONFIG.read_text())
     if not holds:
         text = re.sub(r'(?m)^max_hold_s = .*$', "max_hold_s = 0.0", text)
+    if name == "today":   # and the fade-in and -out it had
+        text = re.sub(r'(?m)^ramp_time_s = .*$', "ramp_time_s = 2.0", text)
     if hold_cycles:   # thresholds that are never met: the experiment is held to max_cycles
         text = text.replace("max_cycles = 1500", f"max_cycles = {hold_cycles}").replace(
             "stroke_mm = 0.02", "stroke_mm = 0.0")

@@ -146,7 +146,7 @@ def test_samples_lost_in_the_capture_window_are_captured_again(vrig):
 
     assert "capture window 1 lost 300 samples; capturing again" in vrig.messages()
     assert (record.recaptures, record.lost_samples, record.stream_lost, record.flags) == (1, 0, 300, [])
-    first_window = math.ceil(2.5 * 2000) + record.settle_cycles * 1000
+    first_window = math.ceil((vrig.config.steady_state.ramp_time_s + 0.5) * 2000) + record.settle_cycles * 1000
     assert np.array_equal(record.index, first_window + 3000 + np.arange(3000))   # the second window, whole
     assert vrig.sim.daq.lost["overflow"] == 300
 
