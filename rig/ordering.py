@@ -28,14 +28,17 @@ def transition_costs(experiments: Sequence[ExperimentSpec], config: RigConfig, s
     """Predicted rig time [s] of each experiment first (from rest), and of j right after i."""
     from rig.plans import Plan, estimate_experiment_durations
 
+    # Noise-free: an order is chosen on the transients its transitions leave, and the
+    # noise floor each experiment settles to is its own whatever comes before it.
     n = len(experiments)
-    first = np.array([estimate_experiment_durations(Plan("first", (e,)), config, start_position_m, params)[0].total_s
-                      for e in experiments])
+    first = np.array([estimate_experiment_durations(Plan("first", (e,)), config, start_position_m, params,
+                                                    noise_draws=0)[0].total_s for e in experiments])
     # Every pair (i, j) as a two-experiment stretch of one long plan: j's lead-in starts from
     # i's periodic state; what i inherits from the pair before it is not read.
     pairs = [(i, j) for i in range(n) for j in range(n) if i != j]
     sequence = tuple(replace(experiments[k], letter=f"{k}.{p}") for p, ij in enumerate(pairs) for k in ij)
-    durations = estimate_experiment_durations(Plan("pairs", sequence), config, start_position_m, params)
+    durations = estimate_experiment_durations(Plan("pairs", sequence), config, start_position_m, params,
+                                              noise_draws=0)
     after = np.full((n, n), np.inf)
     for p, (i, j) in enumerate(pairs):
         after[i, j] = durations[2 * p + 1].total_s

@@ -17,7 +17,7 @@ from identify.parameters import Parameters
 from identify.plans import STANDARD_SET, ExperimentSpec
 from rig.config import RigConfig
 from rig.errors import BadInput
-from rig.settling import PAUSE_S, Conditioning, Hold, first_block_s, move_duration_s, predict_settling
+from rig.settling import DRIFT_DRAWS, PAUSE_S, Conditioning, Hold, first_block_s, move_duration_s, predict_settling
 from rig.shaker import check_waveform
 from rig.tomlfile import read_toml
 
@@ -164,18 +164,19 @@ def conditioning_for(plan: Plan, config: RigConfig, pace: float = 1.0) -> Condit
 
 def estimate_experiment_durations(plan: Plan, config: RigConfig, start_position_m: float = 0.0,
                                   params: Parameters | None = None, *, start_temperature_k: float | None = None,
-                                  pause_s: float | Sequence[float] = PAUSE_S, pace: float = 1.0
-                                  ) -> list[ExperimentDuration]:
+                                  pause_s: float | Sequence[float] = PAUSE_S, pace: float = 1.0,
+                                  noise_draws: int = DRIFT_DRAWS) -> list[ExperimentDuration]:
     """Per experiment, in plan order, the rig time it will take when the plan runs from
     the damper resting at ``start_position_m`` (and ``start_temperature_k``, default
     ambient).  ``params``: the damper's parameters for the settling prediction
     (default: the 2-dof model's nominal values); ``pause_s``: the rig's time at rest
     before each experiment (one for all, or one per experiment); ``pace``: the link's
-    rig seconds per second (see :func:`conditioning_for`)."""
+    rig seconds per second (see :func:`conditioning_for`); ``noise_draws``: see
+    :func:`rig.settling.predict_settling`."""
     ss, rate = config.steady_state, config.daq_rate_hz
     settling = predict_settling(plan.experiments, ss, rate, params, start_position_m=start_position_m,
                                 start_temperature_k=start_temperature_k, pause_s=pause_s,
-                                conditioning=conditioning_for(plan, config, pace))
+                                conditioning=conditioning_for(plan, config, pace), noise_draws=noise_draws)
     pauses = np.broadcast_to(np.asarray(pause_s, dtype=float), len(plan.experiments))
     out, position = [], start_position_m
     for e, s, pause in zip(plan.experiments, settling, pauses, strict=True):
