@@ -1,7 +1,8 @@
 """Rig time of the standard session: the change criterion with direct moves (before the
 rig-time work) against the shipped default, the drift criterion with model-planned
-conditioning holds (rig/settling.py), the same in the order of least predicted rig time
-(``--order thermal``, rig/ordering.py), and the shipped default with lost samples on the line.
+conditioning holds (rig/settling.py) in the order of least predicted rig time
+(rig/ordering.py), the same as listed (``--order fixed``), and the shipped default with
+lost samples on the line.
 
 Runs on the in-process virtual rig on simulated time (tests/virtual_rig_inprocess.py:
 the rig package's drivers against the simulator, nominal truth, its fixed seed), which
@@ -23,7 +24,6 @@ import resource
 import subprocess
 import sys
 import tempfile
-from dataclasses import replace
 from functools import partial
 from pathlib import Path
 
@@ -31,17 +31,17 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 CASES = {   # criterion, order, faults, conditioning holds
-    "today": ("change", "fixed", [], False),           # the criterion and lead-in before rig-time work
-    "new": ("drift", "fixed", [], True),               # the shipped default
-    "new+faults": ("drift", "fixed", ["corrupt=0.001", "drop=0.0005"], True),
+    "today": ("change", "fixed", [], False),           # the criterion, lead-in and order before rig-time work
+    "new": ("drift", "thermal", [], True),             # the shipped default
+    "new+listed": ("drift", "fixed", [], True),        # the same as listed (--order fixed)
+    "new+faults": ("drift", "thermal", ["corrupt=0.001", "drop=0.0005"], True),
     "change+holds": ("change", "fixed", [], True),
     "drift": ("drift", "fixed", [], False),
     "drift+thermal": ("drift", "thermal", [], False),
-    "new+thermal": ("drift", "thermal", [], True),
     # the drift bound of a fast decay falls without end: the change criterion holds
     "hold": ("change", "fixed", [], False),
 }
-SIDE_BY_SIDE = ("today", "new", "new+thermal", "new+faults")
+SIDE_BY_SIDE = ("today", "new", "new+listed", "new+faults")
 ESTIMATE = ["theta4", "theta6", "theta16"]
 START = ROOT / "examples" / "start-2dof.json"
 
@@ -72,8 +72,7 @@ def run_case(name: str, hold_cycles: int, out: Path) -> dict:
             rig.when("settling", 0.0, partial(rig.inject, fault))
         letters = ["a"] if hold_cycles else None
         prep = prepare(RunOptions(plan="standard", shaker=SHAKER_URL, daq=DAQ_URL, out=out / "session",
-                                  experiments=letters, rig_config=str(config), date="261122"))
-        prep = replace(prep, plan=replace(prep.plan, order=order).ordered(prep.config))
+                                  experiments=letters, rig_config=str(config), date="261122", order=order))
         runner = SessionRunner(prep, Links(rig.shaker, rig.daq, rig.identity, None), rig.bus,
                                Console(file=io.StringIO()))
         session = runner.open_session()

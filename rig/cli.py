@@ -190,7 +190,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--periods", type=_positive_int, help="whole periods to capture (default: the plan's)")
     run.add_argument("--order", choices=("thermal", "fixed"),
                      help="thermal: the order of least predicted rig time; fixed: as listed (default: the plan's "
-                          "order, as listed unless it says order = \"thermal\"; a --experiments list as given)")
+                          "order: thermal for the standard plan, a plan file's as listed unless it says "
+                          "order = \"thermal\"; a --experiments list as given)")
     run.add_argument("--resume", action="store_true",
                      help="continue an interrupted session in --out (addresses default to the session's)")
     run.add_argument("--reset-alarm", action="store_true",
