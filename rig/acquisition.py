@@ -136,20 +136,33 @@ class Recorder:
         return len(self.present)
 
 
-def block_means(values: np.ndarray, present: np.ndarray, phase_rad: np.ndarray) -> np.ndarray | None:
-    """The channels' means over a block of whole cycles, or None when too much is missing.
+def block_means(values: np.ndarray, present: np.ndarray, index: np.ndarray,
+                samples_per_period: float) -> np.ndarray | None:
+    """The channels' means over a block of whole cycles (samples ``index``), or None when
+    too much is missing.
 
     With every sample there, the plain mean.  With holes, the plain mean of what is left
     scatters with the periodic signal itself (its std × √(lost/N)), enough to keep a
-    settled experiment from passing the criterion for tens of cycles; so the mean is
-    taken as the constant term of a least-squares fit of the excitation's harmonics,
-    which the holes do not bias."""
+    settled experiment from passing the criterion for tens of cycles.  A block of several
+    cycles at a whole number of samples per period is folded: each phase's mean over the
+    cycles that have it, then the mean over the phases, which holds for any harmonic
+    content (the friction's arctan has harmonics far beyond a dozen, and a fit of a dozen
+    left the noise-limited experiments' block means a quarter noisier with 1.6 % lost,
+    and their settling as much longer).  Otherwise the constant term of a least-squares
+    fit of the excitation's first harmonics."""
     if present.all():
         return values.mean(axis=0)
     if np.count_nonzero(~present) > MAX_LOST_IN_BLOCK * len(present):
         return None
-    k = np.arange(1, HARMONICS_IN_BLOCK_MEAN + 1)
-    phase = np.outer(phase_rad[present], k)
+    spp = round(samples_per_period)
+    cycles = len(present) // spp if spp == samples_per_period else 0
+    if cycles >= 2 and cycles * spp == len(present):
+        have = present.reshape(cycles, spp)
+        count = have.sum(axis=0)
+        if count.all():
+            folded = np.where(have[..., None], values.reshape(cycles, spp, -1), 0.0).sum(axis=0)
+            return (folded / count[:, None]).mean(axis=0)
+    phase = np.outer(2 * np.pi * index[present] / samples_per_period, np.arange(1, HARMONICS_IN_BLOCK_MEAN + 1))
     design = np.column_stack([np.ones(len(phase)), np.cos(phase), np.sin(phase)])
     coefficients, *_ = np.linalg.lstsq(design, values[present], rcond=None)
     return coefficients[0]
@@ -370,7 +383,7 @@ class Acquisition:
             self._wait_samples(rec, b, label)
             values, present, _ = rec.window(a, b)
             rec.forget_before(b)
-            means = block_means(values, present, 2 * np.pi * np.arange(a, b) / spp)
+            means = block_means(values, present, np.arange(a, b), spp)
             cycles = (block + 1) * m
             if means is None:
                 # Too much of the block is missing to know its mean: it can neither pass
