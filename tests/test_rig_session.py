@@ -88,7 +88,9 @@ def test_line_faults_are_counted_exactly_and_the_capture_recaptured_or_flagged(v
     # the reader's count equals the simulator's: the experiment's streams and the pace probe's
     probe = re.search(r"pace probe: \d+ samples taken, (\d+) lost", (out / "session.log").read_text())
     assert probe is not None and entry["stream_lost_samples"] + int(probe.group(1)) == sim.lost_frames()
-    assert entry["recaptures"] > 0 or entry["lost_samples"] == 0
+    # a window is captured again for a burst, not for the line's steady loss (its holes declared)
+    log = (out / "session.log").read_text()
+    assert entry["recaptures"] > 0 or entry["lost_samples"] == 0 or "as the line's steady loss predicts" in log
     if entry["lost_samples"]:
         assert any("lost" in f for f in entry["flags"])
     # identify accepts the declared holes and nothing else
