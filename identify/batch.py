@@ -299,6 +299,7 @@ def connect(scheduler: str | None = None, workers: int | None = None,
     """A client of the plant's scheduler, or of a local cluster of single-threaded worker
     processes (the fits are numpy/scipy: one thread per process avoids BLAS contention,
     and Dask's nanny already sets OMP/MKL/OPENBLAS_NUM_THREADS=1 in each worker)."""
+    import dask
     from distributed import Client, LocalCluster
 
     if scheduler is not None:
@@ -314,8 +315,16 @@ def connect(scheduler: str | None = None, workers: int | None = None,
         raise BatchError(f"--workers must be at least 1, got {workers}")
     # A dashboard needs bokeh; without it no port is opened (and none is announced).
     dashboard = ":0" if find_spec("bokeh") else None
-    with LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
-                      dashboard_address=dashboard, silence_logs=logging.ERROR, preload=[__name__]) as cluster, \
+    # Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 in each worker (and in this process's
+    # environment, which a process started later inherits), so that freed memory goes
+    # back to the OS at once.  A fit allocates and frees its arrays thousands of times:
+    # with that setting each allocation faults its pages in again, and a fit took 1.7x
+    # the CPU (benchmarks/bench_batch.py).  glibc's own adaptive threshold keeps them.
+    environ = {k: v for k, v in dask.config.get("distributed.nanny.pre-spawn-environ").items()
+               if k != "MALLOC_TRIM_THRESHOLD_"}
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": environ}), \
+            LocalCluster(n_workers=workers or os.cpu_count() or 1, threads_per_worker=1, processes=True,
+                         dashboard_address=dashboard, silence_logs=logging.ERROR, preload=[__name__]) as cluster, \
             Client(cluster) as client:
         yield client
 
