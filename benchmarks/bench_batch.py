@@ -185,7 +185,8 @@ def main() -> int:
     print(f"  machine ceiling, {args.workers} processes over one (fixed CPU work, no I/O, in every round): "
           f"pure-Python loop {python_x:.2f}x, banded LU + solve loop {banded_x:.2f}x; the Dask batch reached "
           f"{vs_serial / banded_x:.2f} of the banded ceiling"
-          + ("" if banded_x >= 1.8 else " (the target's 1.8x is above what these cores gave any work in this run)"))
+          + ("" if banded_x >= 1.8 else " (the target's 1.8x is above what these cores gave the control work"
+                                          " in this run)"))
     print(f"  cluster start ({args.workers} workers, imports included, not in the batch's wall time): "
           f"{t_cluster:.1f} s")
     print(f"  scheduler overhead per task: {1e3 * t_noop / NOOP_TASKS:.2f} ms wall per no-op task "
