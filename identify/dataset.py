@@ -122,7 +122,10 @@ def read_manifest(directory: str | Path) -> Dataset:
     if fmt != FORMAT:
         raise _manifest_error(path, "key 'format'", f"expected {FORMAT!r}, got {fmt!r}")
     entries = manifest.get("experiments")
-    if not isinstance(entries, list) or not entries:
+    if entries == []:
+        raise _manifest_error(path, "key 'experiments'", "no experiment in it: nothing to fit (a session that "
+                                                         "ended before its first capture has none)")
+    if not isinstance(entries, list):
         raise _manifest_error(path, "key 'experiments'", "expected a non-empty list")
     experiments: list[Experiment] = []
     seen: set[str] = set()

@@ -43,6 +43,12 @@ CASES = {
     "broken JSON": (dict(csv=None, manifest_text="{\"format\": "), ["dataset.json", "not valid JSON"]),
     "wrong format": (dict(csv=None, manifest_text=json.dumps({"format": "other/2", "experiments": []})),
                      ["dataset.json", "format"]),
+    "no experiment (a session ended before its first capture)": (
+        dict(csv=None, manifest_text=json.dumps({"format": "damper-dataset/1", "experiments": []})),
+        ["dataset.json", "no experiment in it", "before its first capture"]),
+    "experiments not a list": (dict(csv=None, manifest_text=json.dumps({"format": "damper-dataset/1",
+                                                                         "experiments": {"x1": 1}})),
+                               ["dataset.json", "'experiments'", "expected a non-empty list"]),
 }
 
 
