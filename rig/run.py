@@ -462,6 +462,10 @@ def execute(prep: Prepared, console: Console) -> RunResult:
         # On record, so that the estimate can be checked against what the session took.
         session.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
         bus.subscribe(ConsoleProgress(console, estimates))
+        if runner.pace is not None and runner.pace > 1.0:   # a simulator faster than the rig's own time
+            console.print(f"the links run {runner.pace:.3g} rig seconds per second: conditioning holds shorter "
+                          f"than {prep.config.min_hold_s * runner.pace:.0f} s are not planned (session.log has "
+                          "the pace probe)", style="dim", highlight=False)
         result = runner.run(session)
     finally:
         close_links(links, disarm=result is None)   # first: the links' threads publish to the log

@@ -82,6 +82,8 @@ def test_line_faults_are_counted_exactly_and_the_capture_recaptured_or_flagged(v
     out = tmp_path / "faults"
     r = run_rig(sim, out, "--experiments", "j")
     assert r.returncode == 0, r.stderr[-3000:]
+    # a simulator at 50x: the console says so, and what it means for the holds
+    assert re.search(r"the links run [\d.]+ rig seconds per second: conditioning holds shorter than \d+ s", r.stderr)
     sim.stop()
     (entry,) = manifest(out)["experiments"]
     assert sim.lost_frames() > 500
