@@ -486,6 +486,7 @@ class Acquisition:
         that failed are returned (and logged), so that the record can say so."""
         self._enter(Phase.STOPPING, None, reason=reason)
         steps: list[tuple[str, Callable[[], object]]] = [("DAQ stop", self.daq.stop)]
+        done = ["stream stopped"]                              # what the record says was done, in order
         st, patience = None, self.shaker.reconnect_s
         try:
             st = self.shaker.status()
@@ -497,7 +498,9 @@ class Acquisition:
         if st is not None and st.state == "RUNNING":
             steps.append(("fade out", self.shaker.fade_out))
             steps.append(("wait at static", lambda: self.shaker.wait_for({"AT_STATIC", "ALARM"}, 30.0)))
+            done.append("faded out")
         steps += [("stop", self.shaker.stop), ("hydraulics off", lambda: self.shaker.hydraulics(False))]
+        done += ["STOP", "hydraulics off"]
         failed = []
         with self.shaker.link_patience(patience):
             for name, step in steps:
@@ -506,7 +509,7 @@ class Acquisition:
                 except Exception as exc:  # noqa: BLE001 — every step is tried; each failure is on record
                     failed.append(f"{name}: {exc}")
                     self.bus.publish("log", None, message=f"safe stop: {name} failed ({exc})")
-        self.bus.publish("log", None, message="safe stop done: stream stopped, STOP, hydraulics off" if not failed
+        self.bus.publish("log", None, message=f"safe stop done: {', '.join(done)}" if not failed
                          else f"safe stop incomplete: {len(failed)} of {len(steps)} steps failed")
         self._enter(Phase.IDLE, None)
         return failed

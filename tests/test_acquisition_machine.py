@@ -29,7 +29,8 @@ from simulator.controller import Alarm, State
 from tests.virtual_rig_inprocess import SHAKER_URL, InProcessRig
 
 J, N = (next(s for s in STANDARD_SET if s.letter == x) for x in "jn")   # 2 Hz: short experiments
-SAFE_STOP_DONE = "safe stop done: stream stopped, STOP, hydraulics off"
+SAFE_STOP_DONE = "safe stop done: stream stopped, STOP, hydraulics off"                 # it was not running
+SAFE_STOP_FADED = "safe stop done: stream stopped, faded out, STOP, hydraulics off"     # it was
 RESET = f"[Errno {errno.ECONNRESET}] Connection reset by peer"     # what the in-process client raises
 LINK_LOST = f"Modbus link to {SHAKER_URL} lost ({RESET}); reconnecting"
 LINK_GONE = f"Modbus link to {SHAKER_URL} lost and not back within 3 s ({RESET})"
@@ -231,7 +232,7 @@ def test_ctrl_c_fades_out_and_switches_the_hydraulics_off(vrig, tmp_path):
     stopping, idle = first_phase(vrig, "stopping", None), first_phase(vrig, "idle", None)
     assert 0 <= round(stopping - asked, 6) <= 0.05       # honoured at the next poll
     assert idle - stopping >= vrig.config.steady_state.ramp_time_s   # faded out, not dropped
-    assert vrig.messages("alarm") == [] and vrig.messages()[-1] == SAFE_STOP_DONE
+    assert vrig.messages("alarm") == [] and vrig.messages()[-1] == SAFE_STOP_FADED
     assert_at_rest(vrig)
     meta, manifest = session_meta(tmp_path / "s")
     assert meta["status"] == "interrupted (SIGINT)" and manifest["experiments"] == []
@@ -285,7 +286,7 @@ def test_a_bug_in_the_acquisition_still_ends_in_the_safe_stop(vrig, tmp_path, mo
     stopping, idle = first_phase(vrig, "stopping", None), first_phase(vrig, "idle", None)
     assert idle - stopping >= vrig.config.steady_state.ramp_time_s    # it was running: faded out
     log = (tmp_path / "s" / "session.log").read_text()
-    assert "aborting on an internal error: TypeError: injected bug" in log and SAFE_STOP_DONE in log
+    assert "aborting on an internal error: TypeError: injected bug" in log and SAFE_STOP_FADED in log
     assert_at_rest(vrig)
     assert session_meta(tmp_path / "s")[0]["status"] == result.status
 
