@@ -9,6 +9,7 @@ against their estimates (wall clock, so a simulator's speed factor is included).
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 
 from rich.console import Console
 
@@ -19,8 +20,12 @@ class ConsoleProgress:
     """Queued subscriber: one line per phase, settling and capture progress, and the
     session's ETA (wall clock, scaled from the rig-time estimate of what is done)."""
 
-    def __init__(self, console: Console, estimates_s: dict[str, float]) -> None:
-        self.console, self.estimates = console, estimates_s
+    def __init__(self, console: Console, estimates_s: dict[str, float], pace: float = 1.0,
+                 rig_clock: Callable[[], float] = time.monotonic) -> None:
+        # pace: the links' rig seconds per second; rig_clock: the acquisition's (a test's
+        # in-process simulator runs on its own)
+        self.console, self.estimates, self.pace, self.rig_clock = console, estimates_s, pace, rig_clock
+        self.rig_started = rig_clock()
         self.total, self.done, self.done_s = len(estimates_s), 0, 0.0
         self.started = time.monotonic()
         self._captured = 0.0
@@ -61,9 +66,14 @@ class ConsoleProgress:
             self.console.print(f"{head} [green]captured[/green] {e.data['file']} ({e.data['samples']} samples, "
                                f"{e.data['lost']} lost in window){flags}{self._eta()}", highlight=False)
         elif e.kind == "session-end":
-            took = time.monotonic() - self.started
-            self.console.print(f"session took {int(took // 60)}:{int(took % 60):02d} (wall clock; announced "
-                               f"{sum(self.estimates.values()) / 60:.0f} min of rig time)", highlight=False)
+            took, announced = self.rig_clock() - self.rig_started, sum(self.estimates.values()) / 60
+            if self.pace > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
+                self.console.print(f"session took {int(took // 60)}:{int(took % 60):02d} min:s of wall clock at "
+                                   f"{self.pace:.3g} rig seconds per second, about {took * self.pace / 60:.0f} min "
+                                   f"of rig time; announced {announced:.0f} min", highlight=False)
+            else:
+                self.console.print(f"session took {took / 60:.0f} min of rig time; announced {announced:.0f} min",
+                                   highlight=False)
         elif e.kind in ("log", "alarm", "experiment-failed"):
             style = "red" if e.kind != "log" else "dim"
             self.console.print(f"{head} {e.data.get('message', '')}", style=style, highlight=False)

@@ -84,6 +84,8 @@ def test_line_faults_are_counted_exactly_and_the_capture_recaptured_or_flagged(v
     assert r.returncode == 0, r.stderr[-3000:]
     # a simulator at 50x: the console says so, and what it means for the holds
     assert re.search(r"the links run [\d.]+ rig seconds per second: conditioning holds shorter than \d+ s", r.stderr)
+    assert re.search(r"session took \d+:\d\d min:s of wall clock at [\d.]+ rig seconds per second, about \d+ min "
+                     r"of rig time; announced \d+ min", r.stderr), r.stderr[-2000:]
     sim.stop()
     (entry,) = manifest(out)["experiments"]
     assert sim.lost_frames() > 500
