@@ -249,7 +249,7 @@ def run_friction(args: argparse.Namespace) -> int:
     columns = ("stroke_mm", "force_N", "pressure_bar")
     labels = _chosen_labels(args.dataset, args.experiments)
     ds = read_dataset(args.dataset, columns, labels)
-    records = [fold(e.label, e.time_s, {c: e.column(c) for c in columns}, e.frequency_hz, args.n)
+    records = [fold(e.label, e.time_s, {c: e.column(c) for c in columns}, e.frequency_hz, args.n, e.sample_rate_hz)
                for e in ds.select(labels)]
     result = extract(records)
     print(result.table())

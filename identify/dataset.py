@@ -56,6 +56,10 @@ class Experiment:
 
     @property
     def sample_rate_hz(self) -> float:
+        """The declared rate where rows are absent (lost samples: read_dataset checked the
+        times against it), else the rate of the consecutive rows."""
+        if self.meta.get("lost_samples"):
+            return float(self.meta["sample_rate_Hz"])
         t = self.time_s
         return (len(t) - 1) / (t[-1] - t[0])
 

@@ -18,7 +18,10 @@ variance.
 The period-to-period scatter estimates each channel's measurement noise: where a period
 holds a whole number of samples, from differences of samples one period apart (the
 signal cancels exactly); otherwise from the scatter around the folded curve, which also
-picks up interpolation error where the signal is sharp.
+picks up interpolation error where the signal is sharp.  Samples the rig lost leave
+holes; pairs are then found by each sample's index on the sample grid, not by its row.
+Taken by row, or from the scatter, a 0.04 Hz record with 1.6 % of its samples lost read
+a stroke noise 22 times the real one, and the fit's σ grew with it.
 """
 
 from __future__ import annotations
@@ -77,14 +80,18 @@ class FoldedRecord:
         return float(np.mean(w[0] ** 2 / c[b[0]] + w[1] ** 2 / c[b[1]]))
 
 
-def _whole_period_lag(t: np.ndarray, frequency_hz: float) -> int:
-    """Samples per period when that is a whole number and the record spans two periods or more."""
-    dt = (t[-1] - t[0]) / (len(t) - 1)
-    per = 1.0 / (frequency_hz * dt)
+def _period_pairs(t: np.ndarray, frequency_hz: float, sample_rate_hz: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """Row indices (i, j) of the samples exactly one period apart, when a period holds a
+    whole number of samples and the record spans two periods or more; None otherwise.
+    Absent rows (lost samples) are allowed: a sample whose partner was lost is not paired."""
+    per = sample_rate_hz / frequency_hz
     lag = int(round(per))
-    if lag < 1 or abs(per - lag) > 1e-6 * per or len(t) < 2 * lag:
-        return 0
-    return lag
+    k = np.rint((t - t[0]) * sample_rate_hz).astype(np.int64)  # index on the sample grid
+    if lag < 1 or abs(per - lag) > 1e-6 * per or k[-1] + 1 < 2 * lag:
+        return None
+    j = np.minimum(np.searchsorted(k, k + lag), len(k) - 1)
+    i = np.flatnonzero(k[j] == k + lag)
+    return i, j[i]
 
 
 def _interpolation(xp: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -98,9 +105,14 @@ def _interpolation(xp: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     return np.vstack([(left - 1) % m, left % m]), np.vstack([1.0 - w, w])
 
 
-def fold(label: str, time_s: np.ndarray, columns: dict[str, np.ndarray], frequency_hz: float, n: int) -> FoldedRecord:
-    """Fold sample columns of a periodic record onto ``n`` phases of one period."""
+def fold(label: str, time_s: np.ndarray, columns: dict[str, np.ndarray], frequency_hz: float, n: int,
+         sample_rate_hz: float | None = None) -> FoldedRecord:
+    """Fold sample columns of a periodic record onto ``n`` phases of one period.
+
+    ``sample_rate_hz`` is the rate of a record with absent rows (lost samples, declared
+    in the manifest); without it the rows are taken to be consecutive samples."""
     t = np.asarray(time_s, dtype=float)
+    rate = sample_rate_hz or (len(t) - 1) / (t[-1] - t[0])
     pos = np.mod(t * frequency_hz, 1.0) * n  # position on the grid, in grid steps
     b = np.floor(pos + 0.5).astype(np.int64)
     offset = pos - b  # in [-0.5, 0.5)
@@ -112,20 +124,20 @@ def fold(label: str, time_s: np.ndarray, columns: dict[str, np.ndarray], frequen
     values: dict[str, np.ndarray] = {}
     noise: dict[str, float] = {}
     dof = len(t) - int(filled.sum())
-    lag = _whole_period_lag(t, frequency_hz)
+    pairs = _period_pairs(t, frequency_hz, rate)
     mu = np.arange(n, dtype=float)
     for name, v in columns.items():
         v = np.asarray(v, dtype=float)
         fp = np.bincount(b, weights=v, minlength=n)[filled] / counts[filled]
         grid = weights[0] * fp[bins[0]] + weights[1] * fp[bins[1]]
         values[name] = grid
-        if lag:
-            noise[name] = float(np.sqrt(np.mean((v[lag:] - v[:-lag]) ** 2) / 2))
+        if pairs is not None:
+            noise[name] = float(np.sqrt(np.mean((v[pairs[1]] - v[pairs[0]]) ** 2) / 2))
         elif dof > 0:
             resid = v - np.interp(pos, mu, grid, period=n)
             noise[name] = float(np.sqrt(np.sum(resid**2) / dof))
         else:
             noise[name] = float("nan")
-    duration = len(t) * (t[-1] - t[0]) / max(len(t) - 1, 1)
+    duration = t[-1] - t[0] + 1.0 / rate
     return FoldedRecord(label, float(frequency_hz), n, values, noise, counts, duration * frequency_hz, len(t),
                         bins, weights)

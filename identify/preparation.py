@@ -71,7 +71,7 @@ def prepare_periodic(model: CompiledModel, experiments: list[Experiment], n: int
             if ch.column not in exp.data.columns:
                 raise DatasetError(f"{exp.file}: column {ch.column!r}: missing (model {model.name!r} needs it)")
             cols[ch.column] = exp.column(ch.column)
-        folded = fold(exp.label, exp.time_s, cols, exp.frequency_hz, n)
+        folded = fold(exp.label, exp.time_s, cols, exp.frequency_hz, n, exp.sample_rate_hz)
         inputs = np.vstack([ch.to_si(folded.values[ch.column]) for ch in d.inputs.values()])
         measured = np.array([d.outputs[o].to_si(folded.values[d.outputs[o].column]) for o in outputs]).reshape(-1, n)
         yvar = np.array([(folded.noise_std[d.outputs[o].column] * d.outputs[o].scale) ** 2 for o in outputs])
@@ -106,7 +106,8 @@ def choose_points(model: CompiledModel, experiments: list[Experiment], outputs: 
         whole = abs(per_period - samples) < 1e-6 * per_period
         size = samples if whole else 1 << int(np.ceil(np.log2(per_period)))
         sizes.add(size if whole else 0)
-        folded = fold(exp.label, exp.time_s, {c: exp.column(c) for c in columns}, exp.frequency_hz, size)
+        folded = fold(exp.label, exp.time_s, {c: exp.column(c) for c in columns}, exp.frequency_hz, size,
+                      exp.sample_rate_hz)
         for c in columns:
             spectrum = np.abs(np.fft.rfft(folded.values[c] - folded.values[c].mean()))
             noise = folded.noise_std[c] ** 2 * folded.grid_factor

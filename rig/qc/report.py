@@ -77,7 +77,7 @@ def loops_figure(evaluation: Evaluation) -> str | None:
     n = evaluation.fit.n_grid if evaluation.fit else 800
     for ax, e in zip(axes[0], exps, strict=True):
         folded = fold(e.label, e.time_s, {"stroke_mm": e.column("stroke_mm"), "force_N": e.column("force_N")},
-                      e.frequency_hz, n)
+                      e.frequency_hz, n, e.sample_rate_hz)
         force_kn = np.append(folded.values["force_N"], folded.values["force_N"][0]) / 1e3
         stroke = np.append(folded.values["stroke_mm"], folded.values["stroke_mm"][0])
         ax.plot(stroke, force_kn, color="#8fb3e8", lw=4.0, label="measured")
