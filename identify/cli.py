@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 from pathlib import Path
@@ -406,6 +407,27 @@ def _run_batch(args: argparse.Namespace, console: Console, sessions: list[Path],
     return EXIT_NOT_CONVERGED if counts["failed"] or undelivered else EXIT_OK
 
 
+def value_and_std(value: float, std: float | None, digits: int = 2) -> str:
+    """Concise notation: the value rounded to the std's last of ``digits`` digits, the std
+    in units of that digit in parentheses (0.850057(60) is 0.850057 ± 0.000060), which
+    keeps three parameters and their stds in an 80-column terminal."""
+    if std is None or not math.isfinite(std) or std <= 0 or not math.isfinite(value):
+        return f"{value:.6g}"
+    exponent = 0
+    if value != 0 and not 1e-3 <= abs(value) < 1e6:
+        exponent = math.floor(math.log10(abs(value)))
+        value, std = value / 10**exponent, std / 10**exponent
+    last = math.floor(math.log10(std)) - (digits - 1)   # decimal place of the std's last digit
+    scaled = round(std / 10**last)
+    if scaled >= 10**digits:   # 9.96 rounded up a digit
+        last, scaled = last + 1, round(std / 10 ** (last + 1))
+    if last < 0:
+        text = f"{value:.{-last}f}({scaled})"
+    else:
+        text = f"{round(value / 10**last) * 10**last:.0f}({scaled * 10**last})"
+    return text + (f"e{exponent}" if exponent else "")
+
+
 def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) -> None:
     from rich.console import Console
     from rich.table import Table
@@ -413,14 +435,20 @@ def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) ->
     console = Console()  # stdout: the table is the command's result, progress went to stderr
     shown = rows if len(rows) <= TABLE_ROWS else [r for r in rows if r.failed]
     if shown:
-        table = Table(title="batch identification (value ± std)" if shown is rows else "failed sessions")
-        for col in ("session", "serial", "status", "converged"):
-            table.add_column(col, no_wrap=True)  # identifiers: whole, or cut with an ellipsis, never folded
-        for col in (*estimate, "fit [s]"):
-            table.add_column(col, justify="right")
+        converged = {"ok": "yes", "skipped": "earlier", "failed": "no"}
+        table = Table(title="batch identification" if shown is rows else "failed sessions", box=None,
+                      header_style="bold underline", padding=(0, 1), collapse_padding=True, pad_edge=False,
+                      caption="value(std): the std in units of the value's last digits, summary.csv has both in "
+                              "full; fit: seconds; converged earlier: done before, skipped")
+        table.add_column("session", no_wrap=True, min_width=8)  # identifiers: whole, or cut with an ellipsis
+        table.add_column("serial", no_wrap=True, min_width=6)
+        table.add_column("converged", no_wrap=True)
+        for col in estimate:
+            table.add_column(col, justify="right", no_wrap=True)
+        table.add_column("fit", justify="right", no_wrap=True)
         for r in shown:
-            cells = [f"{r.values[p]:.5g} ± {r.stds[p]:.2g}" if r.stds.get(p) is not None else "" for p in estimate]
-            table.add_row(r.session, r.serial, r.state, "yes" if r.converged else "no", *cells,
+            cells = [value_and_std(r.values[p], r.stds.get(p)) if p in r.values else "" for p in estimate]
+            table.add_row(r.session, r.serial, converged.get(r.state, r.state), *cells,
                           "" if r.fit_s is None else f"{r.fit_s:.2f}")
         console.print(table)
     for r in rows:

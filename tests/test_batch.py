@@ -375,3 +375,32 @@ def test_without_the_records_sink_installed_db_is_one_line_and_exit_2(tmp_path, 
     assert err == ("error: --db: no result sink 'db' is installed (entry point group identify.result_sinks.none); "
                    "it comes with the damper-rig project's rig package: install the project, not identify alone\n")
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("value, std, text", [
+    (0.85006, 6.0e-5, "0.850060(60)"), (0.0049999994, 9.01e-9, "0.0049999994(90)"),
+    (-3.0000003, 4.58e-6, "-3.0000003(46)"), (1234.4, 37.0, "1234(37)"), (2.5e-12, 1.3e-14, "2.500(13)e-12"),
+    (0.85, 0.0996, "0.85(10)"), (5.0, 9.96, "5(10)"), (12.0, None, "12"), (0.5, 0.0, "0.5"),
+])
+def test_value_and_std_in_concise_notation(value, std, text):
+    from identify.cli import value_and_std
+
+    assert value_and_std(value, std) == text
+
+
+def test_the_batch_table_fits_an_80_column_terminal(monkeypatch, capsys):
+    """Three parameters with their stds, a serial and a session name: no cell folded or
+    cut, every line within 80 columns (it folded each cell over three lines)."""
+    from identify.cli import _batch_table
+
+    monkeypatch.setenv("COLUMNS", "80")
+    values = {"theta4": 0.004999998, "theta6": -3.000003, "theta16": 0.85024}
+    stds: dict[str, float | None] = {"theta4": 1.9e-8, "theta6": 1.2e-5, "theta16": 2.2e-4}
+    rows = [batch.SessionOutcome(f"SN-2026-00{i}", "", "ok", "SIM-0001", True, 0.43, values, stds) for i in range(3)]
+    rows.append(batch.SessionOutcome("SN-2026-009", "", "failed: SN-2026-009/261122h.csv: line 7: not a number"))
+    _batch_table(rows, ESTIMATE)
+    out = capsys.readouterr().out
+    assert max(len(line) for line in out.splitlines()) <= 80, out
+    for cell in ("SN-2026-001", "SIM-0001", "0.004999998(19)", "-3.000003(12)", "0.85024(22)", "0.43"):
+        assert cell in out, (cell, out)
+    assert "SN-2026-009: failed: SN-2026-009/261122h.csv: line 7: not a number" in out
