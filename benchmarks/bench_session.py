@@ -12,6 +12,13 @@ on a busy machine.  Each case runs in its own process, so that its peak RSS is i
 
     python benchmarks/bench_session.py                 # the four cases, side by side
     python benchmarks/bench_session.py --hold 60       # and a held 0.04 Hz experiment (memory)
+    python benchmarks/bench_session.py --seeds 6 --cases today,new --jobs 2
+                                    # the same over six draws of the simulator's noise
+
+Two fits of independent noise differ by about sqrt(2) sigma rms, so a single draw says
+little about whether the new criterion biases a parameter against today's. ``--seeds``
+repeats each case over that many noise seeds and prints, per parameter, the mean
+difference and its standard error: a bias is a mean that stays off zero.
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ import resource
 import subprocess
 import sys
 import tempfile
+from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
 
@@ -46,7 +54,7 @@ ESTIMATE = ["theta4", "theta6", "theta16"]
 START = ROOT / "examples" / "start-2dof.json"
 
 
-def run_case(name: str, hold_cycles: int, out: Path) -> dict:
+def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tuple[str, ...] = ()) -> dict:
     """One session in this process; returns its figures (JSON-able)."""
     from rich.console import Console
 
@@ -63,9 +71,14 @@ def run_case(name: str, hold_cycles: int, out: Path) -> dict:
     if hold_cycles:   # thresholds that are never met: the experiment is held to max_cycles
         text = text.replace("max_cycles = 1500", f"max_cycles = {hold_cycles}").replace(
             "stroke_mm = 0.02", "stroke_mm = 0.0")
+    for setting in settings:   # KEY=VALUE: a top-level key of rig-default.toml's sections
+        key, value = setting.split("=", 1)
+        text, found = re.subn(rf'(?m)^{re.escape(key)} = [^#\n]*', f"{key} = {value} ", text)
+        if not found:
+            sys.exit(f"--set {setting}: no key {key!r} in {DEFAULT_RIG_CONFIG.name}")
     config = out / "rig.toml"
     config.write_text(text)
-    rig = InProcessRig(config)
+    rig = InProcessRig(config, seed=seed)
     rig.connect()
     try:
         for fault in faults:
@@ -99,26 +112,16 @@ def run_case(name: str, hold_cycles: int, out: Path) -> dict:
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--case", help=argparse.SUPPRESS)
-    ap.add_argument("--hold", type=int, default=0, help="also hold experiment a (0.04 Hz) for this many cycles")
-    ap.add_argument("--cases", default=",".join(SIDE_BY_SIDE),
-                    help=f"comma-separated, of {', '.join(c for c in CASES if c != 'hold')} (today's first)")
-    args = ap.parse_args()
-    if args.case:
-        with tempfile.TemporaryDirectory() as tmp:
-            print(json.dumps(run_case(args.case, args.hold if args.case == "hold" else 0, Path(tmp))))
-        return
-    shown = args.cases.split(",")
-    names = shown + (["hold"] if args.hold else [])
-    results = {}
-    for name in names:
-        proc = subprocess.run([sys.executable, __file__, "--case", name, "--hold", str(args.hold)],
-                              capture_output=True, text=True, cwd=ROOT)
-        if proc.returncode:
-            sys.exit(f"{name}: {proc.stderr[-2000:]}")
-        results[name] = json.loads(proc.stdout.strip().splitlines()[-1])
+def _run(name: str, hold: int, seed: int, settings: list[str]) -> dict:
+    proc = subprocess.run([sys.executable, __file__, "--case", name, "--hold", str(hold), "--seed", str(seed)]
+                          + [f"--set={s}" for s in settings],
+                          capture_output=True, text=True, cwd=ROOT)
+    if proc.returncode:
+        sys.exit(f"{name} (seed {seed}): {proc.stderr[-2000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def print_side_by_side(results: dict, shown: list[str], hold: int) -> None:
     from identify.plans import STANDARD_SET
 
     print("rig time per experiment [s] (settle cycles); simulated time, in-process rig")
@@ -144,10 +147,68 @@ def main() -> None:
             row.append(f"{v:.6g} ± {s:.2g} (vs first {(v - v0) / s0:+.2f}σ"
                        + (f", vs truth {(v - t) / s:+.2f}σ)" if t is not None else ")"))
         print("  ".join(row))
-    if args.hold:
+    if hold:
         h = results["hold"]
-        print(f"\nheld: a (0.04 Hz) for {args.hold} cycles, {h['taken_s']:.0f} s of rig time: peak RSS "
+        print(f"\nheld: a (0.04 Hz) for {hold} cycles, {h['taken_s']:.0f} s of rig time: peak RSS "
               f"{h['peak_rss_mb']:.0f} MB")
+
+
+def print_over_seeds(runs: dict, shown: list[str], seeds: list[int]) -> None:
+    """Per seed, and as mean ± standard error over the seeds: rig time, ETA error and
+    each parameter against the first case's fit of the same seed and against the truth."""
+    import numpy as np
+
+    from simulator.truth import load_truth
+
+    truth = load_truth().theta
+    first = shown[0]
+    print(f"over {len(seeds)} noise seeds ({', '.join(map(str, seeds))}); simulated time, in-process rig")
+    for n in shown:
+        taken = np.array([runs[n, s]["taken_s"] for s in seeds])
+        eta = np.array([runs[n, s]["eta_s"] for s in seeds]) / taken - 1
+        print(f"{n:>12}: rig time {' '.join(f'{t:6.0f}' for t in taken)} s, mean {taken.mean():.0f} s;"
+              f" ETA/taken {' '.join(f'{e:+.1%}' for e in eta)}")
+    print("\nΔ in σ per seed, then mean ± standard error (a bias is a mean that stays off zero)")
+    for n in shown:
+        for k in ESTIMATE:
+            vs_truth = np.array([(runs[n, s]["fit"][k][0] - truth[k]) / runs[n, s]["fit"][k][1] for s in seeds])
+            line = f"{n:>12} {k:8} vs truth {' '.join(f'{d:+5.2f}' for d in vs_truth)}" \
+                   f"  mean {vs_truth.mean():+.2f} ± {vs_truth.std(ddof=1) / np.sqrt(len(seeds)):.2f}"
+            if n != first:
+                vs_first = np.array([(runs[n, s]["fit"][k][0] - runs[first, s]["fit"][k][0])
+                                     / runs[first, s]["fit"][k][1] for s in seeds])
+                line += f";  vs {first} {' '.join(f'{d:+5.2f}' for d in vs_first)}" \
+                        f"  mean {vs_first.mean():+.2f} ± {vs_first.std(ddof=1) / np.sqrt(len(seeds)):.2f}"
+            print(line)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--case", help=argparse.SUPPRESS)
+    ap.add_argument("--seed", type=int, default=0, help=argparse.SUPPRESS)
+    ap.add_argument("--hold", type=int, default=0, help="also hold experiment a (0.04 Hz) for this many cycles")
+    ap.add_argument("--cases", default=",".join(SIDE_BY_SIDE),
+                    help=f"comma-separated, of {', '.join(c for c in CASES if c != 'hold')} (today's first)")
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="run each case over this many noise seeds (0, 1, …) and print the statistics")
+    ap.add_argument("--jobs", type=int, default=1, help="cases run at once (rig time is simulated: unaffected)")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a key of rig-default.toml in every case (e.g. drift_sigma_fraction=3.0)")
+    args = ap.parse_args()
+    if args.case:
+        with tempfile.TemporaryDirectory() as tmp:
+            print(json.dumps(run_case(args.case, args.hold if args.case == "hold" else 0, Path(tmp), args.seed,
+                                      tuple(args.set))))
+        return
+    shown = args.cases.split(",")
+    seeds = list(range(args.seeds))
+    jobs = [(n, s) for s in seeds for n in shown] + ([("hold", 0)] if args.hold else [])
+    with ThreadPoolExecutor(max(1, args.jobs)) as pool:
+        done = dict(zip(jobs, pool.map(lambda job: _run(job[0], args.hold, job[1], args.set), jobs), strict=True))
+    if len(seeds) == 1:
+        print_side_by_side({n: r for (n, _), r in done.items()}, shown, args.hold)
+    else:
+        print_over_seeds(done, shown, seeds)
 
 
 if __name__ == "__main__":

@@ -275,12 +275,12 @@ class InProcessRig:
     heartbeat rig.shaker's thread would send (that thread waits on the wall clock), and
     the heartbeat gets through only while the Modbus link is up."""
 
-    def __init__(self, rig_config: Path) -> None:
+    def __init__(self, rig_config: Path, seed: int = 0) -> None:
         self.rig_config = rig_config
         self.config = load_rig_config(rig_config)
         self.fault_log = FaultLog(sink=lambda line: None)
         self.line = SerialLine()
-        self.sim = VirtualRig(load_truth(), self.line.device, log=self.fault_log)
+        self.sim = VirtualRig(load_truth(), self.line.device, seed=seed, log=self.fault_log)
         self.clock = SimClock(self.sim, self.line)
         self.sim.controller.wall_clock = self.clock.monotonic
         self.client = InProcessModbusClient(self.sim.controller, self.clock)
