@@ -199,8 +199,15 @@ class PlanPanel(QtWidgets.QWidget):
         self._preview_number += 1
         number = self._preview_number
         self.eta.setText(f"{len(plan.experiments)} experiments; estimating the rig time…")
-        threading.Thread(target=lambda: self._previewed.emit(number, plan, PlanProgress(plan, self.config, "", 1.0)),
-                         name="plan-preview", daemon=True).start()
+        threading.Thread(target=self._estimate, args=(number, plan), name="plan-preview", daemon=True).start()
+
+    def _estimate(self, number: int, plan: Plan) -> None:
+        """The preview's times, in its thread."""
+        progress = PlanProgress(plan, self.config, "", 1.0)
+        try:
+            self._previewed.emit(number, plan, progress)
+        except RuntimeError:
+            pass    # the panel was closed while the times were computed: nobody to show them to
 
     def _show_preview(self, number: int, plan: Plan, progress: PlanProgress) -> None:
         if number != self._preview_number or (self.progress is not None and self.progress.ended is None):
