@@ -30,14 +30,14 @@ class ConsoleProgress:
         self.started = time.monotonic()
         self._captured = 0.0
         plural = "s" if self.total != 1 else ""
-        console.print(f"session: {self.total} experiment{plural}, about {sum(estimates_s.values()) / 60:.0f} min of "
+        console.print(f"session: {self.total} experiment{plural}, about {_min_s(sum(estimates_s.values()))} min:s of "
                       "rig time", highlight=False)
 
     def _eta(self) -> str:
         if not self.done_s:
             return ""
         left = (time.monotonic() - self.started) / self.done_s * (sum(self.estimates.values()) - self.done_s)
-        return f", session ETA {int(left // 60)}:{int(left % 60):02d} (min:s, wall clock)"
+        return f", session ETA {_min_s(left)} (min:s, wall clock)"
 
     def __call__(self, e: Event) -> None:
         if e.kind in ("experiment-done", "experiment-failed"):
@@ -66,13 +66,13 @@ class ConsoleProgress:
             self.console.print(f"{head} [green]captured[/green] {e.data['file']} ({e.data['samples']} samples, "
                                f"{e.data['lost']} lost in window){flags}{self._eta()}", highlight=False)
         elif e.kind == "session-end":
-            took, announced = self.rig_clock() - self.rig_started, sum(self.estimates.values()) / 60
+            took, announced = self.rig_clock() - self.rig_started, sum(self.estimates.values())
             if self.pace > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
-                self.console.print(f"session took {int(took // 60)}:{int(took % 60):02d} min:s of wall clock at "
-                                   f"{self.pace:.3g} rig seconds per second, about {took * self.pace / 60:.0f} min "
-                                   f"of rig time; announced {announced:.0f} min", highlight=False)
+                self.console.print(f"session took {_min_s(took)} min:s of wall clock at {self.pace:.3g} rig seconds "
+                                   f"per second, about {_min_s(took * self.pace)} min:s of rig time; announced "
+                                   f"{_min_s(announced)}", highlight=False)
             else:
-                self.console.print(f"session took {took / 60:.0f} min of rig time; announced {announced:.0f} min",
+                self.console.print(f"session took {_min_s(took)} min:s of rig time; announced {_min_s(announced)}",
                                    highlight=False)
         elif e.kind in ("log", "alarm", "experiment-failed"):
             style = "red" if e.kind != "log" else "dim"
@@ -101,3 +101,9 @@ class ProgressBar:
             if e.data.get("message") == "complete":
                 self.bar.update(self.bar.total - self.bar.n)
             self.bar.close()
+
+
+def _min_s(seconds: float) -> str:
+    """Minutes and seconds: whole minutes hid the ETA's error on a short session (a
+    1.4 min experiment announced as 1 min 'took 2 min')."""
+    return f"{int(seconds // 60)}:{int(seconds % 60):02d}"

@@ -84,8 +84,8 @@ def test_line_faults_are_counted_exactly_and_the_capture_recaptured_or_flagged(v
     assert r.returncode == 0, r.stderr[-3000:]
     # a simulator at 50x: the console says so, and what it means for the holds
     assert re.search(r"the links run [\d.]+ rig seconds per second: conditioning holds shorter than \d+ s", r.stderr)
-    assert re.search(r"session took \d+:\d\d min:s of wall clock at [\d.]+ rig seconds per second, about \d+ min "
-                     r"of rig time; announced \d+ min", r.stderr), r.stderr[-2000:]
+    assert re.search(r"session took \d+:\d\d min:s of wall clock at [\d.]+ rig seconds per second, about \d+:\d\d "
+                     r"min:s of rig time; announced \d+:\d\d", r.stderr), r.stderr[-2000:]
     sim.stop()
     (entry,) = manifest(out)["experiments"]
     assert sim.lost_frames() > 500
@@ -233,3 +233,23 @@ def test_manual_commands_and_monitor(virtual_rig):
     assert "state OFF" in stopped.stdout
     monitor = rig("monitor", "--daq", sim.daq_url, "--duration", "1")
     assert monitor.returncode == 0 and "stroke_mm" in monitor.stdout and "lost 0" in monitor.stdout
+
+
+def test_the_console_gives_the_rig_time_taken_and_announced_in_minutes_and_seconds():
+    """A one-experiment session of 84 s announced at 71 s: whole minutes said 'took 1
+    min; announced 1 min' and hid a 18 % error."""
+    import io
+
+    from rich.console import Console
+
+    from rig.events import Event
+    from rig.progress import ConsoleProgress
+
+    now = [100.0]
+    out = io.StringIO()
+    progress = ConsoleProgress(Console(file=out, width=200), {"261124n": 71.0}, 1.0, lambda: now[0])
+    now[0] += 84.0
+    progress(Event("session-end"))
+    text = out.getvalue()
+    assert "session: 1 experiment, about 1:11 min:s of rig time" in text, text
+    assert "session took 1:24 min:s of rig time; announced 1:11" in text, text
