@@ -74,3 +74,35 @@ def test_peak_decimation_keeps_the_extremes_in_time_order():
     assert yd.max() == 5.0 and math.isclose(yd.min(), y.min())
     short_t, short_y = analysis.peak_decimate(t[:1500], y[:1500], 1000)    # under 2 samples a bucket: as is
     assert np.array_equal(short_t, t[:1500]) and np.array_equal(short_y, y[:1500])
+
+
+def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
+    """Under the drift criterion the bias bound is the deciding line and the cycles left
+    come from its decay; the changes stay, grey, for information (they were coloured as
+    failing thresholds that did not apply).  Under the change criterion, as before."""
+    from rig.config import DEFAULT_RIG_CONFIG
+    from rig.gui.plan_panel import SteadyStateView
+    from rig.gui.plan_state import ExperimentRow
+
+    config = load_rig_config(DEFAULT_RIG_CONFIG)
+    assert config.steady_state.drift is not None
+    fraction = config.steady_state.drift.fraction
+    view = SteadyStateView(config)
+    qtbot.addWidget(view)
+    assert "drift criterion decides" in view.title()
+    row = ExperimentRow(load_plan("standard").experiments[0], "261124a", 100.0)
+    change = {"stroke_mm": 1e-4, "force_N": 0.5, "pressure_bar": 0.002, "gas_temperature_C": 0.04}
+    row.settling = [(40, change | {"bias_sigma": 4 * fraction}), (50, change | {"bias_sigma": 2 * fraction})]
+    view.show_row(row)
+    assert f"up to {2 * fraction:.2f} σ; captures below {fraction:g} σ" in view.bound.text()
+    assert "predicted cycles left: 10" in view.cycles.text()     # halves every 10 cycles: 10 more
+    assert view.bars[3].property("colour") == "#9e9e9e"          # 13x its change threshold: no verdict
+
+    from dataclasses import replace
+
+    change_config = replace(config, steady_state=replace(config.steady_state, criterion="change"))
+    plain = SteadyStateView(change_config)
+    qtbot.addWidget(plain)
+    assert plain.title() == "Steady state (change criterion)"
+    plain.show_row(row)
+    assert plain.bars[3].property("colour") == "#fb8c00"

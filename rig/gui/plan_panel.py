@@ -39,10 +39,16 @@ def _item(table: QtWidgets.QTableWidget, row: int, col: int) -> QtWidgets.QTable
 
 class SteadyStateView(QtWidgets.QGroupBox):
     """Per channel the cycle-to-cycle change of the mean against its threshold, the
-    settling cycles so far and the cycles predicted to be left."""
+    settling cycles so far and the cycles predicted to be left.  Under the drift
+    criterion its bias bound decides the capture: it is shown as the deciding line, and
+    the changes, for information, without the verdict colours of thresholds that do not
+    apply (orange 12x over a threshold read as far from steady while the bound was
+    passing)."""
 
     def __init__(self, config: RigConfig, parent: QtWidgets.QWidget | None = None) -> None:
-        super().__init__("Steady state", parent)
+        self.drift = config.steady_state.drift if config.steady_state.criterion == "drift" else None
+        super().__init__("Steady state (drift criterion decides; changes for information)" if self.drift
+                         else "Steady state (change criterion)", parent)
         self.config = config
         layout = QtWidgets.QVBoxLayout(self)
         self.table = QtWidgets.QTableWidget(len(CHANNELS), 3)
@@ -64,6 +70,11 @@ class SteadyStateView(QtWidgets.QGroupBox):
             self.bars.append(bar)
             self.table.setCellWidget(i, 2, bar)
         layout.addWidget(self.table)
+        self.bound = QtWidgets.QLabel("")
+        self.bound.setObjectName("driftBound")
+        self.bound.setWordWrap(True)
+        if self.drift:
+            layout.addWidget(self.bound)
         self.cycles = QtWidgets.QLabel("Settling: –")
         self.cycles.setWordWrap(True)
         self.cycles.setObjectName("settleCycles")
@@ -81,11 +92,20 @@ class SteadyStateView(QtWidgets.QGroupBox):
             bar = self.bars[i]
             bar.setValue(int(min(ratio, 3.0) * 100))
             bar.setFormat(f"{ratio:.2f}")
-            colour = "#43a047" if ratio < 1 else "#fb8c00"
+            colour = "#9e9e9e" if self.drift else "#43a047" if ratio < 1 else "#fb8c00"
             if bar.property("colour") != colour:     # a style sheet is costly to apply: only on a change
                 bar.setProperty("colour", colour)
                 bar.setStyleSheet(f"QProgressBar::chunk {{ background: {colour}; }}")
-        left = analysis.predicted_cycles_left(row.settling, ss.thresholds, ss.min_cycles, ss.max_cycles)
+        deciding = ss.thresholds
+        if self.drift:
+            deciding = {"bias_sigma": self.drift.fraction}
+            bound = change.get("bias_sigma")
+            self.bound.setText("drift criterion: " + (
+                f"the transient left could bias the fit by up to {bound:.2f} σ; captures below "
+                f"{self.drift.fraction:g} σ" if bound is not None else "waiting for the first blocks"))
+            self.bound.setStyleSheet("color: #2e7d32;" if bound is not None and bound < self.drift.fraction
+                                     else "color: #e65100;")
+        left = analysis.predicted_cycles_left(row.settling, deciding, ss.min_cycles, ss.max_cycles)
         self.cycles.setText(f"{row.label}: {cycles} settling cycles so far (min {ss.min_cycles}, max {ss.max_cycles}); "
                             f"predicted cycles left: {'?' if left is None else left}")
 

@@ -34,7 +34,7 @@ class ExperimentRow:
     note: str = ""
     started: float | None = None           # wall clock (monotonic)
     finished: float | None = None
-    settling: list[tuple[int, dict[str, float]]] = field(default_factory=list)
+    settling: list[tuple[int, dict[str, float]]] = field(default_factory=list)  # cycles, change (+ bias_sigma)
 
     def status_text(self) -> str:
         if self.status == "settling":
@@ -82,7 +82,9 @@ class PlanProgress:
                 row.status = phase
         elif e.kind == "progress" and e.data.get("phase") == "settling":
             row.status, row.cycles = "settling", int(e.data["cycles"])
-            row.settling.append((row.cycles, dict(e.data["change"])))
+            # the drift criterion's bound beside the changes: what decides the capture there
+            bound = {"bias_sigma": float(e.data["bias_sigma"])} if "bias_sigma" in e.data else {}
+            row.settling.append((row.cycles, dict(e.data["change"]) | bound))
         elif e.kind == "progress" and e.data.get("phase") == "capturing":
             row.status, row.fraction = "capturing", float(e.data["fraction"])
         elif e.kind == "experiment-done":
