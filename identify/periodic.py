@@ -19,7 +19,7 @@ from scipy.linalg import LinAlgWarning
 from identify.differentiation import BDF2_D1, BDF2_D2, Factorization, Grid
 from identify.errors import ComputationError, InputError
 from identify.model import CompiledModel
-from identify.start import STARTS, StartError, rest_state, solve_from_rest
+from identify.start import STARTS, Measured, StartError, rest_state, solve_from_rest
 
 NEWTON_RTOL = 1e-3  # relative accuracy of a matrix-free Newton step (1e-6: 20 % more GMRES iterations in a fit)
 
@@ -85,14 +85,17 @@ class PeriodicSolver:
         return 1.0 / np.maximum(size, 1e-300)
 
     def solve(self, inputs: np.ndarray, frequency_hz: float, theta: np.ndarray,
-              start: np.ndarray | None = None, label: str = "") -> PeriodicSolution:
+              start: np.ndarray | None = None, label: str = "", measured: Measured | None = None,
+              max_iterations: int | None = None) -> PeriodicSolution:
         """Periodic solution for data-grid inputs (n_inputs, n) at the given frequency.
 
         ``start`` (n_states, points) warm-starts Newton; otherwise the starts of
-        :mod:`identify.start` are tried in turn (the static equilibrium for the mean
-        input first where it is unique), the one that worked is recorded in the
+        :mod:`identify.start` are tried in turn (the ``measured`` outputs mapped to
+        states where given, then the static equilibrium for the mean input where it is
+        unique), the one that worked is recorded in the
         solution and in ``starts_used[label]``.  On an oversampled grid the start is
-        the solution on the data's grid, refined.  Raises :class:`ConvergenceError`
+        the solution on the data's grid, refined.  ``max_iterations`` bounds Newton from
+        a given ``start`` (default the solver's).  Raises :class:`ConvergenceError`
         naming ``label``.  The solution's arrays are on the model grid.
         """
         # Unphysical trial parameters (a line-search step too far) give NaNs or singular
@@ -102,17 +105,19 @@ class PeriodicSolver:
             warnings.simplefilter("ignore", LinAlgWarning)
             refined = self.grid.refine(inputs)
             if start is not None:
-                return self._solve(refined, frequency_hz, theta, start, label)
+                return self._solve(refined, frequency_hz, theta, start, label, max_iterations)
             if self.grid.oversample > 1:
                 coarse = PeriodicSolver(self.model, self.grid.base(), self.max_iterations, self.tolerance,
-                                        self.starts).solve(inputs, frequency_hz, theta, label=label)
+                                        self.starts).solve(inputs, frequency_hz, theta, label=label,
+                                                           measured=measured)
                 sol = self._solve(refined, frequency_hz, theta, self.grid.refine(coarse.states), label)
                 name = coarse.start
             else:
                 try:
                     sol, name = solve_from_rest(
-                        self.model, self.grid, lambda u, x: self._solve(u, frequency_hz, theta, x, label), refined,
-                        frequency_hz, theta, self.tolerance, self.starts)
+                        self.model, self.grid,
+                        lambda u, x, most=None: self._solve(u, frequency_hz, theta, x, label, most), refined,
+                        frequency_hz, theta, self.tolerance, self.starts, measured)
                 except StartError as exc:
                     raise ConvergenceError(f"{label or 'experiment'}: no periodic solution from any start ({exc})",
                                            label) from exc
@@ -121,7 +126,7 @@ class PeriodicSolver:
             return sol
 
     def _solve(self, inputs: np.ndarray, frequency_hz: float, theta: np.ndarray,
-               start: np.ndarray, label: str) -> PeriodicSolution:
+               start: np.ndarray, label: str, max_iterations: int | None = None) -> PeriodicSolution:
         m, grid, f = self.model, self.grid, frequency_hz
         ns, n = m.n_states, grid.points
         X = np.array(start, dtype=float, copy=True)
@@ -131,7 +136,8 @@ class PeriodicSolver:
         weights = None
         merit = np.inf
         last_full_step = np.nan  # scaled size of the previous step, when it was a full one
-        for it in range(self.max_iterations + 1):
+        most = self.max_iterations if max_iterations is None else max_iterations
+        for it in range(most + 1):
             jac = m.residual_jacobian(X, DX, DDX, inputs, theta)
             if weights is None:
                 weights = self._equation_weights(jac, f)[:, None]
@@ -161,7 +167,7 @@ class PeriodicSolver:
                 G = m.residual(X, DX, DDX, inputs, theta)
                 rms = float(np.sqrt(np.mean((weights * G) ** 2)))
                 return PeriodicSolution(label, f, inputs, X, DX, DDX, it + 1, rms, fac)
-            if it == self.max_iterations:
+            if it == most:
                 break
             lam = 1.0
             while True:

@@ -3,6 +3,8 @@ sensitivities, convergence from the static guess on the standard set."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -12,6 +14,7 @@ from identify.periodic import PeriodicSolver
 from identify.transient import TransientSimulator
 
 F_HZ = 0.5
+EXAMPLES = Path(__file__).resolve().parents[1] / "examples"
 
 
 def force(t):
@@ -120,6 +123,57 @@ def test_every_standard_experiment_converges_from_the_static_guess(standard_data
     for d in data:
         sol = solver.solve(d.inputs, d.frequency_hz, m.nominal_vector(), label=d.label)
         assert sol.residual_norm < 1e-8, d.label
+
+
+@pytest.mark.slow
+def test_the_measured_start_reaches_the_static_starts_solution_in_fewer_iterations(standard_dataset):
+    """Stroke and pressure determine q and T, so a 2-dof fit's cold solves start from the
+    measurements, to the same periodic solution, in far fewer Newton iterations (the
+    steep friction makes the static start's long damped phase).  Where the parameters
+    cannot reach the measured stroke, or a fit of the stroke alone cannot map back to T,
+    the static start takes over, saying why."""
+    from identify.dataset import read_dataset
+    from identify.parameters import Parameters
+    from identify.preparation import prepare_periodic
+    from identify.start import Measured, StartError, measured_start
+
+    m = load_model("2dof")
+    outputs = ["stroke_mm", "pressure_bar"]
+    data = prepare_periodic(m, read_dataset(standard_dataset).select(kind="periodic"), 800, outputs)
+    grid = Grid(800)
+    index = [m.output_index(o) for o in outputs]
+    scales = m.state_scales[:, None]
+
+    def both_starts(th: np.ndarray) -> tuple[list[str], dict[str, int]]:
+        starts, iterations = [], {"auto": 0, "static": 0}
+        for d in data:
+            auto = PeriodicSolver(m, grid).solve(d.inputs, d.frequency_hz, th, label=d.label,
+                                                 measured=Measured(index, d.measured))
+            static = PeriodicSolver(m, grid).solve(d.inputs, d.frequency_hz, th, label=d.label)
+            assert static.start == "static"
+            np.testing.assert_allclose(auto.states / scales, static.states / scales, rtol=0, atol=1e-6)
+            starts.append(auto.start)
+            iterations["auto"] += auto.iterations
+            iterations["static"] += static.iterations
+        return starts, iterations
+
+    # The benchmarks' start, 15-40 % off the truth.
+    starts, iterations = both_starts(Parameters.from_file(m, str(EXAMPLES / "start-2dof.json")).vector())
+    assert set(starts) == {"measured"}
+    assert iterations["auto"] < 0.6 * iterations["static"], iterations
+
+    # A gas spring that collapses (1 + θ6·q -> 0) before the measured high strokes.
+    th = m.nominal_vector()
+    th[m.parameter_index("theta6")] *= 1.3
+    starts, _ = both_starts(th)
+    assert "static" in starts and "measured" in starts, starts
+
+    d = data[0]
+    with pytest.raises(StartError, match="do not determine every state"):
+        measured_start(m, grid, d.inputs, th, Measured(index[:1], d.measured[:1]))
+    solver = PeriodicSolver(m, grid)
+    sol = solver.solve(d.inputs, d.frequency_hz, th, label=d.label, measured=Measured(index[:1], d.measured[:1]))
+    assert sol.start == "static" and solver.starts_used == {d.label: "static"}
 
 
 def test_floquet_multipliers_of_a_linear_oscillator_are_exp_lambda_T():
