@@ -178,17 +178,28 @@ class Estimator:
 
     def _add_sensitivities(self, ev: _Evaluation, settled: bool = True) -> bool:
         """What an accepted evaluation needs beyond the solutions: sensitivities and the
-        noise model, which is recomputed only once the steps have ``settled`` (or where
-        there is none yet); whether it was."""
+        noise model (:meth:`_update_noise`); whether the noise model was recomputed."""
         for sol, d in zip(ev.solutions, self.data, strict=True):
             dX, dY = self.solver.sensitivities(sol, d.theta(ev.theta), self.index, self.output_idx)
             ev.state_sensitivities.append(dX)
             ev.sensitivities.append(dY)
+        return self._update_noise(ev, settled)
+
+    def _update_noise(self, ev: _Evaluation, settled: bool) -> bool:
+        """The grid variance the measurement noise explains at ev (ev.noise), recomputed
+        only once the steps have ``settled``; whether it was.  Until the first such
+        computation the output noise alone shapes the weights: the force noise
+        propagated through the model costs about half an evaluation and depends on θ,
+        so it is not worth computing on the way to the optimum."""
         if not all(d.noise_estimable() for d in self.data):
             return False
-        # The propagated noise changes with θ as the gas stiffness does; recomputing it costs
-        # about half an evaluation, so it is reused while θ stays within a percent or so.
         last = self._noise_at
+        if last is None and not settled:
+            noise = np.array([d.grid_variance for d in self.data])
+            ev.noise = noise if np.all(noise > 0) else None
+            return False
+        # The propagated noise changes with θ as the gas stiffness does: it is reused while
+        # θ stays within a percent or so.
         if last is not None and (not settled or np.all(np.abs(ev.theta - last.theta)[self.index]
                                                        <= NOISE_REFRESH * self._prior_std(ev.theta))):
             ev.noise = last.noise
@@ -316,7 +327,8 @@ class Estimator:
         t0 = time.perf_counter()
         theta = self.params.vector()
         try:
-            ev = self._evaluate(theta, None, sensitivities=True)
+            ev = self._evaluate(theta, None, sensitivities=False)
+            self._add_sensitivities(ev, settled=False)
         except ConvergenceError as exc:
             raise EstimationError(f"no periodic solution at the starting parameters: {exc}") from exc
         v = self._variances(ev)
@@ -329,6 +341,7 @@ class Estimator:
         except KeyboardInterrupt:
             (ev, iterations), converged, interrupted = self._last, False, True
             message = f"interrupted (Ctrl-C) after {iterations} iterations: the last iterate, not converged"
+        self._update_noise(ev, settled=True)  # weights and σ at the result's θ, where the fit stopped early too
         v = self._variances(ev)
         result = self._result(ev, v, converged, iterations, message, history, time.perf_counter() - t0)
         result.interrupted = interrupted

@@ -211,8 +211,8 @@ def measured_start(model: CompiledModel, grid: Grid, inputs: np.ndarray, theta: 
         if not checked:
             if np.any(hdx) or np.any(hddx):
                 raise StartError("the fitted outputs depend on the states' derivatives")
-            s = np.linalg.svd(H, compute_uv=False)
-            if H.shape[1] < H.shape[2] or np.any(s[:, -1] <= RANK_TOLERANCE ** 0.5 * s[:, 0]):
+            lam = np.linalg.eigvalsh(np.swapaxes(H, 1, 2) @ H)  # squared singular values, ascending
+            if H.shape[1] < H.shape[2] or np.any(lam[:, 0] <= RANK_TOLERANCE * lam[:, -1]):
                 raise StartError("the fitted outputs do not determine every state")
             checked = True
         r = np.moveaxis(weights[:, None] * (target - m.output(X, zero, zero, inputs, theta)[measured.outputs]), -1, 0)
