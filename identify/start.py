@@ -55,7 +55,7 @@ STEP_ITERATIONS = 8  # Newton iterations per time step
 # grid carry the noise into the velocities and cost 158.
 MEASURED_HARMONICS = 10
 INVERSION_ITERATIONS = 20  # point-wise Newton from outputs to states (the damper's needs 3)
-INVERSION_TOLERANCE = 1e-6  # of each state's scale: a start, which periodic Newton corrects anyway
+INVERSION_TOLERANCE = 1e-3  # of each state's scale: a start, which periodic Newton corrects anyway
 # Newton iterations allowed from the measured start before the next start is tried: where
 # the parameters cannot reach the measured motion (a gas spring that would collapse at
 # the measured stroke), Newton stalls there, and the static start takes at most 30.

@@ -125,6 +125,26 @@ def test_every_standard_experiment_converges_from_the_static_guess(standard_data
         assert sol.residual_norm < 1e-8, d.label
 
 
+def test_a_start_a_small_step_from_the_solution_costs_one_factorisation():
+    """One full Newton step from close by leaves an error of about its square, which a
+    chord step on the same factorisation confirms: one factorisation, not two, and the
+    sensitivities from that one-step-old Jacobian agree to about its age."""
+    m = load_model("2dof")
+    th = m.nominal_vector()
+    grid = Grid(256)
+    solver = PeriodicSolver(m, grid)
+    u = force(grid.tau / F_HZ)[None]
+    sol = solver.solve(u, F_HZ, th)
+    scales = m.state_scales[:, None]
+    near = sol.states + 100 * solver.tolerance * scales * np.sin(2 * np.pi * grid.tau)  # 100 tolerances off
+    again = solver.solve(u, F_HZ, th, start=near)
+    assert again.iterations == 1
+    np.testing.assert_allclose(again.states / scales, sol.states / scales, rtol=0, atol=solver.tolerance)
+    index = [m.parameter_index(k) for k in ("theta4", "theta6", "theta16")]
+    np.testing.assert_allclose(solver.state_sensitivities(again, th, index), solver.state_sensitivities(sol, th, index),
+                               rtol=1e-5, atol=0)
+
+
 @pytest.mark.slow
 def test_the_measured_start_reaches_the_static_starts_solution_in_fewer_iterations(standard_dataset):
     """Stroke and pressure determine q and T, so a 2-dof fit's cold solves start from the
