@@ -376,8 +376,7 @@ class Estimator:
                 # A step below the tolerance, or one that would lower χ² by less than the data
                 # can tell apart, is converged already: not worth the evaluation it would cost.
                 negligible = small or 0.0 <= predicted < CHI2_TOLERANCE
-                accepted, lam, trial_objective = (None, 0.0, objective) if negligible else self._line_search(
-                    ev, step, v, objective)
+                accepted, lam = (None, 0.0) if negligible else self._line_search(ev, step, v, objective)
                 # The line search judges χ² at fixed variances, the plain Gauss–Newton
                 # model; where the coupled step fails it (and is not a converged one),
                 # the plain step is tried.
@@ -396,7 +395,6 @@ class Estimator:
                 break
             theta = accepted.theta
             ev = accepted
-            objective_before = objective
             refreshed = self._add_sensitivities(ev, settled=bool(np.all(np.abs(lam * step) <= NOISE_SETTLED * scale)))
             v = self._variances(ev)
             objective = self._objective(ev, v)
@@ -409,11 +407,6 @@ class Estimator:
             if np.all(np.abs(lam * step) <= self.step_tolerance * np.maximum(sigma, 1e-300)):
                 converged = True
                 message = f"converged (last step below {self.step_tolerance:g} standard deviations)"
-                break
-            if 0.0 <= predicted < CHI2_TOLERANCE and objective_before - trial_objective < CHI2_TOLERANCE:
-                converged = True  # the same judgement as above, for a step the line search took
-                message = (f"converged (the last step lowered χ² by {objective_before - trial_objective:.2g} "
-                           f"< {CHI2_TOLERANCE:g})")
                 break
         return converged, iterations, message, ev
 
@@ -440,9 +433,9 @@ class Estimator:
         return step
 
     def _line_search(self, ev: _Evaluation, step: np.ndarray, v: np.ndarray,
-                     objective: float) -> tuple[_Evaluation | None, float, float]:
+                     objective: float) -> tuple[_Evaluation | None, float]:
         """Backtracking along ``step`` from ev.theta, projected onto the bounds, until χ²
-        (at the variances v) does not rise: (the accepted evaluation or None, its step fraction, its χ²)."""
+        (at the variances v) does not rise: (the accepted evaluation or None, its step fraction)."""
         lam = 1.0
         while lam >= 1.0 / 64:
             trial = ev.theta.copy()
@@ -452,11 +445,10 @@ class Estimator:
             except ConvergenceError:
                 lam /= 2
                 continue
-            trial_objective = self._objective(ev_t, v)
-            if trial_objective <= objective:
-                return ev_t, lam, trial_objective
+            if self._objective(ev_t, v) <= objective:
+                return ev_t, lam
             lam /= 2
-        return None, lam, objective
+        return None, lam
 
     def _covariance(self, ev: _Evaluation, v: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
         """Sandwich covariance A⁻¹·B·A⁻¹ of the estimates under the measurement noise:
