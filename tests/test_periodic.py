@@ -21,6 +21,16 @@ def force(t):
     return 4500.0 + 2500.0 * np.sin(2 * np.pi * F_HZ * np.asarray(t))
 
 
+def _sine_case(model_name: str, points: int):
+    """A model at its nominal parameters under the sine force, solved on a bdf2 grid."""
+    m = load_model(model_name)
+    th = m.nominal_vector()
+    grid = Grid(points)
+    solver = PeriodicSolver(m, grid)
+    u = force(grid.tau / F_HZ)[None]
+    return m, th, grid, solver, u, solver.solve(u, F_HZ, th)
+
+
 @pytest.fixture(scope="module")
 def transient_reference():
     """1-dof response to a sine force, integrated for 20 periods with tight tolerances
@@ -76,12 +86,7 @@ def test_sensitivities_match_finite_differences(scheme):
 
 
 def test_input_sensitivities_match_finite_differences():
-    m = load_model("1dof")
-    th = m.nominal_vector()
-    grid = Grid(64)
-    solver = PeriodicSolver(m, grid)
-    u = force(grid.tau / F_HZ)[None]
-    sol = solver.solve(u, F_HZ, th)
+    m, th, grid, solver, u, sol = _sine_case("1dof", 64)
     unit = np.zeros((1, 64, 3))
     unit[0, [0, 17, 40], [0, 1, 2]] = 1.0
     H = solver.input_response(sol, th, [0], unit)
@@ -129,12 +134,7 @@ def test_a_start_a_small_step_from_the_solution_costs_one_factorisation():
     """One full Newton step from close by leaves an error of about its square, which a
     chord step on the same factorisation confirms: one factorisation, not two, and the
     sensitivities from that one-step-old Jacobian agree to about its age."""
-    m = load_model("2dof")
-    th = m.nominal_vector()
-    grid = Grid(256)
-    solver = PeriodicSolver(m, grid)
-    u = force(grid.tau / F_HZ)[None]
-    sol = solver.solve(u, F_HZ, th)
+    m, th, grid, solver, u, sol = _sine_case("2dof", 256)
     scales = m.state_scales[:, None]
     near = sol.states + 100 * solver.tolerance * scales * np.sin(2 * np.pi * grid.tau)  # 100 tolerances off
     again = solver.solve(u, F_HZ, th, start=near)
