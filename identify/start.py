@@ -51,7 +51,7 @@ TRANSIENT_PERIODS = 4  # at most; integration stops earlier once consecutive per
 SETTLED = 1e-3  # period-to-period change of each state, relative to its range over the period
 STEP_ITERATIONS = 8  # Newton iterations per time step
 # Harmonics of the measured outputs in the measured start (beyond the excited lines): 10
-# halve the cold Newton iterations of the standard set (264 -> 117); all 400 of the
+# halve the cold Newton iterations of the standard set (264 -> about 120); all 400 of the
 # grid carry the noise into the velocities and cost 158.
 MEASURED_HARMONICS = 10
 INVERSION_ITERATIONS = 20  # point-wise Newton from outputs to states (the damper's needs 3)
@@ -262,12 +262,12 @@ def solve_from_rest(model: CompiledModel, grid: Grid, newton: Newton, inputs: np
     rest state and whether there are ``measured`` outputs) that Newton converges from;
     and that start's name.  Raises :class:`StartError` listing what each start did."""
     rest = rest_state(model, inputs.mean(axis=1), theta, tolerance)
+    failures = []
     if order is None:
         order = STARTS if rest is not None and rest.unique else ("measured", "transient", "linear", "continuation")
-        if measured is None:
+        if measured is None:  # not a fit: nothing measured to start from
             order = tuple(name for name in order if name != "measured")
-    failures = []
-    if measured is None and "measured" in order:
+    elif measured is None and "measured" in order:
         failures.append("measured start: no measured outputs (only a fit has them)")
         order = tuple(name for name in order if name != "measured")
     if rest is None:
