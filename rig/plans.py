@@ -142,11 +142,13 @@ class ExperimentDuration:
     fade_s: float         # the waveform faded out to the static position
     hold: Hold | None = None   # the thermal conditioning hold on the way, if any
     time_constant_s: float = math.nan   # the gas's relaxation there, predicted
+    links_s: float = 0.0  # the acquisition's polls and the links' commands, at their pace (rig seconds)
 
     @property
     def total_s(self) -> float:
         hold_s = self.hold.duration_s if self.hold else 0.0
-        return self.pause_s + self.move_s + hold_s + self.lead_in_s + self.settle_s + self.capture_s + self.fade_s
+        return (self.pause_s + self.move_s + hold_s + self.lead_in_s + self.settle_s + self.capture_s + self.fade_s
+                + self.links_s)
 
 
 def conditioning_for(plan: Plan, config: RigConfig, pace: float = 1.0, answer_s: float = 0.0) -> Conditioning | None:
@@ -173,14 +175,19 @@ def conditioning_for(plan: Plan, config: RigConfig, pace: float = 1.0, answer_s:
 def estimate_experiment_durations(plan: Plan, config: RigConfig, start_position_m: float = 0.0,
                                   params: Parameters | None = None, *, start_temperature_k: float | None = None,
                                   pause_s: float | Sequence[float] = PAUSE_S, pace: float = 1.0,
-                                  answer_s: float = 0.0, noise_draws: int = DRIFT_DRAWS) -> list[ExperimentDuration]:
+                                  answer_s: float = 0.0, overhead_s: float = 0.0,
+                                  noise_draws: int = DRIFT_DRAWS) -> list[ExperimentDuration]:
     """Per experiment, in plan order, the rig time it will take when the plan runs from
     the damper resting at ``start_position_m`` (and ``start_temperature_k``, default
     ambient).  ``params``: the damper's parameters for the settling prediction
     (default: the 2-dof model's nominal values); ``pause_s``: the rig's time at rest
     before each experiment (one for all, or one per experiment); ``pace``: the link's
     rig seconds per second and ``answer_s`` the time [s] its commands take between a
-    hold's end and RUN (see :func:`conditioning_for`); ``noise_draws``: see
+    hold's end and RUN (see :func:`conditioning_for`); ``overhead_s`` the time [s] an
+    experiment's polls and commands take beyond the rig's own motion (both measured by
+    :meth:`rig.acquisition.Acquisition.measure_pace`), rig time at the pace, and a held
+    experiment's ``answer_s`` too: nothing on a rig, where they are milliseconds, a few
+    seconds each on a simulator at 50x; ``noise_draws``: see
     :func:`rig.settling.predict_settling`."""
     ss, rate = config.steady_state, config.daq_rate_hz
     settling = predict_settling(plan.experiments, ss, rate, params, start_position_m=start_position_m,
@@ -198,7 +205,7 @@ def estimate_experiment_durations(plan: Plan, config: RigConfig, start_position_
         out.append(ExperimentDuration(e.letter, float(pause), move_s,
                                       first_block_s(ss, rate), s.cycles, round(s.cycles * samples_per_period) / rate,
                                       math.ceil(e.periods * samples_per_period) / rate, ss.ramp_time_s, s.hold,
-                                      s.time_constant_s))
+                                      s.time_constant_s, pace * (overhead_s + (answer_s if s.hold else 0.0))))
         position = static
     return out
 
