@@ -46,6 +46,14 @@ HOLD_TEMPERATURE_FIT_S = 0.25
 HOLD_CAP_FACTOR = 2.0
 HOLD_CAP_MARGIN_S = 5.0
 PACE_PROBE_S = 0.2             # of this clock, streaming, to measure the links' pace
+PACE_PROBE_READS = 3           # status reads timed by the probe (the median: one Modbus transaction)
+# Between a hold's end and RUN the controller gets these beside the DAQ's stop and start:
+# the status read that finds it AT_STATIC, and RUN's setpoints and mode.
+HOLD_END_MODBUS_TRANSACTIONS = 3
+# An experiment's, beside the DAQ's stop and start: the fade-out, STOP, the status read
+# before the move, the move's setpoint and mode, RUN's setpoints and mode.
+EXPERIMENT_MODBUS_TRANSACTIONS = 7
+STATUS_POLL_S = 0.02           # the controller's state polled this often while waiting for AT_STATIC
 RESPONSE_MIN_MOVE_MM = 5.0       # shorter moves are too slow at their midpoint to time the stroke's delay
 ARRIVED_MM = 0.2                # the stroke channel this near a static position: there (noise 0.01 mm)
 
@@ -199,6 +207,8 @@ class Acquisition:
         self.shaker, self.daq, self.config, self.bus, self.clock = shaker, daq, config, bus, clock
         self.phase = Phase.IDLE
         self.stop_requested = threading.Event()
+        self.answer_s = 0.0    # seconds of this clock the commands between a hold's end and RUN take (measure_pace)
+        self.overhead_s = 0.0  # and an experiment's polls and commands beyond the rig's own motion
         self._recorder: Recorder | None = None
         daq.subscribe(self._on_samples)
 
@@ -340,17 +350,44 @@ class Acquisition:
     def measure_pace(self) -> float:
         """Rig seconds per second of this clock: 1 on a rig, the speed of a simulator
         that runs faster than its time (from a short stream of the DAQ's samples; its
-        count, and what the line lost of it, are logged)."""
+        count, and what the line lost of it, are logged).
+
+        Also :attr:`answer_s`: what the commands between a hold's end and RUN take of
+        this clock (the DAQ's stop and start, timed here, and the status read and the
+        two writes of RUN, timed as status reads), during which the gas, at rest, goes
+        on relaxing: times the pace, the rig seconds by which a hold may land off.  And
+        :attr:`overhead_s`: what an experiment's polls and commands add to the rig's
+        own motion: the capture's end is seen half a poll late on average and the
+        stream runs on while the DAQ stops; the two waits for AT_STATIC end half a
+        status poll late; the DAQ's start and the controller's writes.  Milliseconds
+        on a rig; at 50x, seconds of the rig's time per experiment."""
         lost0 = self.daq.counters.lost_samples
-        self.daq.start()
         t0 = self.clock.monotonic()
+        self.daq.start()
+        t1 = self.clock.monotonic()
         self.clock.sleep(PACE_PROBE_S)
-        elapsed = self.clock.monotonic() - t0
+        t2 = self.clock.monotonic()
         issued = self.daq.stop()
+        t3 = self.clock.monotonic()
+        elapsed = t2 - t1
+        reads = []
+        for _ in range(PACE_PROBE_READS):
+            t = self.clock.monotonic()
+            self.shaker.status()
+            reads.append(self.clock.monotonic() - t)
         pace = max(1.0, issued / self.daq.rate_hz / max(elapsed, 1e-9))
+        modbus_s = float(np.median(reads))
+        self.answer_s = (t1 - t0) + (t3 - t2) + HOLD_END_MODBUS_TRANSACTIONS * modbus_s
+        self.overhead_s = (POLL_S / 2 + STATUS_POLL_S + (t1 - t0) + (t3 - t2)
+                           + EXPERIMENT_MODBUS_TRANSACTIONS * modbus_s)
         self.bus.publish("log", None, message=f"pace probe: {issued} samples taken, "
                                               f"{self.daq.counters.lost_samples - lost0} lost in the stream; "
-                                              f"the links run {pace:.3g} rig seconds per second")
+                                              f"the links run {pace:.3g} rig seconds per second; DAQ start "
+                                              f"{(t1 - t0) * 1e3:.1f} ms, stop {(t3 - t2) * 1e3:.1f} ms, a status "
+                                              f"read {modbus_s * 1e3:.1f} ms: from a hold's end to RUN "
+                                              f"{self.answer_s * 1e3:.1f} ms, {self.answer_s * pace:.2f} s of "
+                                              f"the rig's time; an experiment's polls and commands "
+                                              f"{self.overhead_s * 1e3:.1f} ms, {self.overhead_s * pace:.2f} s")
         return pace
 
     def _wait_state(self, states: set[str], timeout_s: float) -> None:
@@ -359,7 +396,8 @@ class Acquisition:
         while True:
             self._check_stop()
             try:
-                self.shaker.wait_for(states, timeout_s=min(0.5, max(deadline - self.clock.monotonic(), 0.0)))
+                self.shaker.wait_for(states, timeout_s=min(0.5, max(deadline - self.clock.monotonic(), 0.0)),
+                                     poll_s=STATUS_POLL_S)
                 return
             except ShakerTimeout:
                 if self.clock.monotonic() > deadline:

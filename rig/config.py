@@ -89,6 +89,7 @@ class RigConfig:
     text: str = field(repr=False, default="")
     max_hold_s: float = 0.0     # longest thermal conditioning hold before an experiment (0: none)
     min_hold_s: float = 1.0     # shortest, on a link at the rig's own pace
+    hold_timing_s: float = 0.0  # how early or late a hold's end is answered, in the links' seconds
 
 
 def _seconds(table: dict, key: str, default: float, path: Path) -> float:
@@ -116,6 +117,7 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
         conditioning = doc.get("conditioning", {})
         max_hold = _seconds(conditioning, "max_hold_s", 0.0, path)
         min_hold = _seconds(conditioning, "min_hold_s", 1.0, path)
+        hold_timing = _seconds(conditioning, "hold_timing_s", 0.0, path)
     except KeyError as exc:
         raise ConfigError(f"{path}: missing key {exc.args[0]!r}") from None
     except (TypeError, ValueError) as exc:
@@ -127,4 +129,6 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
     if min_hold <= 0 or (max_hold > 0 and min_hold > max_hold):
         raise ConfigError(f"{path}: [conditioning] min_hold_s = {min_hold:g}: must be positive and at most "
                           f"max_hold_s ({max_hold:g})")
-    return RigConfig(str(path), limits, rate, criteria, reconnect, text, max_hold, min_hold)
+    if hold_timing < 0:
+        raise ConfigError(f"{path}: [conditioning] hold_timing_s = {hold_timing:g}: must be 0 or positive")
+    return RigConfig(str(path), limits, rate, criteria, reconnect, text, max_hold, min_hold, hold_timing)

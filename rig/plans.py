@@ -142,43 +142,58 @@ class ExperimentDuration:
     fade_s: float         # the waveform faded out to the static position
     hold: Hold | None = None   # the thermal conditioning hold on the way, if any
     time_constant_s: float = math.nan   # the gas's relaxation there, predicted
+    links_s: float = 0.0  # the acquisition's polls and the links' commands, at their pace (rig seconds)
 
     @property
     def total_s(self) -> float:
         hold_s = self.hold.duration_s if self.hold else 0.0
-        return self.pause_s + self.move_s + hold_s + self.lead_in_s + self.settle_s + self.capture_s + self.fade_s
+        return (self.pause_s + self.move_s + hold_s + self.lead_in_s + self.settle_s + self.capture_s + self.fade_s
+                + self.links_s)
 
 
-def conditioning_for(plan: Plan, config: RigConfig, pace: float = 1.0) -> Conditioning | None:
+def conditioning_for(plan: Plan, config: RigConfig, pace: float = 1.0, answer_s: float = 0.0) -> Conditioning | None:
     """Where conditioning holds may go: within the stroke the plan's experiments sweep
     anyway (and the rig's limits), so that a hold takes the damper nowhere new; and how
     short a hold may be on a link that runs ``pace`` rig seconds per second (a simulator
     at 50x): a hold ends on the measured temperature, which the acquisition sees and
     answers a few tenths of a second late, tenths of a kelvin in a short hold and
-    fifty times as much, in the rig's time, at 50x."""
+    fifty times as much, in the rig's time, at 50x.
+
+    How far off a hold's end is answered, in the rig's seconds: the acquisition's own
+    timing (``hold_timing_s``) and the commands between the hold's end and RUN
+    (``answer_s``, measured by :meth:`rig.acquisition.Acquisition.measure_pace`), both
+    in the links' seconds, times the pace (see :func:`rig.settling.landing_error_k`)."""
     if config.max_hold_s <= 0 or not plan.experiments:
         return None
     low = min(e.static_position_mm - e.amplitude_mm for e in plan.experiments) * 1e-3
     high = max(e.static_position_mm + e.amplitude_mm for e in plan.experiments) * 1e-3
     return Conditioning((max(low, config.limits.stroke_low_m), min(high, config.limits.stroke_high_m)),
-                        config.max_hold_s, max(config.min_hold_s, config.min_hold_s * pace))
+                        config.max_hold_s, max(config.min_hold_s, config.min_hold_s * pace),
+                        (config.hold_timing_s + answer_s) * pace)
 
 
 def estimate_experiment_durations(plan: Plan, config: RigConfig, start_position_m: float = 0.0,
                                   params: Parameters | None = None, *, start_temperature_k: float | None = None,
                                   pause_s: float | Sequence[float] = PAUSE_S, pace: float = 1.0,
+                                  answer_s: float = 0.0, overhead_s: float = 0.0,
                                   noise_draws: int = DRIFT_DRAWS) -> list[ExperimentDuration]:
     """Per experiment, in plan order, the rig time it will take when the plan runs from
     the damper resting at ``start_position_m`` (and ``start_temperature_k``, default
     ambient).  ``params``: the damper's parameters for the settling prediction
     (default: the 2-dof model's nominal values); ``pause_s``: the rig's time at rest
     before each experiment (one for all, or one per experiment); ``pace``: the link's
-    rig seconds per second (see :func:`conditioning_for`); ``noise_draws``: see
+    rig seconds per second and ``answer_s`` the time [s] its commands take between a
+    hold's end and RUN (see :func:`conditioning_for`); ``overhead_s`` the time [s] an
+    experiment's polls and commands take beyond the rig's own motion (both measured by
+    :meth:`rig.acquisition.Acquisition.measure_pace`), rig time at the pace, and a held
+    experiment's ``answer_s`` too: nothing on a rig, where they are milliseconds, a few
+    seconds each on a simulator at 50x; ``noise_draws``: see
     :func:`rig.settling.predict_settling`."""
     ss, rate = config.steady_state, config.daq_rate_hz
     settling = predict_settling(plan.experiments, ss, rate, params, start_position_m=start_position_m,
                                 start_temperature_k=start_temperature_k, pause_s=pause_s,
-                                conditioning=conditioning_for(plan, config, pace), noise_draws=noise_draws)
+                                conditioning=conditioning_for(plan, config, pace, answer_s),
+                                noise_draws=noise_draws)
     pauses = np.broadcast_to(np.asarray(pause_s, dtype=float), len(plan.experiments))
     out, position = [], start_position_m
     for e, s, pause in zip(plan.experiments, settling, pauses, strict=True):
@@ -190,7 +205,7 @@ def estimate_experiment_durations(plan: Plan, config: RigConfig, start_position_
         out.append(ExperimentDuration(e.letter, float(pause), move_s,
                                       first_block_s(ss, rate), s.cycles, round(s.cycles * samples_per_period) / rate,
                                       math.ceil(e.periods * samples_per_period) / rate, ss.ramp_time_s, s.hold,
-                                      s.time_constant_s))
+                                      s.time_constant_s, pace * (overhead_s + (answer_s if s.hold else 0.0))))
         position = static
     return out
 

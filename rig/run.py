@@ -279,7 +279,9 @@ class SessionRunner:
             todo = tuple(e for e in self.prep.plan.experiments if e.letter not in session.completed())
             self._durations = estimate_experiment_durations(replace(self.prep.plan, experiments=todo),
                                                             self.prep.config, start_position_m,
-                                                            pace=self.probe_pace())
+                                                            pace=self.probe_pace(),
+                                                            answer_s=self.acquisition.answer_s,
+                                                            overhead_s=self.acquisition.overhead_s)
         return self._durations
 
     def estimates_s(self, session: Session, start_position_m: float) -> dict[str, float]:

@@ -77,6 +77,10 @@ class Conditioning:
     range_m: tuple[float, float]
     max_hold_s: float
     min_hold_s: float = 1.0   # shorter holds land poorly: latencies are then a large part of them
+    # How far off, in the rig's seconds, the acquisition may answer a hold's end (the
+    # links' answer time times their pace): the gas, still relaxing there, lands off by
+    # its rate times this, and the criterion waits that offset out.
+    timing_s: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -309,9 +313,10 @@ def predict_settling(experiments: Sequence[ExperimentSpec], criteria: SteadyStat
         planned = np.isfinite(duration)
         if planned.any():
             steps = int(min(HOLD_STEPS_MAX, REST_STEPS + HOLD_STEPS_PER_S * duration[planned].max()))
-            T_held = _run_in(gas, runs, criteria, t0, _move(gas, position, runs.static_m, _rest(
-                gas, position, _move(gas, prev_static, position, T_rest), np.where(planned, duration, 0.0), steps)))
-            held = _settle(period_map, T_held, m, gas.channels, criteria, runs, experiments, rate_hz, noise_draws)
+            T_end = _rest(gas, position, _move(gas, prev_static, position, T_rest), np.where(planned, duration, 0.0),
+                          steps)
+            T_held, held = _settle_after_hold(gas, runs, period_map, criteria, t0, position, T_end,
+                                              conditioning.timing_s, m, experiments, rate_hz, noise_draws)
             period = 1.0 / runs.frequency_hz
             direct_s = move_duration_s(runs.static_m - prev_static) + cycles * period
             held_s = (move_duration_s(position - prev_static) + np.where(planned, duration, 0.0)
@@ -329,6 +334,41 @@ def predict_settling(experiments: Sequence[ExperimentSpec], criteria: SteadyStat
                                float(period_map.fixed_point_k[i]), float(period_map.multiplier[i]),
                                gas.channels[limiting[i]], holds[i], float(tau[i]))
             for i, e in enumerate(experiments)]
+
+
+def landing_error_k(gas: GasThermalModel, position_m: np.ndarray, end_temperature_k: np.ndarray,
+                    timing_s: float) -> np.ndarray:
+    """How far off [K] a hold lands when its end is answered ``timing_s`` of the rig's
+    time early or late: the gas's rate at rest there, at the hold's end temperature,
+    times that time (the gas model's energy balance; a hold's end is where it still
+    relaxes fastest toward the wall)."""
+    return np.abs(gas.temperature_rate(position_m, 0.0, 0.0, end_temperature_k)) * timing_s
+
+
+def _settle_after_hold(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria: SteadyStateCriteria,
+                       t0_s: float, position_m: np.ndarray, end_temperature_k: np.ndarray, timing_s: float,
+                       m: np.ndarray, experiments: Sequence[ExperimentSpec], rate_hz: float,
+                       draws: int) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """The gas at the first block after a hold ending at ``end_temperature_k``, and the
+    criterion's settle cycles, whether it passes and the limiting channel from there.
+
+    With a ``timing_s`` the hold's end is answered that much early or late, at random:
+    the gas lands :func:`landing_error_k` above or below the planned temperature, and
+    the settle cycles are the mean of the two (the two-point Gauss-Hermite rule for a
+    normal timing error of that standard deviation), whole blocks, rounded up.  The
+    criterion waits out an offset of either sign, so a hold that would land exactly
+    is predicted to settle longer than that once its landing is uncertain."""
+    def first_block(T_end: np.ndarray) -> np.ndarray:
+        return _run_in(gas, runs, criteria, t0_s, _move(gas, position_m, runs.static_m, T_end))
+
+    T_held = first_block(end_temperature_k)
+    if timing_s <= 0:
+        return T_held, _settle(period_map, T_held, m, gas.channels, criteria, runs, experiments, rate_hz, draws)
+    miss = landing_error_k(gas, position_m, end_temperature_k, timing_s)
+    high, low = (_settle(period_map, first_block(end_temperature_k + sign * miss), m, gas.channels, criteria, runs,
+                         experiments, rate_hz, draws) for sign in (1.0, -1.0))
+    cycles = m * np.ceil((high[0] + low[0]) / (2 * m))
+    return T_held, (cycles.astype(int), high[1] & low[1], np.where(high[0] >= low[0], high[2], low[2]))
 
 
 def time_constants_s(multiplier: np.ndarray, frequency_hz: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ import numpy as np
 import pytest
 
 from identify.plans import STANDARD_SET
-from rig.acquisition import Acquisition, ExperimentRecord, Interrupted, Recorder
+from rig.acquisition import POLL_S, STATUS_POLL_S, Acquisition, ExperimentRecord, Interrupted, Recorder
 from rig.config import DEFAULT_RIG_CONFIG, load_rig_config
 from rig.daq import CHANNELS
 from rig.run import EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK
@@ -88,6 +88,19 @@ def assert_at_rest(vrig: InProcessRig, alarm: Alarm = Alarm.NONE) -> None:
 
 
 # ----- the state machine ----------------------------------------------------------------------------------
+def test_the_pace_probe_times_the_commands_a_hold_and_an_experiment_add(vrig):
+    """On the simulated clock the links answer at once: the pace is the rig's own, the
+    commands between a hold's end and RUN take no time, and an experiment adds only
+    the acquisition's polls (the capture's end seen half a poll late, two waits for
+    AT_STATIC half a status poll late each)."""
+    acq = acquisition(vrig)
+    assert acq.measure_pace() == pytest.approx(1.0, rel=0.01)
+    assert acq.answer_s == 0.0
+    assert acq.overhead_s == pytest.approx(POLL_S / 2 + STATUS_POLL_S)
+    assert re.search(r"from a hold's end to RUN 0\.0 ms, 0\.00 s of the rig's time; an experiment's polls and "
+                     r"commands 45\.0 ms", "\n".join(vrig.messages()))
+
+
 def test_settles_then_captures_the_planned_whole_periods(vrig):
     record = acquisition(vrig).run_experiment(J, "261122j")
 

@@ -22,7 +22,7 @@ from rig.config import DEFAULT_RIG_CONFIG, ConfigError, SteadyStateCriteria, loa
 from rig.criterion import bias_bound
 from rig.daq import CHANNELS
 from rig.plans import Plan, conditioning_for, estimate_duration_s, estimate_experiment_durations, load_plan
-from rig.settling import PAUSE_S, predict_settling
+from rig.settling import PAUSE_S, GasThermalModel, landing_error_k, predict_settling
 from simulator.controller import ShakerController, State
 from simulator.physics import Actuator, StreamingPlant
 from simulator.truth import load_truth
@@ -207,6 +207,53 @@ def test_conditioning_holds_land_the_gas_on_its_periodic_state_within_the_plans_
     assert all(p.hold.duration_s >= 50.0 for p in slow_link if p.hold) and any(p.hold for p in slow_link)
 
 
+def test_a_hold_answered_off_in_time_lands_off_by_the_gass_rate_and_settles_longer():
+    """A hold's end answered τ of the rig's time early or late leaves the gas off by its
+    rate at rest there times τ, and the drift criterion waits that offset out.  At 50x
+    (the pace probe timed 24 ms of commands between a hold's end and RUN: 1.3 s of the
+    rig's time with the acquisition's own 2 ms) the holds left, e's, d's and c's, were
+    predicted to settle in 33, 65 and 120 cycles as if they landed exactly, and took
+    63-78, 125-145 and 210-280 in the demo; answered that far off they are predicted
+    well above the exact landing, and the announced session grows by a tenth.  (In the
+    order the standard session runs, rig.ordering's; a hold that no longer pays for
+    itself once its landing is uncertain is not planned.)"""
+    standard = load_plan("standard")
+    plan = standard.select(list("mnlkabghjifedc"))
+    exact = replace(SHIPPED, hold_timing_s=0.0)
+    fast_exact = conditioning_for(standard, exact, pace=50.0)
+    fast = conditioning_for(standard, SHIPPED, pace=50.0, answer_s=0.024)
+    assert fast_exact is not None and fast_exact.timing_s == 0.0
+    assert fast is not None and fast.timing_s == pytest.approx(50.0 * (SHIPPED.hold_timing_s + 0.024))
+    ss, rate = SHIPPED.steady_state, SHIPPED.daq_rate_hz
+    landed = {p.letter: p for p in predict_settling(plan.experiments, ss, rate, conditioning=fast_exact)}
+    off = {p.letter: p for p in predict_settling(plan.experiments, ss, rate, conditioning=fast)}
+    assert {k for k, p in landed.items() if p.hold} == {k for k, p in off.items() if p.hold} == {"c", "d", "e"}
+    gas = GasThermalModel(Parameters(load_model("2dof")))
+    for letter in "cde":
+        hold = off[letter].hold
+        assert hold is not None
+        position, end = np.array(hold.position_m), np.array(hold.end_temperature_k)
+        rate_k_s = abs(float(gas.temperature_rate(position, 0.0, 0.0, end)))
+        assert 0.02 < rate_k_s < 0.2        # the gas still relaxes at the hold's end
+        assert landing_error_k(gas, position, end, fast.timing_s) == pytest.approx(rate_k_s * fast.timing_s)
+        assert landing_error_k(gas, position, end, 0.0) == 0.0
+        # the same hold is planned; only its landing is uncertain
+        assert off[letter].hold == landed[letter].hold
+        assert off[letter].start_temperature_k == landed[letter].start_temperature_k
+    assert off["c"].cycles >= 1.8 * landed["c"].cycles and off["d"].cycles >= 1.5 * landed["d"].cycles
+    assert off["e"].cycles >= 1.5 * landed["e"].cycles
+    assert all(off[k].cycles == landed[k].cycles for k in off if not off[k].hold)
+    announced = estimate_experiment_durations(plan, SHIPPED, pace=50.0, answer_s=0.024)
+    as_if_exact = estimate_experiment_durations(plan, exact, pace=50.0)
+    assert sum(d.total_s for d in announced) > 1.08 * sum(d.total_s for d in as_if_exact)
+    # The same commands, and the acquisition's polls, take rig time of their own at
+    # that pace: the stream runs on while the DAQ stops, the gas waits at rest for RUN.
+    with_polls = estimate_experiment_durations(plan, SHIPPED, pace=50.0, answer_s=0.024, overhead_s=0.065)
+    for a, b in zip(announced, with_polls, strict=True):
+        assert (a.settle_cycles, a.links_s) == (b.settle_cycles, 50.0 * (0.024 if a.hold else 0.0))
+        assert b.total_s - a.total_s == pytest.approx(50.0 * 0.065)
+
+
 def test_damper_parameters_change_the_prediction():
     """A better heat exchange (θ16 ×4) settles c about four times sooner."""
     params = Parameters(load_model("2dof"))
@@ -300,6 +347,8 @@ def test_a_plan_file_pins_its_order_or_is_refused_with_one_line(tmp_path):
     ("min_hold_s = 0.0", "min_hold_s = 0: must be positive"),
     ("min_hold_s = inf", "min_hold_s = inf: not a finite number"),
     ("min_hold_s = 500.0", "min_hold_s = 500: must be positive and at most max_hold_s (300)"),
+    ("hold_timing_s = -0.001", "hold_timing_s = -0.001: must be 0 or positive"),
+    ("hold_timing_s = nan", "hold_timing_s = nan: not a finite number"),
 ])
 def test_conditioning_settings_are_refused_in_one_line_naming_the_key(tmp_path, line, says):
     key = line.split()[0]
