@@ -119,7 +119,10 @@ class SessionOutcome:
     converged: bool = False
     fit_s: float | None = None
     values: dict[str, float] = field(default_factory=dict)
-    stds: dict[str, float | None] = field(default_factory=dict)
+    stds: dict[str, float | None] = field(default_factory=dict)  # the σ to quote (see residual_std)
+    # The stds are the residual-based ones: the residuals exceed the measurement noise
+    # (model error), and the noise's σ would understate the uncertainty.
+    residual_std: bool = False
     delivery: Delivery | None = None  # what the result sink did with it (with a sink, for a converged result)
 
     @property
@@ -248,9 +251,10 @@ def _failure_document(settings: FitSettings, message: str) -> dict[str, Any]:
 def _outcome(directory: Path, doc: dict[str, Any], status: str) -> SessionOutcome:
     # Only a fit that got as far as a covariance has estimates to show; start values are not.
     fitted = {name: p for name, p in doc["parameters"].items() if p.get("estimated") and p.get("std") is not None}
+    residual = any(p.get("std_residual") is not None for p in fitted.values())
     return SessionOutcome(directory.name, str(directory), status, doc["batch"]["serial"], bool(doc["converged"]),
                           doc["batch"]["fit_s"], {k: p["value"] for k, p in fitted.items()},
-                          {k: p["std"] for k, p in fitted.items()})
+                          {k: p["std_residual"] if residual else p["std"] for k, p in fitted.items()}, residual)
 
 
 # ------------------------------------------------------------------------------------------
@@ -442,14 +446,17 @@ def finish(sink: ResultSink, outcome: SessionOutcome, task: Task, value: Any) ->
 
 
 def summary_csv(rows: Sequence[SessionOutcome], estimate: Sequence[str]) -> bytes:
-    """summary.csv: session, serial, status, converged, fit_s, then <param>, <param>_std."""
+    """summary.csv: session, serial, status, converged, fit_s, then <param>, <param>_std (the
+    σ to quote), and std_from: ``residuals`` where the residuals exceed the measurement
+    noise and the stds are the residual-based ones, ``noise`` otherwise."""
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
     writer.writerow(["session", "serial", "status", "converged", "fit_s",
-                     *[c for p in estimate for c in (p, f"{p}_std")]])
+                     *[c for p in estimate for c in (p, f"{p}_std")], "std_from"])
     for r in rows:
         writer.writerow([r.session, r.serial, r.status, r.converged, _num(r.fit_s, ".3f"),
-                         *[c for p in estimate for c in (_num(r.values.get(p), ".9g"), _num(r.stds.get(p), ".3g"))]])
+                         *[c for p in estimate for c in (_num(r.values.get(p), ".9g"), _num(r.stds.get(p), ".3g"))],
+                         ("residuals" if r.residual_std else "noise") if r.stds else ""])
     return buf.getvalue().encode()
 
 

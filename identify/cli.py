@@ -436,18 +436,22 @@ def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) ->
     shown = rows if len(rows) <= TABLE_ROWS else [r for r in rows if r.failed]
     if shown:
         converged = {"ok": "yes", "skipped": "earlier", "failed": "no"}
+        caption = ("value(std): the std in units of the value's last digits, summary.csv has both in full"
+                   + ("; *: residual-based std, the residuals exceed the measurement noise (model error)"
+                      if any(r.residual_std for r in shown) else "")
+                   + "; fit: seconds; conv.: converged (earlier: done before, skipped)")
         table = Table(title="batch identification" if shown is rows else "failed sessions", box=None,
                       header_style="bold underline", padding=(0, 1), collapse_padding=True, pad_edge=False,
-                      caption="value(std): the std in units of the value's last digits, summary.csv has both in "
-                              "full; fit: seconds; converged earlier: done before, skipped")
+                      caption=caption)
         table.add_column("session", no_wrap=True, min_width=8)  # identifiers: whole, or cut with an ellipsis
         table.add_column("serial", no_wrap=True, min_width=6)
-        table.add_column("converged", no_wrap=True)
+        table.add_column("conv.", no_wrap=True)
         for col in estimate:
             table.add_column(col, justify="right", no_wrap=True)
-        table.add_column("fit", justify="right", no_wrap=True)
+        table.add_column("fit", justify="right", no_wrap=True, min_width=4)
         for r in shown:
-            cells = [value_and_std(r.values[p], r.stds.get(p)) if p in r.values else "" for p in estimate]
+            mark = "*" if r.residual_std else ""
+            cells = [value_and_std(r.values[p], r.stds.get(p)) + mark if p in r.values else "" for p in estimate]
             table.add_row(r.session, r.serial, converged.get(r.state, r.state), *cells,
                           "" if r.fit_s is None else f"{r.fit_s:.2f}")
         console.print(table)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import io
 import json
 import os
 import shutil
@@ -115,10 +116,26 @@ def test_a_corrupt_session_fails_alone_with_its_reason(first_run, sessions):
     assert failed[0].status.endswith(".csv: line 7, column 'stroke_mm': 'nan' is not a finite number")
     summary = read_summary(out)
     assert list(summary[0]) == ["session", "serial", "status", "converged", "fit_s",
-                                *[c for k in ESTIMATE for c in (k, f"{k}_std")]]
+                                *[c for k in ESTIMATE for c in (k, f"{k}_std")], "std_from"]
     assert [s["session"] for s in summary] == [r.session for r in rows]
-    assert summary[-1]["status"] == failed[0].status and summary[-1]["theta4"] == ""
+    assert summary[-1]["status"] == failed[0].status and summary[-1]["theta4"] == "" and summary[-1]["std_from"] == ""
     assert all(s["status"] == "ok" and s["converged"] == "True" and float(s["theta4_std"]) > 0 for s in summary[:-1])
+
+
+def test_the_summary_quotes_the_residual_based_std_where_the_residuals_exceed_the_noise(tmp_path):
+    """A result with model error carries both stds; the noise's understates the
+    uncertainty (a unit whose fixed parameters are off: 120x), so the row quotes the
+    residual-based one and says so, as the fit's report does."""
+    def result(std_residual: float | None) -> dict:
+        p = {"value": 0.82, "std": 1.7e-4, "estimated": True}
+        return {"converged": True, "batch": {"serial": "U001", "fit_s": 0.2},
+                "parameters": {"theta16": p | ({"std_residual": std_residual} if std_residual else {})}}
+
+    rows = [batch._outcome(tmp_path / "model-error", result(0.0197), "ok"),
+            batch._outcome(tmp_path / "clean", result(None), "ok")]
+    assert [(r.stds["theta16"], r.residual_std) for r in rows] == [(0.0197, True), (1.7e-4, False)]
+    summary = list(csv.DictReader(io.StringIO(batch.summary_csv(rows, ["theta16"]).decode())))
+    assert [(s["theta16_std"], s["std_from"]) for s in summary] == [("0.0197", "residuals"), ("0.00017", "noise")]
 
 
 def test_a_second_run_fits_nothing_that_is_done(first_run, client, sessions, settings):
@@ -390,17 +407,22 @@ def test_value_and_std_in_concise_notation(value, std, text):
 
 def test_the_batch_table_fits_an_80_column_terminal(monkeypatch, capsys):
     """Three parameters with their stds, a serial and a session name: no cell folded or
-    cut, every line within 80 columns (it folded each cell over three lines)."""
+    cut, every line within 80 columns (it folded each cell over three lines), with the
+    widest values a demo session gives and a row whose stds are residual-based (marked)."""
     from identify.cli import _batch_table
 
     monkeypatch.setenv("COLUMNS", "80")
-    values = {"theta4": 0.004999998, "theta6": -3.000003, "theta16": 0.85024}
-    stds: dict[str, float | None] = {"theta4": 1.9e-8, "theta6": 1.2e-5, "theta16": 2.2e-4}
+    values = {"theta4": 0.0050000155, "theta6": -2.9999986, "theta16": 0.849982}
+    stds: dict[str, float | None] = {"theta4": 6.7e-9, "theta6": 3.6e-6, "theta16": 6.0e-5}
     rows = [batch.SessionOutcome(f"SN-2026-00{i}", "", "ok", "SIM-0001", True, 0.43, values, stds) for i in range(3)]
+    rows.append(batch.SessionOutcome("demo-session", "", "ok", "SIM-0002", True, 1.07,
+                                     {"theta4": 0.00512, "theta6": -2.91, "theta16": 0.821},
+                                     {"theta4": 3.3e-5, "theta6": 0.011, "theta16": 0.0197}, residual_std=True))
     rows.append(batch.SessionOutcome("SN-2026-009", "", "failed: SN-2026-009/261122h.csv: line 7: not a number"))
     _batch_table(rows, ESTIMATE)
     out = capsys.readouterr().out
     assert max(len(line) for line in out.splitlines()) <= 80, out
-    for cell in ("SN-2026-001", "SIM-0001", "0.004999998(19)", "-3.000003(12)", "0.85024(22)", "0.43"):
+    for cell in ("SN-2026-001", "SIM-0001", "0.0050000155(67)", "-2.9999986(36)", "0.849982(60)", "0.43",
+                 "demo-session", "0.005120(33)*", "0.821(20)*", "1.07", "residual-based"):
         assert cell in out, (cell, out)
     assert "SN-2026-009: failed: SN-2026-009/261122h.csv: line 7: not a number" in out
