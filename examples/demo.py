@@ -57,19 +57,26 @@ def main() -> int:
     result = json.loads((out / "RESULT.json").read_text())
     print(f"\nidentified from {len(result['experiments'])} experiments captured over Modbus + serial "
           f"({out}):\n")
-    print(f"  {'parameter':<22} {'identified':>14} {'± std':>10} {'truth':>12} {'rel. error':>11}")
+    print(f"  {'parameter':<22} {'identified':>14} {'± std':>11} {'truth':>12} {'rel. error':>11}")
+    residual = False
     for name, p in result["parameters"].items():
         if not p.get("estimated"):
             continue
+        # The σ to quote: the residual-based one where the residuals exceed the noise.
+        std, mark = (p["std_residual"], "*") if p.get("std_residual") is not None else (p["std"], " ")
+        residual |= mark == "*"
         err = (p["value"] - truth[name]) / abs(truth[name])
-        print(f"  {name + ' ' + p.get('alias', ''):<22} {p['value']:>14.6g} {p['std']:>10.2g} {truth[name]:>12.6g} "
+        print(f"  {name + ' ' + p.get('alias', ''):<22} {p['value']:>14.6g} {std:>10.2g}{mark} {truth[name]:>12.6g} "
               f"{err:>11.1e}")
+    if residual:
+        print("  * residual-based std: the residuals exceed the measurement noise (the report says by how much)")
     print(f"\nreport: {out}/report.txt   same numbers from the files: python -m identify fit {out} "
-          f"--params {args.start} --estimate theta4,theta6,theta16 --output RESULT.json")
+          f"--model 2dof --estimate theta4,theta6,theta16 --params {args.start} --output RESULT.json")
     took_s = sim.rig_time_s()
     announced_s = json.loads((out / "session.json").read_text())["estimated_rig_time_s"]
-    print(f"rig time: announced {announced_s / 60:.1f} min, took {took_s / 60:.1f} min on the simulator's clock "
-          f"(hydraulics on to off), {100 * (announced_s / took_s - 1):+.0f} %")
+    print(f"rig time on the simulator's clock (hydraulics on to off): announced {announced_s / 60:.1f} min, took "
+          f"{took_s / 60:.1f} min, {100 * (announced_s / took_s - 1):+.0f} % (the console's 'about' figure is its "
+          f"wall clock times the measured pace)")
     return 0
 
 
