@@ -351,7 +351,7 @@ class Estimator:
 
     def _iterate(self, ev: _Evaluation, v: np.ndarray, objective: float, history: list[float],
                  t0: float) -> tuple[bool, int, str, _Evaluation]:
-        """Gauss–Newton from ev: (converged, iterations, message, last accepted evaluation)."""
+        """Gauss–Newton from ev: (converged, the steps taken, message, last accepted evaluation)."""
         theta = ev.theta
         converged = False
         message = f"stopped after {self.max_iterations} iterations without meeting the step tolerance"
@@ -386,6 +386,7 @@ class Estimator:
                 # The objective is Σ r²/v (χ² units); a step that would lower it by less
                 # than CHI2_TOLERANCE is beyond what the data can tell apart, and the line
                 # search then only sees the periodic solutions' numerical noise.
+                iterations = it - 1  # the steps taken, as many as the progress reported
                 converged = negligible
                 message = ("converged (the remaining step is below the tolerance)" if small else
                            f"converged (the remaining step would lower χ² by {predicted:.2g} < {CHI2_TOLERANCE:g})"

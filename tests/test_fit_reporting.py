@@ -55,6 +55,9 @@ def test_a_fit_stopped_by_the_iteration_cap_restarts_from_its_result_to_the_same
     code, full, out = _fit(tmp_path, "full", data, model, start, "--quiet")
     assert code == 0 and full["converged"], out
     assert full["iterations"] > 3  # else a cap of 2 would not interrupt it
+    code, shown, out = _fit(tmp_path, "shown", data, model, start)  # one progress row per step taken
+    rows = [ln.split() for ln in out.splitlines() if ln.strip().split(" ", 1)[0].isdigit()]
+    assert code == 0 and [int(r[0]) for r in rows] == list(range(1, shown["iterations"] + 1)), out
     code, cut, out = _fit(tmp_path, "cut", data, model, start, "--quiet", "--max-iterations", "2")
     assert code == 1, out
     assert cut["converged"] is False and cut["iterations"] == 2
