@@ -327,11 +327,12 @@ class FitResult:
         for e in self.experiments:
             stability = "" if e.floquet is None else (
                 f", Floquet |μ|max {np.abs(e.floquet[0]):.4g} ({'stable' if np.abs(e.floquet[0]) < 1 else 'UNSTABLE'})")
-            started = f", started {e.start}" if e.start else ""
+            started = f"first solve started {e.start}; " if e.start else ""
             residuals = "   ".join(f"{o} {mean:+.4g} +/- {2 * std:.4g}"
                                    for o, (mean, std) in ((o, e.stats(o)) for o in self.outputs))
+            its = e.newton_iterations
             lines.append(f"    {e.label:12s} {e.frequency_hz:8.4g} Hz   {residuals}"
-                         f"   ({e.newton_iterations} Newton iterations{started}{stability})")
+                         f"   ({started}last solve {its} Newton iteration{'s' if its != 1 else ''}{stability})")
         if self.warnings:
             lines.append("[[Warnings]]")
             lines += [f"    {w}" for w in self.warnings]
