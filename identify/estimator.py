@@ -138,23 +138,23 @@ class Estimator:
         self.lower, self.upper = (b[self.index] for b in params.bounds())
 
     # ----------------------------------------------------------------------------------
-    def _evaluate(self, theta: np.ndarray, start: _Evaluation | None, sensitivities: bool) -> _Evaluation:
+    def _evaluate(self, theta: np.ndarray, start: _Evaluation | None) -> _Evaluation:
+        """The periodic solutions, outputs and residuals at θ (sensitivities and the noise
+        model are added once it is accepted: :meth:`_add_sensitivities`)."""
         ev = _Evaluation(theta, [], [], [])
         far = start is not None and bool(np.max(np.abs(theta - start.theta)[self.index]
                                                 / self._prior_std(start.theta)) > MEASURED_RESTART)
         for a, d in enumerate(self.data):
             th = d.theta(theta)
             measured = Measured(self.output_idx, d.measured)
-            warm = self._predicted_states(start, a, theta)
             sol = self._from_measurements(d, th, measured) if far else None
             if sol is None:
-                sol = self.solver.solve(d.inputs, d.frequency_hz, th, start=warm, label=d.label, measured=measured)
+                sol = self.solver.solve(d.inputs, d.frequency_hz, th, start=self._predicted_states(start, a, theta),
+                                        label=d.label, measured=measured)
             y = self.solver.outputs(sol, th, self.output_idx)
             ev.solutions.append(sol)
             ev.predicted.append(y)
             ev.residuals.append(d.measured - y)
-        if sensitivities:
-            self._add_sensitivities(ev)
         return ev
 
     def _from_measurements(self, d: PeriodicData, theta: np.ndarray, measured: Measured) -> PeriodicSolution | None:
@@ -178,7 +178,7 @@ class Estimator:
             return states
         return states + start.state_sensitivities[a] @ (theta - start.theta)[self.index]
 
-    def _add_sensitivities(self, ev: _Evaluation, settled: bool = True) -> bool:
+    def _add_sensitivities(self, ev: _Evaluation, settled: bool) -> bool:
         """What an accepted evaluation needs beyond the solutions: sensitivities and the
         noise model (:meth:`_update_noise`); whether the noise model was recomputed."""
         for sol, d in zip(ev.solutions, self.data, strict=True):
@@ -329,7 +329,7 @@ class Estimator:
         t0 = time.perf_counter()
         theta = self.params.vector()
         try:
-            ev = self._evaluate(theta, None, sensitivities=False)
+            ev = self._evaluate(theta, None)
             self._add_sensitivities(ev, settled=False)
         except ConvergenceError as exc:
             raise EstimationError(f"no periodic solution at the starting parameters: {exc}") from exc
@@ -442,7 +442,7 @@ class Estimator:
             trial = ev.theta.copy()
             trial[self.index] = np.clip(trial[self.index] + lam * step, self.lower, self.upper)
             try:
-                ev_t = self._evaluate(trial, ev, sensitivities=False)
+                ev_t = self._evaluate(trial, ev)
             except ConvergenceError:
                 lam /= 2
                 continue

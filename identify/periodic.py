@@ -138,6 +138,13 @@ class PeriodicSolver:
         merit = np.inf
         last_full_step = np.nan  # scaled size of the previous step, when it was a full one
         most = self.max_iterations if max_iterations is None else max_iterations
+
+        def converged(dX: np.ndarray, dD1: np.ndarray, dD2: np.ndarray, fac: Factorization) -> PeriodicSolution:
+            """The solution one last (Newton or chord) step on, with the factorisation it keeps."""
+            Xc, DXc, DDXc = X + dX, DX + dD1, DDX + dD2
+            rms = float(np.sqrt(np.mean((weights * m.residual(Xc, DXc, DDXc, inputs, theta)) ** 2)))
+            return PeriodicSolution(label, f, inputs, Xc, DXc, DDXc, it + 1, rms, fac)
+
         for it in range(most + 1):
             jac = m.residual_jacobian(X, DX, DDX, inputs, theta)
             if weights is None:
@@ -164,10 +171,7 @@ class PeriodicSolver:
             size = float(np.max(np.abs(dX) / tol))
             contraction = size / last_full_step  # nan (no estimate) after a damped or no step
             if size <= 1.0 or (contraction < 0.5 and contraction * size <= 1.0):
-                X, DX, DDX = X + dX, DX + dD1, DDX + dD2
-                G = m.residual(X, DX, DDX, inputs, theta)
-                rms = float(np.sqrt(np.mean((weights * G) ** 2)))
-                return PeriodicSolution(label, f, inputs, X, DX, DDX, it + 1, rms, fac)
+                return converged(dX, dD1, dD2, fac)
             if it == most:
                 break
             lam = 1.0
@@ -190,11 +194,7 @@ class PeriodicSolver:
                 # sensitivities by about CHORD_SIZE·tolerance, relatively.
                 chord = -fac.solve(G.ravel()).reshape(ns, n)
                 if np.all(np.isfinite(chord)) and float(np.max(np.abs(chord) / tol)) <= 1.0:
-                    c1, c2 = grid.derivatives(chord, f)
-                    X, DX, DDX = X + chord, DX + c1, DDX + c2
-                    G = m.residual(X, DX, DDX, inputs, theta)
-                    rms = float(np.sqrt(np.mean((weights * G) ** 2)))
-                    return PeriodicSolution(label, f, inputs, X, DX, DDX, it + 1, rms, fac)
+                    return converged(chord, *grid.derivatives(chord, f), fac)
         rms = float(np.sqrt(merit / (ns * n))) if np.isfinite(merit) else float("nan")
         raise ConvergenceError(
             f"{label or 'experiment'}: periodic solution did not converge in {it} Newton iterations "
