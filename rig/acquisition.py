@@ -377,9 +377,9 @@ class Acquisition:
             reads.append(self.clock.monotonic() - t)
         pace = max(1.0, issued / self.daq.rate_hz / max(elapsed, 1e-9))
         modbus_s = float(np.median(reads))
-        self.answer_s = (t1 - t0) + (t3 - t2) + HOLD_END_MODBUS_TRANSACTIONS * modbus_s
-        self.overhead_s = (POLL_S / 2 + STATUS_POLL_S + (t1 - t0) + (t3 - t2)
-                           + EXPERIMENT_MODBUS_TRANSACTIONS * modbus_s)
+        daq_s = (t1 - t0) + (t3 - t2)  # the DAQ's start and stop
+        self.answer_s = daq_s + HOLD_END_MODBUS_TRANSACTIONS * modbus_s
+        self.overhead_s = POLL_S / 2 + STATUS_POLL_S + daq_s + EXPERIMENT_MODBUS_TRANSACTIONS * modbus_s
         self.bus.publish("log", None, message=f"pace probe: {issued} samples taken, "
                                               f"{self.daq.counters.lost_samples - lost0} lost in the stream; "
                                               f"the links run {pace:.3g} rig seconds per second; DAQ start "
