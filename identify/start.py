@@ -51,7 +51,7 @@ TRANSIENT_PERIODS = 4  # at most; integration stops earlier once consecutive per
 SETTLED = 1e-3  # period-to-period change of each state, relative to its range over the period
 STEP_ITERATIONS = 8  # Newton iterations per time step
 # Harmonics of the measured outputs in the measured start (beyond the excited lines): 10
-# halve the cold Newton iterations of the standard set (264 -> about 120); all 400 of the
+# halve the cold Newton iterations of the standard set (258 -> 117, bench_fit); all 400 of the
 # grid carry the noise into the velocities and cost 158.
 MEASURED_HARMONICS = 10
 INVERSION_ITERATIONS = 20  # point-wise Newton from outputs to states (the damper's needs 3)
