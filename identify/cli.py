@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import os
 import sys
 from pathlib import Path
@@ -22,6 +21,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from identify import notation
 from identify.dataset import csv_bytes, read_dataset, read_manifest
 from identify.differentiation import SCHEMES, Grid
 from identify.errors import ComputationError, InputError
@@ -407,27 +407,6 @@ def _run_batch(args: argparse.Namespace, console: Console, sessions: list[Path],
     return EXIT_NOT_CONVERGED if counts["failed"] or undelivered else EXIT_OK
 
 
-def value_and_std(value: float, std: float | None, digits: int = 2) -> str:
-    """Concise notation: the value rounded to the std's last of ``digits`` digits, the std
-    in units of that digit in parentheses (0.850057(60) is 0.850057 ± 0.000060), which
-    keeps three parameters and their stds in an 80-column terminal."""
-    if std is None or not math.isfinite(std) or std <= 0 or not math.isfinite(value):
-        return f"{value:.6g}"
-    exponent = 0
-    if value != 0 and not 1e-3 <= abs(value) < 1e6:
-        exponent = math.floor(math.log10(abs(value)))
-        value, std = value / 10**exponent, std / 10**exponent
-    last = math.floor(math.log10(std)) - (digits - 1)   # decimal place of the std's last digit
-    scaled = round(std / 10**last)
-    if scaled >= 10**digits:   # 9.96 rounded up a digit
-        last, scaled = last + 1, round(std / 10 ** (last + 1))
-    if last < 0:
-        text = f"{value:.{-last}f}({scaled})"
-    else:
-        text = f"{round(value / 10**last) * 10**last:.0f}({scaled * 10**last})"
-    return text + (f"e{exponent}" if exponent else "")
-
-
 def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) -> None:
     from rich.console import Console
     from rich.table import Table
@@ -451,7 +430,7 @@ def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) ->
         table.add_column("fit", justify="right", no_wrap=True, min_width=4)
         for r in shown:
             mark = "*" if r.residual_std else ""
-            cells = [value_and_std(r.values[p], r.stds.get(p)) + mark if p in r.values else "" for p in estimate]
+            cells = [notation.concise(r.values[p], r.stds.get(p)) + mark if p in r.values else "" for p in estimate]
             table.add_row(r.session, r.serial, converged.get(r.state, r.state), *cells,
                           "" if r.fit_s is None else f"{r.fit_s:.2f}")
         console.print(table)

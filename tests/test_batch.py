@@ -400,9 +400,9 @@ def test_without_the_records_sink_installed_db_is_one_line_and_exit_2(tmp_path, 
     (0.85, 0.0996, "0.85(10)"), (5.0, 9.96, "5(10)"), (12.0, None, "12"), (0.5, 0.0, "0.5"),
 ])
 def test_value_and_std_in_concise_notation(value, std, text):
-    from identify.cli import value_and_std
+    from identify.notation import concise
 
-    assert value_and_std(value, std) == text
+    assert concise(value, std) == text
 
 
 def test_the_batch_table_fits_an_80_column_terminal(monkeypatch, capsys):
