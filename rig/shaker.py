@@ -14,7 +14,7 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 from urllib.parse import urlparse
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -53,6 +53,13 @@ class AlarmError(ShakerError):
 
 class LimitError(BadInput):
     """A command outside the rig's limits, refused before anything is sent."""
+
+
+class MotionInterlock(Protocol):
+    """What may veto a command that can set the actuator moving (an E-STOP's latch,
+    :class:`rig.estop.MotionLatch`): ``check`` raises, naming ``what``, to refuse it."""
+
+    def check(self, what: str) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -116,11 +123,13 @@ class Shaker:
     def __init__(self, url: str, limits: Limits, register_map: RegisterMap | None = None, *,
                  timeout_s: float = 1.0, reconnect_s: float = 20.0,
                  on_event: Callable[[str], object] = lambda message: None,
-                 client: Any = None, clock: Clock = WALL_CLOCK) -> None:
+                 client: Any = None, clock: Clock = WALL_CLOCK, interlock: MotionInterlock | None = None) -> None:
         """``client``: a pymodbus-like client to use instead of one made from ``url``
-        (tests inject faults through it)."""
+        (tests inject faults through it).  ``interlock``: asked before every command that
+        can start motion (hydraulics on, move, RUN, fade out); STOP, hydraulics off and
+        reads are never vetoed."""
         address = ShakerAddress.parse(url)
-        self.url, self.limits, self.clock = url, limits, clock
+        self.url, self.limits, self.clock, self.interlock = url, limits, clock, interlock
         self.map = register_map or load_register_map()
         self.reconnect_s, self.on_event = reconnect_s, on_event
         if client is not None:
@@ -192,6 +201,8 @@ class Shaker:
                             raw["position"], raw["force"], int(raw["cycles"]), raw["hydraulic_pressure"])
 
     def hydraulics(self, on: bool) -> None:
+        if on:
+            self._may_move("hydraulics on")
         self._write_coil("hydraulics_on", on)
 
     def reset_alarm(self) -> None:
@@ -205,6 +216,7 @@ class Shaker:
         if not lim.stroke_low_m <= static_m <= lim.stroke_high_m:
             raise LimitError(f"static position {static_m * 1e3:.2f} mm outside the stroke limits "
                              f"{lim.stroke_low_m * 1e3:.1f}…{lim.stroke_high_m * 1e3:.1f} mm")
+        self._may_move(f"move to {static_m * 1e3:.2f} mm")
         if switch_on and self.status().state == "OFF":
             self.hydraulics(True)
         self._write_holding({"static_position": static_m})
@@ -216,12 +228,14 @@ class Shaker:
         problems = check_waveform(self.limits, static_m, amplitude_m, frequency_hz, waveform)
         if problems:
             raise LimitError("; ".join(problems))
+        self._may_move("RUN")
         self._write_holding({"waveform": self.map.waveforms[waveform], "static_position": static_m,
                              "amplitude": amplitude_m, "frequency": frequency_hz, "ramp_time": ramp_s})
         self._write_holding({"mode": self.map.modes["run"]})
 
     def fade_out(self) -> None:
         """Fade the waveform out over its ramp time and stay at the static position."""
+        self._may_move("fade out")   # a move to the static position: after an E-STOP only STOP holds
         self._write_holding({"mode": self.map.modes["static"]})
 
     def stop(self) -> None:
@@ -241,6 +255,19 @@ class Shaker:
                 raise ShakerTimeout(f"controller still {st.state} after {timeout_s:g} s (waiting for "
                                     f"{' or '.join(sorted(states))})")
             self.clock.sleep(poll_s)
+
+    def veto(self, what: str) -> str | None:
+        """Why the interlock would refuse ``what`` now (None: it would go out)."""
+        try:
+            self._may_move(what)
+        except ShakerError as exc:
+            return str(exc)
+        return None
+
+    def _may_move(self, what: str) -> None:
+        """Ask the interlock before anything that can set the actuator moving is sent."""
+        if self.interlock is not None:
+            self.interlock.check(what)
 
     # ----- register access ---------------------------------------------------------------
     def _read(self, table: str) -> dict[str, float]:
