@@ -22,6 +22,7 @@ from rig.config import DEFAULT_RIG_CONFIG
 from rig.estop import BUDGET_S, EStop, EStopLatched, LatchChanged
 from rig.gui.station import Notice, Station
 from rig.registers import load_register_map
+from rig.run import RunOptions
 from rig.shaker import Shaker
 from tests.test_rig_drivers import LIMITS, ModbusReplay
 from tests.virtual_rig_inprocess import SHAKER_URL, InProcessModbusClient, InProcessRig
@@ -228,7 +229,8 @@ def test_the_console_refuses_motion_and_sessions_while_latched_and_not_after_the
         (refusal,) = station.hydraulics(True, None)
         assert refusal.startswith("E-STOP pressed at") and refusal.endswith("confirm the reset first")
         assert station.hydraulics(False, None) == ["not connected"]       # switching off is never vetoed
-        assert station.run_plan(None, None) is False
+        assert station.run_plan(RunOptions(plan="standard", shaker=None, daq=None, out=tmp_path / "s"), None) is False
+        assert not (tmp_path / "s").exists()
         assert any(isinstance(p, Notice) and p.text.startswith("session refused, nothing sent: E-STOP")
                    for p in posted)
         assert [p.latched for p in posted if isinstance(p, LatchChanged)] == [True]
