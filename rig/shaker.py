@@ -28,6 +28,7 @@ from rig.registers import RegisterMap, load_register_map
 
 EXCEPTION_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                    4: "device failure", 6: "device busy"}
+RTU_BAUDRATE = 115200
 
 
 class ShakerError(RigFault):
@@ -96,6 +97,35 @@ class ShakerStatus:
     hydraulic_pressure_pa: float
 
 
+def modbus_client(address: ShakerAddress, timeout_s: float) -> ModbusTcpClient | ModbusSerialClient:
+    if address.device:
+        return ModbusSerialClient(address.device, framer=FramerType.RTU, baudrate=RTU_BAUDRATE, timeout=timeout_s,
+                                  retries=0)
+    assert address.host is not None and address.port is not None  # parse() gives one or the other
+    return ModbusTcpClient(address.host, port=address.port, timeout=timeout_s, retries=0)
+
+
+def probe_controller(address: ShakerAddress, register_map: RegisterMap, timeout_s: float = 1.0) -> str | None:
+    """What answers Modbus at ``address``, in words ("a Modbus controller in state OFF");
+    None where nothing does.  Reads the state register only: nothing is written."""
+    client = modbus_client(address, timeout_s)
+    state = register_map.field("state")
+    try:
+        if not client.connect():
+            return None
+        answer = client.read_input_registers(state.address, count=1, device_id=register_map.unit_id)
+    except (ModbusException, OSError):
+        return None
+    finally:
+        client.close()
+    if answer.isError():
+        code = int(getattr(answer, "exception_code", 0) or 0)
+        return f"a Modbus device (exception {code}: {EXCEPTION_NAMES.get(code, 'unknown')})"
+    word = int(answer.registers[0])
+    states = register_map.states
+    return f"a Modbus controller in state {states[word] if word < len(states) else word}"
+
+
 def check_waveform(limits: Limits, static_m: float, amplitude_m: float, frequency_hz: float,
                    waveform: str = "sine") -> list[str]:
     """Every way a waveform breaks the limits (empty when it is fine)."""
@@ -132,14 +162,7 @@ class Shaker:
         self.url, self.limits, self.clock, self.interlock = url, limits, clock, interlock
         self.map = register_map or load_register_map()
         self.reconnect_s, self.on_event = reconnect_s, on_event
-        if client is not None:
-            self._client = client
-        elif address.device:
-            self._client = ModbusSerialClient(address.device, framer=FramerType.RTU, baudrate=115200,
-                                              timeout=timeout_s, retries=0)
-        else:
-            assert address.host is not None and address.port is not None  # parse() gives one or the other
-            self._client = ModbusTcpClient(address.host, port=address.port, timeout=timeout_s, retries=0)
+        self._client = client if client is not None else modbus_client(address, timeout_s)
         self._lock = threading.RLock()
         self._heartbeat_stop = threading.Event()
         self._heartbeat: threading.Thread | None = None
@@ -158,8 +181,14 @@ class Shaker:
             if not answered:
                 raise ShakerLinkError(f"no Modbus controller answers at {self.url}{why}")
         lim = self.limits
-        self._write_holding({"stroke_limit_low": lim.stroke_low_m, "stroke_limit_high": lim.stroke_high_m,
-                             "force_limit": lim.force_limit_n})
+        try:
+            # The link was never up: no reconnect time to wait out (something else may have
+            # answered the connection, e.g. the DAQ on a swapped address).
+            self._write_holding({"stroke_limit_low": lim.stroke_low_m, "stroke_limit_high": lim.stroke_high_m,
+                                 "force_limit": lim.force_limit_n}, patience_s=0.0)
+        except ShakerLinkError:
+            raise ShakerLinkError(f"no Modbus controller answers at {self.url}: the line opened, but its first "
+                                  f"request (unit {self.map.unit_id}) got no Modbus answer") from None
         if heartbeat:
             self._write_holding({"watchdog_timeout": lim.watchdog_timeout_s, "heartbeat": 0})
             self._heartbeat = threading.Thread(target=self._heartbeat_loop, name="shaker-heartbeat", daemon=True)
