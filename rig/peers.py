@@ -9,10 +9,10 @@ from __future__ import annotations
 
 from urllib.parse import urlparse
 
-from rig.daq import probe_daq
-from rig.errors import RigFault
+from rig.daq import DaqError, probe_daq
+from rig.errors import RigError, RigFault
 from rig.registers import RegisterMap
-from rig.shaker import ShakerAddress, probe_controller
+from rig.shaker import ShakerAddress, ShakerLinkError, probe_controller
 
 
 class WrongPeer(RigFault):
@@ -54,3 +54,10 @@ def name_wrong_peers(shaker_url: str, daq_url: str, register_map: RegisterMap, *
     if controller_there:
         return WrongPeer(f"wrong DAQ address: {at_daq}, not the DAQ; nothing was moved")
     return None
+
+
+def wrong_peer_or(exc: ShakerLinkError | DaqError, shaker_url: str, daq_url: str,
+                  register_map: RegisterMap) -> RigError:
+    """What to raise when a link did not come up: the :class:`WrongPeer` naming who
+    answered where, else ``exc`` itself.  A DAQ error means the controller's link was up."""
+    return name_wrong_peers(shaker_url, daq_url, register_map, controller_answered=isinstance(exc, DaqError)) or exc

@@ -44,7 +44,7 @@ from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq, DaqError, check_daq_address
 from rig.errors import RigError, RigFault
 from rig.events import EventBus
-from rig.peers import name_wrong_peers
+from rig.peers import wrong_peer_or
 from rig.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
 from rig.progress import ConsoleProgress
 from rig.registers import RegisterMap, load_register_map
@@ -216,11 +216,7 @@ def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Ca
                                    "after a reset: the cause is still there")
     except (ShakerLinkError, DaqError) as exc:
         close_links(links)
-        # The other box may have answered on a swapped or wrong address: then say so.
-        wrong = name_wrong_peers(shaker_url, daq_url, register_map, controller_answered=isinstance(exc, DaqError))
-        if wrong is None:
-            raise
-        raise wrong from exc
+        raise wrong_peer_or(exc, shaker_url, daq_url, register_map) from None   # the other box may have answered
     except BaseException:
         close_links(links)
         raise

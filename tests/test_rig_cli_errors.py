@@ -12,6 +12,7 @@ import pytest
 
 from rig.config import DEFAULT_RIG_CONFIG
 from rig.daq import probe_daq
+from rig.gui.station import Notice, Station
 from tests.conftest import HANG_S
 
 CALIBRATION = Path(__file__).resolve().parents[1] / "rig" / "config" / "daq-calibration-datasheet.toml"
@@ -144,5 +145,16 @@ def test_swapped_addresses_are_named_in_one_line_and_the_simulator_goes_on(virtu
                     "nothing was moved")
     assert not out.exists()
     assert probe_daq(sim.daq_url) == "DAQ4,SIM0001,1.00"       # the DAQ took the Modbus bytes and goes on
+
+    # The console's Connect says the same in its one line.
+    posted: list[object] = []
+    station = Station(shaker, daq, posted.append, rig_config=str(config))
+    try:
+        station.connect().result(timeout=HANG_S)
+    finally:
+        station.close()
+    assert [p.text for p in posted if isinstance(p, Notice) and p.level == "error"] == \
+        [f"connect failed: {line.removeprefix('error: ')}"]
+    assert probe_daq(sim.daq_url) == "DAQ4,SIM0001,1.00"
     log = sim.stop()
     assert "hydraulics on" not in log and "Traceback" not in log, log

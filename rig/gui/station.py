@@ -41,7 +41,7 @@ from rich.console import Console
 
 from identify.errors import IdentifyError, InputError
 from rig.config import RigConfig, load_rig_config
-from rig.daq import Calibration, Daq
+from rig.daq import Calibration, Daq, DaqError
 from rig.errors import BadInput, RigError
 from rig.estop import EStop
 from rig.events import EventBus
@@ -49,6 +49,7 @@ from rig.gui import fits
 from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
 from rig.gui.qc import QcDone, QcRequest, outcome, qc_command
+from rig.peers import wrong_peer_or
 from rig.registers import RegisterMap, load_register_map
 from rig.run import (
     EXIT_OK,
@@ -61,7 +62,7 @@ from rig.run import (
     prepare,
 )
 from rig.session import SessionLog
-from rig.shaker import Shaker, ShakerStatus, check_waveform
+from rig.shaker import Shaker, ShakerLinkError, ShakerStatus, check_waveform
 
 STATUS_PERIOD_S = 0.25
 CONSOLE_RECONNECT_S = 2.0
@@ -205,6 +206,9 @@ class Station:
             shaker.connect()        # limits written, watchdog on and fed: if this program dies, the rig holds
             identity = daq.open()
             daq.start()             # the live view streams whenever no session does
+        except (ShakerLinkError, DaqError) as exc:
+            close_links(Links(shaker, daq, "", None))
+            raise wrong_peer_or(exc, self.shaker_url, self.daq_url, self.register_map) from None
         except BaseException:
             close_links(Links(shaker, daq, "", None))
             raise
