@@ -18,16 +18,17 @@ from typing import Any
 import pytest
 from pymodbus.client import ModbusTcpClient
 
+from rig.acquisition import Acquisition
 from rig.config import DEFAULT_RIG_CONFIG
-from rig.estop import BUDGET_S, EStop, EStopLatched, LatchChanged
+from rig.estop import BUDGET_S, EStop, EStopLatched, LatchChanged, MotionLatch
 from rig.gui.station import Notice, Station
 from rig.registers import load_register_map
 from rig.run import RunOptions
 from rig.shaker import Shaker
+from tests.conftest import HANG_S
 from tests.test_rig_drivers import LIMITS, ModbusReplay
 from tests.virtual_rig_inprocess import SHAKER_URL, InProcessModbusClient, InProcessRig
 
-HANG_S = 30.0             # a guard against a hang, never a timing assertion
 # Each request on the E-STOP's line takes this long on the fake clock: a slow line (a
 # Modbus RTU request and its answer at 115200 Bd take about 2 ms; the rest is room for a
 # slow controller).  Two of them must fit the budget with nothing else added.
@@ -239,3 +240,17 @@ def test_the_console_refuses_motion_and_sessions_while_latched_and_not_after_the
         assert [p.latched for p in posted if isinstance(p, LatchChanged)] == [True, False]
     finally:
         station.close()
+
+
+def test_a_sessions_safe_stop_after_an_estop_does_not_fade(vrig):
+    """A fade is a move to the static position: once latched, the safe stop goes straight to
+    STOP and hydraulics off, and says why it did not fade (not a failed step)."""
+    running(vrig)
+    latch = MotionLatch()
+    vrig.shaker.interlock = latch
+    latch.trip("E-STOP pressed at 10:00:00")
+    assert Acquisition(vrig.shaker, vrig.daq, vrig.config, vrig.bus, vrig.clock).safe_stop("E-STOP") == []
+    assert "safe stop: no fade (fade out refused, nothing sent: E-STOP pressed at 10:00:00; the operator must " \
+           "confirm the reset first)" in vrig.messages()
+    assert "safe stop done: stream stopped, STOP, hydraulics off" in vrig.messages()
+    assert vrig.sim.controller.read_holding(0, 1) == [0] and vrig.sim.controller.read_coils(0, 1) == [False]
