@@ -175,8 +175,10 @@ class EStop:
         """Latch at once, then STOP and hydraulics off on the E-STOP's thread."""
         self._pressed_at = self.clock.monotonic()
         self._done.clear()
-        self.latch.trip(f"E-STOP pressed at {_dt.datetime.now():%H:%M:%S}")
-        self._pressed.set()
+        try:
+            self.latch.trip(f"E-STOP pressed at {_dt.datetime.now():%H:%M:%S}")
+        finally:
+            self._pressed.set()      # the writes go out even if a listener of the latch failed
 
     def wait(self, timeout_s: float | None = None) -> EstopDone | None:
         """The outcome of the last press once both writes are answered (or failed); None on timeout."""

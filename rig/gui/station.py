@@ -321,7 +321,8 @@ class Station:
         return True
 
     def _open_estop_line(self, url: str | None) -> None:
-        """A serial line takes one client: there the E-STOP shares the session's or the console's link."""
+        """The E-STOP's own line to ``url``; where none can be opened, the operator is told
+        (the E-STOP then uses the session's or the console's link)."""
         if not url:
             return
         try:
