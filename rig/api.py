@@ -31,7 +31,7 @@ from rig.acquisition import Acquisition
 from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration
 from rig.errors import RigFault
-from rig.events import Event, EventBus
+from rig.events import Event, EventBus, Subscriber
 from rig.progress import ConsoleProgress, ProgressBar
 from rig.registers import RegisterMap, load_register_map
 from rig.run import (
@@ -39,14 +39,15 @@ from rig.run import (
     Links,
     RunOptions,
     RunResult,
+    SessionContext,
     SessionRunner,
     close_links,
     fit_session,
     open_links,
     prepare,
+    run_lifecycle,
 )
 from rig.session import Session as SessionFolder
-from rig.session import SessionLog
 from rig.shaker import ShakerStatus
 
 if TYPE_CHECKING:
@@ -89,28 +90,23 @@ class Session:
         """Capture every planned experiment; returns when the session has ended."""
         if self._result is not None:
             raise RuntimeError("this session has run; plan a new one (or resume it with resume=True)")
-        links = self._rig._links
-        bus = EventBus()
-        for callback in self._subscribers:
-            bus.subscribe(callback)
-        runner = SessionRunner(self._prepared, links, bus, self._rig._console)
-        self._folder = folder = runner.open_session()
-        session_log = SessionLog(folder.path / "session.log")
-        bus.subscribe(session_log, inline=True)
-        estimates = runner.estimates_s(folder, links.shaker.status().position_m)
-        folder.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
-        if self._progress == "bar" or (self._progress == "auto" and _in_notebook()):
-            bus.subscribe(ProgressBar(estimates))
-        elif self._progress:
-            bus.subscribe(ConsoleProgress(self._rig._console, estimates, runner.pace or 1.0,
-                                          runner.acquisition.clock.monotonic))
-        self._rig._bus = bus
-        try:
-            self._result = result = runner.run(folder)
-        finally:
-            self._rig._bus = None
-            bus.close()
-            session_log.close()
+        rig = self._rig
+
+        def runner_changed(runner: SessionRunner | None) -> None:
+            rig._bus = runner.bus if runner is not None else None   # the links' notices go to the session
+
+        def progress(ctx: SessionContext) -> list[Subscriber]:
+            self._folder = ctx.session
+            if self._progress == "bar" or (self._progress == "auto" and _in_notebook()):
+                return [ProgressBar(ctx.estimates_s)]
+            if self._progress:
+                return [ConsoleProgress(rig._console, ctx.estimates_s, ctx.pace, ctx.rig_clock)]
+            return []
+
+        self._result = result = run_lifecycle(self._prepared, rig._console, links=rig._links,
+                                              subscribers=self._subscribers, attach=progress,
+                                              on_runner=runner_changed)
+        self._folder = result.session
         if result.error is not None:
             raise result.error
         if result.exit_code != EXIT_OK:

@@ -220,6 +220,12 @@ class Daq:
             self.journal.write(bytes(self._unjournaled))
         self._unjournaled = None
 
+    def detach_journal(self) -> None:
+        """Close the session's journal (the links outlive a script's session)."""
+        journal, self.journal = self.journal, None
+        if journal is not None:
+            journal.close()
+
     def subscribe(self, listener: Callable[[Samples], None]) -> None:
         """Call ``listener`` from the reader thread with every calibrated block (keep it quick)."""
         self._listeners.append(listener)

@@ -84,6 +84,10 @@ class EventBus:
             q.put(event)
         return event
 
+    def publish_link(self, message: str) -> None:
+        """A link's notice (lost, back, heartbeat) as a log event."""
+        self.publish("log", message=message)
+
     def close(self, timeout_s: float = 2.0) -> None:
         """Let queued subscribers finish what they were given."""
         for q, _ in self._queued:

@@ -27,7 +27,7 @@ from identify.dataset import FORMAT, Experiment, csv_bytes, write_manifest
 from identify.files import atomic_write_bytes
 from rig.acquisition import ExperimentRecord
 from rig.daq import CHANNELS
-from rig.errors import BadInput
+from rig.errors import BadInput, RigFault
 from rig.events import Event
 
 SESSION_FILE = "session.json"
@@ -36,6 +36,11 @@ CSV_SLICE_ROWS = 1000                # rows per pandas call when an experiment i
 
 class SessionError(BadInput):
     """A session folder that cannot be created or resumed (says which and why)."""
+
+
+class SessionWriteError(RigFault):
+    """A file of a running session could not be written (a full, removed or read-only
+    disk): the session aborts, after the safe stop; what was written before is kept."""
 
 
 def _software() -> dict[str, str]:
@@ -138,7 +143,6 @@ class Session:
         columns = {"time_s": record.time_s, **{c: record.values[:, i] for i, c in enumerate(CHANNELS)}}
         payload = _csv_in_slices(columns)
         file = f"{record.label}.csv"
-        atomic_write_bytes(self.path / file, payload)
         entry = {"label": record.label, "file": file, **record.spec.metadata(), "sample_rate_Hz": record.rate_hz,
                  "periods": record.spec.periods, "settle_cycles": record.settle_cycles,
                  "steady_state": record.settled, "lost_samples": record.lost_samples,
@@ -146,9 +150,14 @@ class Session:
                  "recaptures": record.recaptures, "captured": _dt.datetime.now().isoformat(timespec="seconds")}
         if record.flags:
             entry["flags"] = record.flags
-        self.manifest["experiments"] = [e for e in self.manifest["experiments"] if e["label"] != record.label]
-        self.manifest["experiments"].append(entry)
-        write_manifest(self.path, self.manifest)
+        try:
+            atomic_write_bytes(self.path / file, payload)
+            self.manifest["experiments"] = [e for e in self.manifest["experiments"] if e["label"] != record.label]
+            self.manifest["experiments"].append(entry)
+            write_manifest(self.path, self.manifest)
+        except OSError as exc:
+            raise SessionWriteError(f"{self.path}: experiment {record.label} was captured but could not be written "
+                                    f"({exc.strerror or exc})") from None
         exp = Experiment(record.label, "periodic", file, dict(entry))
         # Identification in memory sees exactly the numbers in the file.
         exp.data = pd.read_csv(io.BytesIO(payload))
@@ -167,7 +176,10 @@ class SessionLog:
     """Inline subscriber: every event as a line in ``session.log``, flushed at once."""
 
     def __init__(self, path: Path) -> None:
-        self._file = open(path, "a", encoding="utf-8")
+        try:
+            self._file = open(path, "a", encoding="utf-8")
+        except OSError as exc:
+            raise SessionWriteError(f"{path}: the session log cannot be written ({exc.strerror or exc})") from None
 
     def __call__(self, event: Event) -> None:
         # Milliseconds: what a session spends between two phases is what a rig's time is made of.

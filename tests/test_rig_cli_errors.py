@@ -3,12 +3,16 @@ no traceback, and no session folder left behind."""
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
+
+from rig.config import DEFAULT_RIG_CONFIG
 
 CALIBRATION = Path(__file__).resolve().parents[1] / "rig" / "config" / "daq-calibration-datasheet.toml"
 
@@ -123,3 +127,38 @@ def test_resume_of_a_folder_without_a_session_names_it(tmp_path):
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert f"{tmp_path}: nothing to resume (session.json missing)" in r.stderr, r.stderr
+
+
+class DaqCutAtStart:
+    """A DAQ on TCP that answers the handshake, then drops the line at the first START and
+    answers no more (a cable pulled as the session begins)."""
+
+    def __init__(self) -> None:
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.url = f"socket://127.0.0.1:{self.server.getsockname()[1]}"
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        conn, _ = self.server.accept()
+        self.server.close()                            # no second client: the line stays cut
+        with conn, conn.makefile("rwb", buffering=0) as line:
+            for raw in line:
+                command = raw.strip().decode()
+                if command == "START":
+                    return
+                answer = {"*IDN?": "DAQ4,virtual,cut-at-start,1.0", "STOP": "OK STOP 0"}.get(command, "OK")
+                line.write(answer.encode() + b"\n")
+
+
+def test_a_daq_cut_at_the_first_start_is_one_line_and_on_record(virtual_rig, tmp_path):
+    """Before any motion (the pace probe's START): exit 3, one line, session.json not running."""
+    sim, daq = virtual_rig(), DaqCutAtStart()
+    config = tmp_path / "rig.toml"
+    config.write_text(DEFAULT_RIG_CONFIG.read_text().replace("reconnect_s = 20.0", "reconnect_s = 1.0"))
+    r, out = rig_run(tmp_path, "--rig-config", str(config), shaker=sim.modbus_url, daq=daq.url)
+    assert r.returncode == 3 and "Traceback" not in r.stderr, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "link lost during 'START'" in lines[0], r.stderr
+    status = json.loads((out / "session.json").read_text())["status"]
+    assert status.startswith("aborted: DAQ at ") and status.endswith("(before anything moved)"), status

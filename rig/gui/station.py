@@ -7,7 +7,7 @@ Threads:
 
 ``rig-command``   manual commands, connecting, reconnecting after a session (one at a time)
 ``rig-status``    reads the controller's status and the DAQ's counters, 4 times a second
-``rig-session``   prepare → connect → :class:`rig.run.SessionRunner` → tear down, as ``rig run``;
+``rig-session``   prepare → :func:`rig.run.run_lifecycle` (links → session → safe stop → teardown), as ``rig run``;
                   or QC mode's ``python -m rig qc run`` as a child process (:mod:`rig.gui.qc`)
 ``fit``           identification and re-fits, one at a time, each in a process of its own
                   (:mod:`rig.gui.fits`: a fit in this process would stall the window)
@@ -42,7 +42,7 @@ from identify.errors import IdentifyError, InputError
 from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq
 from rig.errors import BadInput, RigError
-from rig.events import EventBus
+from rig.events import Subscriber
 from rig.gui import fits
 from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
@@ -53,12 +53,12 @@ from rig.run import (
     Links,
     RunOptions,
     RunResult,
+    SessionContext,
     SessionRunner,
     close_links,
-    connect,
     prepare,
+    run_lifecycle,
 )
-from rig.session import SessionLog
 from rig.shaker import Shaker, ShakerStatus, check_waveform
 
 STATUS_PERIOD_S = 0.25
@@ -491,29 +491,21 @@ class Station:
         self._open_estop_line(prep.shaker_url)
         self._was_connected = self.shaker is not None
         self._commands.submit(self._release).result()
-        bus = EventBus()
-        bus.subscribe(self.post)                 # queued: the acquisition never waits on the window
-        log: SessionLog | None = None
-        links = connect(prep, on_event=lambda m: bus.publish("log", message=m))
-        try:
-            runner = SessionRunner(prep, links, bus, Console(file=io.StringIO()))
-            if self._abort.is_set():
-                runner.acquisition.stop_requested.set()
-            session = runner.open_session()
-            log = SessionLog(session.path / "session.log")
-            bus.subscribe(log, inline=True)
-            progress = PlanProgress(prep.plan, prep.config, session.meta["date"], self.speed, session.completed())
-            self.post(SessionOpened(session.path, progress, opt))
+
+        def runner_changed(runner: SessionRunner | None) -> None:
             self.runner = runner
-            if self._abort.is_set():             # Abort or E-STOP while the links were opened
+            if runner is not None and self._abort.is_set():   # Abort or E-STOP while the links were opened
                 runner.acquisition.stop_requested.set()
-            result = runner.run(session)
-        finally:
-            self.runner = None
-            close_links(links)                   # first: the links' threads publish to the log
-            bus.close()
-            if log is not None:
-                log.close()
+
+        def opened(ctx: SessionContext) -> list[Subscriber]:
+            progress = PlanProgress(prep.plan, prep.config, ctx.session.meta["date"], self.speed,
+                                    ctx.session.completed())
+            self.post(SessionOpened(ctx.session.path, progress, opt))
+            return []
+
+        # The window's queue: the acquisition never waits on it.
+        result = run_lifecycle(prep, Console(file=io.StringIO()), subscribers=[self.post], attach=opened,
+                               on_runner=runner_changed)
         if result.error is not None:
             self.post(Notice(f"internal error in the session: {result.error!r}", "error"))
         return result
