@@ -25,7 +25,7 @@ import numpy as np
 from identify.plans import ExperimentSpec
 from rig.clock import WALL_CLOCK, Clock
 from rig.config import RigConfig
-from rig.criterion import MIN_BLOCKS, bias_bound
+from rig.criterion import MIN_BLOCKS, block_cycles, blocks_bias, change_passes, drift_passes, first_block_sample
 from rig.daq import CHANNELS, Daq, Samples
 from rig.errors import RigFault
 from rig.events import EventBus, Phase
@@ -407,9 +407,9 @@ class Acquisition:
                             time_constant_s: float | None) -> ExperimentRecord:
         ss, rate = self.config.steady_state, self.daq.rate_hz
         spp = rate / spec.frequency_hz                       # samples per period
-        start = int(math.ceil((ss.ramp_time_s + 0.5) * rate))  # after the fade-in (+ the actuator's lag)
+        start = first_block_sample(ss, rate)                 # after the fade-in (+ the actuator's lag)
         drift = ss.drift if ss.criterion == "drift" else None
-        m = max(1, math.ceil(ss.block_s * spec.frequency_hz))  # cycles per block
+        m = block_cycles(ss, spec.frequency_hz)
         thresholds = np.array([ss.thresholds[c] for c in CHANNELS])
         fitted = [CHANNELS.index(c) for c in drift.noise] if drift is not None else []
         history: list[np.ndarray] = []                         # consecutive block means of the fitted channels
@@ -435,22 +435,22 @@ class Acquisition:
             elif drift is not None:
                 history = (history + [means[fitted]])[-drift.fit_cycles:]
                 if len(history) >= MIN_BLOCKS:
-                    fit = bias_bound(drift, tuple(drift.noise), np.array(history), m / spec.frequency_hz, m * spp,
-                                     spec.periods / m, time_constant_s)
+                    fit = blocks_bias(drift, np.array(history), m, spec.frequency_hz, spp, spec.periods,
+                                      time_constant_s)
                     # the cycle-to-cycle change too: what the console and the GUI show of settling
                     change = np.abs(means - prev_means) if prev_means is not None else np.full(len(CHANNELS), np.nan)
                     self.bus.publish("progress", label, phase=Phase.SETTLING.value, cycles=cycles,
                                      change={c: float(x) for c, x in zip(CHANNELS, change, strict=True)},
                                      bias_sigma=fit.bias_sigma, ratio=fit.ratio,
                                      drift={c: float(x) for c, x in zip(drift.noise, fit.drift, strict=True)})
-                    if cycles >= ss.min_cycles and fit.bias_sigma < drift.fraction:
+                    if drift_passes(ss, cycles, fit):
                         settled = True
                         break
             elif prev_means is not None:
                 change = np.abs(means - prev_means)
                 self.bus.publish("progress", label, phase=Phase.SETTLING.value, cycles=cycles,
                                  change={c: float(x) for c, x in zip(CHANNELS, change, strict=True)})
-                if cycles >= ss.min_cycles and np.all(change < thresholds):
+                if change_passes(ss, cycles, change, thresholds):
                     settled = True
                     break
             if cycles >= ss.max_cycles:

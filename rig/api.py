@@ -5,7 +5,7 @@
     with rig.open(shaker="tcp://127.0.0.1:5020", daq="socket://127.0.0.1:5021") as r:
         print(r.status())
         session = r.run_plan("standard", experiments=["j", "n"], out="sessions/unit-17")
-        result = session.identify(estimate=["theta4", "theta6", "theta16"])
+        result = session.identify()            # the model's default set: theta4, theta6, theta16
         print(result.report())
 
 Nothing here runs a subprocess: a :class:`Rig` holds the same two links as ``rig run``
@@ -27,10 +27,11 @@ from typing import TYPE_CHECKING, Any, Literal
 from rich.console import Console
 
 from identify.dataset import Experiment
+from identify.model import DEFAULT_ESTIMATE
 from rig.acquisition import Acquisition
 from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration
-from rig.errors import RigFault
+from rig.errors import BadInput, RigFault
 from rig.events import Event, EventBus, Subscriber
 from rig.progress import ConsoleProgress, ProgressBar
 from rig.registers import RegisterMap, load_register_map
@@ -127,14 +128,18 @@ class Session:
         """The captured experiments as ``dataset.json`` lists them (label, file, settle cycles, …)."""
         return list(self._folder.manifest["experiments"]) if self._folder is not None else []
 
-    def identify(self, model: str = "2dof", estimate: Sequence[str] = ("theta4", "theta6", "theta16"),
+    def identify(self, model: str = "2dof", estimate: Sequence[str] | None = None,
                  params: str | Path | None = None) -> FitResult:
         """Fit the captured experiments (the same :class:`~identify.result.FitResult` as
-        ``identify.fit``); RESULT.json and report.txt go into the session folder."""
+        ``identify.fit``); RESULT.json and report.txt go into the session folder.
+        ``estimate``: by default a built-in model's set (``identify.model.DEFAULT_ESTIMATE``)."""
         if self._folder is None:
             raise RuntimeError("nothing captured yet: run() the session first")
         captured: list[Experiment] = self._result.captured if self._result is not None else []
-        return fit_session(self._folder, model, params, list(estimate), captured)
+        if estimate is None and model not in DEFAULT_ESTIMATE:
+            raise BadInput(f"model {model}: name the parameters to estimate (estimate=[...])")
+        names = list(estimate) if estimate is not None else list(DEFAULT_ESTIMATE[model])
+        return fit_session(self._folder, model, params, names, captured)
 
 
 class Rig:

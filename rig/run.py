@@ -39,7 +39,15 @@ import numpy as np
 from rich.console import Console
 
 from identify.dataset import Experiment
+from identify.exit_codes import (
+    EXIT_ABORTED,
+    EXIT_INTERNAL,
+    EXIT_INTERRUPTED,
+    EXIT_NOT_CONVERGED,
+    EXIT_OK,
+)
 from identify.files import atomic_write_bytes
+from identify.model import DEFAULT_ESTIMATE
 from rig.acquisition import Acquisition, ExperimentRecord, Interrupted
 from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq, check_daq_address
@@ -54,7 +62,6 @@ from rig.shaker import AlarmError, Shaker, ShakerAddress, ShakerError
 if TYPE_CHECKING:  # the numerics are imported when a fit runs, not with the command line
     from identify.result import FitResult
 
-EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT, EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED = 0, 1, 2, 3, 70, 130
 INTERRUPTING_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
@@ -75,7 +82,7 @@ class RunOptions:
     register_map: str | None = None
     model: str = "2dof"
     params: str | None = None
-    estimate: list[str] = field(default_factory=lambda: ["theta4", "theta6", "theta16"])
+    estimate: list[str] = field(default_factory=lambda: list(DEFAULT_ESTIMATE["2dof"]))
     date: str | None = None
     unit_serial: str = "unknown"
     order: str | None = None                # thermal or fixed; None: the plan's, and a --experiments list as given

@@ -14,6 +14,7 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from identify.dataset import read_manifest
+from identify.model import DEFAULT_ESTIMATE
 from rig.gui.fit_view import fill_parameter_table, parameter_table
 from rig.gui.plotting import labelled
 from rig.gui.station import IdentifySettings
@@ -87,7 +88,7 @@ class SessionBrowser(QtWidgets.QWidget):
         self.model.setObjectName("refitModelBox")
         self.model.addItems(["2dof", "1dof"])
         self.model.currentTextChanged.connect(self._model_changed)
-        self.estimate = QtWidgets.QLineEdit("theta4,theta6,theta16")
+        self.estimate = QtWidgets.QLineEdit(",".join(DEFAULT_ESTIMATE["2dof"]))
         self.estimate.setObjectName("refitEstimateEdit")
         self.start = QtWidgets.QLineEdit()
         self.start.setObjectName("refitParamsEdit")
@@ -127,7 +128,7 @@ class SessionBrowser(QtWidgets.QWidget):
             self.start.setText(path)
 
     def _model_changed(self, model: str) -> None:
-        self.estimate.setText("theta5,theta6,theta7" if model == "1dof" else "theta4,theta6,theta16")
+        self.estimate.setText(",".join(DEFAULT_ESTIMATE.get(model, DEFAULT_ESTIMATE["2dof"])))
 
     def open_folder(self, folder: Path) -> bool:
         """Show a session or dataset folder; False (and why, in the summary) if it is neither."""

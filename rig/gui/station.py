@@ -39,6 +39,7 @@ from pathlib import Path
 from rich.console import Console
 
 from identify.errors import IdentifyError, InputError
+from identify.model import DEFAULT_ESTIMATE
 from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq
 from rig.errors import BadInput, RigError
@@ -143,7 +144,7 @@ class QcStarted:
 class IdentifySettings:
     model: str = "2dof"
     params: str | None = None
-    estimate: list[str] = field(default_factory=lambda: ["theta4", "theta6", "theta16"])
+    estimate: list[str] = field(default_factory=lambda: list(DEFAULT_ESTIMATE["2dof"]))
 
 
 class Station:
