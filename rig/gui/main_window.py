@@ -10,7 +10,6 @@ most :data:`REDRAW_HZ` times a second.
 
 from __future__ import annotations
 
-import argparse
 import datetime as _dt
 import os
 import queue
@@ -22,6 +21,7 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from identify.exit_codes import EXIT_BAD_INPUT
 from rig.daq import check_daq_address
 from rig.errors import BadInput
 from rig.events import Event
@@ -29,6 +29,7 @@ from rig.gui.browser import SessionBrowser
 from rig.gui.controls import ControllerPanel, ManualPanel
 from rig.gui.fit_view import FitView
 from rig.gui.live import LiveView
+from rig.gui.options import ConsoleOptions
 from rig.gui.plan_panel import PlanPanel
 from rig.gui.qc import QcDone, QcRequest
 from rig.gui.qc_panel import QcPanel
@@ -49,7 +50,7 @@ from rig.gui.station import (
 )
 from rig.plans import comma_list, load_plan
 from rig.qc.spec import load_spec
-from rig.run import EXIT_BAD_INPUT, RunOptions
+from rig.run import RunOptions
 from rig.shaker import ShakerAddress, ShakerStatus
 from rig.virtual import VirtualRig
 
@@ -75,7 +76,7 @@ def application() -> QtWidgets.QApplication:
 
 
 class MainWindow(QtWidgets.QMainWindow):
-    def __init__(self, args: argparse.Namespace) -> None:
+    def __init__(self, args: ConsoleOptions) -> None:
         super().__init__()
         if args.simulate and (args.shaker or args.daq):
             raise BadInput("gui: either --simulate or --shaker/--daq, not both")
@@ -90,7 +91,7 @@ class MainWindow(QtWidgets.QMainWindow):
         shaker, daq = args.shaker, args.daq
         if args.simulate:
             # The simulated hardware yields the CPU to the console, as real hardware would not need it.
-            self.simulated = VirtualRig(speed=args.speed, params=args.params, faults=list(args.fault),
+            self.simulated = VirtualRig(speed=args.speed, params=args.params, faults=list(args.faults),
                                         nice=SIMULATOR_NICE)
             shaker, daq = self.simulated.modbus_url, self.simulated.daq_url
         self.queue: queue.Queue[object] = queue.Queue()
@@ -119,15 +120,12 @@ class MainWindow(QtWidgets.QMainWindow):
     def from_args(cls, argv: Sequence[str]) -> MainWindow:
         """The window for the command line's arguments (``gui`` itself may be left out),
         not shown, no event loop run."""
-        from rig.cli import build_parser
-
-        argv = list(argv)
-        args = build_parser().parse_args(argv if argv[:1] == ["gui"] else ["gui", *argv])
+        options = ConsoleOptions.parse(argv)
         application()
-        return cls(args)
+        return cls(options)
 
     # ----- layout ----------------------------------------------------------------------------------
-    def _build(self, args: argparse.Namespace, shaker: str | None, daq: str | None) -> None:
+    def _build(self, args: ConsoleOptions, shaker: str | None, daq: str | None) -> None:
         top = QtWidgets.QHBoxLayout()
         self.shaker_edit = QtWidgets.QLineEdit(shaker or "")
         self.shaker_edit.setPlaceholderText("tcp://HOST:PORT or rtu:///dev/DEVICE")
@@ -449,7 +447,7 @@ class MainWindow(QtWidgets.QMainWindow):
         event.accept()
 
 
-def run_gui(args: argparse.Namespace) -> int:
+def run_gui(args: ConsoleOptions) -> int:
     if (sys.platform.startswith("linux") and not os.environ.get("QT_QPA_PLATFORM")
             and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))):
         # Qt would abort the process (exit 134) with a page about platform plugins.
