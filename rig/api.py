@@ -32,7 +32,7 @@ from rig.acquisition import Acquisition
 from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration
 from rig.errors import BadInput, RigFault
-from rig.events import Event, EventBus, Subscriber
+from rig.events import Event, EventBus, LinkNotice, Subscriber
 from rig.progress import ConsoleProgress, ProgressBar
 from rig.registers import RegisterMap, load_register_map
 from rig.run import (
@@ -159,12 +159,12 @@ class Rig:
         self._idle_bus = EventBus()
         self._stopper = Acquisition(self._links.shaker, self._links.daq, self.config, self._idle_bus)
 
-    def _link_event(self, message: str) -> None:
+    def _link_event(self, notice: LinkNotice) -> None:
         bus = self._bus
         if bus is not None:
-            bus.publish("log", message=message)
+            bus.publish_link(notice)
         else:
-            log.warning("%s", message)
+            log.warning("%s", notice.message)
 
     # ----- the lab procedure ---------------------------------------------------------------------
     def status(self) -> ShakerStatus:

@@ -52,7 +52,7 @@ from rig.acquisition import Acquisition, ExperimentRecord, Interrupted
 from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq, check_daq_address
 from rig.errors import RigError, RigFault
-from rig.events import EventBus, Subscriber
+from rig.events import EventBus, Kind, LinkNotice, Subscriber
 from rig.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
 from rig.progress import ConsoleProgress
 from rig.registers import RegisterMap, load_register_map
@@ -192,14 +192,14 @@ def _check_identification(opt: RunOptions) -> None:
 
 
 # ----- connect: both links, and the controller's state ------------------------------------------------
-def connect(prep: Prepared, on_event: Callable[[str], object]) -> Links:
+def connect(prep: Prepared, on_event: Callable[[LinkNotice], object]) -> Links:
     """Open both links for a prepared session.  The caller closes them (:func:`close_links`)."""
     return open_links(prep.shaker_url, prep.daq_url, prep.config, prep.calibration, prep.register_map,
                       reset_alarm=prep.options.reset_alarm, on_event=on_event)
 
 
 def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Calibration,
-               register_map: RegisterMap, *, reset_alarm: bool, on_event: Callable[[str], object]) -> Links:
+               register_map: RegisterMap, *, reset_alarm: bool, on_event: Callable[[LinkNotice], object]) -> Links:
     """Open the controller and the DAQ and read the controller's state; a latched alarm
     is refused unless ``reset_alarm``.  On any failure both links are closed again."""
     shaker = Shaker(shaker_url, config.limits, register_map, reconnect_s=config.reconnect_s, on_event=on_event)
@@ -314,14 +314,14 @@ class SessionRunner:
         prep, bus, acq = self.prep, self.bus, self.acquisition
         todo = [e for e in prep.plan.experiments if e.letter not in session.completed()]
         result = RunResult("running", EXIT_OK, session)
-        bus.publish("session-start", message=f"shaker {prep.shaker_url}, DAQ {prep.daq_url} ({self.links.identity})")
+        bus.publish(Kind.SESSION_START, shaker=prep.shaker_url, daq=prep.daq_url, identity=self.links.identity)
         if self.links.latched_alarm:
-            bus.publish("log", message=f"alarm latched before the session: {self.links.latched_alarm}; "
+            bus.publish(Kind.LOG, message=f"alarm latched before the session: {self.links.latched_alarm}; "
                                        "cleared by --reset-alarm")
         if prep.stored is not None:
             kept = sorted(session.completed())
             plural = "s" if len(kept) != 1 else ""
-            bus.publish("log", message=f"resuming: {len(kept)} experiment{plural} kept as captured "
+            bus.publish(Kind.LOG, message=f"resuming: {len(kept)} experiment{plural} kept as captured "
                                        f"({', '.join(kept) or 'none'}), {len(todo)} to do")
         self.state = "running"
         reason = "end of session"
@@ -343,11 +343,11 @@ class SessionRunner:
                     result.status, result.exit_code = f"interrupted ({name})", EXIT_INTERRUPTED
                 except RigError as exc:
                     reason = str(exc)
-                    bus.publish("log", message=f"aborting: {exc}")
+                    bus.publish(Kind.LOG, message=f"aborting: {exc}")
                     result.status, result.exit_code = f"aborted: {exc}", EXIT_ABORTED
                 except BaseException as exc:  # a bug: the rig is stopped all the same, then it is shown
                     reason = f"internal error: {type(exc).__name__}: {exc}"
-                    bus.publish("log", message=f"aborting on an internal error: {type(exc).__name__}: {exc}")
+                    bus.publish(Kind.LOG, message=f"aborting on an internal error: {type(exc).__name__}: {exc}")
                     result.status, result.exit_code, result.error = f"aborted: {reason}", EXIT_INTERNAL, exc
                 else:
                     if result.skipped:
@@ -374,7 +374,7 @@ class SessionRunner:
             else:
                 self.state = result.status.split(":")[0].split(" ")[0]
             session.finish(result.status)
-            bus.publish("session-end", message=result.status)
+            bus.publish(Kind.SESSION_END, message=result.status, exit_code=result.exit_code)
         return result
 
     def _experiment(self, spec: Any, session: Session, result: RunResult, planned: ExperimentDuration,
@@ -384,7 +384,7 @@ class SessionRunner:
             record: ExperimentRecord = self.acquisition.run_experiment(
                 spec, label, None if after_skip else planned.hold, planned.time_constant_s)
         except AlarmError as exc:
-            self.bus.publish("alarm", label, message=str(exc))
+            self.bus.publish(Kind.ALARM, label, message=str(exc))
             if self.prep.options.on_alarm != "skip":
                 raise
             failures = self.acquisition.safe_stop(str(exc))
@@ -395,7 +395,7 @@ class SessionRunner:
             except ShakerError as reset_exc:
                 raise RigFault(f"{exc}; the alarm could not be reset ({reset_exc})") from None
             result.skipped.append(label)
-            self.bus.publish("experiment-failed", label, message=f"{label} skipped after the alarm ({exc})")
+            self.bus.publish(Kind.EXPERIMENT_FAILED, label, message=f"{label} skipped after the alarm ({exc})")
             return
         # Written while the next experiment moves and settles: at rest between
         # experiments the gas cools (on a simulator at 50x, the second a CSV takes to
@@ -412,7 +412,7 @@ class SessionRunner:
         """On the writer's thread: the experiment on disk, then captured, then announced."""
         experiment = session.write_experiment(record)
         result.captured.append(experiment)
-        self.bus.publish("experiment-done", record.label, file=experiment.file, samples=len(record.index),
+        self.bus.publish(Kind.EXPERIMENT_DONE, record.label, file=experiment.file, samples=len(record.index),
                          lost=record.lost_samples, flags=record.flags)
 
     def _written(self, result: RunResult) -> None:
@@ -562,9 +562,9 @@ def _ended_before_motion(runner: SessionRunner, session: Session, exc: BaseExcep
         reason = f"internal error: {type(exc).__name__}: {exc}"
         result.status, result.exit_code, result.error = f"aborted: {reason} (before anything moved)", EXIT_INTERNAL, exc
     runner.state = result.status.split(":")[0].split(" ")[0]
-    runner.bus.publish("log", message=f"session {result.status}")
+    runner.bus.publish(Kind.LOG, message=f"session {result.status}")
     session.finish(result.status)
-    runner.bus.publish("session-end", message=result.status)
+    runner.bus.publish(Kind.SESSION_END, message=result.status, exit_code=result.exit_code)
     return result
 
 

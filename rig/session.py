@@ -14,7 +14,6 @@ import io
 import json
 import os
 import platform
-import time
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -28,7 +27,7 @@ from identify.files import atomic_write_bytes
 from rig.acquisition import ExperimentRecord
 from rig.daq import CHANNELS
 from rig.errors import BadInput, RigFault
-from rig.events import Event
+from rig.events import Event, Kind
 
 SESSION_FILE = "session.json"
 CSV_SLICE_ROWS = 1000                # rows per pandas call when an experiment is written (see _csv_in_slices)
@@ -173,7 +172,11 @@ class Session:
 
 
 class SessionLog:
-    """Inline subscriber: every event as a line in ``session.log``, flushed at once."""
+    """Inline subscriber: every event as one JSON object per line of ``session.log``
+    (``time`` ISO 8601 to the millisecond, ``kind``, ``experiment``, then the kind's
+    fields, :data:`rig.events.FIELDS`), flushed at once, so that tools can read it
+    (:func:`read_log`) and a crash loses no line but the one being written.
+"""
 
     def __init__(self, path: Path) -> None:
         try:
@@ -183,15 +186,45 @@ class SessionLog:
 
     def __call__(self, event: Event) -> None:
         # Milliseconds: what a session spends between two phases is what a rig's time is made of.
-        stamp = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(event.time)) + f".{int(event.time % 1 * 1000):03d}"
-        details = " ".join(f"{k}={v}" for k, v in event.data.items() if k != "message")
-        text = event.data.get("message", "")
-        gap = " " if text and details else ""
-        self._file.write(f"{stamp} {event.kind:<18} {event.experiment or '-':<10} {text}{gap}{details}\n")
+        stamp = _dt.datetime.fromtimestamp(event.time).astimezone().isoformat(timespec="milliseconds")
+        record = {"time": stamp, "kind": str(event.kind), "experiment": event.experiment,
+                  **{k: _plain(v) for k, v in event.data.items()}}
+        self._file.write(json.dumps(record, ensure_ascii=False, default=str) + "\n")
         self._file.flush()
 
     def close(self) -> None:
         self._file.close()
+
+
+def _plain(value: Any) -> Any:
+    """A field as JSON holds it: floats to six significant digits (no channel is measured
+    finer; seventeen digits of float noise helped no reader), NaN and infinity as null."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(f"{value:.6g}") if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def read_log(path: Path) -> list[Event]:
+    """The events of a ``session.log`` (a line that is not a JSON object, as sessions
+    before this format wrote, comes back as a log event holding the line)."""
+    events = []
+    for line in Path(path).read_text(encoding="utf-8", errors="replace").splitlines():
+        try:
+            record = json.loads(line)
+            stamp = _dt.datetime.fromisoformat(record.pop("time")).timestamp()
+            kind, experiment = Kind(record.pop("kind")), record.pop("experiment")
+        except (ValueError, KeyError, TypeError, AttributeError):
+            if line.strip():
+                events.append(Event(Kind.LOG, None, {"message": line}, 0.0))
+            continue
+        events.append(Event(kind, experiment, record, stamp))
+    return events
 
 
 def _csv_in_slices(columns: dict[str, np.ndarray]) -> bytes:

@@ -169,7 +169,7 @@ def test_an_estop_while_settling_raises_the_alarm_at_the_next_status_poll(vrig):
     vrig.when("settling", 3.0, lambda: vrig.inject("estop"))
     with pytest.raises(AlarmError, match=r"^shaker alarm: emergency stop \(stroke 1[23]\d\.\d\d mm"):
         acq.run_experiment(J, "261122j")
-    assert [p for _, _, p in vrig.phases()] == ["moving", "settling"]
+    assert [p for _, _, p in vrig.phases()] == ["moving", "settling", "alarm"]
     assert not vrig.sim.daq.streaming                  # the stream is stopped on the way out
     assert acq.safe_stop("alarm") == []
     assert_at_rest(vrig, Alarm.EMERGENCY_STOP)

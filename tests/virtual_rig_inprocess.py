@@ -307,15 +307,13 @@ class InProcessRig:
         self.bus.subscribe(lambda e: self.events.append((self.clock.monotonic(), e)), inline=True)
         self.register_map = load_register_map()
         self.shaker = Shaker(SHAKER_URL, self.config.limits, self.register_map, reconnect_s=self.config.reconnect_s,
-                             on_event=self._log, client=self.client, clock=self.clock)
+                             on_event=self.bus.publish_link, client=self.client, clock=self.clock)
         self.daq = Daq(DAQ_URL, Calibration.from_file(), rate_hz=self.config.daq_rate_hz, port=self.line.host,
-                       reconnect_s=self.config.reconnect_s, on_event=self._log)
+                       reconnect_s=self.config.reconnect_s, on_event=self.bus.publish_link)
         self.identity = ""
         self._beat = 0
         self._session_log: SessionLog | None = None
 
-    def _log(self, message: str) -> None:
-        self.bus.publish("log", message=message)
 
     def connect(self) -> None:
         """What rig.run.connect does, with the heartbeat on simulated time."""
@@ -358,8 +356,10 @@ class InProcessRig:
         """(simulated time, experiment, phase) of every phase entered."""
         return [(t, e.experiment, e.data["phase"]) for t, e in self.events if e.kind == "phase"]
 
-    def messages(self, kind: str = "log") -> list[str]:
-        return [e.data.get("message", "") for _, e in self.events if e.kind == kind]
+    def messages(self, *kinds: str) -> list[str]:
+        """The messages of events of these kinds, in order (default: log lines and link notices)."""
+        kinds = kinds or ("log", "link")
+        return [e.data.get("message", "") for _, e in self.events if e.kind in kinds]
 
     def open_session(self, out: Path, letters: list[str], on_alarm: str = "abort") -> tuple[SessionRunner, Session]:
         """``rig run`` from ``prepare`` on, with these links: the runner and its session

@@ -18,6 +18,7 @@ from identify.model import DEFAULT_ESTIMATE
 from rig.gui.fit_view import fill_parameter_table, parameter_table
 from rig.gui.plotting import labelled
 from rig.gui.station import IdentifySettings
+from rig.progress import log_text
 
 EXPERIMENT_COLUMNS = ("experiment", "f [Hz]", "static [mm]", "amplitude [mm]", "periods", "settle cycles",
                       "steady", "lost samples", "flags")
@@ -164,7 +165,8 @@ class SessionBrowser(QtWidgets.QWidget):
             for j, value in enumerate(cells):
                 self.table.setItem(i, j, QtWidgets.QTableWidgetItem(f"{value:g}" if isinstance(value, float)
                                                                     else str(value)))
-        self.log.setPlainText(_read_text(folder / "session.log") or "(no session.log)")
+        log = folder / "session.log"
+        self.log.setPlainText(log_text(log) if log.is_file() else "(no session.log)")
         self.report.setPlainText(_read_text(folder / "report.txt") or "(no report.txt: not identified yet)")
         doc = _read_json(folder / "RESULT.json")
         self.params.setRowCount(0)

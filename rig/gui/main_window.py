@@ -24,7 +24,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from identify.exit_codes import EXIT_BAD_INPUT
 from rig.daq import check_daq_address
 from rig.errors import BadInput
-from rig.events import Event
+from rig.events import Event, Kind
 from rig.gui.browser import SessionBrowser
 from rig.gui.controls import ControllerPanel, ManualPanel
 from rig.gui.fit_view import FitView
@@ -49,6 +49,7 @@ from rig.gui.station import (
     session_options,
 )
 from rig.plans import comma_list, load_plan
+from rig.progress import describe
 from rig.qc.spec import load_spec
 from rig.run import RunOptions
 from rig.shaker import ShakerAddress, ShakerStatus
@@ -56,7 +57,8 @@ from rig.virtual import VirtualRig
 
 REDRAW_HZ = 30
 DRAIN_MAX = 5000                 # records taken from the queue per tick, so a flood cannot freeze the window
-LOGGED_EVENTS = ("session-start", "phase", "experiment-done", "experiment-failed", "alarm", "log", "session-end")
+LOGGED_EVENTS = (Kind.SESSION_START, Kind.PHASE, Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED, Kind.ALARM, Kind.LOG,
+                 Kind.LINK, Kind.SESSION_END)
 ESTOP_KEYS = ("Esc", "F12")
 GIL_SWITCH_S = 0.0005
 SIMULATOR_NICE = 5
@@ -418,10 +420,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.reset_button.setEnabled(alarm)
 
     def _log_event(self, e: Event) -> None:
-        details = " ".join(f"{k}={v}" for k, v in e.data.items() if k not in ("message", "phase", "change"))
-        text = " ".join(x for x in (e.experiment or "", e.kind if e.kind != "phase" else e.data["phase"],
-                                    str(e.data.get("message", "")), details) if x)
-        self._say(text, "error" if e.kind in ("alarm", "experiment-failed") else "info",
+        text = f"{e.experiment}: {describe(e)}" if e.experiment else describe(e)
+        self._say(text, "error" if e.kind in (Kind.ALARM, Kind.EXPERIMENT_FAILED) else "info",
                   time.strftime("%H:%M:%S", time.localtime(e.time)))
 
     def _say(self, text: str, level: str = "info", stamp: str | None = None) -> None:

@@ -43,7 +43,7 @@ from identify.model import DEFAULT_ESTIMATE
 from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq
 from rig.errors import BadInput, RigError
-from rig.events import Subscriber
+from rig.events import Event, Kind, LinkCondition, LinkNotice, Subscriber
 from rig.gui import fits
 from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
@@ -235,12 +235,22 @@ class Station:
             self.post(LinkState(False, "disconnected"))
         return self._commands.submit(self._job, "disconnect", job)
 
-    def _link_event(self, message: str) -> None:
-        if message.startswith("heartbeat failing"):
+    def _link_event(self, notice: LinkNotice) -> None:
+        """The console's own links (outside sessions)."""
+        self._heartbeat(notice.state)
+        self.post(Notice(notice.message))
+
+    def _session_event(self, event: Event) -> None:
+        """A session's events, for the window (queued: the acquisition never waits on it)."""
+        if event.kind == Kind.LINK:
+            self._heartbeat(LinkCondition(event.data["state"]))
+        self.post(event)
+
+    def _heartbeat(self, state: LinkCondition) -> None:
+        if state is LinkCondition.HEARTBEAT_FAILING:
             self.heartbeat_ok = False
-        elif message.startswith("heartbeat back"):
+        elif state is LinkCondition.HEARTBEAT_BACK:
             self.heartbeat_ok = True
-        self.post(Notice(message))
 
     # ----- manual commands: checked here, sent on the command thread ------------------------------------
     def _refuse_manual(self, status: ShakerStatus | None, need_hydraulics: bool) -> list[str]:
@@ -317,7 +327,7 @@ class Station:
         runner = self.runner
         if runner is not None:
             runner.acquisition.stop_requested.set()
-            runner.bus.publish("log", message="E-STOP pressed by the operator: STOP and hydraulics off")
+            runner.bus.publish(Kind.LOG, message="E-STOP pressed by the operator: STOP and hydraulics off")
         self._interrupt_qc()
 
     def _open_estop_line(self, url: str | None) -> None:
@@ -408,7 +418,7 @@ class Station:
         self._abort.set()
         runner = self.runner
         if runner is not None:
-            runner.bus.publish("log", message=f"{why}: safe stop")
+            runner.bus.publish(Kind.LOG, message=f"{why}: safe stop")
             runner.acquisition.stop_requested.set()
         self._interrupt_qc()
 
@@ -505,7 +515,7 @@ class Station:
             return []
 
         # The window's queue: the acquisition never waits on it.
-        result = run_lifecycle(prep, Console(file=io.StringIO()), subscribers=[self.post], attach=opened,
+        result = run_lifecycle(prep, Console(file=io.StringIO()), subscribers=[self._session_event], attach=opened,
                                on_runner=runner_changed)
         if result.error is not None:
             self.post(Notice(f"internal error in the session: {result.error!r}", "error"))
