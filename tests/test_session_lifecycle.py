@@ -6,6 +6,7 @@ behind (threads, open files)."""
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import threading
@@ -13,11 +14,14 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from rich.console import Console
 
 from rig.daq import DaqError
 from rig.errors import RigFault
+from rig.events import Event, Kind
+from rig.progress import ConsoleProgress, describe
 from rig.run import EXIT_ABORTED, EXIT_INTERNAL, EXIT_OK, RunResult, SessionRunner
-from rig.session import Session, SessionError, SessionLog, SessionWriteError
+from rig.session import Session, SessionError, SessionLog, SessionWriteError, read_log
 from rig.shaker import ShakerLinkError
 from simulator.controller import State
 from tests.virtual_rig_inprocess import InProcessRig, quick_rig_config
@@ -76,6 +80,28 @@ def test_a_session_that_completes_leaves_nothing_behind(vrig, tmp_path):
     assert (result.status, result.exit_code, meta["status"]) == ("complete", EXIT_OK, "complete")
     assert meta["estimated_rig_time_s"] > 0
     assert_at_rest(vrig)
+    # session.log: one JSON object per event, as published; read back, each says itself in a sentence
+    lines = [json.loads(line) for line in (tmp_path / "s" / "session.log").read_text().splitlines()]
+    assert all(list(line)[:3] == ["time", "kind", "experiment"] for line in lines)
+    assert [line["kind"] for line in lines].count("experiment-done") == 2 and lines[-1]["kind"] == "session-end"
+    assert [e.kind for e in read_log(tmp_path / "s" / "session.log")] == [line["kind"] for line in lines]
+    assert all(describe(e)[0].isupper() and describe(e).endswith(".") for e in read_log(tmp_path / "s" / "session.log"))
+
+
+def test_the_terminal_says_each_line_under_the_experiment_it_belongs_to():
+    """An experiment's file is written while the next one moves: its line keeps its own number."""
+    out = io.StringIO()
+    progress = ConsoleProgress(Console(file=out, width=200), {"261126l": 60.0, "261126v": 60.0, "261126j": 60.0})
+    progress(Event(Kind.PHASE, "261126v", {"phase": "moving", "target_mm": 133.04}))
+    progress(Event(Kind.EXPERIMENT_DONE, "261126l", {"file": "261126l.csv", "samples": 12000, "lost": 0,
+                                                     "flags": []}))
+    progress(Event(Kind.PROGRESS, "261126v", {"phase": "settling", "cycles": 12, "ratio": 0.81234,
+                                              "bias_sigma": 2601.66, "change": {"stroke_mm": 1.2e-5, "force_N": 5.63}}))
+    lines = out.getvalue().splitlines()[1:]
+    assert lines[0] == "[2/3] 261126v  Moving to the static position 133.0 mm."
+    assert lines[1].startswith("[1/3] 261126l  Written to 261126l.csv: 12000 samples, none lost in the window.")
+    assert lines[2] == ("[2/3] 261126v  Cycle 12: the block means moved by stroke 0.000 mm, force 5.6 N; the "
+                        "transient decays ×0.812 per cycle and could bias the fit by up to 2600 σ.")
 
 
 def test_a_folder_that_cannot_be_made_is_raised_and_nothing_is_written(vrig, tmp_path, monkeypatch):
