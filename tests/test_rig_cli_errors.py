@@ -101,8 +101,10 @@ def test_a_misspelt_key_in_a_plan_is_refused(tmp_path):
 
 def test_an_out_folder_that_cannot_be_made_is_bad_input(virtual_rig, tmp_path):
     sim = virtual_rig()
+    # one experiment: the standard plan's thermal ordering is 8 s of CPU, past the timeout on a loaded host
     r = subprocess.run([sys.executable, "-m", "rig", "run", "--shaker", sim.modbus_url, "--daq", sim.daq_url,
-                        "--out", "/proc/no-session-here"], capture_output=True, text=True, timeout=60)
+                        "--experiments", "j", "--out", "/proc/no-session-here"], capture_output=True, text=True,
+                       timeout=60)
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert "--out /proc/no-session-here: cannot create the session folder" in r.stderr
 
@@ -156,7 +158,8 @@ def test_a_daq_cut_at_the_first_start_is_one_line_and_on_record(virtual_rig, tmp
     sim, daq = virtual_rig(), DaqCutAtStart()
     config = tmp_path / "rig.toml"
     config.write_text(DEFAULT_RIG_CONFIG.read_text().replace("reconnect_s = 20.0", "reconnect_s = 1.0"))
-    r, out = rig_run(tmp_path, "--rig-config", str(config), shaker=sim.modbus_url, daq=daq.url)
+    # one experiment: no thermal ordering to compute (seconds of CPU that a loaded host stretches)
+    r, out = rig_run(tmp_path, "--rig-config", str(config), "--experiments", "j", shaker=sim.modbus_url, daq=daq.url)
     assert r.returncode == 3 and "Traceback" not in r.stderr, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "link lost during 'START'" in lines[0], r.stderr
