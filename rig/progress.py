@@ -40,7 +40,7 @@ def describe(e: Event) -> str:
         if phase is Phase.MOVING:
             return f"Moving to the static position {d['target_mm']:.1f} mm."
         if phase is Phase.CAPTURING:
-            return f"Capturing, after {d['cycles']} settling cycles."
+            return f"Now capturing, after {d['cycles']} settling cycles."
         if phase is Phase.STOPPING:
             return f"Stopping: {d['reason']}." if d.get("reason") else "Fading out and stopping."
         if phase is Phase.ALARM:
