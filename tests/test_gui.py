@@ -269,3 +269,52 @@ def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path
     assert verdict.text() == "REFUSED" and "format of spec" in find(window, QtWidgets.QLabel, "qcReason").text()
     assert not window.station.session_running and window.station.shaker is not None
     closed(qtbot, window)
+
+
+MOTION_BUTTONS = ("hydraulicsOnButton", "moveButton", "sineButton", "runPlanButton", "resumeButton")
+
+
+def motion_disabled(window: MainWindow) -> dict[str, str]:
+    """The tooltip of every disabled motion control (an enabled one is left out)."""
+    buttons = {name: find(window, QtWidgets.QPushButton, name) for name in MOTION_BUTTONS}
+    return {name: b.toolTip() for name, b in buttons.items() if not b.isEnabled()}
+
+
+def test_after_estop_every_motion_control_is_disabled_until_the_reset_is_confirmed(qtbot, tmp_path, monkeypatch):
+    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--out", str(tmp_path))
+    connected(qtbot, window)
+    strip = find(window, QtWidgets.QLabel, "stateStrip")
+    qtbot.waitUntil(lambda: "HYDRAULICS OFF" in strip.text(), timeout=10_000)
+    # Hydraulics off: nothing can move, but the hydraulics may be switched on.
+    assert set(motion_disabled(window)) == {"moveButton", "sineButton"}
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "hydraulicsOnButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: "IDLE" in strip.text() and "HYDRAULICS ON" in strip.text(), timeout=10_000)
+    assert motion_disabled(window) == {}
+    window.manual.sine_amplitude.setValue(10.0)
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "sineButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: strip.text().startswith("RUNNING"), timeout=10_000)
+
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "estopButton"), QtCore.Qt.MouseButton.LeftButton)
+    assert window.station.estop_done.wait(10)
+    status_reads(qtbot, window, 2)          # the registers read after the E-STOP's writes
+    disabled = motion_disabled(window)
+    assert set(disabled) == set(MOTION_BUTTONS)
+    assert all(tip.startswith("Disabled: E-STOP") for tip in disabled.values()), disabled
+    assert strip.text().startswith("ALARM") and "HYDRAULICS OFF" in strip.text()
+    banner = find(window, QtWidgets.QLabel, "alarmBanner").text()
+    assert "hydraulics OFF" in banner and "holds the position" not in banner
+
+    answers = [QtWidgets.QMessageBox.StandardButton.No]
+    monkeypatch.setattr(QtWidgets.QMessageBox, "question", lambda *a, **k: answers[-1])
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "resetButton"), QtCore.Qt.MouseButton.LeftButton)
+    status_reads(qtbot, window, 2)
+    assert set(motion_disabled(window)) == set(MOTION_BUTTONS)       # not confirmed: still latched
+    assert strip.text().startswith("ALARM") and "HYDRAULICS OFF" in strip.text()
+    answers.append(QtWidgets.QMessageBox.StandardButton.Yes)
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "resetButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: strip.text().startswith("OFF"), timeout=5_000)
+    assert "HYDRAULICS OFF" in strip.text()
+    disabled = motion_disabled(window)
+    assert set(disabled) == {"moveButton", "sineButton"}
+    assert all("hydraulics OFF" in tip for tip in disabled.values()), disabled
+    closed(qtbot, window)

@@ -33,6 +33,7 @@ class SessionBrowser(QtWidgets.QWidget):
         self.start_folder = start_folder
         self.folder: Path | None = None
         self.entries: list[dict[str, Any]] = []
+        self.resumable = False          # the folder shown is an unfinished session (the window gates the button)
 
         top = QtWidgets.QHBoxLayout()
         self.path = QtWidgets.QLineEdit()
@@ -148,10 +149,12 @@ class SessionBrowser(QtWidgets.QWidget):
                 f"<b>{raw.get('name', folder.name)}</b> — status <b>{status}</b>; plan {meta.get('plan')}, "
                 f"started {meta.get('started', '?')}, finished {meta.get('finished', '–')}; "
                 f"{len(manifest.experiments)} of {len(meta.get('experiments', []))} experiments captured")
-            self.resume_button.setEnabled(status != "complete")
+            self.resumable = status != "complete"
+            self.resume_button.setEnabled(self.resumable)
         else:
             self.summary.setText(f"<b>{raw.get('name', folder.name)}</b> — a dataset without session.json "
                                  f"({len(manifest.experiments)} experiments)")
+            self.resumable = False
             self.resume_button.setEnabled(False)
         self.table.setRowCount(len(self.entries))
         for i, e in enumerate(self.entries):

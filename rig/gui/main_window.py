@@ -32,6 +32,7 @@ from rig.gui.live import LiveView
 from rig.gui.plan_panel import PlanPanel
 from rig.gui.qc import QcDone, QcRequest
 from rig.gui.qc_panel import QcPanel
+from rig.gui.state_strip import RigState, StateStrip, hydraulics_on
 from rig.gui.station import (
     ComparisonDone,
     EstopDone,
@@ -104,6 +105,8 @@ class MainWindow(QtWidgets.QMainWindow):
             raise
         self.status: ShakerStatus | None = None
         self.estop_text: str | None = None          # latched until the operator resets
+        self.alarm_latched: str | None = None       # an alarm seen, latched here until the operator resets
+        self.link_error: str | None = None
         self._closing = False
         self._last_redraw = 0.0
         self._last_table = 0.0
@@ -178,6 +181,7 @@ class MainWindow(QtWidgets.QMainWindow):
         header = QtWidgets.QHBoxLayout()
         header.addLayout(head, 1)
         header.addWidget(self.estop_button)
+        self.strip = StateStrip()
 
         st = self.station
         self.controller = ControllerPanel(st.config.limits.watchdog_timeout_s)
@@ -230,10 +234,15 @@ class MainWindow(QtWidgets.QMainWindow):
         central = QtWidgets.QWidget()
         layout = QtWidgets.QVBoxLayout(central)
         layout.addLayout(header)
+        layout.addWidget(self.strip)
         layout.addWidget(split, 1)
         layout.addWidget(self.log)
         self.setCentralWidget(central)
         self.resize(1600, 1000)
+        self._motion = {"hydraulics_on": self.manual.hyd_on, "move": self.manual.move_button,
+                        "sine": self.manual.sine_button, "run_plan": self.plan.run_button,
+                        "resume": self.plan.resume_button, "qc_test": self.qc.test_button}
+        self._tooltips = {name: button.toolTip() for name, button in self._motion.items()}
         self._show_banner()
 
     # ----- operator actions ------------------------------------------------------------------------
@@ -253,6 +262,27 @@ class MainWindow(QtWidgets.QMainWindow):
         self._say("E-STOP pressed", "error")
         self._show_banner()
 
+    def rig_state(self) -> RigState:
+        trip = "E-STOP" if self.estop_text else self.alarm_latched
+        return RigState(self.status, trip, self.link_error, self.station.shaker is not None,
+                        self.station.session_running)
+
+    def _show_state(self) -> None:
+        """The strip and which motion controls are allowed, from the same state."""
+        state = self.rig_state()
+        self.strip.show_state(state)
+        blocked = state.blocked()
+        for name, button in self._motion.items():
+            reason = blocked.get(name)
+            if reason is not None:
+                button.setEnabled(False)
+                button.setToolTip(f"Disabled: {reason}")
+            elif button.toolTip() != self._tooltips[name] or not button.isEnabled():
+                button.setEnabled(True)
+                button.setToolTip(self._tooltips[name])
+        self.browser.resume_button.setEnabled(self.browser.resumable and "resume" not in blocked)
+        self.browser.resume_button.setToolTip(f"Disabled: {blocked['resume']}" if "resume" in blocked else "")
+
     def reset_alarm(self, confirm: bool = True) -> None:
         if confirm:
             what = self.estop_text or (f"alarm: {self.status.alarm}" if self.status else "alarm")
@@ -260,7 +290,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 self, "Reset the trip?", f"{what}\n\nReset only once the cause is known and the rig is safe. Reset?")
             if answer != QtWidgets.QMessageBox.StandardButton.Yes:
                 return
-        self.estop_text = None
+        self.estop_text = self.alarm_latched = None
         if self.status is not None and self.status.state == "ALARM":
             self.manual._do(self.station.reset_alarm())
         self._show_banner()
@@ -321,6 +351,7 @@ class MainWindow(QtWidgets.QMainWindow):
             except queue.Empty:
                 break
             self._handle(item)
+        self._show_state()
         now = time.monotonic()
         if self.tabs.currentWidget() is self.live and now - self._last_redraw >= 0.9 / REDRAW_HZ:
             self.live.frequency_hz = self._excitation_hz()
@@ -347,9 +378,11 @@ class MainWindow(QtWidgets.QMainWindow):
         elif isinstance(item, Snapshot):
             was = self.status
             self.status = item.status
+            self.link_error = item.error
             if item.status is not None and item.status.state == "ALARM" and (was is None or was.state != "ALARM"):
                 # A trip outside a session (a manual sine) has no acquisition event to log it.
                 self._say(f"controller tripped: {item.status.alarm}", "error")
+                self.alarm_latched = f"alarm: {item.status.alarm}"
             self.controller.show_snapshot(item)
             self.live.show_health(item)
             self._show_banner(item.error)
@@ -360,6 +393,7 @@ class MainWindow(QtWidgets.QMainWindow):
             self.connect_button.setText("Disconnect" if item.connected else "Connect")
             if not item.connected:
                 self.status = None
+            self._show_banner()
         elif isinstance(item, SessionOpened):
             self.plan.show_progress(item.progress)
             self.plan.set_running(True)
@@ -403,11 +437,16 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _show_banner(self, link_error: str | None = None) -> None:
         st = self.status
+        # What the actuator does now, from the registers: held only with pressure behind it.
+        held = ("hydraulics OFF (0 bar): the actuator is not held" if st is not None and not hydraulics_on(st)
+                else f"the controller holds the position ({st.hydraulic_pressure_pa / 1e5:.0f} bar)"
+                if st is not None else "the controller's state is not known (no answer)")
         if self.estop_text:
-            text, colour = self.estop_text + " — Reset… when safe", "#d50000"
-        elif st is not None and st.state == "ALARM":
-            text, colour = f"ALARM: {st.alarm} — the controller holds the position; find the cause, then Reset…", \
-                "#d50000"
+            text, colour = f"{self.estop_text} — {held}. Reset… once the rig is safe", "#d50000"
+        elif st is not None and st.state == "ALARM" or self.alarm_latched:
+            alarm = st.alarm if st is not None and st.state == "ALARM" else \
+                f"{self.alarm_latched} (the controller reads {st.state if st else '?'})"
+            text, colour = f"ALARM: {alarm} — {held}; find the cause, then Reset…", "#d50000"
         elif link_error:
             text, colour = f"Controller not answering: {link_error}", "#e65100"
         else:
