@@ -207,7 +207,7 @@ class MainWindow(QtWidgets.QMainWindow):
         left_layout.addWidget(self.controller)
         left_layout.addWidget(self.left_tabs, 1)
 
-        self.live = LiveView(st.config.daq_rate_hz)
+        self.live = LiveView(st.config.daq_rate_hz, st.config.min_span)
         self.fit_view = FitView()
         self.fit_view.compareRequested.connect(self.compare)
         self.browser = SessionBrowser(Path(args.out))
@@ -354,21 +354,25 @@ class MainWindow(QtWidgets.QMainWindow):
         self._show_state()
         now = time.monotonic()
         if self.tabs.currentWidget() is self.live and now - self._last_redraw >= 0.9 / REDRAW_HZ:
-            self.live.frequency_hz = self._excitation_hz()
+            self.live.set_excitation(*self._excitation())
             if self.live.refresh(self.station.live_daq()):
                 self._last_redraw = now
         if now - self._last_table >= 0.5:
             self._last_table = now
             self.plan.refresh()
 
-    def _excitation_hz(self) -> float | None:
+    def _excitation(self) -> tuple[object, float | None]:
+        """The excitation running now, as (a key that changes when a new one starts, its
+        frequency); (None, None) when the rig is not excited (moving, at rest, tripped)."""
         progress = self.plan.progress
         current = progress.current if progress is not None and self.station.session_running else None
         if current is not None:
-            return current.spec.frequency_hz
-        if self.status is not None and self.status.state == "RUNNING":
-            return self.station.manual_frequency_hz
-        return None
+            if current.status in ("settling", "capturing"):
+                return current.label, current.spec.frequency_hz
+            return None, None
+        if self.status is not None and self.status.state == "RUNNING" and self.station.manual_frequency_hz:
+            return ("manual", self.station.manual_runs), self.station.manual_frequency_hz
+        return None, None
 
     def _handle(self, item: object) -> None:
         if isinstance(item, Event):

@@ -159,6 +159,7 @@ class Station:
         self.daq: Daq | None = None
         self.runner: SessionRunner | None = None    # the session's, while one runs
         self.manual_frequency_hz: float | None = None
+        self.manual_runs = 0                         # manual sines sent: each new one is a new excitation
         self.heartbeat_ok = True
         self.closing = False                         # the window is closing: no links taken back
         self._was_connected = False
@@ -287,6 +288,7 @@ class Station:
         def run(s: Shaker) -> None:
             s.run(static_m, amplitude_m, frequency_hz, "sine", ramp)
             self.manual_frequency_hz = frequency_hz
+            self.manual_runs += 1
         return self._manual(f"sine {amplitude_m * 1e3:.2f} mm at {frequency_hz:g} Hz around {static_m * 1e3:.2f} mm",
                             problems, run)
 
