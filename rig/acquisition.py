@@ -39,6 +39,7 @@ POLL_S = 0.05
 HARMONICS_IN_BLOCK_MEAN = 12
 MAX_LOST_IN_BLOCK = 0.2
 QUICK_RECONNECT_S = 0.5
+ACTUATOR_LAG_S = 0.5          # settling is counted from this long after the fade-in (the console counts alike)
 MOVE_TIMEOUT_S = 30.0           # beyond twice the move profile's duration: the controller is stuck
 # A hold ends on the gas temperature of a line fitted through this much of the stream,
 # or at the model's duration times this factor plus the margin, whichever comes first.
@@ -407,7 +408,7 @@ class Acquisition:
                             time_constant_s: float | None) -> ExperimentRecord:
         ss, rate = self.config.steady_state, self.daq.rate_hz
         spp = rate / spec.frequency_hz                       # samples per period
-        start = int(math.ceil((ss.ramp_time_s + 0.5) * rate))  # after the fade-in (+ the actuator's lag)
+        start = int(math.ceil((ss.ramp_time_s + ACTUATOR_LAG_S) * rate))  # after the fade-in and the lag
         drift = ss.drift if ss.criterion == "drift" else None
         m = max(1, math.ceil(ss.block_s * spec.frequency_hz))  # cycles per block
         thresholds = np.array([ss.thresholds[c] for c in CHANNELS])

@@ -298,7 +298,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def run_plan(self) -> None:
         identify = IdentifySettings() if self.plan.identify.isChecked() else None
         opt = session_options(self.plan.plan.text().strip() or "standard", self.station.shaker_url,
-                              self.station.daq_url, Path(self.plan.folder.text().strip()), self.plan.letters(),
+                              self.station.daq_url, self.plan.run_folder(), self.plan.letters(),
                               self.station, identify)
         self._start(opt, identify)
 
@@ -387,6 +387,10 @@ class MainWindow(QtWidgets.QMainWindow):
                 # A trip outside a session (a manual sine) has no acquisition event to log it.
                 self._say(f"controller tripped: {item.status.alarm}", "error")
                 self.alarm_latched = f"alarm: {item.status.alarm}"
+            if item.status is not None and self.plan.progress is not None and self.station.session_running:
+                # The cycle count read with the status drives every count shown, in this frame.
+                if self.plan.progress.observe(item.status.cycles, item.time) is not None:
+                    self.plan.refresh()
             self.controller.show_snapshot(item)
             self.live.show_health(item)
             self._show_banner(item.error)
@@ -407,7 +411,8 @@ class MainWindow(QtWidgets.QMainWindow):
         elif isinstance(item, SessionClosed):
             self.plan.set_running(False)
             self.qc.set_running(False)
-            self.plan.new_folder()
+            if item.result is not None:
+                self.plan.session_ended(item.result.session.path)
             self._say(item.text, "info" if item.result is not None and item.result.exit_code == 0 else "error")
             if item.result is None:
                 self.plan.eta.setText(item.text.splitlines()[0])
@@ -442,15 +447,16 @@ class MainWindow(QtWidgets.QMainWindow):
     def _show_banner(self, link_error: str | None = None) -> None:
         st = self.status
         # What the actuator does now, from the registers: held only with pressure behind it.
-        held = ("hydraulics OFF (0 bar): the actuator is not held" if st is not None and not hydraulics_on(st)
-                else f"the controller holds the position ({st.hydraulic_pressure_pa / 1e5:.0f} bar)"
-                if st is not None else "the controller's state is not known (no answer)")
+        bar = f"{st.hydraulic_pressure_pa / 1e5:.0f} bar" if st is not None else ""
+        held = (f"hydraulics OFF ({bar}): the actuator is not held" if st is not None and not hydraulics_on(st)
+                else f"the controller holds the position ({bar})" if st is not None
+                else "the controller's state is not known (no answer)")
         if self.estop_text:
             text, colour = f"{self.estop_text} — {held}. Reset… once the rig is safe", "#d50000"
         elif st is not None and st.state == "ALARM" or self.alarm_latched:
-            alarm = st.alarm if st is not None and st.state == "ALARM" else \
+            which = st.alarm if st is not None and st.state == "ALARM" else \
                 f"{self.alarm_latched} (the controller reads {st.state if st else '?'})"
-            text, colour = f"ALARM: {alarm} — {held}; find the cause, then Reset…", "#d50000"
+            text, colour = f"ALARM: {which} — {held}; find the cause, then Reset…", "#d50000"
         elif link_error:
             text, colour = f"Controller not answering: {link_error}", "#e65100"
         else:

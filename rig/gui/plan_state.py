@@ -15,6 +15,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 from identify.plans import ExperimentSpec
+from rig.acquisition import ACTUATOR_LAG_S
 from rig.config import RigConfig
 from rig.events import Event
 from rig.gui.analysis import predicted_cycles_left
@@ -35,6 +36,22 @@ class ExperimentRow:
     started: float | None = None           # wall clock (monotonic)
     finished: float | None = None
     settling: list[tuple[int, dict[str, float]]] = field(default_factory=list)  # cycles, change (+ bias_sigma)
+    run_cycles: int | None = None          # the controller's cycles since RUN, as last read (settling, capturing)
+    lead_cycles: int = 0                   # of them, before settling is counted (the fade-in and the lag)
+    settled_at: int | None = None          # settling cycles when the capture began
+    running_since: float | None = None     # when settling began (clock): older reads are of the last RUN
+
+    def observe(self, run_cycles: int, read_at: float) -> None:
+        """The controller's cycle count, read with its status at ``read_at``: the settling
+        count and the capture's progress follow from it, so every number shown moves together."""
+        if self.status not in ("settling", "capturing") or self.running_since is None or read_at < self.running_since:
+            return
+        self.run_cycles = run_cycles
+        if self.status == "settling":
+            self.cycles = max(run_cycles - self.lead_cycles, 0)
+        elif self.settled_at is not None:
+            captured = run_cycles - self.lead_cycles - self.settled_at
+            self.fraction = min(max(captured / self.spec.periods, 0.0), 1.0)
 
     def status_text(self) -> str:
         if self.status == "settling":
@@ -50,7 +67,9 @@ class PlanProgress:
         self.clock, self.speed, self.config = clock, speed, config
         self.rows = [ExperimentRow(e, f"{date}{e.letter}",
                                    estimate_duration_s(replace(plan, experiments=(e,)), config,
-                                                       e.static_position_mm * 1e-3))
+                                                       e.static_position_mm * 1e-3),
+                                   lead_cycles=int(round((config.steady_state.ramp_time_s + ACTUATOR_LAG_S)
+                                                         * e.frequency_hz)))
                      for e in plan.experiments]
         for row in self.rows:
             if row.spec.letter in done:
@@ -61,6 +80,21 @@ class PlanProgress:
     @property
     def current(self) -> ExperimentRow | None:
         return next((r for r in self.rows if r.status in ACTIVE), None)
+
+    def observe(self, run_cycles: int, read_at: float) -> ExperimentRow | None:
+        """The controller's cycle count for the experiment running now (see ExperimentRow.observe)."""
+        row = self.current
+        if row is not None:
+            row.observe(run_cycles, read_at)
+        return row
+
+    def cycles_left(self, row: ExperimentRow, thresholds: dict[str, float]) -> int | None:
+        """Settling cycles still to go from the count shown, by the last reports' decay."""
+        ss = self.config.steady_state
+        left = predicted_cycles_left(row.settling, thresholds, ss.min_cycles, ss.max_cycles)
+        if left is None or not row.settling:
+            return left
+        return max(left - max(row.cycles - row.settling[-1][0], 0), 0)
 
     def apply(self, e: Event) -> ExperimentRow | None:
         """Take one event; returns the row it changed."""
@@ -80,13 +114,21 @@ class PlanProgress:
                 if row.started is None:
                     row.started = self.clock()
                 row.status = phase
+                if phase == "settling":
+                    row.running_since = self.clock()
+                if phase == "capturing":
+                    row.settled_at = int(e.data.get("cycles", row.cycles))
+                    row.fraction = 0.0
         elif e.kind == "progress" and e.data.get("phase") == "settling":
-            row.status, row.cycles = "settling", int(e.data["cycles"])
+            # The count shown comes from the controller's register (observe); the report's
+            # own count dates its changes, for the prediction of the cycles left.
+            row.status = "settling"
+            row.cycles = row.cycles or int(e.data["cycles"])
             # the drift criterion's bound beside the changes: what decides the capture there
             bound = {"bias_sigma": float(e.data["bias_sigma"])} if "bias_sigma" in e.data else {}
-            row.settling.append((row.cycles, dict(e.data["change"]) | bound))
+            row.settling.append((int(e.data["cycles"]), dict(e.data["change"]) | bound))
         elif e.kind == "progress" and e.data.get("phase") == "capturing":
-            row.status, row.fraction = "capturing", float(e.data["fraction"])
+            row.status = "capturing"
         elif e.kind == "experiment-done":
             row.status, row.finished = "done", self.clock()
             if e.data.get("flags"):
@@ -125,7 +167,7 @@ class PlanProgress:
         if row.status == "capturing":
             return (1 - row.fraction) * periods / f + ss.ramp_time_s
         if row.status == "settling" and row.settling:
-            left = predicted_cycles_left(row.settling, ss.thresholds, ss.min_cycles, ss.max_cycles)
+            left = self.cycles_left(row, ss.thresholds)
             return None if left is None else (left + periods) / f + ss.ramp_time_s
         return None
 
