@@ -387,9 +387,9 @@ class MainWindow(QtWidgets.QMainWindow):
                 # A trip outside a session (a manual sine) has no acquisition event to log it.
                 self._say(f"controller tripped: {item.status.alarm}", "error")
                 self.alarm_latched = f"alarm: {item.status.alarm}"
-            if item.status is not None and self.plan.progress is not None and self.station.session_running:
-                # The cycle count read with the status drives every count shown, in this frame.
-                if self.plan.progress.observe(item.status.cycles, item.time) is not None:
+            if self.plan.progress is not None and self.station.session_running:
+                # The stream's sample count read with the status drives every count shown, in this frame.
+                if self.plan.progress.observe(item.samples, item.time) is not None:
                     self.plan.refresh()
             self.controller.show_snapshot(item)
             self.live.show_health(item)

@@ -36,22 +36,26 @@ class ExperimentRow:
     started: float | None = None           # wall clock (monotonic)
     finished: float | None = None
     settling: list[tuple[int, dict[str, float]]] = field(default_factory=list)  # cycles, change (+ bias_sigma)
-    run_cycles: int | None = None          # the controller's cycles since RUN, as last read (settling, capturing)
-    lead_cycles: int = 0                   # of them, before settling is counted (the fade-in and the lag)
+    samples: int | None = None             # the DAQ stream's newest sample as last read (settling, capturing)
+    lead_samples: int = 0                  # samples after RUN before settling is counted (fade-in and lag)
     settled_at: int | None = None          # settling cycles when the capture began
     running_since: float | None = None     # when settling began (clock): older reads are of the last RUN
 
-    def observe(self, run_cycles: int, read_at: float) -> None:
-        """The controller's cycle count, read with its status at ``read_at``: the settling
-        count and the capture's progress follow from it, so every number shown moves together."""
-        if self.status not in ("settling", "capturing") or self.running_since is None or read_at < self.running_since:
+    def observe(self, samples: int, read_at: float, rate_hz: float) -> None:
+        """The DAQ stream's newest sample (it restarts at RUN), read with the controller's
+        status at ``read_at``: the settling count and the capture's progress follow from
+        it as the acquisition counts them, so every number shown moves together."""
+        if (self.status not in ("settling", "capturing") or self.running_since is None
+                or read_at < self.running_since or samples < 0):
             return
-        self.run_cycles = run_cycles
+        self.samples = samples
+        spp = rate_hz / self.spec.frequency_hz
+        counted = samples - self.lead_samples
         if self.status == "settling":
-            self.cycles = max(run_cycles - self.lead_cycles, 0)
+            self.cycles = max(int(counted // spp), 0)
         elif self.settled_at is not None:
-            captured = run_cycles - self.lead_cycles - self.settled_at
-            self.fraction = min(max(captured / self.spec.periods, 0.0), 1.0)
+            captured = counted - round(self.settled_at * spp)
+            self.fraction = min(max(captured / math.ceil(self.spec.periods * spp), 0.0), 1.0)
 
     def status_text(self) -> str:
         if self.status == "settling":
@@ -68,8 +72,8 @@ class PlanProgress:
         self.rows = [ExperimentRow(e, f"{date}{e.letter}",
                                    estimate_duration_s(replace(plan, experiments=(e,)), config,
                                                        e.static_position_mm * 1e-3),
-                                   lead_cycles=int(round((config.steady_state.ramp_time_s + ACTUATOR_LAG_S)
-                                                         * e.frequency_hz)))
+                                   lead_samples=math.ceil((config.steady_state.ramp_time_s + ACTUATOR_LAG_S)
+                                                          * config.daq_rate_hz))
                      for e in plan.experiments]
         for row in self.rows:
             if row.spec.letter in done:
@@ -81,11 +85,11 @@ class PlanProgress:
     def current(self) -> ExperimentRow | None:
         return next((r for r in self.rows if r.status in ACTIVE), None)
 
-    def observe(self, run_cycles: int, read_at: float) -> ExperimentRow | None:
-        """The controller's cycle count for the experiment running now (see ExperimentRow.observe)."""
+    def observe(self, samples: int, read_at: float) -> ExperimentRow | None:
+        """The DAQ's newest sample for the experiment running now (see ExperimentRow.observe)."""
         row = self.current
         if row is not None:
-            row.observe(run_cycles, read_at)
+            row.observe(samples, read_at, self.config.daq_rate_hz)
         return row
 
     def cycles_left(self, row: ExperimentRow, thresholds: dict[str, float]) -> int | None:
