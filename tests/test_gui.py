@@ -318,3 +318,82 @@ def test_after_estop_every_motion_control_is_disabled_until_the_reset_is_confirm
     assert set(disabled) == {"moveButton", "sineButton"}
     assert all("hydraulics OFF" in tip for tip in disabled.values()), disabled
     closed(qtbot, window)
+
+
+def counters_in_this_frame(window: MainWindow) -> dict[str, object]:
+    """What the operator reads of the experiment running now, all from the same frame."""
+    progress = window.plan.progress
+    assert progress is not None
+    row = progress.current
+    i = progress.rows.index(row) if row is not None else 0
+    return {"row": row, "table": window.plan.table.item(i, 4).text(),
+            "steady": find(window, QtWidgets.QLabel, "settleCycles").text(),
+            "controller": find(window, QtWidgets.QLabel, "controller_cycles").text(),
+            "capture": find(window, QtWidgets.QProgressBar, "captureProgress"),
+            "left": window.plan.table.item(i, 5).text(), "eta": find(window, QtWidgets.QLabel, "sessionEta").text()}
+
+
+def test_the_counters_agree_within_one_cycle_in_the_same_frame(qtbot, tmp_path, relaxed_config):
+    window = open_window(qtbot, "--simulate", "--speed", "20", "--experiments", "h", "--out", str(tmp_path),
+                         "--rig-config", str(relaxed_config))
+    connected(qtbot, window)
+    window.plan.identify.setChecked(False)
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "runPlanButton"), QtCore.Qt.MouseButton.LeftButton)
+    rate = window.station.config.daq_rate_hz
+    seen = {"settling": 0, "capturing": 0}
+
+    def check() -> bool:
+        shown = counters_in_this_frame(window)
+        row = shown["row"]
+        if row is None or row.status not in seen or row.samples is None:
+            return False
+        # the cycles the DAQ's stream has seen after the fade-in, as the acquisition counts them
+        counted = (row.samples - row.lead_samples) * row.spec.frequency_hz / rate
+        if row.status == "settling" and str(shown["table"]).startswith("settling "):
+            settling = int(str(shown["table"]).split()[1])
+            assert f"settling {settling} cycles" in str(shown["steady"]), shown
+            assert abs(counted - settling) <= 1, (counted, shown)
+        elif row.status == "capturing" and str(shown["table"]).startswith("capturing "):
+            percent = str(shown["table"]).split()[1]
+            bar = shown["capture"]
+            assert bar.isVisible() and f"({percent} %)" in bar.text() and f"({percent} %)" in str(shown["steady"])
+            captured = int(bar.text().split("capturing ")[1].split()[0])
+            assert abs(counted - row.settled_at - captured) <= 1, (counted, shown)
+        else:
+            return False
+        # the time left in the table is the one the session line gives for this experiment
+        assert f"{row.label}: wall {shown['left']} m:s" in str(shown["eta"]), shown
+        seen[row.status] += 1
+        return seen["settling"] >= 3 and seen["capturing"] >= 1
+
+    qtbot.waitUntil(check, timeout=180_000)
+    qtbot.waitUntil(lambda: not window.station.session_running, timeout=120_000)
+    closed(qtbot, window)
+
+
+def test_the_loop_plots_show_a_placeholder_when_no_excitation_runs(qtbot, tmp_path):
+    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--out", str(tmp_path))
+    connected(qtbot, window)
+    live = window.live
+    energy = find(window, QtWidgets.QLabel, "loopEnergy")
+
+    def placeholders_shown() -> bool:
+        return (all(t.isVisible() and t.toPlainText().startswith("no cycle yet") for t in live.placeholders)
+                and not live.loop_plot.getAxis("left").isVisible() and live.loop.getData()[0] is None
+                and "no cycle yet" in energy.text())
+
+    qtbot.waitUntil(lambda: live.history.n > 0, timeout=10_000)
+    assert placeholders_shown()
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "hydraulicsOnButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: window.status is not None and window.status.state == "IDLE", timeout=10_000)
+    assert placeholders_shown()             # pressure on, nothing moving: still no cycle
+    window.manual.sine_frequency.setValue(2.0)
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "sineButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: not any(t.isVisible() for t in live.placeholders), timeout=30_000)
+    assert live.loop_plot.getAxis("left").isVisible() and "J (mean of the last" in energy.text()
+    # The loop's range is the loop's: it holds the force drawn, not an old range.
+    (_, _), (y0, y1) = live.loop_plot.getViewBox().viewRange()
+    assert y0 <= live.loop.yData.min() and live.loop.yData.max() <= y1
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "stopButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(placeholders_shown, timeout=30_000)
+    closed(qtbot, window)
