@@ -93,7 +93,9 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     row = ExperimentRow(load_plan("standard").experiments[0], "261124a", 100.0)
     change = {"stroke_mm": 1e-4, "force_N": 0.5, "pressure_bar": 0.002, "gas_temperature_C": 0.04}
     row.settling = [(40, change | {"bias_sigma": 4 * fraction}), (50, change | {"bias_sigma": 2 * fraction})]
+    row.status, row.cycles = "settling", 50
     view.show_row(row)
+    view.show_count(row)
     assert f"up to {2 * fraction:.2f} σ; captures below {fraction:g} σ" in view.bound.text()
     assert "predicted cycles left: 10" in view.cycles.text()     # halves every 10 cycles: 10 more
     assert view.bars[3].property("colour") == "#9e9e9e"          # 13x its change threshold: no verdict

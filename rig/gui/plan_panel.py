@@ -121,7 +121,7 @@ class SteadyStateView(QtWidgets.QGroupBox):
             self.bound.setStyleSheet("color: #2e7d32;" if bound is not None and bound < self.drift.fraction
                                      else "color: #e65100;")
 
-    def show_count(self, progress: PlanProgress, row: ExperimentRow | None) -> None:
+    def show_count(self, row: ExperimentRow | None) -> None:
         """The settling count and what follows it, from the same row as the plan table."""
         ss = self.config.steady_state
         if row is None or row.status not in ("settling", "capturing") or not row.cycles:
@@ -131,7 +131,7 @@ class SteadyStateView(QtWidgets.QGroupBox):
             self.cycles.setText(f"{row.label}: settled after {row.cycles} cycles; {capture_text(row)}")
             return
         deciding = {"bias_sigma": self.drift.fraction} if self.drift else ss.thresholds
-        left = progress.cycles_left(row, deciding)
+        left = row.cycles_left(deciding, ss.min_cycles, ss.max_cycles)
         self.cycles.setText(f"{row.label}: settling {row.cycles} cycles (min {ss.min_cycles}, max {ss.max_cycles}); "
                             f"predicted cycles left: {'?' if left is None else left}")
 
@@ -334,7 +334,7 @@ class PlanPanel(QtWidgets.QWidget):
             status.setBackground(QtGui.QColor(STATUS_COLOURS.get(r.status, "#ffffff")))
             _item(self.table, i, 5).setText(_clock(progress.left_s(r)) if r.status != "done" else "")
         current = progress.current
-        self.steady.show_count(progress, current)
+        self.steady.show_count(current)
         capturing = current is not None and current.status == "capturing"
         self.capture.setVisible(capturing)
         if current is not None and capturing:

@@ -57,6 +57,13 @@ class ExperimentRow:
             captured = counted - round(self.settled_at * spp)
             self.fraction = min(max(captured / math.ceil(self.spec.periods * spp), 0.0), 1.0)
 
+    def cycles_left(self, thresholds: dict[str, float], min_cycles: int, max_cycles: int) -> int | None:
+        """Settling cycles still to go from the count shown, by the last reports' decay."""
+        left = predicted_cycles_left(self.settling, thresholds, min_cycles, max_cycles)
+        if left is None or not self.settling:
+            return left
+        return max(left - max(self.cycles - self.settling[-1][0], 0), 0)
+
     def status_text(self) -> str:
         if self.status == "settling":
             return f"settling {self.cycles}" if self.cycles else "settling"
@@ -92,13 +99,6 @@ class PlanProgress:
             row.observe(samples, read_at, self.config.daq_rate_hz)
         return row
 
-    def cycles_left(self, row: ExperimentRow, thresholds: dict[str, float]) -> int | None:
-        """Settling cycles still to go from the count shown, by the last reports' decay."""
-        ss = self.config.steady_state
-        left = predicted_cycles_left(row.settling, thresholds, ss.min_cycles, ss.max_cycles)
-        if left is None or not row.settling:
-            return left
-        return max(left - max(row.cycles - row.settling[-1][0], 0), 0)
 
     def apply(self, e: Event) -> ExperimentRow | None:
         """Take one event; returns the row it changed."""
@@ -124,15 +124,18 @@ class PlanProgress:
                     row.settled_at = int(e.data.get("cycles", row.cycles))
                     row.fraction = 0.0
         elif e.kind == "progress" and e.data.get("phase") == "settling":
-            # The count shown comes from the controller's register (observe); the report's
-            # own count dates its changes, for the prediction of the cycles left.
+            # Once the stream is read (observe) the count shown comes from it alone; the
+            # report's own count dates its changes, for the prediction of the cycles left.
             row.status = "settling"
-            row.cycles = row.cycles or int(e.data["cycles"])
+            if row.samples is None:
+                row.cycles = int(e.data["cycles"])
             # the drift criterion's bound beside the changes: what decides the capture there
             bound = {"bias_sigma": float(e.data["bias_sigma"])} if "bias_sigma" in e.data else {}
             row.settling.append((int(e.data["cycles"]), dict(e.data["change"]) | bound))
         elif e.kind == "progress" and e.data.get("phase") == "capturing":
             row.status = "capturing"
+            if row.samples is None:
+                row.fraction = float(e.data["fraction"])
         elif e.kind == "experiment-done":
             row.status, row.finished = "done", self.clock()
             if e.data.get("flags"):
@@ -171,7 +174,7 @@ class PlanProgress:
         if row.status == "capturing":
             return (1 - row.fraction) * periods / f + ss.ramp_time_s
         if row.status == "settling" and row.settling:
-            left = self.cycles_left(row, ss.thresholds)
+            left = row.cycles_left(ss.thresholds, ss.min_cycles, ss.max_cycles)
             return None if left is None else (left + periods) / f + ss.ramp_time_s
         return None
 
