@@ -64,6 +64,7 @@ class SessionBrowser(QtWidgets.QWidget):
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self.table.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectionBehavior.SelectRows)
         self.table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+        self.table.horizontalHeader().setStretchLastSection(True)     # the last shown: flags when there are any
         self.table.itemSelectionChanged.connect(self._plot_selected)
 
         self.plot = pg.GraphicsLayoutWidget()
@@ -169,7 +170,6 @@ class SessionBrowser(QtWidgets.QWidget):
                                                                     else str(value)))
         # The flags column only where there are flags: empty, it took half the table's width.
         self.table.setColumnHidden(FLAGS_COLUMN, not any(e.get("flags") for e in self.entries))
-        self.table.horizontalHeader().setStretchLastSection(not self.table.isColumnHidden(FLAGS_COLUMN))
         self.log.setPlainText(_read_text(folder / "session.log") or "(no session.log)")
         self.report.setPlainText(_read_text(folder / "report.txt") or "(no report.txt: not identified yet)")
         doc = _read_json(folder / "RESULT.json")

@@ -13,7 +13,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from identify.notation import rounded, unit_text
+from identify.notation import plus_minus, rounded, unit_text
 from identify.result import CORRELATION_REPORT, RELATIVE_STD_WARNING
 from rig.gui.fits import FitSummary
 from rig.gui.plotting import labelled
@@ -183,8 +183,8 @@ class FitView(QtWidgets.QWidget):
         self.compare_table.setRowCount(len(one.experiments))
         for i, (e1, e2) in enumerate(zip(one.experiments, two.experiments, strict=True)):
             (m1, s1), (m2, s2) = e1.stats("stroke_mm"), e2.stats("stroke_mm")
-            for j, text in enumerate((e1.label, f"{e1.frequency_hz:g}", f"{m1:+.4f} ± {2 * s1:.4f}",
-                                      f"{m2:+.4f} ± {2 * s2:.4f}")):
+            for j, text in enumerate((e1.label, f"{e1.frequency_hz:g}", plus_minus(m1, 2 * s1),
+                                      plus_minus(m2, 2 * s2))):
                 self.compare_table.setItem(i, j, QtWidgets.QTableWidgetItem(text))
         self.compare_table.setVisible(True)
         self.progress.setText("")

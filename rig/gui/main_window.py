@@ -386,7 +386,7 @@ class MainWindow(QtWidgets.QMainWindow):
             if item.status is not None and item.status.state == "ALARM" and (was is None or was.state != "ALARM"):
                 # A trip outside a session (a manual sine) has no acquisition event to log it.
                 self._say(f"controller tripped: {item.status.alarm}", "error")
-                self.alarm_latched = f"alarm: {item.status.alarm}"
+                self.alarm_latched = item.status.alarm
             if self.plan.progress is not None and self.station.session_running:
                 # The stream's sample count read with the status drives every count shown, in this frame.
                 if self.plan.progress.observe(item.samples, item.time) is not None:
@@ -455,7 +455,7 @@ class MainWindow(QtWidgets.QMainWindow):
             text, colour = f"{self.estop_text} — {held}. Reset… once the rig is safe", "#d50000"
         elif st is not None and st.state == "ALARM" or self.alarm_latched:
             which = st.alarm if st is not None and st.state == "ALARM" else \
-                f"{self.alarm_latched} (the controller reads {st.state if st else '?'})"
+                f"{self.alarm_latched}, latched here (the controller reads {st.state if st else '?'})"
             text, colour = f"ALARM: {which} — {held}; find the cause, then Reset…", "#d50000"
         elif link_error:
             text, colour = f"Controller not answering: {link_error}", "#e65100"

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from rig.acquisition import ACTUATOR_LAG_S
 from rig.config import RigConfig
 from rig.daq import CHANNELS
 from rig.events import Event
@@ -44,7 +45,7 @@ def clock_text(seconds: float, clock: str) -> str:
 def capture_text(row: ExperimentRow) -> str:
     """A capture's progress in periods, from the row's fraction (the acquisition's event)."""
     periods = row.spec.periods
-    return f"capturing {int(row.fraction * periods)} of {periods} periods ({100 * row.fraction:.0f} %)"
+    return f"capturing period {min(int(row.fraction * periods) + 1, periods)} of {periods} ({100 * row.fraction:.0f} %)"
 
 
 def _item(table: QtWidgets.QTableWidget, row: int, col: int) -> QtWidgets.QTableWidgetItem:
@@ -132,7 +133,9 @@ class SteadyStateView(QtWidgets.QGroupBox):
             return
         deciding = {"bias_sigma": self.drift.fraction} if self.drift else ss.thresholds
         left = row.cycles_left(deciding, ss.min_cycles, ss.max_cycles)
-        self.cycles.setText(f"{row.label}: settling {row.cycles} cycles (min {ss.min_cycles}, max {ss.max_cycles}); "
+        after_run = ss.ramp_time_s + ACTUATOR_LAG_S
+        self.cycles.setText(f"{row.label}: settling {row.cycles} cycles, counted from {after_run:g} s after RUN "
+                            f"(min {ss.min_cycles}, max {ss.max_cycles}); "
                             f"predicted cycles left: {'?' if left is None else left}")
 
 
@@ -287,6 +290,7 @@ class PlanPanel(QtWidgets.QWidget):
             return          # a later edit, or a session started meanwhile
         self.show_progress(progress)
         self.progress = None
+        self._time_column("rig")            # nothing runs yet: the plan's own time
         self.eta.setText(f"{len(plan.experiments)} experiments, about "
                          f"{clock_text(sum(r.estimate_s for r in self._rows), 'rig time')}")
 
@@ -298,8 +302,12 @@ class PlanPanel(QtWidgets.QWidget):
         for w in (self.plan, self.experiments, self.folder, self.identify):
             w.setEnabled(not running)
 
+    def _time_column(self, clock: str) -> None:
+        self.table.setHorizontalHeaderItem(5, QtWidgets.QTableWidgetItem(f"left\n[{clock} m:s]"))
+
     def show_progress(self, progress: PlanProgress) -> None:
         self.progress = progress
+        self._time_column("wall")
         self._rows = progress.rows
         self.table.setRowCount(len(progress.rows))
         for i, r in enumerate(progress.rows):

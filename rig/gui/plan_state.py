@@ -121,7 +121,8 @@ class PlanProgress:
                 if phase == "settling":
                     row.running_since = self.clock()
                 if phase == "capturing":
-                    row.settled_at = int(e.data.get("cycles", row.cycles))
+                    # the acquisition's count at its decision: the log's, the record's
+                    row.settled_at = row.cycles = int(e.data.get("cycles", row.cycles))
                     row.fraction = 0.0
         elif e.kind == "progress" and e.data.get("phase") == "settling":
             # Once the stream is read (observe) the count shown comes from it alone; the
