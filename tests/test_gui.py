@@ -10,6 +10,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 from pymodbus.client import ModbusTcpClient
@@ -95,6 +96,15 @@ def test_plan_to_the_end_fills_the_fit_table(qtbot, tmp_path, relaxed_config):
     qtbot.waitUntil(lambda: table.rowCount() == 3, timeout=180_000)
     assert [table.item(i, 0).text().split()[0] for i in range(3)] == ["theta4", "theta6", "theta16"]
     assert "converged" in window.fit_view.title.text()
+    # Numbers by their uncertainty: σ to two significant digits, the value to the same place; units in Unicode.
+    for i in range(3):
+        value, std = table.item(i, 1).text(), table.item(i, 2).text()
+        assert len(std.lstrip("0.").replace(".", "")) == 2, std
+        assert len(value.split(".")[-1]) == len(std.split(".")[-1]) if "." in std else "." not in value, (value, std)
+    assert table.item(0, 4).text() == "m²"
+    # The session folder field shows the session the fit is of, until Run asks for the next one.
+    assert window.plan.folder.text() == str(folder) and folder.name in window.fit_view.title.text()
+    assert window.plan.run_folder() != folder
     assert [row_status(window, i) for i in range(2)] == ["done", "done"]
     experiments = find(window, QtWidgets.QTableWidget, "experimentTable")
     assert [experiments.item(i, 4).text() for i in range(2)] == ["done", "done"]
@@ -202,6 +212,10 @@ def test_browser_opens_a_session_written_by_rig_run_and_refits_it(qtbot, tmp_pat
     assert "complete" in find(window, QtWidgets.QLabel, "browserSummary").text()
     experiments = find(window, QtWidgets.QTableWidget, "browserExperiments")
     assert experiments.rowCount() == 1 and experiments.item(0, 0).text().endswith("j")
+    assert experiments.isColumnHidden(experiments.columnCount() - 1)          # no flags: no flags column
+    plots = [window.browser.plot.getItem(row, 0) for row in range(4)]
+    assert [p.getAxis("left").labelText.split(" [")[0] for p in plots] == ["stroke", "force", "gas p", "gas T"]
+    assert plots[0].listDataItems()[0].xData[0] == 0.0                         # time from the record's start
     assert "session-start" in find(window, QtWidgets.QPlainTextEdit, "browserLog").toPlainText()
     assert "[[Variables]]" in find(window, QtWidgets.QPlainTextEdit, "browserReport").toPlainText()
     assert find(window, QtWidgets.QTableWidget, "browserParameters").rowCount() == 3
@@ -320,7 +334,7 @@ def test_after_estop_every_motion_control_is_disabled_until_the_reset_is_confirm
     closed(qtbot, window)
 
 
-def counters_in_this_frame(window: MainWindow) -> dict[str, object]:
+def counters_in_this_frame(window: MainWindow) -> dict[str, Any]:
     """What the operator reads of the experiment running now, all from the same frame."""
     progress = window.plan.progress
     assert progress is not None
@@ -384,6 +398,10 @@ def test_the_loop_plots_show_a_placeholder_when_no_excitation_runs(qtbot, tmp_pa
 
     qtbot.waitUntil(lambda: live.history.n > 0, timeout=10_000)
     assert placeholders_shown()
+    # At rest each trace spans at least its channel's minimum (rig configuration), not the noise.
+    qtbot.waitUntil(lambda: all(p.getViewBox().viewRange()[1][1] - p.getViewBox().viewRange()[1][0] >= span
+                                for p, span in zip(live.trace_plots, live.min_span, strict=True)), timeout=10_000)
+    assert live.min_span[0] == window.station.config.min_span["stroke_mm"] > 0
     qtbot.mouseClick(find(window, QtWidgets.QPushButton, "hydraulicsOnButton"), QtCore.Qt.MouseButton.LeftButton)
     qtbot.waitUntil(lambda: window.status is not None and window.status.state == "IDLE", timeout=10_000)
     assert placeholders_shown()             # pressure on, nothing moving: still no cycle

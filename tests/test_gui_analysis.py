@@ -108,3 +108,25 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     assert plain.title() == "Steady state (change criterion)"
     plain.show_row(row)
     assert plain.bars[3].property("colour") == "#fb8c00"
+
+
+def test_a_new_excitation_starts_the_loops_afresh():
+    """The loops take only the samples after the mark a new excitation sets; a new stream
+    (the DAQ restarted at a session's RUN) starts with no mark."""
+    from rig.daq import RingBuffer
+    from rig.gui.live import LiveHistory
+
+    class Source:
+        ring = RingBuffer(1000)
+
+    history, daq = LiveHistory(100.0, seconds=5.0), Source()
+    daq.ring.append(np.arange(300), np.zeros((300, 4)))
+    assert history.update(daq) and history.since_mark() == 300
+    history.set_mark()
+    assert history.since_mark() == 0
+    daq.ring.append(np.arange(300, 350), np.ones((50, 4)))
+    history.update(daq)
+    assert history.since_mark() == 50
+    daq.ring.append(np.arange(20), np.ones((20, 4)))          # a new stream
+    history.update(daq)
+    assert history.n == 20 and history.since_mark() == 20

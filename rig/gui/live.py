@@ -73,7 +73,7 @@ class LiveHistory:
         # Ask the ring for about what arrived since the last read (with room to spare),
         # not for all of it every time.
         want = len(daq.ring.index) if self.n == 0 else int(self.rate_hz * (now - self._last_read) * 2) + 256
-        idx, vals = daq.ring.latest(want)
+        idx, vals = _this_stream(*daq.ring.latest(want))
         self._last_read = now
         if not len(idx):
             return False
@@ -81,7 +81,7 @@ class LiveHistory:
         if idx[-1] < last:              # a new stream (a session starts the DAQ at each RUN)
             self.n, last, self.mark = 0, -1, -1
         elif self.n and idx[0] > last + 1 and want < len(daq.ring.index):
-            idx, vals = daq.ring.latest(len(daq.ring.index))   # fell behind: take the whole ring
+            idx, vals = _this_stream(*daq.ring.latest(len(daq.ring.index)))   # fell behind: take the whole ring
         new = idx > last
         idx, vals = idx[new], vals[new]
         if not len(idx):
@@ -105,6 +105,15 @@ class LiveHistory:
         start = max(0, self.n - int(seconds * self.rate_hz))
         idx = self.index[start:self.n]
         return (idx - last) / self.rate_hz, self.values[start:self.n]
+
+
+def _this_stream(idx: np.ndarray, vals: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The samples after the last restart of the index: the ring may still hold the end of
+    the previous stream before the new one."""
+    restart = np.flatnonzero(np.diff(idx) < 0)
+    if len(restart):
+        return idx[restart[-1] + 1:], vals[restart[-1] + 1:]
+    return idx, vals
 
 
 def _plot(layout: pg.GraphicsLayoutWidget, row: int, col: int, title: str | None, left: str, bottom: str,
