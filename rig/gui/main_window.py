@@ -435,9 +435,12 @@ class MainWindow(QtWidgets.QMainWindow):
                 self._say(f"E-STOP done in {took} from the press: STOP and hydraulics off written ({item.line})")
             self._show_banner()
         elif isinstance(item, QcStarted):
+            # The QC run reads the controller on its own links: the console's last read is stale.
+            self.status, self.link_error = None, "QC run in progress: the controller is read by `rig qc run`"
             self.qc.show_started(item.request)
             self.left_tabs.setCurrentWidget(self.qc)
         elif isinstance(item, QcDone):
+            self.link_error = None
             self.qc.show_done(item)
             self.plan.set_running(False)
             self._say(f"QC of unit {item.serial}: {item.shown}" + (f" ({item.reason})" if item.reason else "")

@@ -203,7 +203,7 @@ class PlanPanel(QtWidgets.QWidget):
         header = self.table.horizontalHeader()
         header.setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
         header.setSectionResizeMode(4, QtWidgets.QHeaderView.ResizeMode.Stretch)
-        self.table.setMinimumHeight(150)         # the header and four experiments at least
+        self.table.setMinimumHeight(120)         # the header and three experiments at least
         self.eta = QtWidgets.QLabel("")
         self.eta.setObjectName("sessionEta")
         self.eta.setWordWrap(True)

@@ -46,7 +46,7 @@ class RigState:
         if self.trip is not None or (self.status is not None and self.status.state == "ALARM"):
             return "ALARM"
         if self.status is None:
-            return "NO ANSWER" if self.link_error else "NOT CONNECTED"
+            return "NOT READ" if self.link_error else "NOT CONNECTED"
         return self.status.state
 
     def strip_text(self) -> str:
@@ -79,8 +79,7 @@ class RigState:
         if self.session_running:
             why.update(dict.fromkeys(MOTION, "a session is running: it commands the rig until it ends (Abort)"))
         elif not self.connected or st is None:
-            why.update(dict.fromkeys(MANUAL, "no answer from the controller" if self.link_error else
-                                     "not connected to the controller"))
+            why.update(dict.fromkeys(MANUAL, self.link_error or "not connected to the controller"))
         elif not hydraulics_on(st):
             why.update(dict.fromkeys(NEED_HYDRAULICS, "hydraulics OFF: switch them on first"))
         return why
