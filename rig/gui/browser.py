@@ -201,7 +201,7 @@ class SessionBrowser(QtWidgets.QWidget):
         plotted = [c for c in PLOTTED if c[0] in data.columns]
         for row, (column, label, scale, colour) in enumerate(plotted):
             p = labelled(self.plot.addPlot(row=row, col=0), label,
-                         "time from the record's start [s]" if row == len(plotted) - 1 else "")
+                         "rig time from the record's start [s]" if row == len(plotted) - 1 else "")
             p.getAxis("left").setWidth(62)
             curve = p.plot(t, np.asarray(data[column]) * scale, pen=pg.mkPen(colour, width=1),
                            skipFiniteCheck=True)

@@ -195,7 +195,7 @@ class LiveView(QtWidgets.QWidget):
         first = None
         for i, (title, unit, _, colour) in enumerate(TRACES):
             p = _plot(self.layout_widget, i, 0, None, f"{title} [{unit}]",
-                      "time relative to the newest sample [s]" if i == len(TRACES) - 1 else "")
+                      "rig time relative to the newest sample [s]" if i == len(TRACES) - 1 else "")
             p.setXRange(-self.window_s, 0, padding=0)
             p.enableAutoRange(enable=False)         # follow() sets the value axis
             p.getAxis("left").setWidth(62)
