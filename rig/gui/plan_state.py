@@ -99,7 +99,6 @@ class PlanProgress:
             row.observe(samples, read_at, self.config.daq_rate_hz)
         return row
 
-
     def apply(self, e: Event) -> ExperimentRow | None:
         """Take one event; returns the row it changed."""
         if e.kind == "session-end":

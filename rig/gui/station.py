@@ -79,7 +79,7 @@ class Snapshot:
     over_range: int = 0
     overflow_flags: int = 0
     heartbeat_ok: bool = True
-    samples: int = -1                       # the DAQ stream's newest sample index, read with the status (-1: none)
+    samples: int = -1                       # the DAQ stream's samples since START, read with the status (-1: none)
     time: float = field(default_factory=time.monotonic)
 
 
@@ -573,10 +573,10 @@ class Station:
             kw = {}
             if daq is not None:
                 c = daq.counters
-                newest, _ = daq.ring.latest(1)
+                # the parser's index restarts at START itself; the ring holds the last stream's samples
+                # until the first frames of the new one arrive
                 kw = dict(received=daq.parser.received, lost=c.lost_samples, crc_errors=c.crc_errors,
-                          over_range=c.over_range, overflow_flags=c.overflow_flags,
-                          samples=int(newest[-1]) if len(newest) else -1)
+                          over_range=c.over_range, overflow_flags=c.overflow_flags, samples=daq.parser.next_index)
             self.post(Snapshot(status, error, heartbeat_ok=self.heartbeat_ok, **kw))
 
     def close(self, timeout_s: float = 60.0) -> None:
