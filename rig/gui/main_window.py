@@ -24,6 +24,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from rig.daq import check_daq_address
 from rig.errors import BadInput
+from rig.estop import EstopDone
 from rig.events import Event
 from rig.gui.browser import SessionBrowser
 from rig.gui.controls import ControllerPanel, ManualPanel
@@ -35,7 +36,6 @@ from rig.gui.qc_panel import QcPanel
 from rig.gui.state_strip import RigState, StateStrip, hydraulics_on
 from rig.gui.station import (
     ComparisonDone,
-    EstopDone,
     FitDone,
     FitProgress,
     IdentifySettings,
@@ -263,7 +263,10 @@ class MainWindow(QtWidgets.QMainWindow):
         self._show_banner()
 
     def rig_state(self) -> RigState:
-        trip = "E-STOP" if self.estop_text else self.alarm_latched
+        # The E-STOP's latch (rig.estop) holds every motion command in the drivers; the strip and
+        # the controls show it, and an alarm seen, until the operator confirms the reset.
+        latch = self.station.emergency.latch
+        trip = latch.reason if latch.latched else "E-STOP" if self.estop_text else self.alarm_latched
         return RigState(self.status, trip, self.link_error, self.station.shaker is not None,
                         self.station.session_running)
 
@@ -291,6 +294,7 @@ class MainWindow(QtWidgets.QMainWindow):
             if answer != QtWidgets.QMessageBox.StandardButton.Yes:
                 return
         self.estop_text = self.alarm_latched = None
+        self.station.emergency.confirm_reset()
         if self.status is not None and self.status.state == "ALARM":
             self.manual._do(self.station.reset_alarm())
         self._show_banner()

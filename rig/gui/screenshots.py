@@ -132,7 +132,7 @@ def main() -> int:
     wait("the sine", lambda: estop.status is not None and estop.status.state == "RUNNING" and
          estop.status.cycles >= 3, 60)
     estop.estop()
-    wait("the E-STOP's writes", estop.station.estop_done.is_set, 30)
+    wait("the E-STOP's writes", lambda: estop.station.emergency.wait(0) is not None, 30)
     wait("the controller off", lambda: estop.status is not None and estop.status.state == "OFF", 30)
     settle_view(1.0)
     shoot(estop, out / "alarm-after-estop.png")
