@@ -1,6 +1,7 @@
 """``make screenshots``: the console's main views as PNG files, from a real session on the
-simulated rig (offscreen): settling, capturing, the fit view with the 1-dof/2-dof
-comparison, an alarm (an e-stop trip during a manual sine), the session browser, and a QC verdict.
+simulated rig (offscreen): idle (connected, at rest), settling, a capture in progress, the
+fit view with the 1-dof/2-dof comparison, the session browser, an alarm (an e-stop trip
+during a manual sine), the console's E-STOP during a manual sine, and a QC verdict.
 
     python -m rig.gui.screenshots [--out out/screenshots] [--speed 20] [--readme docs/gui.png]
 """
@@ -49,6 +50,33 @@ def status_of(window: MainWindow, row: int) -> str:
     return progress.rows[row].status if progress is not None else ""
 
 
+def capturing(window: MainWindow, row: int) -> bool:
+    """A capture under way, and the table saying so (what the screenshot must show): g's
+    three periods at 0.2 Hz take 15 s of rig time, several of the console's status reads."""
+    progress = window.plan.progress
+    if progress is None or progress.rows[row].status != "capturing":
+        return False
+    item = window.plan.table.item(row, 4)
+    return 0 < progress.rows[row].fraction < 1 and item is not None and item.text().startswith("capturing")
+
+
+def manual_sine(window: MainWindow) -> None:
+    """Hydraulics on, then a 20 mm sine at 1 Hz around 133 mm, from the Manual tab."""
+    window.left_tabs.setCurrentIndex(1)
+    wait("the connection", lambda: window.status is not None)
+    window.manual.hyd_on.click()
+    wait("hydraulics on", lambda: window.status is not None and window.status.state == "IDLE")
+    window.manual.sine_static.setValue(133.0)
+    window.manual.sine_amplitude.setValue(20.0)
+    window.manual.sine_frequency.setValue(1.0)
+    window.manual.sine_button.click()
+
+
+def closed(window: MainWindow) -> None:
+    window.close()
+    wait("the window to close", lambda: not window.isVisible(), 60)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default="out/screenshots")
@@ -60,10 +88,12 @@ def main() -> int:
     sessions = Path(tempfile.mkdtemp(prefix="gui-screenshots-"))
     application()
 
-    window = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--experiments", "j,h",
+    window = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--experiments", "j,g",
                                    "--out", str(sessions)])
     window.show()
     wait("the connection", lambda: window.status is not None)
+    settle_view(1.5)
+    shoot(window, out / "idle.png")
     folder = Path(window.plan.folder.text())
     window.run_plan()
     wait("settling", lambda: window.plan.progress is not None and window.plan.progress.rows[0].cycles >= 40)
@@ -72,8 +102,7 @@ def main() -> int:
     if args.readme:
         window.grab().scaledToWidth(1200, QtCore.Qt.TransformationMode.SmoothTransformation).save(args.readme)
         print(f"wrote {args.readme}")
-    wait("capturing", lambda: status_of(window, 1) == "capturing")
-    settle_view(0.1)
+    wait("a capture in progress", lambda: capturing(window, 1))
     shoot(window, out / "capturing.png")
     wait("the fit", lambda: window.fit_view.result is not None, 300)
     window.compare()
@@ -84,26 +113,30 @@ def main() -> int:
     window.browser.open_folder(folder)
     settle_view(0.5)
     shoot(window, out / "browser.png")
-    window.close()
-    wait("the window to close", lambda: not window.isVisible(), 60)
+    closed(window)
 
     # An alarm: the e-stop trips 10 s (simulated) into a manual sine.
     alarm = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--fault", "estop@run+10",
                                   "--out", str(sessions)])
     alarm.show()
-    alarm.left_tabs.setCurrentIndex(1)
-    wait("the connection", lambda: alarm.status is not None)
-    alarm.manual.hyd_on.click()
-    wait("hydraulics on", lambda: alarm.status is not None and alarm.status.state == "IDLE")
-    alarm.manual.sine_static.setValue(133.0)
-    alarm.manual.sine_amplitude.setValue(20.0)
-    alarm.manual.sine_frequency.setValue(1.0)
-    alarm.manual.sine_button.click()
+    manual_sine(alarm)
     wait("the trip", lambda: alarm.status is not None and alarm.status.state == "ALARM", 60)
     settle_view(1.0)
     shoot(alarm, out / "alarm.png")
-    alarm.close()
-    wait("the window to close", lambda: not alarm.isVisible(), 60)
+    closed(alarm)
+
+    # The console's E-STOP pressed during a manual sine: STOP and hydraulics off, latched.
+    estop = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--out", str(sessions)])
+    estop.show()
+    manual_sine(estop)
+    wait("the sine", lambda: estop.status is not None and estop.status.state == "RUNNING" and
+         estop.status.cycles >= 3, 60)
+    estop.estop()
+    wait("the E-STOP's writes", lambda: estop.station.emergency.wait(0) is not None, 30)
+    wait("the controller off", lambda: estop.status is not None and estop.status.state == "OFF", 30)
+    settle_view(1.0)
+    shoot(estop, out / "alarm-after-estop.png")
+    closed(estop)
 
     # QC mode: one unit through python -m rig qc run, its verdict on screen.
     qc = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--out", str(sessions)])
@@ -115,8 +148,7 @@ def main() -> int:
     wait("the console's links back", lambda: qc.station.shaker is not None and qc.status is not None, 60)
     settle_view(1.0)
     shoot(qc, out / "qc-verdict.png")
-    qc.close()
-    wait("the window to close", lambda: not qc.isVisible(), 60)
+    closed(qc)
     print(f"sessions of this run: {sessions}; first view {settling}")
     return 0
 

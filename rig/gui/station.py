@@ -82,6 +82,7 @@ class Snapshot:
     over_range: int = 0
     overflow_flags: int = 0
     heartbeat_ok: bool = True
+    samples: int = -1                       # the DAQ stream's samples since START, read with the status (-1: none)
     time: float = field(default_factory=time.monotonic)
 
 
@@ -155,6 +156,7 @@ class Station:
         self.daq: Daq | None = None
         self.runner: SessionRunner | None = None    # the session's, while one runs
         self.manual_frequency_hz: float | None = None
+        self.manual_runs = 0                         # manual sines sent: each new one is a new excitation
         self.heartbeat_ok = True
         self.closing = False                         # the window is closing: no links taken back
         self._was_connected = False
@@ -293,6 +295,7 @@ class Station:
         def run(s: Shaker) -> None:
             s.run(static_m, amplitude_m, frequency_hz, "sine", ramp)
             self.manual_frequency_hz = frequency_hz
+            self.manual_runs += 1
         return self._manual(f"sine {amplitude_m * 1e3:.2f} mm at {frequency_hz:g} Hz around {static_m * 1e3:.2f} mm",
                             problems, run)
 
@@ -516,8 +519,10 @@ class Station:
             kw = {}
             if daq is not None:
                 c = daq.counters
+                # the parser's index restarts at START itself; the ring holds the last stream's samples
+                # until the first frames of the new one arrive
                 kw = dict(received=daq.parser.received, lost=c.lost_samples, crc_errors=c.crc_errors,
-                          over_range=c.over_range, overflow_flags=c.overflow_flags)
+                          over_range=c.over_range, overflow_flags=c.overflow_flags, samples=daq.parser.next_index)
             self.post(Snapshot(status, error, heartbeat_ok=self.heartbeat_ok, **kw))
 
     def close(self, timeout_s: float = 60.0) -> None:
