@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from identify.differentiation import Grid
-from identify.errors import ComputationError
+from identify.errors import ComputationError, InputError
 from identify.model import CompiledModel
 from identify.parameters import Parameters
 from identify.periodic import ConvergenceError, PeriodicSolution, PeriodicSolver
@@ -96,6 +96,10 @@ class EstimationError(ComputationError):
     """The fit cannot start (e.g. no periodic solution at the starting parameters)."""
 
 
+class PriorError(InputError):
+    """An estimated parameter whose prior cannot be sized (start and nominal 0, no prior_std)."""
+
+
 @dataclass
 class _Evaluation:
     theta: np.ndarray
@@ -136,6 +140,7 @@ class Estimator:
         self.time_limit_s = time_limit_s  # no new iteration starts after this long
         self.residual_units: tuple[str, float, float] | None = None  # of the last residual-based covariance
         self.lower, self.upper = (b[self.index] for b in params.bounds())
+        self.start = params.vector()  # sizes the prior of a parameter whose value and nominal are 0
 
     # ----------------------------------------------------------------------------------
     def _evaluate(self, theta: np.ndarray, start: _Evaluation | None) -> _Evaluation:
@@ -307,17 +312,43 @@ class Estimator:
 
     def _prior_std(self, theta: np.ndarray) -> np.ndarray:
         """Prior standard deviations of the varying parameters: as given, or a fraction of
-        the parameter's size (its current or nominal value; 1 where both are zero)."""
+        the parameter's size (its current, nominal or start value; :meth:`_check_priors`
+        refuses a parameter for which all three are zero)."""
         out = np.empty(len(self.index))
         nominal = self.model.nominal_vector()
         names = self.params.names()
         for i, j in enumerate(self.index):
             std = self.params[names[j]].prior_std
             if std is None:
-                size = max(abs(theta[j]), abs(nominal[j]))
-                std = DEFAULT_PRIOR_FRACTION * size if size > 0 else 1.0
+                std = DEFAULT_PRIOR_FRACTION * max(abs(theta[j]), abs(nominal[j]), abs(self.start[j]))
             out[i] = std
         return out
+
+    def _check_priors(self, ev: _Evaluation) -> None:
+        """Refuses varying parameters without prior_std whose start and nominal are both 0:
+        there is no size to scale their steps by.  A fixed 1 in SI units was used before,
+        and a cubic stiffness of 1e10 N/m³ then crept by ones and "converged" where it
+        started.  The message suggests the change that moves the fitted outputs by their
+        RMS (to first order, from the sensitivities at the start) as an upper guide."""
+        unscaled, names = [], []
+        for i, j in enumerate(self.index):
+            p = self.params[self.params.names()[j]]
+            if p.prior_std is not None or self._prior_std(ev.theta)[i] > 0:
+                continue
+            signal = sensitivity = 0.0
+            for d, S in zip(self.data, ev.sensitivities, strict=True):
+                size = np.maximum(np.sqrt(np.mean(d.measured**2, axis=1)), 1e-300)  # outputs in their own sizes
+                signal += float(np.sum((d.measured / size[:, None]) ** 2))
+                sensitivity += float(np.sum((S[:, :, i] / size[:, None]) ** 2))
+            guide = (f"{np.sqrt(signal / sensitivity):.2g} {p.unit} would move the fitted outputs by their RMS"
+                     if sensitivity > 0 else "the fitted outputs do not depend on it at the start")
+            unscaled.append(f"{p.name} ({p.alias}: here {guide})")
+            names.append(p.name)
+        if unscaled:
+            raise PriorError(f"no prior std for {'; '.join(unscaled)}: start and nominal are 0, so nothing sets the "
+                             f"size of the steps; give each a prior_std in the START file, "
+                             f'{{"{names[0]}": {{"value": 0, "prior_std": ...}}}}, '
+                             f"a size the term may plausibly reach")
 
     # ----------------------------------------------------------------------------------
     def fit(self) -> FitResult:
@@ -331,6 +362,7 @@ class Estimator:
         try:
             ev = self._evaluate(theta, None)
             self._add_sensitivities(ev, settled=False)
+            self._check_priors(ev)
         except ConvergenceError as exc:
             raise EstimationError(f"no periodic solution at the starting parameters: {exc}") from exc
         v = self._variances(ev)

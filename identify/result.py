@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from identify import notation
 from identify.files import atomic_write_bytes
 from identify.model import CompiledModel
 from identify.parameters import Parameters
@@ -81,7 +82,7 @@ class FitResult:
     start: dict[str, float] = field(default_factory=dict)
     # Residual-based σ, given where the residuals exceed the measurement noise (model error).
     std_residual: dict[str, float] | None = None
-    priors: dict[str, float | None] = field(default_factory=dict)
+    priors: dict[str, float | None] = field(default_factory=dict)  # as given (None: 50 % of the size)
     oversample: int = 1  # the model solved on n·oversample points per period
     covariance_residual: np.ndarray | None = None  # beside std_residual
     # Its independent units: what they are (experiments, frequency lines), their number, their effective number.
@@ -210,6 +211,8 @@ class FitResult:
                 params[p.name]["at_bound"] = p.at_bound()
             if p.name in self.start:
                 params[p.name]["initial"] = self.start[p.name]
+            if est and self.priors.get(p.name):  # what a restart needs to take the same steps
+                params[p.name]["prior_std"] = self.priors[p.name]
         corr = {a: {b: _finite(self.correlation[i, j]) for j, b in enumerate(self.estimated)}
                 for i, a in enumerate(self.estimated)}
         experiments = {}
@@ -284,7 +287,8 @@ class FitResult:
                 init = self.start.get(p.name)
                 init_s = f"(init = {init:.6g})" if init is not None else ""
                 prior = self.priors.get(p.name)
-                prior_s = f"prior std {prior:.3g}" if prior else "prior std 50 %"
+                prior_s = ("prior std 50 % of its size" if not prior else
+                           f"prior std {prior:.3g} {notation.unit_text(p.unit)}")
                 residual = ""
                 if self.std_residual is not None:
                     sr = self.std_residual[p.name]
