@@ -37,6 +37,7 @@ from identify.transient import drop_test
 
 if TYPE_CHECKING:
     from rich.console import Console
+    from rich.table import Table
 
     from identify import batch, sinks
 
@@ -156,7 +157,8 @@ def run_fit(args: argparse.Namespace) -> int:
         try:
             result = fit_experiments(model, group, params, estimate, n=n, scheme=choice.scheme, outputs=outputs,
                                      max_iterations=args.max_iterations, progress=progress, fixed=fixed,
-                                     stability=args.stability, oversample=oversample, time_limit_s=args.time_limit)
+                                     stability=args.stability, oversample=oversample, time_limit_s=args.time_limit,
+                                     announce=lambda text: console.print(f"  {text}", highlight=False))
         except EstimationError as exc:
             console.print(f"[red]fit failed:[/red] {exc}", highlight=False)
             _write_failed(args.output, model, params, str(exc))
@@ -174,6 +176,11 @@ def run_fit(args: argparse.Namespace) -> int:
                       "--params RESULT.json", highlight=False, soft_wrap=True)
     if args.per_experiment:
         _per_experiment_table(results)
+        if args.report:
+            atomic_write_bytes(Path(args.report), "".join(f"=== experiment {label} ===\n{r.fit_report()}\n"
+                                                          for label, r in results).encode())
+        for label, r in results if args.figures else []:  # a folder per experiment: the same file names in each
+            _write_figures(r, Path(args.figures) / label, console)
         for label, r in results:
             for w in r.warnings:
                 print(f"warning ({label}): {w}")
@@ -188,11 +195,15 @@ def run_fit(args: argparse.Namespace) -> int:
     if args.report:
         atomic_write_bytes(Path(args.report), (report + "\n").encode())
     if args.figures:
-        from identify.figures import write_figures
-
-        for path in write_figures(result, Path(args.figures)):
-            console.print(f"figure {path}", highlight=False, soft_wrap=True)  # a path whole, to copy
+        _write_figures(result, Path(args.figures), console)
     return EXIT_INTERRUPTED if interrupted else EXIT_OK if result.converged else EXIT_NOT_CONVERGED
+
+
+def _write_figures(result: FitResult, folder: Path, console: Console) -> None:
+    from identify.figures import write_figures
+
+    for path in write_figures(result, folder):
+        console.print(f"figure {path}", highlight=False, soft_wrap=True)  # a path whole, to copy
 
 
 def _write_failed(path: str, model: CompiledModel, params: Parameters, message: str) -> None:
@@ -205,25 +216,39 @@ def _write_failed(path: str, model: CompiledModel, params: Parameters, message: 
     atomic_write_bytes(Path(path), (json.dumps(doc, indent=2) + "\n").encode())
 
 
-def _per_experiment_table(results: list[tuple[str, FitResult]]) -> None:
+def _print_table(table: Table) -> None:
+    """A table on stdout, numbers never cut: on a terminal at its width (cells fold onto
+    a second line), into a file or a pipe as wide as the table needs (rich would cut it
+    to 80 columns there, `-5.16528…`)."""
     from rich.console import Console
+    from rich.measure import Measurement
+
+    console = Console()
+    if not console.is_terminal:
+        wide = console.options.update(max_width=100_000)
+        console = Console(width=max(80, Measurement.get(console, wide, table).maximum))
+    console.print(table)
+
+
+def _per_experiment_table(results: list[tuple[str, FitResult]]) -> None:
     from rich.table import Table
 
     names = results[0][1].estimated
     table = Table(title="per-experiment estimates (value ± std)")
-    table.add_column("experiment")
-    table.add_column("f [Hz]", justify="right")
+    table.add_column("experiment", overflow="fold")
+    table.add_column("f [Hz]", justify="right", overflow="fold")
     for nm in names:
-        table.add_column(nm, justify="right")
+        unit = results[0][1].params[nm].unit
+        table.add_column(f"{nm} [{notation.unit_text(unit)}]" if unit and unit != "-" else nm, justify="right",
+                         overflow="fold")
     for label, r in results:
         mark = "*" if r.std_residual is not None else ""
         table.add_row(label, f"{r.experiments[0].frequency_hz:g}",
-                      *[f"{r.value(nm):.6g} ± {r.honest_std(nm):.2g}{mark}" for nm in names])
-    console = Console()  # stdout: the table is the command's result, progress went to stderr
-    console.print(table)
+                      *[notation.plus_minus(r.value(nm), r.honest_std(nm)) + mark for nm in names])
+    _print_table(table)
     if any(r.std_residual is not None for _, r in results):
-        console.print("* residual-based σ: residuals exceed the measurement noise, so this σ includes the model "
-                      "error (the noise-only σ is in RESULT.json as std)", highlight=False)
+        print("* residual-based σ: residuals exceed the measurement noise, so this σ includes the model error "
+              "(the noise-only σ is in RESULT.json as std)")
 
 
 def run_predict(args: argparse.Namespace) -> int:
@@ -320,7 +345,7 @@ def run_compare(args: argparse.Namespace) -> int:
     for name, fit in fits.items():
         rms[name] = float(np.sqrt(np.mean(np.concatenate([e.residual(column) for e in fit.experiments]) ** 2)))
     ratio = rms["1dof"] / rms["2dof"]
-    Console().print(table)
+    _print_table(table)
     for name, fit in fits.items():
         if not fit.converged:
             print(f"warning: the {name} fit did not converge ({fit.message}); its residuals are not its best")
@@ -453,14 +478,14 @@ def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) ->
         table.add_column("serial", no_wrap=True, min_width=6)
         table.add_column("conv.", no_wrap=True)
         for col in estimate:
-            table.add_column(col, justify="right", no_wrap=True)
+            table.add_column(col, justify="right", overflow="fold")
         table.add_column("fit", justify="right", no_wrap=True, min_width=4)
         for r in shown:
             mark = "*" if r.residual_std else ""
             cells = [notation.concise(r.values[p], r.stds.get(p)) + mark if p in r.values else "" for p in estimate]
             table.add_row(r.session, r.serial, converged.get(r.state, r.state), *cells,
                           "" if r.fit_s is None else f"{r.fit_s:.2f}")
-        console.print(table)
+        _print_table(table)
     for r in rows:
         if r.failed:  # the reason names a file and line: too long for a cell, whole on its own line
             console.print(f"{r.session}: {r.status}", highlight=False, soft_wrap=True)

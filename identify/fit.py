@@ -87,7 +87,7 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
                     progress: Callable[[int, float, np.ndarray], None] | None = None,
                     fixed: dict[str, dict[int, float]] | None = None, stability: bool = False,
                     oversample: int | None = 1, linear_solver: str = "auto",
-                    time_limit_s: float | None = None) -> FitResult:
+                    time_limit_s: float | None = None, announce: Callable[[str], None] | None = None) -> FitResult:
     """Joint Bayesian fit of ``estimate`` over all ``experiments`` (shared parameters).
 
     ``params`` gives the start values and priors; it is not modified.  ``fixed`` holds
@@ -96,7 +96,8 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
     (:func:`choose_grid`), ``scheme`` None likewise; ``linear_solver`` as for :class:`Grid`.  Each experiment of
     the result names the start of its first periodic solve (:mod:`identify.start`).
     Stopped by ``max_iterations``, ``time_limit_s`` or Ctrl-C, the result is the last
-    iterate, not converged (``interrupted`` for Ctrl-C)."""
+    iterate, not converged (``interrupted`` for Ctrl-C).  ``announce`` is told of slow
+    steps after the iterations (``stability``'s Floquet multipliers)."""
     params = params.copy()
     # The original start: a fit restarted from a RESULT.json carries it as "initial".
     start = {p.name: p.value if p.initial is None else p.initial for p in params}
@@ -114,7 +115,7 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
                 raise InputError(f"{', '.join(clash)}: estimated and also fixed per experiment")
     estimator = Estimator(model, data, params.copy(), Grid(n, grid.scheme, linear_solver, oversample), outputs,
                           max_iterations=max_iterations, progress=progress, stability=stability,
-                          time_limit_s=time_limit_s)
+                          time_limit_s=time_limit_s, announce=announce)
     result = estimator.fit()
     result.start = {k: start[k] for k in result.estimated}
     result.priors = {k: params[k].prior_std for k in result.estimated}

@@ -301,7 +301,8 @@ class FitResult:
             E = float(len(self.experiments))
             what, units, effective = self.residual_units or ("experiments", E, E)
             draw = ("each experiment's misfit" if what == "experiments" else
-                    "the misfit at each excited frequency line of the records")
+                    "the misfit at each excited frequency line of the records" if what.startswith("excited") else
+                    "the misfit at each frequency line of the records")
             count = (f"{units:.0f} {what}" if units == effective else
                      f"{units:.0f} {what}, the misfit carried by an effective {effective:.2g} of them")
             lines.append(f"    * residual-based σ: the residuals exceed the measurement noise (see warnings), and "
