@@ -236,3 +236,15 @@ def test_qc_guard_bands_propagate_the_residual_based_covariance_where_the_fit_gi
         fit.honest_covariance = lambda fit=fit: FitResult.honest_covariance(fit)
         value, std = _propagate(model, Identified.from_fit(fit), lambda theta: 2.0 * theta[i], integrated=False)
         assert math.isclose(std, 2 * expected, rel_tol=1e-6)
+
+
+def test_a_stop_after_a_slow_creep_says_so_and_a_brisk_one_does_not():
+    """Issue 28 point 8: a 4-mode fit moved one term by 6 % over 17 iterations, then stopped
+    on the χ² rule without a word about the flat direction it crept along."""
+    from identify.estimator import CREEP_ITERATIONS, Estimator
+
+    creep = [100.0, 40.0] + [40.0 - 0.1 * i for i in range(1, CREEP_ITERATIONS + 2)]
+    said = Estimator._creep(creep)
+    assert f"the last {CREEP_ITERATIONS + 1} iterations lowered the objective by 0.5 in all" in said
+    assert "shallow" in said
+    assert Estimator._creep([100.0, 40.0, 10.0, 9.95]) == ""
