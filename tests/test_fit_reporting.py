@@ -181,7 +181,7 @@ def test_under_a_wrong_model_structure_the_residual_based_sigma_covers_another_r
         data = lin.write_two_mode_dataset(tmp_path / f"data{seed}", phase_seed=seed)
         result = tmp_path / f"R{seed}.json"
         start = tmp_path / "start.json"  # k3's nominal is 0: its prior std must be given
-        start.write_text(json.dumps({"model": "duffing", "parameters": {"k3": {"value": 0.0, "prior_std": 1.0}}}))
+        start.write_text(json.dumps({"model": "duffing", "parameters": {"k3": {"value": 0.0, "prior_std": 0.1}}}))
         proc = identify("fit", str(data), "--model", "duffing", "--scheme", "spectral", "--estimate", "m,d,k,k3",
                         "--params", str(start), "--output", str(result), "--quiet")
         assert proc.returncode == 0, proc.stderr + proc.stdout
