@@ -373,11 +373,12 @@ def run_report(args: argparse.Namespace) -> int:
              + ("  (interrupted: the last iterate)" if doc.get("interrupted") else "")]
     for name, p in doc["parameters"].items():
         if p.get("estimated"):
-            rel = f"({100 * p['std'] / abs(p['value']):.3g}%)" if p.get("std") and p["value"] else ""
-            residual = f"   [+/- {p['std_residual']:.3g} *]" if p.get("std_residual") is not None else ""
+            unit = p.get("unit", "") if p.get("unit") != "-" else ""
+            rel = f" ({100 * p['std'] / abs(p['value']):.2g} %)" if p.get("std") and p["value"] else ""
+            residual = (f"   [{notation.plus_minus(p['value'], p['std_residual'])} *]"
+                        if p.get("std_residual") is not None else "")
             bound = f"   [AT {p['at_bound'].upper()}]" if p.get("at_bound") else ""
-            lines.append(f"  {name:8s} {p['value']: .8g} +/- {p.get('std') or 0:.3g} {rel} {p.get('unit', '')}"
-                         + residual + bound)
+            lines.append(f"  {name:8s} {notation.plus_minus(p['value'], p.get('std'), unit)}{rel}" + residual + bound)
     if any(p.get("std_residual") is not None for p in doc["parameters"].values()):
         lines.append("  * residual-based σ (includes the model error; quote it): the residuals exceed the noise")
     for label, e in doc.get("experiments", {}).items():

@@ -283,20 +283,19 @@ class FitResult:
         for p in self.params:
             if p.name in self.estimated:
                 s = self.std[p.name]
-                rel = f"({100 * s / abs(p.value):.3g}%)" if p.value else ""
+                unit = notation.unit_text(p.unit) if p.unit != "-" else ""
                 init = self.start.get(p.name)
                 init_s = f"(init = {init:.6g})" if init is not None else ""
                 prior = self.priors.get(p.name)
-                prior_s = ("prior std 50 % of its size" if not prior else
-                           f"prior std {prior:.3g} {notation.unit_text(p.unit)}")
+                prior_s = "prior std 50 % of its size" if not prior else f"prior std {prior:.3g} {unit}".rstrip()
                 residual = ""
                 if self.std_residual is not None:
                     sr = self.std_residual[p.name]
-                    residual = f"   [+/- {sr:.3g}" + (f" ({100 * sr / abs(p.value):.3g}%)" if p.value else "") + " *]"
+                    residual = f"   [{notation.plus_minus(p.value, sr)}{_relative(p.value, sr)} *]"
                 side = p.at_bound()
                 bound = f"   [AT {side.upper()}, see warnings]" if side else ""
-                lines.append(f"    {p.name:8s} {p.alias:18s} {p.value: .8g} +/- {s:.3g} {rel} {p.unit} "
-                             f"{init_s}, {prior_s}" + residual + bound)
+                lines.append(f"    {p.name:8s} {p.alias:18s} {notation.plus_minus(p.value, s, unit)}"
+                             f"{_relative(p.value, s)} {init_s}, {prior_s}" + residual + bound)
         if self.std_residual is not None:
             E = float(len(self.experiments))
             what, units, effective = self.residual_units or ("experiments", E, E)
@@ -342,6 +341,10 @@ class FitResult:
             lines.append("[[Warnings]]")
             lines += [f"    {w}" for w in self.warnings]
         return "\n".join(ln for ln in lines if ln != "")
+
+
+def _relative(value: float, std: float) -> str:
+    return f" ({100 * std / abs(value):.2g} %)" if value else ""
 
 
 def _calibration_line(model: str) -> str | None:
