@@ -69,7 +69,7 @@ class Session:
     @classmethod
     def create(cls, path: Path, *, plan_source: str, letters: list[str], periods: int | None, date: str | None,
                snapshot: dict[str, str], unit: dict[str, str], endpoints: dict[str, str],
-               identify: dict[str, Any] | None = None) -> Session:
+               identify: dict[str, Any] | None = None, peers: dict[str, Any] | None = None) -> Session:
         """``identify``: the fit asked for after the capture, kept so that a resume after a
         crash still does it."""
         path = Path(path)
@@ -87,6 +87,8 @@ class Session:
                 "started": _dt.datetime.now().isoformat(timespec="seconds"), "endpoints": endpoints}
         if identify:
             meta["identify"] = identify
+        if peers:   # who answered on the links, one entry per connection (a resume adds one)
+            meta["peers"] = [peers]
         manifest = {"format": FORMAT, "name": f"shaker session {meta['date']} ({plan_source} plan)", "unit": unit,
                     "experiments": []}
         session = cls(path, meta, manifest)
@@ -114,9 +116,12 @@ class Session:
                                    "is missing")
         return cls(path, meta, manifest)
 
-    def reopen(self) -> None:
-        """Mark a loaded session as running again (the resume is on record)."""
+    def reopen(self, peers: dict[str, Any] | None = None) -> None:
+        """Mark a loaded session as running again (the resume is on record, with who
+        answered on the links this time)."""
         self.meta["status"] = "running"
+        if peers:
+            self.meta.setdefault("peers", []).append(peers)
         self.meta.setdefault("resumed", []).append(_dt.datetime.now().isoformat(timespec="seconds"))
         self._save_meta()
 
