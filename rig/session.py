@@ -82,7 +82,7 @@ class Session:
                                (json.dumps(_software(), indent=2) + "\n").encode())
         except OSError as exc:  # a disk that says no only when asked (read-only, full, /proc)
             raise SessionError(f"--out {path}: cannot create the session folder ({exc.strerror or exc})") from None
-        meta = {"plan": plan_source, "experiments": letters, "periods": periods,
+        meta: dict[str, Any] = {"plan": plan_source, "experiments": letters, "periods": periods,
                 "date": date or _dt.date.today().strftime("%y%m%d"), "status": "running",
                 "started": _dt.datetime.now().isoformat(timespec="seconds"), "endpoints": endpoints}
         if identify:
