@@ -237,6 +237,8 @@ def build_parser() -> argparse.ArgumentParser:
     gui.add_argument("--simulate", action="store_true",
                      help="start the virtual rig (python -m simulator serve) on free loopback ports and use it")
     gui.add_argument("--speed", type=float, default=1.0, help="--simulate: simulated seconds per wall second")
+    gui.add_argument("--unit", choices=("good", "gas-leak", "worn-seal", "worn-orifice"),
+                     help="--simulate: the production unit the simulated rig holds (QC practice)")
     gui.add_argument("--params", help="--simulate: the simulated damper's true parameters (TRUTH.json)")
     gui.add_argument("--fault", action="append", default=[], metavar="KIND[@T][=V]",
                      help="--simulate: a fault to inject (repeatable; see python -m simulator serve --help)")

@@ -46,7 +46,8 @@ from rig.events import EventBus
 from rig.gui import fits
 from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
-from rig.gui.qc import QcDone, QcRequest, outcome, qc_command
+from rig.gui.qc import ProgressReader, QcDone, QcRequest, outcome, qc_command
+from rig.peers import Peers
 from rig.registers import RegisterMap, load_register_map
 from rig.run import (
     EXIT_OK,
@@ -92,6 +93,7 @@ class Notice:
 class LinkState:
     connected: bool
     text: str
+    simulated: bool = False     # a peer named itself a simulator (rig.peers)
 
 
 @dataclass(frozen=True)
@@ -215,12 +217,13 @@ class Station:
             self._open_estop_line(self.shaker_url)
             shaker.connect()        # limits written, watchdog on and fed: if this program dies, the rig holds
             identity = daq.open()
+            peers = Peers(shaker.identify(), identity)
             daq.start()             # the live view streams whenever no session does
         except BaseException:
             close_links(Links(shaker, daq, "", None))
             raise
         self.shaker, self.daq = shaker, daq
-        self.post(LinkState(True, f"controller {self.shaker_url}, DAQ {self.daq_url} ({identity})"))
+        self.post(LinkState(True, f"controller {self.shaker_url}, DAQ {self.daq_url} ({identity})", peers.simulated))
 
     def _release(self) -> None:
         shaker, daq = self.shaker, self.daq
@@ -444,11 +447,14 @@ class Station:
             reader = threading.Thread(target=lambda: stdout.extend(proc.stdout or ()), name="qc-stdout", daemon=True)
             reader.start()
             tail: deque[str] = deque(maxlen=20)
+            progress = ProgressReader()
             for line in proc.stderr or ():
                 line = line.rstrip()
                 tail.append(line)
                 if line:
                     self.post(Notice(f"QC {request.serial}: {line}"))
+                if (step := progress.feed(line)) is not None:
+                    self.post(step)
             proc.wait()
             reader.join()
             done = outcome(request, proc.returncode, "".join(stdout), list(tail))

@@ -286,11 +286,11 @@ class Records:
         self._pending = False    # an SQLite file to be made with the first record
 
     @classmethod
-    def open(cls, url: str, create: bool = False) -> Records:
+    def open(cls, url: str, create: bool = False, defer: bool = False) -> Records:
         """The records database at ``url``.  Without ``create`` only an existing one is
         opened (readers, ``identify batch --db``: a mistyped path must not start an empty
-        one); with it a new SQLite file is made when the first record is added, so that a
-        run that never started leaves nothing behind."""
+        one); with it a new one is made, and with ``defer`` too a new SQLite file is made
+        only when the first record is added (a run that never started leaves nothing)."""
         parsed = parse_url(url)
         pending = False
         if parsed.get_backend_name() == "sqlite":
@@ -305,7 +305,9 @@ class Records:
                 existing = next(p for p in path.absolute().parents if p.exists())
                 if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
                     raise RecordsError(f"--db {safe_url(parsed)}: {existing} is not a writable folder")
-                pending = True
+                pending = defer
+                if not defer:
+                    path.parent.mkdir(parents=True, exist_ok=True)
             engine = create_engine(parsed, connect_args={"timeout": SQLITE_WAIT_S})
             event.listen(engine, "connect", _sqlite_connect)
             event.listen(engine, "begin", lambda conn: conn.exec_driver_sql("BEGIN IMMEDIATE"))

@@ -73,7 +73,7 @@ def qc_run(opt: QcOptions, console: Console) -> int:
     prep = replace(prep, config=config, plan=prep.plan.ordered(config))   # the order the spec's criterion favours
     # Opened before the rig moves (a bad URL or password costs no rig time); a new SQLite
     # file is made only with the first record: a run that never starts leaves none.
-    records = Records.open(opt.db or default_url(opt.out), create=True)
+    records = Records.open(opt.db or default_url(opt.out), create=True, defer=True)
     try:
         console.print(f"QC {spec.name} {spec.version} on unit {opt.serial}: records in {records.name}", highlight=False)
         started = now_utc()
