@@ -24,7 +24,7 @@ from rig.peers import Peers
 from rig.qc.evaluate import _for_the_verdict
 from rig.qc.history import MIN_CAPABILITY_N, capability, imr_limits, index
 from rig.qc.present import limits_text, shown, sigma_note
-from rig.qc.records import CharacteristicRecord, QcRecord, Records
+from rig.qc.records import ADDED_IN_2, CharacteristicRecord, QcRecord, Records
 from rig.qc.spec import load_spec
 from rig.shaker import Shaker
 from simulator.generate import generate
@@ -306,3 +306,21 @@ def test_records_refuse_any_change_to_where_they_were_measured(tmp_path):
     (r,) = db.find()
     assert (r.controller, r.daq, r.simulated) == ({"model_name": "X"}, "DAQ4,SN1,1.0", False)
     db.close()
+
+
+def test_a_version_1_database_is_upgraded_without_changing_a_record(tmp_path):
+    path = tmp_path / "v1.sqlite"
+    db = Records.open(str(path), create=True)
+    db.add(unit(1, 450.0))
+    db.close()
+    with sqlite3.connect(path) as conn:         # back to version 1: its columns, its one version row
+        for table, columns in ADDED_IN_2.items():
+            for column in columns:
+                conn.execute(f"ALTER TABLE {table} DROP COLUMN {column}")
+        conn.execute("DROP TRIGGER qc_schema_no_update")
+        conn.execute("UPDATE qc_schema SET version = 1")
+    (r,) = Records.open(str(path)).find()
+    assert (r.serial, r.verdict, r.simulated, r.controller, r.daq) == ("SN-0001", "PASS", False, None, None)
+    assert r.characteristics[0].value == 450.0 and r.characteristics[0].title is None
+    with sqlite3.connect(path) as conn:
+        assert sorted(v for (v,) in conn.execute("SELECT version FROM qc_schema")) == [1, 2]
