@@ -224,9 +224,10 @@ def _print_summary(record: QcRecord, k: float, report: Path, database: str) -> N
     simulated = "  SIMULATED (not a production record)" if record.simulated else ""
     print(f"{record.serial}: {record.verdict}  (spec {record.spec_name} {record.spec_version}; "
           f"value ± {k:g}σ){simulated}")
-    for c in record.characteristics:
-        s = shown(record, c, k)
-        print(f"  {s.outcome:<12} | {s.title} | {s.value} | limits {s.limits} | accept {s.acceptance} | "
+    rows = [shown(record, c, k) for c in record.characteristics]
+    width = max((len(s.title) for s in rows), default=0)
+    for s in rows:
+        print(f"  {s.outcome:<12} | {s.title:<{width}} | {s.value} | limits {s.limits} | accept {s.acceptance} | "
               f"σ {s.sigma} {s.basis}".rstrip())
     for line in record.diagnosis:
         print(f"  likely cause: {line}")
