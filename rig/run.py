@@ -44,7 +44,7 @@ from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq, check_daq_address
 from rig.errors import RigError, RigFault
 from rig.events import EventBus
-from rig.peers import Peers
+from rig.peer_identity import Peers
 from rig.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
 from rig.progress import ConsoleProgress
 from rig.registers import RegisterMap, load_register_map

@@ -24,7 +24,7 @@ from pymodbus.framer import FramerType
 from rig.clock import WALL_CLOCK, Clock
 from rig.config import Limits
 from rig.errors import AddressError, BadInput, RigFault
-from rig.peers import OBJECT_NAMES
+from rig.peer_identity import OBJECT_NAMES
 from rig.registers import RegisterMap, load_register_map
 
 EXCEPTION_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",

@@ -20,7 +20,7 @@ from rig.cli import build_parser, main
 from rig.config import load_rig_config
 from rig.daq import Calibration, Daq
 from rig.gui.qc import ProgressReader, QcRequest, outcome
-from rig.peers import Peers
+from rig.peer_identity import Peers
 from rig.qc.evaluate import _for_the_verdict
 from rig.qc.history import MIN_CAPABILITY_N, capability, imr_limits, index
 from rig.qc.present import limits_text, shown, sigma_note

@@ -47,7 +47,7 @@ from rig.gui import fits
 from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
 from rig.gui.qc import ProgressReader, QcDone, QcRequest, outcome, qc_command
-from rig.peers import Peers
+from rig.peer_identity import Peers
 from rig.registers import RegisterMap, load_register_map
 from rig.run import (
     EXIT_OK,
@@ -93,7 +93,7 @@ class Notice:
 class LinkState:
     connected: bool
     text: str
-    simulated: bool = False     # a peer named itself a simulator (rig.peers)
+    simulated: bool = False     # a peer named itself a simulator (rig.peer_identity)
 
 
 @dataclass(frozen=True)
