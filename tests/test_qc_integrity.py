@@ -254,11 +254,11 @@ def test_the_console_reads_progress_and_rig_time_left_from_the_run():
     assert reader.feed("QC default 1.1.0 on unit SN-1: records in sqlite:///x") is None
     start = reader.feed("session: 3 experiments, about 4:36 min:s of rig time")
     assert start is not None and start.fraction == 0 and start.rig_left_s == 276
-    reader.feed("[ 0/3] 261126l  moving target_mm=40.0")
-    half = reader.feed("[ 0/3] 261126l    captured 50 %")
+    reader.feed("[1/3] 261126l  Moving to the static position 40.0 mm.")
+    half = reader.feed("[1/3] 261126l  Captured 50 % of the window.")
     assert half is not None and half.fraction == pytest.approx(0.5 / 3) and "capturing" in half.text
-    reader.feed("[ 1/3] 261126v  moving target_mm=133.0")              # begun before l's file is written
-    done = reader.feed("[ 1/3] 261126l  captured 261126l.csv (6000 samples, 0 lost in window)")
+    reader.feed("[2/3] 261126v  Moving to the static position 133.0 mm.")    # begun before l's file is written
+    done = reader.feed("[1/3] 261126l  Written to 261126l.csv: 6000 samples, none lost in the window.")
     assert done is not None and done.fraction == pytest.approx(1 / 3) and done.rig_left_s == pytest.approx(184)
     assert "experiment 2 of 3" in done.text
 

@@ -27,7 +27,7 @@ SHOWN = {Outcome.PASS: "PASS", Outcome.FAIL: "FAIL", Outcome.INCONCLUSIVE: "RETE
 _REPORT = re.compile(r"^report (?P<report>.+); record (?P<uid>\S+) in (?P<db>.+)$")
 _ANNOUNCED = re.compile(r"^session: (?P<n>\d+) experiments?, about (?P<m>\d+):(?P<s>\d\d) min:s of rig time")
 _STEP = re.compile(r"^\[\s*(?P<i>\d+)/(?P<n>\d+)\]\s+(?P<label>\S+)\s+(?P<what>.*)$")
-_CAPTURED = re.compile(r"captured (?P<pct>\d+) %")
+_CAPTURED = re.compile(r"[Cc]aptured (?P<pct>\d+) %")
 PHASES = {p.value for p in Phase}
 _PERIODS = re.compile(r"--periods (\d+)")
 
@@ -83,12 +83,13 @@ class ProgressReader:
         if m is None or not self.count:
             return None
         label, what = m["label"], m["what"].strip()
-        if what.startswith("captured ") and not _CAPTURED.search(what):      # the experiment's file is written
+        if what.startswith("Written to ") or (what.startswith("captured ") and not _CAPTURED.search(what)):
             self.done = min(self.done + 1, self.count)
             return self._progress(f"experiment {len(self.begun)} of {self.count} ({self.begun[-1]})"
                                   if self.begun else "")
-        phase = what.split()[0] if what else ""
-        if phase not in PHASES and not _CAPTURED.search(what):
+        words = what.lower().rstrip(".").split()
+        phase = next((w for w in words[:2] if w in PHASES), "")
+        if not phase and not _CAPTURED.search(what):
             return None
         if label not in self.begun:
             self.begun.append(label)
