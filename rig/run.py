@@ -53,6 +53,7 @@ from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq, DaqError, check_daq_address
 from rig.errors import RigError, RigFault
 from rig.events import EventBus, Kind, LinkNotice, Subscriber
+from rig.peer_identity import Peers
 from rig.peers import wrong_peer_or
 from rig.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
 from rig.progress import ConsoleProgress
@@ -125,6 +126,7 @@ class Links:
     identity: str
     latched_alarm: str | None                # an alarm cleared by --reset-alarm, for the record
     start_position_m: float = 0.0            # where the actuator stood when the session connected
+    peers: Peers | None = None               # who answered on both links (session.json, QC records)
 
 
 @dataclass
@@ -209,6 +211,7 @@ def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Ca
     try:
         shaker.connect()
         links.identity = daq.open()
+        links.peers = Peers(shaker.identify(), links.identity)
         status = shaker.status()
         links.start_position_m = status.position_m
         if status.state == "ALARM":
@@ -272,7 +275,7 @@ class SessionRunner:
         prep, opt = self.prep, self.prep.options
         if prep.stored is not None:
             session = prep.stored
-            session.reopen()
+            session.reopen(peers=self._peers())
         else:
             plan = prep.plan
             snapshot = {"rig.toml": prep.config.text, "daq-calibration.toml": prep.calibration.text,
@@ -283,10 +286,14 @@ class SessionRunner:
                                      letters=[e.letter for e in plan.experiments], periods=opt.periods,
                                      date=opt.date, snapshot=snapshot, unit={"serial": opt.unit_serial},
                                      endpoints={"shaker": prep.shaker_url, "daq": prep.daq_url},
+                                     peers=self._peers(),
                                      identify={"model": opt.model, "estimate": opt.estimate,
                                                "params": str(Path(opt.params).resolve()) if opt.params else None}
                                      if opt.identify else None)
         return session
+
+    def _peers(self) -> dict[str, Any] | None:
+        return self.links.peers.to_json() if self.links.peers is not None else None
 
     def durations(self, session: Session, start_position_m: float) -> list[ExperimentDuration]:
         """Rig time per experiment still to do, in plan order, with its conditioning hold:

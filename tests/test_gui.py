@@ -270,7 +270,7 @@ def test_closing_mid_run_is_a_safe_stop_and_the_session_resumes(qtbot, tmp_path,
 
 
 def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path):
-    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--out", str(tmp_path))
+    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--unit", "worn-orifice", "--out", str(tmp_path))
     connected(qtbot, window)
     verdict = find(window, QtWidgets.QLabel, "verdictLabel")
     window.qc.serial.setText("SN-4242")
@@ -279,11 +279,19 @@ def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path
     assert window.left_tabs.currentWidget() is window.qc
     qtbot.waitUntil(lambda: window.qc.last is not None, timeout=HANG_MS)
     done = window.qc.last
-    assert done.shown in ("PASS", "FAIL", "RETEST"), (done, window.simulated.log()[-500:])
+    assert done.shown == "FAIL", (done, window.simulated.log()[-500:])       # a worn orifice: --unit reached the rig
     assert verdict.text() == done.shown
+    assert window.qc.progress.value() > 0                                    # the progress bar moved while it ran
+    # The table as the report shows it (every number with its unit), the likely cause in full.
+    table = window.qc.table
+    rows = [[table.item(i, j).text() for j in range(table.columnCount())] for i in range(table.rowCount())]
+    assert len(rows) == 5 and rows[1][0] == "Damping force at 0.3 m/s" and rows[1][4] == "FAIL"
+    assert all(cell.endswith((" bar", " N", " J", " kN", " %")) for row in rows for cell in row[1:4])
+    causes = find(window, QtWidgets.QLabel, "qcCauses").text()
+    assert "Damping force at 0.3 m/s too low: orifice wear or wrong oil" in causes and "SIMULATED" in causes
     # The record `rig qc run` writes, with the same verdict (RETEST is the INCONCLUSIVE's remedy).
     record = json.loads((done.report.parent / "qc-record.json").read_text())
-    assert {"PASS": "PASS", "FAIL": "FAIL", "RETEST": "INCONCLUSIVE"}[done.shown] == record["verdict"]
+    assert record["verdict"] == "FAIL" and record["simulated"] is True
     assert record["serial"] == "SN-4242" and record["status"] == "COMPLETE"
     assert done.report.parent.parent == (tmp_path / "qc").resolve() and done.report.is_file()
     assert done.report.resolve().as_uri() in find(window, QtWidgets.QLabel, "qcReportLink").text()
@@ -426,4 +434,14 @@ def test_the_loop_plots_show_a_placeholder_when_no_excitation_runs(qtbot, tmp_pa
     assert y0 <= live.loop.yData.min() and live.loop.yData.max() <= y1
     qtbot.mouseClick(find(window, QtWidgets.QPushButton, "stopButton"), QtCore.Qt.MouseButton.LeftButton)
     qtbot.waitUntil(placeholders_shown, timeout=30_000)
+
+
+def test_a_rig_reached_by_address_that_says_it_is_a_simulator_gets_the_banner(qtbot, tmp_path, virtual_rig):
+    sim = virtual_rig(speed=float(SPEED))
+    window = open_window(qtbot, "--shaker", sim.modbus_url, "--daq", sim.daq_url, "--out", str(tmp_path))
+    label = find(window, QtWidgets.QLabel, "simulatedLabel")
+    assert not label.isVisible()                         # not started with --simulate: nothing known yet
+    connected(qtbot, window)
+    qtbot.waitUntil(label.isVisible, timeout=30_000)
+    assert "identifies itself as a simulator" in label.text() and "SIMULATED RIG" in window.windowTitle()
     closed(qtbot, window)

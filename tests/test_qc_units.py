@@ -30,7 +30,7 @@ def unit_dataset(out: Path, unit: str | None, seed: int, params: Path | None = N
 
 def judge(capsys: pytest.CaptureFixture[str], session: Path, db: Path) -> tuple[int, str]:
     capsys.readouterr()
-    code = main(["qc", "judge", str(session), "--db", str(db), "--operator", "qe"])
+    code = main(["qc", "judge", str(session), "--db", str(db), "--create-db", "--operator", "qe"])
     return code, capsys.readouterr().out
 
 
@@ -68,8 +68,9 @@ def test_a_faulty_unit_fails_on_its_characteristic_and_names_the_cause(unit, tmp
     (record,) = Records.open(str(tmp_path / "records.sqlite")).find()
     failed = {c.name for c in record.characteristics if c.outcome == "FAIL"}
     assert failed & set(PHYSICAL) == {name}, record.characteristics
-    assert f"{name} too {side}: {cause}" in record.diagnosis
-    assert f"likely cause: {name} too {side}: {cause}" in out
+    title = next(c.title for c in SPEC.characteristics if c.name == name)
+    assert f"{title} too {side}: {cause}" in record.diagnosis
+    assert f"likely cause: {title} too {side}: {cause}" in out
 
 
 @pytest.mark.parametrize(("parameter", "characteristic"), [("theta5", "gas_precharge_bar"),

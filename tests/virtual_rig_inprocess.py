@@ -36,7 +36,7 @@ from rig.registers import load_register_map
 from rig.run import Links, RunOptions, RunResult, SessionRunner, prepare, run_lifecycle
 from rig.session import Session, SessionLog
 from rig.shaker import Shaker
-from simulator.controller import ShakerController
+from simulator.controller import DEVICE_IDENTIFICATION, ShakerController
 from simulator.engine import PHYSICS_RATE_HZ, VirtualRig
 from simulator.faults import FaultLog, parse_fault
 from simulator.modbus import ControllerContext
@@ -147,6 +147,11 @@ class _DeviceEnd:
 
 
 # ----- the controller's Modbus link --------------------------------------------------------------------
+# Read Device Identification's object ids (Modbus application protocol 6.21)
+OBJECT_IDS = {"VendorName": 0, "ProductCode": 1, "MajorMinorRevision": 2, "VendorUrl": 3, "ProductName": 4,
+              "ModelName": 5}
+
+
 @dataclass
 class ModbusResponse:
     """The parts of a pymodbus response that rig.shaker reads."""
@@ -154,6 +159,7 @@ class ModbusResponse:
     registers: list[int] = field(default_factory=list)
     bits: list[bool] = field(default_factory=list)
     exception_code: int | None = None
+    information: dict[int, bytes] = field(default_factory=dict)
 
     def isError(self) -> bool:  # noqa: N802 — pymodbus's name
         return self.exception_code is not None
@@ -209,6 +215,13 @@ class InProcessModbusClient:
 
     def write_coil(self, address: int, value: bool, *, device_id: int = 1) -> ModbusResponse:
         return self._write(5, address, [value], device_id)
+
+    def read_device_information(self, *, read_code: int | None = None, object_id: int = 0,
+                                device_id: int = 1) -> ModbusResponse:
+        """What ``simulator serve`` answers (0x2B/0x0E): the basic and regular objects."""
+        self._check_link()
+        return ModbusResponse(information={OBJECT_IDS[name]: text.encode()
+                                           for name, text in DEVICE_IDENTIFICATION.items()})
 
     def _read(self, func_code: int, address: int, count: int, device_id: int) -> ModbusResponse:
         self._check_link()

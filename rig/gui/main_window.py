@@ -32,7 +32,7 @@ from rig.gui.fit_view import FitView
 from rig.gui.live import LiveView
 from rig.gui.options import ConsoleOptions
 from rig.gui.plan_panel import PlanPanel
-from rig.gui.qc import QcDone, QcRequest
+from rig.gui.qc import QcDone, QcProgress, QcRequest
 from rig.gui.qc_panel import QcPanel
 from rig.gui.state_strip import RigState, StateStrip, hydraulics_on
 from rig.gui.station import (
@@ -83,6 +83,8 @@ class MainWindow(QtWidgets.QMainWindow):
         super().__init__()
         if args.simulate and (args.shaker or args.daq):
             raise BadInput("gui: either --simulate or --shaker/--daq, not both")
+        if (args.unit or args.faults) and not args.simulate:
+            raise BadInput("gui: --unit and --fault choose what the simulated rig plays: give --simulate too")
         # What the command line names is checked as `rig run` checks it: a typo is one line
         # and exit 2 before any window or simulator, not a message inside the window.
         load_plan(args.plan).select(comma_list(args.experiments))
@@ -95,7 +97,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if args.simulate:
             # The simulated hardware yields the CPU to the console, as real hardware would not need it.
             self.simulated = VirtualRig(speed=args.speed, params=args.params, faults=list(args.faults),
-                                        nice=SIMULATOR_NICE)
+                                        unit=args.unit, nice=SIMULATOR_NICE)
             shaker, daq = self.simulated.modbus_url, self.simulated.daq_url
         self.queue: queue.Queue[object] = queue.Queue()
         try:
@@ -167,8 +169,10 @@ class MainWindow(QtWidgets.QMainWindow):
         banner_row = QtWidgets.QHBoxLayout()
         banner_row.addWidget(self.banner, 1)
         banner_row.addWidget(self.reset_button)
+        unit = f", unit {args.unit}" if args.unit else ""
         self.sim_label = QtWidgets.QLabel(
-            f"SIMULATED RIG (python -m simulator serve at {args.speed:g}x, not hardware)" if self.simulated else "")
+            f"SIMULATED RIG (python -m simulator serve at {args.speed:g}x{unit}, not hardware)" if self.simulated
+            else "")
         self.sim_label.setObjectName("simulatedLabel")
         self.sim_label.setStyleSheet("background: #fff3cd; color: #7a5200; font-weight: bold; padding: 3px")
         self.sim_label.setVisible(self.simulated is not None)
@@ -402,6 +406,11 @@ class MainWindow(QtWidgets.QMainWindow):
             self._say(item.text, item.level)
         elif isinstance(item, LinkState):
             self.link_label.setText(("connected: " if item.connected else "") + item.text)
+            if item.simulated and self.simulated is None:   # reached by address, but it says it is a simulator
+                self.sim_label.setText("SIMULATED RIG: the controller or the DAQ identifies itself as a simulator "
+                                       "(not hardware; QC records from it are marked simulated)")
+                self.sim_label.setVisible(True)
+                self.setWindowTitle("Damper rig — operator console — SIMULATED RIG")
             self.connect_button.setText("Disconnect" if item.connected else "Connect")
             if not item.connected:
                 self.status = None
@@ -443,6 +452,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self.status, self.link_error = None, "QC run in progress: the controller is read by `rig qc run`"
             self.qc.show_started(item.request)
             self.left_tabs.setCurrentWidget(self.qc)
+        elif isinstance(item, QcProgress):
+            self.qc.show_progress(item)
         elif isinstance(item, QcDone):
             self.link_error = None
             self.qc.show_done(item)

@@ -1,9 +1,10 @@
 """``make screenshots``: the console's main views as PNG files, from a real session on the
 simulated rig (offscreen): idle (connected, at rest), settling, a capture in progress, the
 fit view with the 1-dof/2-dof comparison, the session browser, an alarm (an e-stop trip
-during a manual sine), the console's E-STOP during a manual sine, and a QC verdict.
+during a manual sine), the console's E-STOP during a manual sine, and QC mode at 1280 px
+(a worn-orifice unit under test, then its FAIL).
 
-    python -m rig.gui.screenshots [--out out/screenshots] [--speed 20] [--readme docs/gui.png]
+    python -m rig.gui.screenshots [--out out/screenshots] [--speed 20] [--readme docs/gui.png] [--only-qc]
 """
 
 from __future__ import annotations
@@ -77,15 +78,39 @@ def closed(window: MainWindow) -> None:
     wait("the window to close", lambda: not window.isVisible(), 60)
 
 
+def qc_view(speed: float, out: Path, sessions: Path) -> None:
+    """QC mode at 1280 × 1024 px: a unit with a worn orifice through python -m rig qc run, the
+    progress bar while it runs, then its FAIL with the table and the likely cause."""
+    qc = MainWindow.from_args(["--simulate", "--speed", f"{speed:g}", "--unit", "worn-orifice", "--out",
+                               str(sessions)])
+    qc.resize(1280, 1024)
+    qc.show()
+    wait("the connection", lambda: qc.status is not None)
+    qc.qc.serial.setText("SN-0042")
+    qc.qc.test_button.click()
+    wait("the QC run's progress", lambda: qc.qc.progress.value() > 0, 600)
+    settle_view(0.5)
+    shoot(qc, out / "qc-testing.png")
+    wait("the QC verdict", lambda: qc.qc.last is not None, 900)
+    wait("the console's links back", lambda: qc.station.shaker is not None and qc.status is not None, 60)
+    settle_view(1.0)
+    shoot(qc, out / "qc-verdict.png")
+    closed(qc)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default="out/screenshots")
     parser.add_argument("--speed", type=float, default=20.0)
     parser.add_argument("--readme", help="also write a 1200-px-wide copy of the settling view here")
+    parser.add_argument("--only-qc", action="store_true", help="only the QC views (qc-testing.png, qc-verdict.png)")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     sessions = Path(tempfile.mkdtemp(prefix="gui-screenshots-"))
+    if args.only_qc:
+        qc_view(args.speed, out, sessions)
+        return 0
     application()
 
     window = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--experiments", "j,g",
@@ -138,17 +163,7 @@ def main() -> int:
     shoot(estop, out / "alarm-after-estop.png")
     closed(estop)
 
-    # QC mode: one unit through python -m rig qc run, its verdict on screen.
-    qc = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--out", str(sessions)])
-    qc.show()
-    wait("the connection", lambda: qc.status is not None)
-    qc.qc.serial.setText("SN-0042")
-    qc.qc.test_button.click()
-    wait("the QC verdict", lambda: qc.qc.last is not None, 600)
-    wait("the console's links back", lambda: qc.station.shaker is not None and qc.status is not None, 60)
-    settle_view(1.0)
-    shoot(qc, out / "qc-verdict.png")
-    closed(qc)
+    qc_view(args.speed, out, sessions)
     print(f"sessions of this run: {sessions}; first view {settling}")
     return 0
 

@@ -49,7 +49,8 @@ from rig.events import Event, Kind, LinkCondition, LinkNotice, Subscriber
 from rig.gui import fits
 from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
-from rig.gui.qc import QcDone, QcRequest, outcome, qc_command
+from rig.gui.qc import ProgressReader, QcDone, QcRequest, outcome, qc_command
+from rig.peer_identity import Peers
 from rig.peers import wrong_peer_or
 from rig.registers import RegisterMap, load_register_map
 from rig.run import (
@@ -96,6 +97,7 @@ class Notice:
 class LinkState:
     connected: bool
     text: str
+    simulated: bool = False     # a peer named itself a simulator (rig.peer_identity)
 
 
 @dataclass(frozen=True)
@@ -208,6 +210,7 @@ class Station:
             self._open_estop_line(self.shaker_url)
             shaker.connect()        # limits written, watchdog on and fed: if this program dies, the rig holds
             identity = daq.open()
+            peers = Peers(shaker.identify(), identity)
             daq.start()             # the live view streams whenever no session does
         except (ShakerLinkError, DaqError) as exc:
             close_links(Links(shaker, daq, "", None))
@@ -216,7 +219,7 @@ class Station:
             close_links(Links(shaker, daq, "", None))
             raise
         self.shaker, self.daq = shaker, daq
-        self.post(LinkState(True, f"controller {self.shaker_url}, DAQ {self.daq_url} ({identity})"))
+        self.post(LinkState(True, f"controller {self.shaker_url}, DAQ {self.daq_url} ({identity})", peers.simulated))
 
     def _release(self) -> None:
         shaker, daq = self.shaker, self.daq
@@ -399,11 +402,14 @@ class Station:
             reader = threading.Thread(target=lambda: stdout.extend(proc.stdout or ()), name="qc-stdout", daemon=True)
             reader.start()
             tail: deque[str] = deque(maxlen=20)
+            progress = ProgressReader()
             for line in proc.stderr or ():
                 line = line.rstrip()
                 tail.append(line)
                 if line:
                     self.post(Notice(f"QC {request.serial}: {line}"))
+                if (step := progress.feed(line)) is not None:
+                    self.post(step)
             proc.wait()
             reader.join()
             done = outcome(request, proc.returncode, "".join(stdout), list(tail))

@@ -37,7 +37,7 @@ KINDS: dict[str, tuple[str, tuple[str, ...]]] = {
     "loop_energy": ("energy", ("experiment",)),                       # ∮F dq of a measured experiment
     "drop_peak_force": ("force", ("mass_kg", "velocity_m_s")),        # models.md drop test, identified model
 }
-COMMON_KEYS = ("name", "kind", "unit", "nominal", "low", "high", "tolerance_percent", "u_cal", "description")
+COMMON_KEYS = ("name", "kind", "unit", "nominal", "low", "high", "tolerance_percent", "u_cal", "description", "title")
 TOP_KEYS = ("name", "version", "title", "serial_pattern", "k", "periods", "identification", "steady_state",
             "experiment", "characteristic", "diagnosis")
 DIRECTIONS = ("low", "high")
@@ -62,6 +62,11 @@ class Characteristic:
     u_cal: float
     args: dict[str, Any]
     description: str = ""
+    title: str = ""           # the readable name reports and screens show (``name`` is the identifier)
+
+    @property
+    def shown(self) -> str:
+        return self.title or self.name
 
     @property
     def si_factor(self) -> float:
@@ -217,7 +222,8 @@ def _characteristic(c: Any, i: int, where: str, plan: Plan) -> Characteristic:
             args[key] = letter
         else:
             args[key] = _number(c, key, at)
-    return Characteristic(name, kind, unit, nominal, low, high, u_cal, args, str(c.get("description", "")))
+    return Characteristic(name, kind, unit, nominal, low, high, u_cal, args, str(c.get("description", "")),
+                          str(c.get("title", "")))
 
 
 def _no_unknown(table: dict[str, Any], known: tuple[str, ...], where: str) -> None:
