@@ -228,7 +228,8 @@ def test_browser_opens_a_session_written_by_rig_run_and_refits_it(qtbot, tmp_pat
     plots = [window.browser.plot.getItem(row, 0) for row in range(4)]
     assert [p.getAxis("left").labelText.split(" [")[0] for p in plots] == ["stroke", "force", "gas p", "gas T"]
     assert plots[0].listDataItems()[0].xData[0] == 0.0                         # time from the record's start
-    assert "session-start" in find(window, QtWidgets.QPlainTextEdit, "browserLog").toPlainText()
+    log = find(window, QtWidgets.QPlainTextEdit, "browserLog").toPlainText()     # session.log read as sentences
+    assert "Session started: controller at" in log and log.rstrip().endswith("Session complete."), log
     assert "[[Variables]]" in find(window, QtWidgets.QPlainTextEdit, "browserReport").toPlainText()
     assert find(window, QtWidgets.QTableWidget, "browserParameters").rowCount() == 3
     window.browser.model.setCurrentText("1dof")
