@@ -216,9 +216,11 @@ class _Problem:
 
     def __init__(self, info: Sequence[Information], quantities: Quantities, criterion: str,
                  targets: np.ndarray | None, scale: np.ndarray | None, prior: np.ndarray | None,
-                 cost: Callable[[Sequence[Choice]], float]) -> None:
+                 cost: Callable[[Sequence[Choice]], float],
+                 estimate: Callable[[Sequence[Choice]], float] | None = None) -> None:
         self.info, self.quantities, self.criterion = info, quantities, criterion
         self.targets, self.scale, self.prior, self._cost = targets, scale, prior, cost
+        self.estimate = estimate
         self._costs: dict[tuple[Choice, ...], float] = {}
         self.calls = 0
 
@@ -251,7 +253,8 @@ def optimise(info: Sequence[Information], quantities: Quantities, cost: Callable
              criterion: str = "sigma", targets: Sequence[float] | np.ndarray | None = None, budget: float | None = None,
              scale: Sequence[float] | None = None, periods: Sequence[int] = (2, 3, 4, 6, 8, 12),
              required: Sequence[Choice] = (), max_experiments: int = 10,
-             prior_precision: np.ndarray | None = None, shortlist: int = SHORTLIST) -> Design:
+             prior_precision: np.ndarray | None = None, shortlist: int = SHORTLIST,
+             estimate: Callable[[Sequence[Choice]], float] | None = None) -> Design:
     """Experiments from the candidates (their ``info``) and their periods, in order.
 
     ``criterion`` "sigma": the least-cost plan whose quantities' σ are each at most
@@ -259,7 +262,9 @@ def optimise(info: Sequence[Information], quantities: Quantities, cost: Callable
     sizes for A): the best criterion within ``budget``.  ``cost(sequence)`` is the
     caller's cost of running those choices in that order (e.g. rig seconds); it is
     called for a shortlist of moves per step only.  ``required``: choices every plan
-    keeps (first, in this order)."""
+    keeps (first, in this order).  ``estimate``: a quick approximation of ``cost`` by
+    which the shortlist is drawn (most criterion per estimated cost); without it the
+    moves that lower the criterion most are shortlisted, whatever they cost."""
     if not info:
         raise DesignError("no candidate experiment to choose from")
     if criterion not in CRITERIA:
@@ -274,7 +279,7 @@ def optimise(info: Sequence[Information], quantities: Quantities, cost: Callable
     periods = sorted(set(int(p) for p in periods))
     if not periods or periods[0] < 1:
         raise DesignError("periods must be whole numbers of at least 1")
-    problem = _Problem(info, quantities, criterion, t, s, prior_precision, cost)
+    problem = _Problem(info, quantities, criterion, t, s, prior_precision, cost, estimate)
     cap = math.inf if budget is None else budget
     size = max_experiments + len(required)
 
@@ -330,7 +335,13 @@ def _greedy(problem: _Problem, seq: list[Choice], n_candidates: int, periods: li
             # counted from the worst first step that does, so that their rate per cost
             # still tells a cheap weak experiment from a dearer strong one.
             now = max((v for v in values if math.isfinite(v)), default=now)
-        gains = sorted(((now - v, i) for i, v in enumerate(values)), reverse=True)
+        if problem.estimate is None:
+            gains = sorted(((now - v, i) for i, v in enumerate(values)), reverse=True)
+        else:
+            guess = problem.estimate(seq)
+            ranked = sorted(((now - v) / max(problem.estimate(moves[i]) - guess, 1e-9), i)
+                            for i, v in enumerate(values) if now - v > 0)
+            gains = [(now - values[i], i) for _, i in reversed(ranked)]
         base = problem.cost(seq)
         best, best_rate = None, 0.0
         for gain, i in gains[:shortlist]:

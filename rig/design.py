@@ -56,8 +56,8 @@ from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
 from rig.config import RigConfig, load_rig_config
 from rig.errors import BadInput
+from rig.imposed import imposed_stroke
 from rig.plans import Plan, check_plan, estimate_experiment_durations, load_plan
-from rig.settling import GasThermalModel
 from rig.shaker import check_waveform
 
 # The candidate grid: the standard set's static positions, amplitudes and frequencies.
@@ -110,69 +110,6 @@ def candidate_specs(config: RigConfig) -> list[ExperimentSpec]:
     return out
 
 
-def imposed_stroke(params: Parameters, specs: Sequence[ExperimentSpec], n: int
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """The model's inputs (E, n_inputs, n) and states (E, n_states, n) on the grid when the
-    rig imposes each experiment's stroke (measured stroke = q + θ12), at ``params``.
-
-    The gas temperature's periodic state is the fixed point of its one-period map,
-    which is nearly affine (rig.settling): two integrations and a secant step, then one
-    more period from it on the grid; the force then follows from the force balance
-    (the model's first residual, linear in its input)."""
-    gas = GasThermalModel(params)
-    model, theta = gas.model, gas.theta
-    static = np.array([e.static_position_mm * 1e-3 for e in specs]) - theta[model.parameter_index("theta12")]
-    amplitude = np.array([e.amplitude_mm * 1e-3 for e in specs])
-    omega = 2 * np.pi * np.array([e.frequency_hz for e in specs])
-    tau = np.arange(n) / n
-    phase = 2 * np.pi * tau[None, :]
-    q = static[:, None] + amplitude[:, None] * np.sin(phase)
-    v = amplitude[:, None] * omega[:, None] * np.cos(phase)
-    a = -amplitude[:, None] * omega[:, None] ** 2 * np.sin(phase)
-    E = len(specs)
-    T = np.zeros((E, n))
-    Tdot = np.zeros((E, n))
-    if gas.has_thermal_state:
-        period = 2 * np.pi / omega
-
-        def stroke(t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-            ph = omega * t
-            return (static + amplitude * np.sin(ph), amplitude * omega * np.cos(ph),
-                    -amplitude * omega**2 * np.sin(ph))
-
-        def one_period(T0: np.ndarray, keep: bool = False) -> np.ndarray:
-            h = period / n
-            Ts, Tk = [T0], T0
-            for k in range(n):      # RK4 on the grid's steps (n per period: far finer than the gas's time constant)
-                t = k * h
-                k1 = gas.temperature_rate(*stroke(t), Tk)
-                k2 = gas.temperature_rate(*stroke(t + h / 2), Tk + h / 2 * k1)
-                k3 = gas.temperature_rate(*stroke(t + h / 2), Tk + h / 2 * k2)
-                k4 = gas.temperature_rate(*stroke(t + h), Tk + h * k3)
-                Tk = Tk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-                Ts.append(Tk)
-            return np.stack(Ts, axis=1) if keep else Tk
-
-        T0 = np.full(E, gas.ambient_k)
-        for _ in range(2):          # secant steps on the nearly affine period map
-            F0, F1 = one_period(T0), one_period(T0 + 1.0)
-            T0 = T0 + (F0 - T0) / (1.0 - (F1 - F0))
-        T = one_period(T0, keep=True)[:, :n]
-        Tdot = gas.temperature_rate(q, v, a, T)
-    ns, nin = model.n_states, len(model.input_names)
-    X, DX, DDX = (np.zeros((ns, E, n)) for _ in range(3))
-    iq = model.state_names.index("q")
-    X[iq], DX[iq], DDX[iq] = q, v, a
-    if gas.has_thermal_state:
-        iT = model.state_names.index("T")
-        X[iT], DX[iT] = T, Tdot
-    U = np.zeros((nin, E, n))
-    g = model.residual(X, DX, DDX, U, theta)[0]
-    gu = model.residual_dinput(X, DX, DDX, U, theta)[0, 0]
-    U[0] = -g / gu
-    return np.moveaxis(U, 1, 0), np.moveaxis(X, 1, 0)
-
-
 def transducer_noise(model: CompiledModel, config: RigConfig, outputs: Sequence[str]) -> Noise:
     """Per-sample noise (SI) of the fitted outputs and the inputs: the rig configuration's
     transducer figures (``drift_noise``)."""
@@ -211,6 +148,18 @@ def informations(goal: Goal, specs: Sequence[ExperimentSpec], config: RigConfig,
 def rig_seconds(plan: Plan, config: RigConfig, params: Parameters) -> float:
     """Predicted rig time of a plan run in its order (rig.plans, as the session's ETA)."""
     return sum(d.total_s for d in estimate_experiment_durations(plan.ordered(config), config, 0.0, params))
+
+
+def standalone_seconds(specs: Sequence[ExperimentSpec], config: RigConfig, params: Parameters) -> np.ndarray:
+    """Each experiment's predicted rig time from rest at the start, less its capture: the
+    optimiser's quick estimate to shortlist by.  One prediction for all: each experiment
+    follows a barely moving one at the start position, whose periodic state is the
+    damper at rest there (a plan's rows each start from the row before)."""
+    rest = ExperimentSpec("r", "", 0.0, 0.01, 2.0)
+    sequence = tuple(x for k, e in enumerate(specs)
+                     for x in (replace(rest, letter=f"r{k}"), replace(e, letter=f"c{k}")))
+    durations = estimate_experiment_durations(Plan("alone", sequence), config, 0.0, params, noise_draws=0)
+    return np.array([d.total_s - d.capture_s for d in durations[1::2]])
 
 
 def _plan(name: str, specs: Sequence[ExperimentSpec], choices: Sequence[Choice], required: int) -> Plan:
@@ -255,9 +204,14 @@ def design(goal: Goal, config: RigConfig, reference: Plan | None, name: str,
                                    for k, c in enumerate(seq)), "", "fixed")
         return sum(d.total_s for d in estimate_experiment_durations(plan, config, 0.0, goal.params, noise_draws=3))
 
+    alone = standalone_seconds(specs, config, goal.params)
+
+    def estimate(seq: Sequence[Choice]) -> float:
+        return sum(alone[c.candidate] + c.periods / specs[c.candidate].frequency_hz for c in seq)
+
     try:
         found: Design = optimise(info, goal.quantities, cost, criterion="sigma", targets=targets, periods=PERIODS,
-                                 required=required, prior_precision=prior)
+                                 required=required, prior_precision=prior, estimate=estimate)
     except DesignError as exc:
         raise BadInput(f"design: {exc}") from None
     plan = _plan(name, specs, found.choices, len(required))
@@ -295,7 +249,8 @@ def parameter_goal(model_name: str, params_file: str | None, targets: list[str],
 
 def qc_goal(spec_source: str) -> Goal:
     """The spec's model-based characteristics, each to a quarter of its tolerance
-    half-width (combined with u_cal); the experiments measured characteristics use kept."""
+    half-width (combined with u_cal); a loop energy the spec gives the conditions of is
+    one of them (computed from the model there), otherwise its experiment is kept."""
     from rig.qc.characteristics import _model_function, check_model
     from rig.qc.spec import load_spec
 
@@ -304,8 +259,10 @@ def qc_goal(spec_source: str) -> Goal:
     params = Parameters.from_file(model, spec.start) if spec.start else Parameters(model)
     estimate = tuple(params[p].name for p in spec.estimate)
     functions, targets, units, scales = {}, [], [], []
+    measured = {c.args["experiment"] for c in spec.characteristics
+                if c.kind == "loop_energy" and "static_mm" not in c.args}
     for c in spec.characteristics:
-        if c.kind == "loop_energy":
+        if c.kind == "loop_energy" and c.args["experiment"] in measured:
             continue
         limits = [x for x in (c.low, c.high) if x is not None]
         half = (abs(limits[1] - limits[0]) / 2 if len(limits) == 2 else abs(limits[0] - c.nominal)) * c.si_factor
@@ -320,8 +277,7 @@ def qc_goal(spec_source: str) -> Goal:
         scales.append(c.si_factor)
     theta = params.vector()
     quantities = derived_quantities(functions, theta, [params.index(p) for p in estimate])
-    letters = {c.args["experiment"] for c in spec.characteristics if c.kind == "loop_energy"}
-    required = tuple(e for e in spec.plan.experiments if e.letter in letters)
+    required = tuple(e for e in spec.plan.experiments if e.letter in measured)
     return Goal(model, params, estimate, quantities, np.array(targets), tuple(units), tuple(scales), required)
 
 
