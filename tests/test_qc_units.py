@@ -87,7 +87,7 @@ def test_a_unit_exactly_on_a_limit_is_not_a_pass(parameter, characteristic, tmp_
     (record,) = Records.open(str(tmp_path / "records.sqlite")).find()
     outcome = {c.name: c.outcome for c in record.characteristics}
     assert outcome[characteristic] == "INCONCLUSIVE" and record.verdict == "INCONCLUSIVE" and code == 4, out
-    assert record.remedy and "--periods 8" in record.remedy
+    assert record.remedy and f"--periods {SPEC.retest_periods()}" in record.remedy
 
 
 def test_the_unit_option_overrides_are_those_of_the_truth_file(tmp_path):
