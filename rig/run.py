@@ -129,6 +129,7 @@ class RunResult:
     skipped: list[str] = field(default_factory=list)
     safe_stop_failures: list[str] = field(default_factory=list)
     error: BaseException | None = None       # a bug, re-raised by the caller after the record is written
+    decided: str | None = None               # why the session ended before its plan did (SessionRunner.decide)
 
 
 # ----- prepare: check everything, write nothing ----------------------------------------------------
@@ -246,6 +247,9 @@ class SessionRunner:
         # One time line for the rig: the acquisition waits on the shaker's clock (the wall
         # clock, or a simulated one when a test drives an in-process simulator).
         self.acquisition = Acquisition(links.shaker, links.daq, prep.config, bus, links.shaker.clock)
+        # Asked after each captured experiment but the last, its data written: a reason to
+        # end the session there (qc run: every characteristic is decided), or None.
+        self.decide: Callable[[RunResult], str | None] | None = None
 
     def open_session(self) -> Session:
         prep, opt = self.prep, self.prep.options
@@ -314,12 +318,19 @@ class SessionRunner:
         try:
             with _interrupt_on_signals(acq.stop_requested) as received:
                 try:
-                    for spec in todo:
+                    for k, spec in enumerate(todo):
                         # A hold is planned from the periodic state the experiment before
                         # leaves: after one skipped on an alarm, the gas is elsewhere.
                         after_skip = bool(result.skipped) and result.skipped[-1] == previous
                         self._experiment(spec, session, result, planned[spec.letter], after_skip)
                         previous = session.label(spec.letter)
+                        if self.decide is not None and k < len(todo) - 1:
+                            self._written(result)
+                            result.decided = self.decide(result)
+                            if result.decided:
+                                reason = result.decided
+                                bus.publish("log", message=f"ending the session before its plan: {reason}")
+                                break
                     self._written(result)
                 except Interrupted:
                     name = signal.Signals(received[-1]).name if received else "SIGINT"
@@ -334,7 +345,10 @@ class SessionRunner:
                     bus.publish("log", message=f"aborting on an internal error: {type(exc).__name__}: {exc}")
                     result.status, result.exit_code, result.error = f"aborted: {reason}", EXIT_INTERNAL, exc
                 else:
-                    if result.skipped:
+                    if result.decided:
+                        result.status = (f"ended: {len(result.captured)} of {len(todo)} experiments captured, "
+                                         f"{result.decided}")
+                    elif result.skipped:
                         result.status = (f"ended: {len(todo) - len(result.skipped)} of {len(todo)} experiments "
                                          f"captured, skipped after alarms: {', '.join(result.skipped)}")
                     else:
@@ -447,16 +461,18 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
     return EXIT_OK
 
 
-def execute(prep: Prepared, console: Console) -> RunResult:
+def execute(prep: Prepared, console: Console, decide: Callable[[RunResult], str | None] | None = None) -> RunResult:
     """Connect, run the prepared plan, tear down: the session's log and console progress
     on, the links closed whatever happens.  A bug inside the run comes back in
-    ``result.error`` after the safe stop, for the caller to record and then raise."""
+    ``result.error`` after the safe stop, for the caller to record and then raise.
+    ``decide``: see :attr:`SessionRunner.decide`."""
     bus = EventBus()
     links = connect(prep, on_event=lambda m: bus.publish("log", message=m))
     log: SessionLog | None = None
     result: RunResult | None = None
     try:
         runner = SessionRunner(prep, links, bus, console)
+        runner.decide = decide
         session = runner.open_session()
         log = SessionLog(session.path / "session.log")
         bus.subscribe(log, inline=True)
