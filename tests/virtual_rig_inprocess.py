@@ -40,6 +40,7 @@ from simulator.controller import ShakerController
 from simulator.engine import PHYSICS_RATE_HZ, VirtualRig
 from simulator.faults import FaultLog, parse_fault
 from simulator.modbus import ControllerContext
+from simulator.physics import Damper
 from simulator.truth import load_truth
 
 SHAKER_URL = "tcp://virtual-rig:502"      # only named in messages: nothing listens there
@@ -275,12 +276,13 @@ class InProcessRig:
     heartbeat rig.shaker's thread would send (that thread waits on the wall clock), and
     the heartbeat gets through only while the Modbus link is up."""
 
-    def __init__(self, rig_config: Path, seed: int = 0) -> None:
+    def __init__(self, rig_config: Path, seed: int = 0, truth: Damper | None = None) -> None:
+        """``truth``: the simulated damper (default: the nominal one)."""
         self.rig_config = rig_config
         self.config = load_rig_config(rig_config)
         self.fault_log = FaultLog(sink=lambda line: None)
         self.line = SerialLine()
-        self.sim = VirtualRig(load_truth(), self.line.device, seed=seed, log=self.fault_log)
+        self.sim = VirtualRig(truth or load_truth(), self.line.device, seed=seed, log=self.fault_log)
         self.clock = SimClock(self.sim, self.line)
         self.sim.controller.wall_clock = self.clock.monotonic
         self.client = InProcessModbusClient(self.sim.controller, self.clock)
