@@ -43,6 +43,7 @@ import numpy as np
 
 from identify.differentiation import Grid
 from identify.errors import ComputationError, InputError
+from identify.folding import FoldedRecord
 from identify.model import CompiledModel
 from identify.parameters import Parameters
 from identify.periodic import ConvergenceError, PeriodicSolution, PeriodicSolver
@@ -95,6 +96,53 @@ def _line_pulls(Sw: np.ndarray, r: np.ndarray) -> np.ndarray:
         share[-1] = 1.0 / n
     cross = np.conj(np.fft.rfft(Sw, axis=1)) * np.fft.rfft(r, axis=1)[:, :, None]  # (n_out, lines, k)
     return cross.real.sum(axis=0) * share[:, None]
+
+
+
+def input_draws(folded: FoldedRecord, input_noise_variance: np.ndarray) -> np.ndarray:
+    """F·σu applied to fixed unit draws (seed 0), RANK then PROBES of them:
+    (n_inputs, n, RANK + PROBES), for :func:`propagated_variance`."""
+    rng = np.random.default_rng(0)
+    n_in, m = len(input_noise_variance), len(folded.filled_counts)
+    su = np.sqrt(input_noise_variance)[:, None, None]
+    z = [su * folded.noise_factor(rng.standard_normal((n_in, m, k))) for k in (RANK, PROBES)]
+    return np.concatenate(z, axis=2)
+
+
+def propagated_variance(solver: PeriodicSolver, sol: PeriodicSolution, theta: np.ndarray, output_idx: list[int],
+                        folded: FoldedRecord, input_noise_variance: np.ndarray, draws: np.ndarray) -> np.ndarray:
+    """(n_outputs,) mean over the grid of diag(H·Σu·Hᵀ): the output variance that the
+    folded input noise Σu = F·diag(σu²)·Fᵀ causes, H = dŷ/du, i.e. ‖H·F·σu‖²_F / n.
+
+    Hutch++ (Meyer, Musco, Musco & Woodruff 2021): the response is low-pass, a few
+    directions carry most of it (a gas spring passes the mean force error and a few
+    harmonics), which plain random probes estimate poorly.  Their span, found from
+    RANK random responses, is taken exactly through the adjoint; probes estimate the
+    rest.  The ``draws`` (:func:`input_draws`) are fixed, so the result is a
+    deterministic function of θ."""
+    n_in, m, n_out = len(input_noise_variance), len(folded.filled_counts), len(output_idx)
+    su = np.sqrt(input_noise_variance)[:, None, None]
+    # H·F·σu applied to the RANK span draws and the PROBES probes in one solve: (n_out, n, RANK + PROBES)
+    responses = solver.input_response(sol, theta, output_idx, draws)
+    Q = np.linalg.qr(responses[:, :, :RANK])[0]  # an orthonormal basis per output: (n_out, n, RANK)
+    basis = np.einsum("onr,op->onpr", Q, np.eye(n_out)).reshape(n_out, Q.shape[1], n_out * RANK)
+    exact = su * folded.noise_factor_t(solver.input_adjoint(sol, theta, output_idx, basis))
+    exact = np.sum(exact.reshape(n_in, m, n_out, RANK) ** 2, axis=(0, 1, 3))
+    G = responses[:, :, RANK:]
+    rest = G - Q @ (np.swapaxes(Q, 1, 2) @ G)  # BLAS; einsum's loop over the grid took 30x longer
+    return (exact + np.sum(rest**2, axis=(1, 2)) / PROBES) / solver.grid.n
+
+
+def noise_meat(solver: PeriodicSolver, sol: PeriodicSolution, theta: np.ndarray, output_idx: list[int],
+               folded: FoldedRecord, noise_variance: np.ndarray, input_noise_variance: np.ndarray,
+               Sw: np.ndarray) -> np.ndarray:
+    """(k, k) SᵀW·Cov·WS of one experiment (Sw = W·S, (n_out, n, k)): the folded output
+    noise and the folded input noise through the adjoint (Hᵀ·W·S), each with the fold's
+    exact grid covariance σ²·F·Fᵀ; the middle of the sandwich covariance."""
+    Fy = folded.noise_factor_t(Sw)
+    B = np.einsum("omk,o,oml->kl", Fy, noise_variance, Fy)
+    Fu = folded.noise_factor_t(solver.input_adjoint(sol, theta, output_idx, Sw))
+    return B + np.einsum("jmk,j,jml->kl", Fu, input_noise_variance, Fu)
 
 
 class EstimationError(ComputationError):
@@ -225,36 +273,15 @@ class Estimator:
         return True
 
     def _propagated_variance(self, d: PeriodicData, sol: PeriodicSolution, theta: np.ndarray) -> np.ndarray:
-        """(n_outputs,) mean over the grid of diag(H·Σu·Hᵀ): the output variance that the
-        folded input noise Σu = F·diag(σu²)·Fᵀ causes, H = dŷ/du, i.e. ‖H·F·σu‖²_F / n.
-
-        Hutch++ (Meyer, Musco, Musco & Woodruff 2021): the response is low-pass, a few
-        directions carry most of it (a gas spring passes the mean force error and a few
-        harmonics), which plain random probes estimate poorly.  Their span, found from
-        RANK random responses, is taken exactly through the adjoint; probes estimate the
-        rest.  The draws are fixed, so the weights are a deterministic function of θ."""
-        n_in, m, n_out = len(d.input_noise_variance), len(d.folded.filled_counts), len(self.outputs)
-        su = np.sqrt(d.input_noise_variance)[:, None, None]
-        # H·F·σu applied to the RANK span draws and the PROBES probes in one solve: (n_out, n, RANK + PROBES)
-        responses = self.solver.input_response(sol, theta, self.output_idx, self._input_draws(d))
-        Q = np.linalg.qr(responses[:, :, :RANK])[0]  # an orthonormal basis per output: (n_out, n, RANK)
-        basis = np.einsum("onr,op->onpr", Q, np.eye(n_out)).reshape(n_out, Q.shape[1], n_out * RANK)
-        exact = su * d.folded.noise_factor_t(self.solver.input_adjoint(sol, theta, self.output_idx, basis))
-        exact = np.sum(exact.reshape(n_in, m, n_out, RANK) ** 2, axis=(0, 1, 3))
-        G = responses[:, :, RANK:]
-        rest = G - Q @ (np.swapaxes(Q, 1, 2) @ G)  # BLAS; einsum's loop over the grid took 30x longer
-        return (exact + np.sum(rest**2, axis=(1, 2)) / PROBES) / self.grid.n
+        """(n_outputs,) the grid variance the folded input noise causes (:func:`propagated_variance`)."""
+        return propagated_variance(self.solver, sol, theta, self.output_idx, d.folded, d.input_noise_variance,
+                                   self._input_draws(d))
 
     def _input_draws(self, d: PeriodicData) -> np.ndarray:
-        """F·σu applied to the fixed unit draws of :meth:`_propagated_variance`, RANK then
-        PROBES of them: (n_inputs, n, RANK + PROBES).  They do not depend on θ, so each
+        """:func:`input_draws` of an experiment: they do not depend on θ, so each
         experiment's are drawn and folded once per fit, not at every noise refresh."""
         if d.label not in self._draws:
-            rng = np.random.default_rng(0)
-            n_in, m = len(d.input_noise_variance), len(d.folded.filled_counts)
-            su = np.sqrt(d.input_noise_variance)[:, None, None]
-            z = [su * d.folded.noise_factor(rng.standard_normal((n_in, m, k))) for k in (RANK, PROBES)]
-            self._draws[d.label] = np.concatenate(z, axis=2)
+            self._draws[d.label] = input_draws(d.folded, d.input_noise_variance)
         return self._draws[d.label]
 
     def _residual_variances(self, ev: _Evaluation) -> np.ndarray:
@@ -526,11 +553,8 @@ class Estimator:
         k = len(self.index)
         B = np.zeros((k, k))
         for a, (d, sol, S) in enumerate(zip(self.data, ev.solutions, ev.sensitivities, strict=True)):
-            Sw = S / v[a][:, None, None]  # (n_out, n, k)
-            Fy = d.folded.noise_factor_t(Sw)
-            B += np.einsum("omk,o,oml->kl", Fy, d.noise_variance, Fy)
-            Fu = d.folded.noise_factor_t(self.solver.input_adjoint(sol, d.theta(ev.theta), self.output_idx, Sw))
-            B += np.einsum("jmk,j,jml->kl", Fu, d.input_noise_variance, Fu)
+            B += noise_meat(self.solver, sol, d.theta(ev.theta), self.output_idx, d.folded, d.noise_variance,
+                            d.input_noise_variance, S / v[a][:, None, None])
         excess = self._residual_variances(ev) / ev.noise  # (n_experiments, n_outputs)
         flagged = []
         for b, o in enumerate(self.outputs):

@@ -251,7 +251,7 @@ def test_the_report_has_titles_acceptance_limits_units_and_a_sigma_note_per_char
 # ----- the console's QC panel, from the run's own output ----------------------------------------------
 def test_the_console_reads_progress_and_rig_time_left_from_the_run():
     reader = ProgressReader()
-    assert reader.feed("QC default 1.1.0 on unit SN-1: records in sqlite:///x") is None
+    assert reader.feed("QC default 1.2.0 on unit SN-1: records in sqlite:///x") is None
     start = reader.feed("session: 3 experiments, about 4:36 min:s of rig time")
     assert start is not None and start.fraction == 0 and start.rig_left_s == 276
     reader.feed("[1/3] 261126l  Moving to the static position 40.0 mm.")
@@ -264,7 +264,7 @@ def test_the_console_reads_progress_and_rig_time_left_from_the_run():
 
 
 def test_the_console_table_comes_from_the_summary_the_run_prints():
-    stdout = ("SN-0042: FAIL  (spec default 1.1.0; value ± 2σ)  SIMULATED (not a production record)\n"
+    stdout = ("SN-0042: FAIL  (spec default 1.2.0; value ± 2σ)  SIMULATED (not a production record)\n"
               "  FAIL         | Damping force at 0.3 m/s | 344.1 ± 4.0 N | limits 450 N ± 10 % | "
               "accept 409.0 … 491.0 N | σ 2.0 N residual-based\n"
               "  likely cause: Damping force at 0.3 m/s too low: orifice wear or wrong oil\n"

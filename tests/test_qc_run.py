@@ -9,7 +9,6 @@ from __future__ import annotations
 import hashlib
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -36,14 +35,13 @@ def history(db: Path) -> list[dict]:
 
 
 def short_spec(tmp_path: Path) -> Path:
-    """The default spec with its fast experiment only and loose settling: a run of about
-    30 simulated seconds, for tests that are about the records, not the plan."""
+    """The default spec (one short experiment) with loose settling: a run of a few
+    simulated seconds, for tests that are about the records, not the plan."""
     text = (SPECS_DIR / "default.toml").read_text()
-    text, n = re.subn(r'\[\[experiment\]\]\nlabel = "[ls]"\n(?:[a-z_A-Z]+ = .*\n)+', "", text)
-    assert n == 2
+    assert text.count("[[experiment]]") == 1
     for old, new in (("pressure_bar = 0.003", "pressure_bar = 0.5"), ("gas_temperature_C = 0.01",
                                                                        "gas_temperature_C = 10.0"),
-                     ("force_N = 5.0", "force_N = 200.0"), ('version = "1.1.0"', 'version = "test"')):
+                     ("force_N = 5.0", "force_N = 200.0"), ('version = "1.2.0"', 'version = "test"')):
         assert old in text
         text = text.replace(old, new)
     path = tmp_path / "QC-short.toml"
@@ -80,7 +78,8 @@ def test_a_good_unit_on_the_served_rig_passes_with_the_default_spec(virtual_rig,
     (record,) = Records.open(str(station / "qc-records.sqlite")).find()
     for name, digest in record.files.items():
         assert hashlib.sha256((session / name).read_bytes()).hexdigest() == digest, name
-    assert {"journal/daq-raw.bin", "dataset.json"} <= set(record.files) and len(record.files) == 5
+    experiments = (SPECS_DIR / "default.toml").read_text().count("[[experiment]]")
+    assert {"journal/daq-raw.bin", "dataset.json"} <= set(record.files) and len(record.files) == 2 + experiments
     assert record.calibration_sha256 == hashlib.sha256(
         (session / "config" / "daq-calibration.toml").read_bytes()).hexdigest()
     assert (session / "config" / "plan.toml").read_text().rstrip() == (SPECS_DIR / "default.toml").read_text().rstrip()
@@ -103,6 +102,27 @@ def test_an_aborted_run_is_on_record_without_a_verdict(virtual_rig, tmp_path):
     assert "safe stop done" in (session / "session.log").read_text()
     report = (session / "qc-report.html").read_text()
     assert "no verdict (ABORTED)" in report and "emergency stop" in report
+
+
+def test_a_run_stops_as_soon_as_every_characteristic_is_decided(virtual_rig, tmp_path):
+    """A second experiment in the plan is not run once the first has decided the unit:
+    the session ends there (after the safe stop), and the record says what was used and why."""
+    spec = short_spec(tmp_path)
+    spec.write_text(spec.read_text() + '\n[[experiment]]\nlabel = "z"\ngroup = "middle"\nstatic_mm = 133\n'
+                                       'amplitude_mm = 30\nfrequency_Hz = 2.0\nperiods = 2\n')
+    sim = virtual_rig(unit="good", unit_seed=4, seed=3)
+    station = tmp_path / "station"
+    r = subprocess.run(qc_cmd(sim, station, "SN-0043", "--spec", str(spec)), capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    (doc,) = history(station / "qc-records.sqlite")
+    session = Path(doc["session"])
+    record = json.loads((session / "qc-record.json").read_text())
+    (note,) = [n for n in record["notes"] if n.startswith("experiments used:")]
+    assert "(1 of 2)" in note and "every characteristic decided" in note, note
+    manifest = json.loads((session / "dataset.json").read_text())
+    assert [e["label"][-1] for e in manifest["experiments"]] == ["a"]
+    assert json.loads((session / "session.json").read_text())["status"].startswith("ended: 1 of 2 experiments")
 
 
 def test_two_runs_on_one_sqlite_file_both_land(virtual_rig, tmp_path):

@@ -40,6 +40,7 @@ from simulator.controller import DEVICE_IDENTIFICATION, ShakerController
 from simulator.engine import PHYSICS_RATE_HZ, VirtualRig
 from simulator.faults import FaultLog, parse_fault
 from simulator.modbus import ControllerContext
+from simulator.physics import Damper
 from simulator.truth import load_truth
 
 # Steady-state criteria loose enough that j settles after about half a minute of simulated
@@ -306,12 +307,13 @@ class InProcessRig:
     heartbeat rig.shaker's thread would send (that thread waits on the wall clock), and
     the heartbeat gets through only while the Modbus link is up."""
 
-    def __init__(self, rig_config: Path, seed: int = 0) -> None:
+    def __init__(self, rig_config: Path, seed: int = 0, truth: Damper | None = None) -> None:
+        """``truth``: the simulated damper (default: the nominal one)."""
         self.rig_config = rig_config
         self.config = load_rig_config(rig_config)
         self.fault_log = FaultLog(sink=lambda line: None)
         self.line = SerialLine()
-        self.sim = VirtualRig(load_truth(), self.line.device, seed=seed, log=self.fault_log)
+        self.sim = VirtualRig(truth or load_truth(), self.line.device, seed=seed, log=self.fault_log)
         self.clock = SimClock(self.sim, self.line)
         self.sim.controller.wall_clock = self.clock.monotonic
         self.client = InProcessModbusClient(self.sim.controller, self.clock)

@@ -20,6 +20,7 @@ import json
 import shlex
 import socket
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -28,6 +29,7 @@ from rich.console import Console
 
 from identify.files import atomic_write_bytes
 from rig.errors import BadInput
+from rig.plans import estimate_experiment_durations
 from rig.qc.characteristics import check_model
 from rig.qc.evaluate import Evaluation, evaluate
 from rig.qc.judge import Outcome
@@ -36,7 +38,7 @@ from rig.qc.records import CharacteristicRecord, QcRecord, Records, default_url
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
 from rig.qc.trace import SessionTrace, now_utc, software_version, trace_session
-from rig.run import EXIT_INTERRUPTED, EXIT_OK, RunOptions, execute, prepare
+from rig.run import EXIT_INTERRUPTED, EXIT_OK, Prepared, RunOptions, RunResult, execute, prepare
 
 EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
 
@@ -79,7 +81,7 @@ def qc_run(opt: QcOptions, console: Console) -> int:
         started = now_utc()
         identity: dict[str, Any] = dict(serial=opt.serial, operator=operator, rig=rig_id, started=started)
         try:
-            result = execute(prep, console)
+            result = execute(prep, console, decide=decider(spec, prep, console))
         except BaseException as exc:
             # A session that started (its folder exists) is on record as ABORTED; one that
             # never started (no link, refused) has nothing to record.
@@ -111,11 +113,45 @@ def qc_run(opt: QcOptions, console: Console) -> int:
         retest = shlex.join(["python", "-m", "rig", "qc", "run", "--spec", opt.spec, "--serial", opt.serial,
                              "--shaker", opt.shaker, "--daq", opt.daq, "--out", str(opt.out),
                              "--periods", str(spec.retest_periods())])
+        evaluation.notes.append(stopping_note(result, prep))
         record = judged_record(spec, trace_session(session), evaluation, retest, rejudges=None, finished=finished,
                                **identity)
         return _conclude(records, record, spec, evaluation, session / "qc-report.html", session / "qc-record.json")
     finally:
         records.close()
+
+
+def decider(spec: Spec, prep: Prepared, console: Console) -> Callable[[RunResult], str | None]:
+    """After each captured experiment but the last: fit and judge what there is, and end
+    the session as soon as every characteristic is decided under the guard band (PASS,
+    or FAIL at k·σ); otherwise say how much longer the rest of the plan will take,
+    predicted again from the parameters identified so far (a faulty unit heats and
+    settles otherwise than the nominal one the first estimate assumed)."""
+    def decide(result: RunResult) -> str | None:
+        evaluation = evaluate(spec, result.session.path)
+        labels = ", ".join(e.label for e in result.captured)
+        open_ = [j.name for j in evaluation.judgement.characteristics if j.outcome is Outcome.INCONCLUSIVE]
+        if not open_:
+            return f"every characteristic decided after {labels} ({evaluation.judgement.verdict.value})"
+        done = {e.label for e in result.captured}
+        rest = tuple(e for e in prep.plan.experiments if result.session.label(e.letter) not in done)
+        if evaluation.fit is not None and evaluation.fit.converged and rest:
+            last = prep.plan.experiments[len(prep.plan.experiments) - len(rest) - 1]
+            eta = sum(d.total_s for d in estimate_experiment_durations(
+                replace(prep.plan, experiments=rest), prep.config, last.static_position_mm * 1e-3,
+                evaluation.fit.params))
+            console.print(f"after {labels}: {', '.join(open_)} not yet decided; the rest of the plan, predicted "
+                          f"from the parameters identified so far: {eta:.0f} s", highlight=False)
+        return None
+
+    return decide
+
+
+def stopping_note(result: RunResult, prep: Prepared) -> str:
+    """The record's line on how much of the plan was run, and why it ended there."""
+    used = [e.label for e in result.captured]
+    return (f"experiments used: {', '.join(used)} ({len(used)} of {len(prep.plan.experiments)}); "
+            f"stopped: {result.decided or 'end of the plan'}")
 
 
 def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str | None,
