@@ -22,7 +22,7 @@ from rig.config import DEFAULT_RIG_CONFIG  # noqa: E402
 from rig.estop import EstopDone, LatchChanged  # noqa: E402
 from rig.events import Event, Kind, Message  # noqa: E402
 from rig.gui import MainWindow  # noqa: E402
-from rig.gui.station import LinkState, Notice, SessionClosed, SessionOpened, Snapshot  # noqa: E402
+from rig.gui.station import LinkState, SessionClosed, SessionOpened, Snapshot  # noqa: E402
 from tests.conftest import HANG_S  # noqa: E402
 
 STATE_OFF, STATE_MOVING, STATE_RUNNING = 0, 2, 4
@@ -156,7 +156,7 @@ def test_the_window_queue_carries_only_typed_messages_each_with_its_handler(qtbo
     assert all(isinstance(r, Message) for r in received), {type(r) for r in received if not isinstance(r, Message)}
     kinds = {r.kind for r in received if isinstance(r, Event)}
     assert {Kind.SESSION_START, Kind.PHASE, Kind.PROGRESS, Kind.EXPERIMENT_DONE, Kind.SESSION_END} <= kinds
-    assert {Event, Snapshot, Notice, LinkState, SessionOpened, SessionClosed} <= {type(r) for r in received}
+    assert {Event, Snapshot, LinkState, SessionOpened, SessionClosed} <= {type(r) for r in received}
     closed(qtbot, window)
 
 
