@@ -1,7 +1,8 @@
 """The rig side of the operator's console (no Qt here): the links, the manual commands,
 the session runner, the fits and the E-STOP, each on its own thread.  Whatever happens
-is *posted* as a small record into a queue that the window drains on its own timer, so
-that the GUI thread never talks to the rig, and the rig never waits on the GUI.
+is *posted* as a small typed record (a :class:`rig.events.Message`, as the session's
+events are) into a queue that the window drains on its own timer, so that the GUI
+thread never talks to the rig, and the rig never waits on the GUI.
 
 Threads:
 
