@@ -102,7 +102,7 @@ class Session:
         if self._progress == "bar" or (self._progress == "auto" and _in_notebook()):
             bus.subscribe(ProgressBar(estimates))
         elif self._progress:
-            bus.subscribe(ConsoleProgress(self._rig._console, estimates, runner.pace or 1.0,
+            bus.subscribe(ConsoleProgress(self._rig._console, estimates, runner.acquisition.current_pace,
                                           runner.acquisition.clock.monotonic))
         self._rig._bus = bus
         try:

@@ -20,11 +20,13 @@ class ConsoleProgress:
     """Queued subscriber: one line per phase, settling and capture progress, and the
     session's ETA (wall clock, scaled from the rig-time estimate of what is done)."""
 
-    def __init__(self, console: Console, estimates_s: dict[str, float], pace: float = 1.0,
+    def __init__(self, console: Console, estimates_s: dict[str, float], pace: float | Callable[[], float] = 1.0,
                  rig_clock: Callable[[], float] = time.monotonic) -> None:
-        # pace: the links' rig seconds per second; rig_clock: the acquisition's (a test's
-        # in-process simulator runs on its own)
-        self.console, self.estimates, self.pace, self.rig_clock = console, estimates_s, pace, rig_clock
+        # pace: the links' rig seconds per second, or where to read it as the session
+        # corrects it from its streams (Acquisition.current_pace); rig_clock: the
+        # acquisition's (a test's in-process simulator runs on its own)
+        self.console, self.estimates, self.rig_clock = console, estimates_s, rig_clock
+        self._pace = pace if callable(pace) else lambda: pace
         self.rig_started = rig_clock()
         self.total, self.done, self.done_s = len(estimates_s), 0, 0.0
         self.started = time.monotonic()
@@ -66,10 +68,10 @@ class ConsoleProgress:
             self.console.print(f"{head} [green]captured[/green] {e.data['file']} ({e.data['samples']} samples, "
                                f"{e.data['lost']} lost in window){flags}{self._eta()}", highlight=False)
         elif e.kind == "session-end":
-            took, announced = self.rig_clock() - self.rig_started, sum(self.estimates.values())
-            if self.pace > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
-                self.console.print(f"session took {_min_s(took)} min:s of wall clock at {self.pace:.3g} rig seconds "
-                                   f"per second, about {_min_s(took * self.pace)} min:s of rig time; announced "
+            took, announced, pace = self.rig_clock() - self.rig_started, sum(self.estimates.values()), self._pace()
+            if pace > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
+                self.console.print(f"session took {_min_s(took)} min:s of wall clock at {pace:.3g} rig seconds "
+                                   f"per second, about {_min_s(took * pace)} min:s of rig time; announced "
                                    f"{_min_s(announced)}", highlight=False)
             else:
                 self.console.print(f"session took {_min_s(took)} min:s of rig time; announced {_min_s(announced)}",

@@ -463,7 +463,7 @@ def execute(prep: Prepared, console: Console) -> RunResult:
         estimates = runner.estimates_s(session, links.start_position_m)
         # On record, so that the estimate can be checked against what the session took.
         session.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
-        bus.subscribe(ConsoleProgress(console, estimates, runner.pace or 1.0,
+        bus.subscribe(ConsoleProgress(console, estimates, runner.acquisition.current_pace,
                                       runner.acquisition.clock.monotonic))
         if runner.pace is not None and runner.pace > 1.0:   # a simulator faster than the rig's own time
             console.print(f"the links run {runner.pace:.3g} rig seconds per second: conditioning holds shorter "
