@@ -395,10 +395,11 @@ class Acquisition:
         daq_s = start_s + stop_s
         self.answer_s = daq_s + HOLD_END_MODBUS_TRANSACTIONS * modbus_s
         self.overhead_s = POLL_S / 2 + STATUS_POLL_S + daq_s + EXPERIMENT_MODBUS_TRANSACTIONS * modbus_s
-        self.bus.publish("log", None, message=f"pace probe: {len(paces)} probes of {PACE_PROBE_S * 1e3:.0f} ms, "
-                                              f"{sum(samples)} samples taken, {self.daq.counters.lost_samples - lost0} "
-                                              f"lost in the stream, paces {min(paces):.3g}…{max(paces):.3g}; "
-                                              f"the links run {pace:.3g} rig seconds per second (the median); "
+        self.bus.publish("log", None, message=f"pace probe: {sum(samples)} samples taken, "
+                                              f"{self.daq.counters.lost_samples - lost0} lost in the stream ("
+                                              f"{len(paces)} probes of {PACE_PROBE_S * 1e3:.0f} ms, paces "
+                                              f"{min(paces):.3g}…{max(paces):.3g}); the links run {pace:.3g} rig "
+                                              f"seconds per second (the median); "
                                               f"DAQ start {start_s * 1e3:.1f} ms, stop {stop_s * 1e3:.1f} ms, a status "
                                               f"read {modbus_s * 1e3:.1f} ms: from a hold's end to RUN "
                                               f"{self.answer_s * 1e3:.1f} ms, {self.answer_s * pace:.2f} s of "
