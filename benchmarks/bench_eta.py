@@ -16,6 +16,7 @@ session's last line said it took.
 from __future__ import annotations
 
 import argparse
+import json
 import re
 import subprocess
 import sys
@@ -40,6 +41,12 @@ def corrected_error(said: str, session_log: str) -> float:
     import datetime as dt
 
     stamps = [(dt.datetime.fromisoformat(t).timestamp(), kind) for t, kind in STAMP.findall(session_log)]
+    for line in session_log.splitlines():      # session.log as JSON lines
+        if line.startswith("{"):
+            entry = json.loads(line)
+            t = entry.get("time")
+            stamps.append((float(t) if isinstance(t, int | float) else dt.datetime.fromisoformat(t).timestamp(),
+                           entry.get("kind", "")))
     start = next(t for t, kind in stamps if kind == "session-start")
     first = next(t for t, kind in stamps if kind == "experiment-done")
     end = next(t for t, kind in stamps if kind == "session-end")
