@@ -564,7 +564,10 @@ class Acquisition:
             # The link had its whole reconnect time just now: each remaining step gets one
             # quick try, so the record is written while the controller's watchdog takes over.
             patience = QUICK_RECONNECT_S
-        if st is not None and st.state == "RUNNING":
+        veto = self.shaker.veto("fade out")
+        if st is not None and st.state == "RUNNING" and veto is not None:
+            self.bus.publish("log", None, message=f"safe stop: no fade ({veto})")
+        elif st is not None and st.state == "RUNNING":
             steps.append(("fade out", self.shaker.fade_out))
             steps.append(("wait at static", lambda: self.shaker.wait_for({"AT_STATIC", "ALARM"}, 30.0)))
             done.append("faded out")

@@ -32,6 +32,7 @@ from rig.tomlfile import read_toml
 DEFAULT_CALIBRATION = CONFIG_DIR / "daq-calibration-datasheet.toml"
 JOURNAL_FLUSH_S = 0.5
 BAUDRATE = 460800
+IDENTITY_PREFIX = "DAQ4,"                 # how the datasheet's DAQ begins its *IDN? answer
 _STOP_ANSWER = re.compile(rb"OK STOP (\d+)\n")
 # The datasheet's channel order of the frames; the dataset columns carry these names.
 CHANNELS = ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")
@@ -72,6 +73,30 @@ def check_daq_address(url: str) -> None:
         host, _, port = rest.partition("/")[0].rpartition(":")
         if not host or not port.isdigit():
             raise AddressError(f"DAQ address {url!r}: expected socket://HOST:PORT")
+
+
+def probe_daq(url: str, timeout_s: float = 1.0) -> str | None:
+    """The identity a DAQ answers ``*IDN?`` with at ``url`` (a device path or pyserial
+    URL); None where no DAQ answers within ``timeout_s``."""
+    try:
+        port = serial.serial_for_url(url, baudrate=BAUDRATE, timeout=0.05)
+    except (serial.SerialException, OSError, ValueError):
+        return None
+    try:
+        # The newline first ends whatever partial line an earlier client left behind.
+        port.write(b"\n*IDN?\n")
+        deadline, buf = time.monotonic() + timeout_s, b""
+        while time.monotonic() < deadline:
+            buf += port.read(256)
+            *lines, buf = buf.split(b"\n")
+            for line in lines:
+                if line.startswith(IDENTITY_PREFIX.encode()):
+                    return line.decode("ascii", errors="replace").strip()
+    except (serial.SerialException, OSError):
+        return None
+    finally:
+        port.close()
+    return None
 
 
 @dataclass(frozen=True)
@@ -237,8 +262,8 @@ class Daq:
                 self.identity = self._read_line(2.0) or ""
         except (serial.SerialException, OSError) as exc:
             raise DaqError(f"DAQ at {self.url}: link lost during the handshake ({exc})") from None
-        if not self.identity.startswith("DAQ4,"):
-            raise DaqError(f"DAQ at {self.url}: *IDN? answered {self.identity!r}, expected 'DAQ4,…'")
+        if not self.identity.startswith(IDENTITY_PREFIX):
+            raise DaqError(f"DAQ at {self.url}: *IDN? answered {self.identity!r}, expected '{IDENTITY_PREFIX}…'")
         answer = self.command(f"RATE {self.rate_hz}")
         if answer != "OK":
             raise DaqError(f"DAQ at {self.url}: RATE {self.rate_hz} answered {answer!r}")

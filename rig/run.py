@@ -41,14 +41,15 @@ from identify.dataset import Experiment
 from identify.files import atomic_write_bytes
 from rig.acquisition import Acquisition, ExperimentRecord, Interrupted
 from rig.config import RigConfig, load_rig_config
-from rig.daq import Calibration, Daq, check_daq_address
+from rig.daq import Calibration, Daq, DaqError, check_daq_address
 from rig.errors import RigError, RigFault
 from rig.events import EventBus
+from rig.peers import wrong_peer_or
 from rig.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
 from rig.progress import ConsoleProgress
 from rig.registers import RegisterMap, load_register_map
 from rig.session import Session, SessionError, SessionLog
-from rig.shaker import AlarmError, Shaker, ShakerAddress, ShakerError
+from rig.shaker import AlarmError, Shaker, ShakerAddress, ShakerError, ShakerLinkError
 
 if TYPE_CHECKING:  # the numerics are imported when a fit runs, not with the command line
     from identify.result import FitResult
@@ -213,6 +214,9 @@ def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Ca
             if shaker.status().state == "ALARM":
                 raise AlarmLatched(f"the controller at {shaker_url} still holds the alarm {status.alarm} "
                                    "after a reset: the cause is still there")
+    except (ShakerLinkError, DaqError) as exc:
+        close_links(links)
+        raise wrong_peer_or(exc, shaker_url, daq_url, register_map) from None   # the other box may have answered
     except BaseException:
         close_links(links)
         raise

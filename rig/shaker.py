@@ -14,7 +14,7 @@ import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Protocol
 from urllib.parse import urlparse
 
 from pymodbus.client import ModbusSerialClient, ModbusTcpClient
@@ -28,6 +28,7 @@ from rig.registers import RegisterMap, load_register_map
 
 EXCEPTION_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                    4: "device failure", 6: "device busy"}
+RTU_BAUDRATE = 115200
 
 
 class ShakerError(RigFault):
@@ -53,6 +54,13 @@ class AlarmError(ShakerError):
 
 class LimitError(BadInput):
     """A command outside the rig's limits, refused before anything is sent."""
+
+
+class MotionInterlock(Protocol):
+    """What may veto a command that can set the actuator moving (an E-STOP's latch,
+    :class:`rig.estop.MotionLatch`): ``check`` raises, naming ``what``, to refuse it."""
+
+    def check(self, what: str) -> None: ...
 
 
 @dataclass(frozen=True)
@@ -89,6 +97,35 @@ class ShakerStatus:
     hydraulic_pressure_pa: float
 
 
+def modbus_client(address: ShakerAddress, timeout_s: float) -> ModbusTcpClient | ModbusSerialClient:
+    if address.device:
+        return ModbusSerialClient(address.device, framer=FramerType.RTU, baudrate=RTU_BAUDRATE, timeout=timeout_s,
+                                  retries=0)
+    assert address.host is not None and address.port is not None  # parse() gives one or the other
+    return ModbusTcpClient(address.host, port=address.port, timeout=timeout_s, retries=0)
+
+
+def probe_controller(address: ShakerAddress, register_map: RegisterMap, timeout_s: float = 1.0) -> str | None:
+    """What answers Modbus at ``address``, in words ("a Modbus controller in state OFF");
+    None where nothing does.  Reads the state register only: nothing is written."""
+    client = modbus_client(address, timeout_s)
+    state = register_map.field("state")
+    try:
+        if not client.connect():
+            return None
+        answer = client.read_input_registers(state.address, count=1, device_id=register_map.unit_id)
+    except (ModbusException, OSError):
+        return None
+    finally:
+        client.close()
+    if answer.isError():
+        code = int(getattr(answer, "exception_code", 0) or 0)
+        return f"a Modbus device (exception {code}: {EXCEPTION_NAMES.get(code, 'unknown')})"
+    word = int(answer.registers[0])
+    states = register_map.states
+    return f"a Modbus controller in state {states[word] if word < len(states) else word}"
+
+
 def check_waveform(limits: Limits, static_m: float, amplitude_m: float, frequency_hz: float,
                    waveform: str = "sine") -> list[str]:
     """Every way a waveform breaks the limits (empty when it is fine)."""
@@ -116,21 +153,16 @@ class Shaker:
     def __init__(self, url: str, limits: Limits, register_map: RegisterMap | None = None, *,
                  timeout_s: float = 1.0, reconnect_s: float = 20.0,
                  on_event: Callable[[str], object] = lambda message: None,
-                 client: Any = None, clock: Clock = WALL_CLOCK) -> None:
+                 client: Any = None, clock: Clock = WALL_CLOCK, interlock: MotionInterlock | None = None) -> None:
         """``client``: a pymodbus-like client to use instead of one made from ``url``
-        (tests inject faults through it)."""
+        (tests inject faults through it).  ``interlock``: asked before every command that
+        can start motion (hydraulics on, move, RUN, fade out); STOP, hydraulics off and
+        reads are never vetoed."""
         address = ShakerAddress.parse(url)
-        self.url, self.limits, self.clock = url, limits, clock
+        self.url, self.limits, self.clock, self.interlock = url, limits, clock, interlock
         self.map = register_map or load_register_map()
         self.reconnect_s, self.on_event = reconnect_s, on_event
-        if client is not None:
-            self._client = client
-        elif address.device:
-            self._client = ModbusSerialClient(address.device, framer=FramerType.RTU, baudrate=115200,
-                                              timeout=timeout_s, retries=0)
-        else:
-            assert address.host is not None and address.port is not None  # parse() gives one or the other
-            self._client = ModbusTcpClient(address.host, port=address.port, timeout=timeout_s, retries=0)
+        self._client = client if client is not None else modbus_client(address, timeout_s)
         self._lock = threading.RLock()
         self._heartbeat_stop = threading.Event()
         self._heartbeat: threading.Thread | None = None
@@ -149,8 +181,14 @@ class Shaker:
             if not answered:
                 raise ShakerLinkError(f"no Modbus controller answers at {self.url}{why}")
         lim = self.limits
-        self._write_holding({"stroke_limit_low": lim.stroke_low_m, "stroke_limit_high": lim.stroke_high_m,
-                             "force_limit": lim.force_limit_n})
+        try:
+            # The link was never up: no reconnect time to wait out (something else may have
+            # answered the connection, e.g. the DAQ on a swapped address).
+            self._write_holding({"stroke_limit_low": lim.stroke_low_m, "stroke_limit_high": lim.stroke_high_m,
+                                 "force_limit": lim.force_limit_n}, patience_s=0.0)
+        except ShakerLinkError:
+            raise ShakerLinkError(f"no Modbus controller answers at {self.url}: the line opened, but its first "
+                                  f"request (unit {self.map.unit_id}) got no Modbus answer") from None
         if heartbeat:
             self._write_holding({"watchdog_timeout": lim.watchdog_timeout_s, "heartbeat": 0})
             self._heartbeat = threading.Thread(target=self._heartbeat_loop, name="shaker-heartbeat", daemon=True)
@@ -192,6 +230,8 @@ class Shaker:
                             raw["position"], raw["force"], int(raw["cycles"]), raw["hydraulic_pressure"])
 
     def hydraulics(self, on: bool) -> None:
+        if on:
+            self._may_move("hydraulics on")
         self._write_coil("hydraulics_on", on)
 
     def reset_alarm(self) -> None:
@@ -205,6 +245,7 @@ class Shaker:
         if not lim.stroke_low_m <= static_m <= lim.stroke_high_m:
             raise LimitError(f"static position {static_m * 1e3:.2f} mm outside the stroke limits "
                              f"{lim.stroke_low_m * 1e3:.1f}…{lim.stroke_high_m * 1e3:.1f} mm")
+        self._may_move(f"move to {static_m * 1e3:.2f} mm")
         if switch_on and self.status().state == "OFF":
             self.hydraulics(True)
         self._write_holding({"static_position": static_m})
@@ -216,12 +257,14 @@ class Shaker:
         problems = check_waveform(self.limits, static_m, amplitude_m, frequency_hz, waveform)
         if problems:
             raise LimitError("; ".join(problems))
+        self._may_move("RUN")
         self._write_holding({"waveform": self.map.waveforms[waveform], "static_position": static_m,
                              "amplitude": amplitude_m, "frequency": frequency_hz, "ramp_time": ramp_s})
         self._write_holding({"mode": self.map.modes["run"]})
 
     def fade_out(self) -> None:
         """Fade the waveform out over its ramp time and stay at the static position."""
+        self._may_move("fade out")   # a move to the static position: after an E-STOP only STOP holds
         self._write_holding({"mode": self.map.modes["static"]})
 
     def stop(self) -> None:
@@ -241,6 +284,19 @@ class Shaker:
                 raise ShakerTimeout(f"controller still {st.state} after {timeout_s:g} s (waiting for "
                                     f"{' or '.join(sorted(states))})")
             self.clock.sleep(poll_s)
+
+    def veto(self, what: str) -> str | None:
+        """Why the interlock would refuse ``what`` now (None: it would go out)."""
+        try:
+            self._may_move(what)
+        except ShakerError as exc:
+            return str(exc)
+        return None
+
+    def _may_move(self, what: str) -> None:
+        """Ask the interlock before anything that can set the actuator moving is sent."""
+        if self.interlock is not None:
+            self.interlock.check(what)
 
     # ----- register access ---------------------------------------------------------------
     def _read(self, table: str) -> dict[str, float]:

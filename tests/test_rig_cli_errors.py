@@ -10,6 +10,11 @@ from pathlib import Path
 
 import pytest
 
+from rig.config import DEFAULT_RIG_CONFIG
+from rig.daq import probe_daq
+from rig.gui.station import Notice, Station
+from tests.conftest import HANG_S
+
 CALIBRATION = Path(__file__).resolve().parents[1] / "rig" / "config" / "daq-calibration-datasheet.toml"
 
 
@@ -33,7 +38,7 @@ def rig_run(tmp_path: Path, *args: str, shaker: str | None = None, daq: str | No
     out = tmp_path / "session"
     cmd = [sys.executable, "-m", "rig", "run", "--shaker", shaker or f"tcp://127.0.0.1:{free_port()}",
            "--daq", daq or f"socket://127.0.0.1:{free_port()}", "--out", str(out), *args]
-    return subprocess.run(cmd, capture_output=True, text=True, timeout=60), out
+    return subprocess.run(cmd, capture_output=True, text=True, timeout=HANG_S), out
 
 
 CASES = {
@@ -98,7 +103,7 @@ def test_a_misspelt_key_in_a_plan_is_refused(tmp_path):
 def test_an_out_folder_that_cannot_be_made_is_bad_input(virtual_rig, tmp_path):
     sim = virtual_rig()
     r = subprocess.run([sys.executable, "-m", "rig", "run", "--shaker", sim.modbus_url, "--daq", sim.daq_url,
-                        "--out", "/proc/no-session-here"], capture_output=True, text=True, timeout=60)
+                        "--out", "/proc/no-session-here"], capture_output=True, text=True, timeout=HANG_S)
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert "--out /proc/no-session-here: cannot create the session folder" in r.stderr
 
@@ -120,6 +125,36 @@ def test_dead_daq_leaves_no_session(virtual_rig, tmp_path):
 
 def test_resume_of_a_folder_without_a_session_names_it(tmp_path):
     r = subprocess.run([sys.executable, "-m", "rig", "run", "--resume", "--out", str(tmp_path)],
-                       capture_output=True, text=True, timeout=60)
+                       capture_output=True, text=True, timeout=HANG_S)
     assert r.returncode == 2 and "Traceback" not in r.stderr
     assert f"{tmp_path}: nothing to resume (session.json missing)" in r.stderr, r.stderr
+
+
+def test_swapped_addresses_are_named_in_one_line_and_the_simulator_goes_on(virtual_rig, tmp_path):
+    sim = virtual_rig()
+    # A lost link would be waited for an hour: the swap must be seen from the first
+    # answers, never from a reconnect timing out (the 25 s wait).
+    config = tmp_path / "rig.toml"
+    config.write_text(DEFAULT_RIG_CONFIG.read_text().replace("reconnect_s = 20.0", "reconnect_s = 3600.0"))
+    shaker, daq = sim.daq_url.replace("socket://", "tcp://"), sim.modbus_url.replace("tcp://", "socket://")
+    r, out = rig_run(tmp_path, "--rig-config", str(config), shaker=shaker, daq=daq)
+    assert r.returncode == 3 and "Traceback" not in r.stderr, r.stderr
+    (line,) = r.stderr.strip().splitlines()
+    assert line == (f"error: the two addresses look swapped: at the controller's address {shaker} a DAQ answered "
+                    f"(DAQ4,SIM0001,1.00), at the DAQ's address {daq} a Modbus controller in state OFF answered; "
+                    "nothing was moved")
+    assert not out.exists()
+    assert probe_daq(sim.daq_url) == "DAQ4,SIM0001,1.00"       # the DAQ took the Modbus bytes and goes on
+
+    # The console's Connect says the same in its one line.
+    posted: list[object] = []
+    station = Station(shaker, daq, posted.append, rig_config=str(config))
+    try:
+        station.connect().result(timeout=HANG_S)
+    finally:
+        station.close()
+    assert [p.text for p in posted if isinstance(p, Notice) and p.level == "error"] == \
+        [f"connect failed: {line.removeprefix('error: ')}"]
+    assert probe_daq(sim.daq_url) == "DAQ4,SIM0001,1.00"
+    log = sim.stop()
+    assert "hydraulics on" not in log and "Traceback" not in log, log

@@ -18,6 +18,7 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from rig.frames import FrameParser
+from tests.conftest import HANG_S
 
 TOLERANCE = {"theta4": 1e-3, "theta6": 1e-3, "theta16": 1e-2}
 NOMINAL = {"theta4": 5.0e-3, "theta6": -3.0, "theta16": 0.85}
@@ -29,7 +30,7 @@ def rig_cmd(sim, out: Path, *args: str) -> list[str]:
             "--date", "261122", *args]
 
 
-def run_rig(sim, out: Path, *args: str, timeout: float = 300) -> subprocess.CompletedProcess:
+def run_rig(sim, out: Path, *args: str, timeout: float = HANG_S) -> subprocess.CompletedProcess:
     return subprocess.run(rig_cmd(sim, out, *args), capture_output=True, text=True, timeout=timeout)
 
 
@@ -54,7 +55,7 @@ def test_session_files_and_identify_from_files_gives_the_same_numbers(virtual_ri
     in_memory = json.loads((out / "RESULT.json").read_text())
     f = subprocess.run([sys.executable, "-m", "identify", "fit", str(out), "--params", str(START), "--estimate",
                         "theta4,theta6,theta16", "--output", str(tmp_path / "R.json"), "--quiet"],
-                       capture_output=True, text=True, timeout=120)
+                       capture_output=True, text=True, timeout=HANG_S)
     assert f.returncode == 0, f.stderr
     from_files = json.loads((tmp_path / "R.json").read_text())
     for k in TOLERANCE:
@@ -66,7 +67,7 @@ def test_session_files_and_identify_from_files_gives_the_same_numbers(virtual_ri
 def test_standard_plan_over_modbus_and_serial_recovers_the_truth(virtual_rig, tmp_path):
     sim = virtual_rig(seed=5)
     out = tmp_path / "standard"
-    r = run_rig(sim, out, "--identify", "--params", str(START), timeout=600)
+    r = run_rig(sim, out, "--identify", "--params", str(START), timeout=HANG_S)
     assert r.returncode == 0, r.stderr[-3000:]
     result = json.loads((out / "RESULT.json").read_text())
     assert result["converged"] and len(result["experiments"]) == 14
@@ -99,7 +100,7 @@ def test_line_faults_are_counted_exactly_and_the_capture_recaptured_or_flagged(v
         assert any("lost" in f for f in entry["flags"])
     # identify accepts the declared holes and nothing else
     f = subprocess.run([sys.executable, "-m", "identify", "fit", str(out), "--estimate", "theta4", "--output",
-                        str(tmp_path / "R.json"), "--quiet"], capture_output=True, text=True, timeout=120)
+                        str(tmp_path / "R.json"), "--quiet"], capture_output=True, text=True, timeout=HANG_S)
     assert f.returncode == 0, f.stderr
 
 
@@ -121,7 +122,7 @@ def test_killed_mid_experiment_resume_finishes_and_keeps_earlier_files(virtual_r
     proc = subprocess.Popen(rig_cmd(sim, out, "--experiments", "j,n", "--identify", "--params", str(START)),
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     first = out / "261122j.csv"
-    deadline = time.monotonic() + 120
+    deadline = time.monotonic() + HANG_S
     while not first.exists() and time.monotonic() < deadline:
         time.sleep(0.05)
     assert first.exists()
@@ -144,20 +145,20 @@ def test_killed_mid_experiment_resume_finishes_and_keeps_earlier_files(virtual_r
 
     c = ModbusTcpClient(sim.host, port=sim.port, timeout=2)   # the app is dead: the watchdog stops the shaker
     assert c.connect()
-    deadline = time.monotonic() + 5
+    deadline = time.monotonic() + HANG_S
     while c.read_input_registers(0, count=2, device_id=1).registers != [5, 4] and time.monotonic() < deadline:
         time.sleep(0.1)
     assert c.read_input_registers(0, count=2, device_id=1).registers == [5, 4]
     c.close()
     # Resuming says what is latched and how to clear it, and moves nothing.
     refused = subprocess.run([sys.executable, "-m", "rig", "run", "--resume", "--out", str(out)],
-                             capture_output=True, text=True, timeout=60)
+                             capture_output=True, text=True, timeout=HANG_S)
     assert refused.returncode == 3 and "Traceback" not in refused.stderr
     assert "holds a latched alarm: watchdog" in refused.stderr and "--reset-alarm" in refused.stderr, refused.stderr
     assert json.loads((out / "session.json").read_text())["status"] == "running"   # as the kill left it
 
     r = subprocess.run([sys.executable, "-m", "rig", "run", "--resume", "--out", str(out), "--reset-alarm"],
-                       capture_output=True, text=True, timeout=300)   # the printed advice, followed
+                       capture_output=True, text=True, timeout=HANG_S)   # the printed advice, followed
     assert r.returncode == 0, r.stderr[-3000:]
     assert json.loads((out / "session.json").read_text())["status"] == "complete"
     assert "alarm latched before the session: watchdog; cleared by --reset-alarm" in (out / "session.log").read_text()
@@ -191,11 +192,11 @@ def test_ctrl_c_ramps_out_switches_hydraulics_off_and_leaves_consistent_files(vi
                             stderr=subprocess.PIPE, text=True)
     c = ModbusTcpClient(sim.host, port=sim.port, timeout=2)
     assert c.connect()
-    deadline = time.monotonic() + 60
+    deadline = time.monotonic() + HANG_S
     while c.read_input_registers(0, count=1, device_id=1).registers[0] != 4 and time.monotonic() < deadline:
         time.sleep(0.05)                                # RUNNING
     proc.send_signal(signal.SIGINT)
-    _, err = proc.communicate(timeout=60)
+    _, err = proc.communicate(timeout=HANG_S)
     assert proc.returncode == 130, err
     assert c.read_input_registers(0, count=2, device_id=1).registers == [0, 0]   # OFF, no alarm
     c.close()
@@ -219,7 +220,7 @@ def test_manual_commands_and_monitor(virtual_rig):
     sim = virtual_rig()
 
     def rig(*args: str) -> subprocess.CompletedProcess:
-        return subprocess.run([sys.executable, "-m", "rig", *args], capture_output=True, text=True, timeout=60)
+        return subprocess.run([sys.executable, "-m", "rig", *args], capture_output=True, text=True, timeout=HANG_S)
 
     assert "state OFF" in rig("status", "--shaker", sim.modbus_url).stdout
     refused = rig("move", "9999", "--shaker", sim.modbus_url)

@@ -11,6 +11,7 @@ import socket
 import struct
 import subprocess
 import time
+from collections.abc import Callable
 from itertools import pairwise
 
 import crcmod.predefined
@@ -19,7 +20,7 @@ import pytest
 import serial
 from pymodbus.client import ModbusTcpClient
 
-from tests.conftest import require_program
+from tests.conftest import HANG_S, require_program
 
 CRC = crcmod.predefined.mkCrcFun("modbus")
 OFF, IDLE, MOVING, AT_STATIC, RUNNING, ALARM = range(6)
@@ -35,7 +36,7 @@ def inputs(c: ModbusTcpClient) -> list[int]:
     return list(c.read_input_registers(0, count=7, device_id=1).registers)
 
 
-def wait_state(c: ModbusTcpClient, state: int, timeout_s: float = 20.0) -> list[int]:
+def wait_state(c: ModbusTcpClient, state: int, timeout_s: float = HANG_S) -> list[int]:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         regs = inputs(c)
@@ -45,7 +46,7 @@ def wait_state(c: ModbusTcpClient, state: int, timeout_s: float = 20.0) -> list[
     raise AssertionError(f"state {regs[0]} (alarm {regs[1]}), expected {state}")
 
 
-def wait_cycles(c: ModbusTcpClient, count: int, timeout_s: float = 60.0) -> int:
+def wait_cycles(c: ModbusTcpClient, count: int, timeout_s: float = HANG_S) -> int:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         cycles = inputs(c)[4]
@@ -190,15 +191,15 @@ def exchange(port, read) -> None:
     assert read() == b"OK\n"
 
 
-def stream_once(write, read_chunk, seconds: float) -> tuple[list[int], int, int]:
+def stream_once(write, read_chunk, frames: int) -> tuple[list[int], int, int]:
+    """START, at least ``frames`` frames' bytes, STOP, up to the whole ``OK STOP <n>`` line."""
     write(b"START\n")
     data = b""
-    t0 = time.monotonic()
-    while time.monotonic() - t0 < seconds:
+    deadline = time.monotonic() + HANG_S
+    while len(data) < 3 + 16 * frames and time.monotonic() < deadline:
         data += read_chunk()
     write(b"STOP\n")
-    t0 = time.monotonic()
-    while b"OK STOP" not in data[-64:] and time.monotonic() - t0 < 5:
+    while not re.search(rb"OK STOP \d+\n", data[-64:]) and time.monotonic() < deadline:
         data += read_chunk()
     assert data.startswith(b"OK\n")
     body, _, tail = data[3:].rpartition(b"OK STOP ")
@@ -230,27 +231,40 @@ def test_daq_stream_decoded_independently(virtual_rig, transport):
             return port.read(65536)
     port_like = type("P", (), {"write": staticmethod(write)})
     exchange(port_like, readline)
-    seqs, bad, issued = stream_once(write, chunk, 1.0)
+    seqs, bad, issued = stream_once(write, chunk, 20000)
     assert bad == 0
-    assert len(seqs) == issued > 20000  # 2 kHz at 20x for about a second
+    assert len(seqs) == issued >= 20000  # 2 kHz at 20x: about a second of wall time on an idle host
     assert seqs[0] == 0
     assert all((b - a) & 0xFFFF == 1 for a, b in pairwise(seqs))
 
 
-def read_stream(sock: socket.socket, seconds: float) -> list[tuple[float, bytes]]:
-    """(arrival time, bytes) chunks for a while; stops early at EOF."""
-    chunks, t0 = [], time.monotonic()
-    while time.monotonic() - t0 < seconds:
+Chunks = list[tuple[float, bytes]]
+
+
+def read_stream(sock: socket.socket, enough: Callable[[Chunks], bool]) -> tuple[Chunks, bool]:
+    """(arrival time, bytes) chunks until ``enough(chunks)`` holds or the link ends (the
+    second item: it ended).  What is awaited is the stream's content, never a duration:
+    a loaded host only makes it arrive later (:data:`HANG_S` guards a hang)."""
+    chunks: Chunks = []
+    deadline = time.monotonic() + HANG_S
+    while not enough(chunks):
+        if time.monotonic() > deadline:
+            raise AssertionError(f"the stream did not have what was awaited within {HANG_S:g} s")
         try:
             data = sock.recv(65536)
         except TimeoutError:
             continue
         except OSError:
-            break
+            return chunks, True
         if not data:
-            break
+            return chunks, True
         chunks.append((time.monotonic(), data))
-    return chunks
+    return chunks, False
+
+
+def frames_at_least(n: int) -> Callable[[Chunks], bool]:
+    """Enough once about ``n`` frames (16 bytes each) have arrived: n / rate seconds of simulated time."""
+    return lambda chunks: sum(len(d) for _, d in chunks) >= 16 * n
 
 
 def daq_socket(rig) -> socket.socket:
@@ -261,10 +275,14 @@ def daq_socket(rig) -> socket.socket:
 
 
 def test_serial_stall_delays_frames_without_losing_them(virtual_rig):
-    rig = virtual_rig(faults=["stall@20=50"])           # 1 s of wall time at 50x
+    rig = virtual_rig(faults=["stall@20=50"])           # 1 s of wall time at 50x, longer on a loaded host
+
+    def quiet_then_back(chunks: Chunks) -> bool:         # or the frames reached past the stall's end without it
+        return (len(chunks) > 1 and max(np.diff([t for t, _ in chunks])) > 0.7) or frames_at_least(70 * 500)(chunks)
     sock = daq_socket(rig)
     sock.sendall(b"RATE 500\nSTART\n")
-    chunks = read_stream(sock, 3.0)
+    chunks, ended = read_stream(sock, quiet_then_back)
+    assert not ended
     arrivals = [t for t, _ in chunks]
     assert max(np.diff(arrivals)) > 0.7                  # the line went quiet
     seqs, bad = decode(b"".join(d for _, d in chunks).split(b"OK\n", 2)[-1])
@@ -276,12 +294,12 @@ def test_disconnect_drops_the_link_and_a_new_connection_gets_the_stream(virtual_
     rig = virtual_rig(faults=["disconnect@20"])
     sock = daq_socket(rig)
     sock.sendall(b"RATE 500\nSTART\n")
-    t0 = time.monotonic()
-    chunks = read_stream(sock, 3.0)
-    assert chunks and time.monotonic() - t0 < 2.0        # EOF long before the 3 s were up
+    # Without the disconnect, the stream would run on past 100 s of simulated time.
+    chunks, ended = read_stream(sock, frames_at_least(100 * 500))
+    assert chunks and ended
     sock.close()
     again = daq_socket(rig)                              # the DAQ kept streaming meanwhile
-    seqs, bad = decode(b"".join(d for _, d in read_stream(again, 0.5)))
+    seqs, bad = decode(b"".join(d for _, d in read_stream(again, frames_at_least(1100))[0]))
     assert len(seqs) > 1000 and seqs[0] > 0
     again.sendall(b"STOP\n")
     again.close()
@@ -292,7 +310,7 @@ def test_sensor_drift_moves_the_channel(virtual_rig):
     rig = virtual_rig(faults=["drift=3:0.1@30"])        # temperature channel, +0.1 degC per simulated second
     sock = daq_socket(rig)
     sock.sendall(b"RATE 500\nSTART\n")
-    stream = b"".join(d for _, d in read_stream(sock, 2.0)).split(b"OK\n", 1)[-1]
+    stream = b"".join(d for _, d in read_stream(sock, frames_at_least(100 * 500))[0]).split(b"OK\n", 1)[-1]
     sock.sendall(b"STOP\n")
     counts = []
     i = 0
@@ -327,9 +345,10 @@ def test_drop_rig_releases_the_mass_and_the_damper_settles(virtual_rig):
     c.write_coil(0, True, device_id=1)
     sock = daq_socket(rig)
     sock.sendall(b"RATE 200\nSTART\n")
-    time.sleep(0.3)
+    before, _ = read_stream(sock, frames_at_least(60))                 # 0.3 simulated seconds at rest
     assert not c.write_register(0, 2, device_id=1).isError()     # release
-    stream = b"".join(d for _, d in read_stream(sock, 2.6)).split(b"OK\n", 1)[-1]   # 130 simulated seconds
+    after, _ = read_stream(sock, frames_at_least(130 * 200))           # 130 simulated seconds
+    stream = b"".join(d for _, d in before + after).split(b"OK\n", 1)[-1]
     sock.sendall(b"STOP\n")
     sock.close()
     frames = [struct.unpack("<4h", stream[i + 4:i + 12]) for i in range(len(stream) - 15) if frame_at(stream, i)]

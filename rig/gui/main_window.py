@@ -24,6 +24,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from rig.daq import check_daq_address
 from rig.errors import BadInput
+from rig.estop import EstopDone
 from rig.events import Event
 from rig.gui.browser import SessionBrowser
 from rig.gui.controls import ControllerPanel, ManualPanel
@@ -34,7 +35,6 @@ from rig.gui.qc import QcDone, QcRequest
 from rig.gui.qc_panel import QcPanel
 from rig.gui.station import (
     ComparisonDone,
-    EstopDone,
     FitDone,
     FitProgress,
     IdentifySettings,
@@ -261,6 +261,7 @@ class MainWindow(QtWidgets.QMainWindow):
             if answer != QtWidgets.QMessageBox.StandardButton.Yes:
                 return
         self.estop_text = None
+        self.station.emergency.confirm_reset()
         if self.status is not None and self.status.state == "ALARM":
             self.manual._do(self.station.reset_alarm())
         self._show_banner()

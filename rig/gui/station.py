@@ -11,9 +11,10 @@ Threads:
                   or QC mode's ``python -m rig qc run`` as a child process (:mod:`rig.gui.qc`)
 ``fit``           identification and re-fits, one at a time, each in a process of its own
                   (:mod:`rig.gui.fits`: a fit in this process would stall the window)
-``e-stop``        waits for a press, then writes mode STOP and hydraulics off on a Modbus
-                  connection of its own, opened in advance and used for nothing else: the
-                  E-STOP never waits behind a session's or the status poll's requests
+``e-stop``        :class:`rig.estop.EStop`: on a press, mode STOP and hydraulics off on a
+                  Modbus connection of its own, opened in advance and used for nothing
+                  else; its latch then vetoes every motion command of the console's and
+                  the session's links until the operator confirms the reset
 
 Outside a session the console holds its own links: the controller with its watchdog
 fed (if this program dies, the controller trips and holds), and the DAQ streaming for
@@ -40,13 +41,15 @@ from rich.console import Console
 
 from identify.errors import IdentifyError, InputError
 from rig.config import RigConfig, load_rig_config
-from rig.daq import Calibration, Daq
+from rig.daq import Calibration, Daq, DaqError
 from rig.errors import BadInput, RigError
+from rig.estop import EStop
 from rig.events import EventBus
 from rig.gui import fits
 from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
 from rig.gui.qc import QcDone, QcRequest, outcome, qc_command
+from rig.peers import wrong_peer_or
 from rig.registers import RegisterMap, load_register_map
 from rig.run import (
     EXIT_OK,
@@ -59,11 +62,10 @@ from rig.run import (
     prepare,
 )
 from rig.session import SessionLog
-from rig.shaker import Shaker, ShakerStatus, check_waveform
+from rig.shaker import Shaker, ShakerLinkError, ShakerStatus, check_waveform
 
 STATUS_PERIOD_S = 0.25
 CONSOLE_RECONNECT_S = 2.0
-ESTOP_TIMEOUT_S = 0.25        # per request on the E-STOP's own line: a dead line falls back to the others quickly
 
 
 # ----- what is posted to the window ---------------------------------------------------------------------
@@ -128,13 +130,6 @@ class ComparisonDone:
 
 
 @dataclass(frozen=True)
-class EstopDone:
-    failures: list[str]
-    elapsed_s: float                       # from the press to both writes answered by the controller
-    line: str                              # which connection carried them
-
-
-@dataclass(frozen=True)
 class QcStarted:
     request: QcRequest
 
@@ -169,16 +164,11 @@ class Station:
                                lambda title, text: post(Notice(f"{title} failed: {text}", "error")))
         self._session: threading.Thread | None = None
         self._qc: subprocess.Popen | None = None
-        self._estop_line: Shaker | None = None
-        self._estop_lock = threading.Lock()          # the line is swapped, never used, under it
-        self._estop_pressed = threading.Event()
-        self._estop_pressed_at = 0.0
-        self.last_estop: EstopDone | None = None
-        self.estop_done = threading.Event()          # set once an E-STOP's writes are answered (or failed)
+        # Posts EstopDone, and LatchChanged on every trip and reset (the window's motion controls follow it).
+        self.emergency = EStop(self.config.limits, self.register_map, fallback=self.active_shaker, on_done=post)
+        self.emergency.subscribe(post)
         self._poller = threading.Thread(target=self._poll, name="rig-status", daemon=True)
         self._poller.start()
-        self._estopper = threading.Thread(target=self._estop_loop, name="e-stop", daemon=True)
-        self._estopper.start()
 
     # ----- state ----------------------------------------------------------------------------------------
     @property
@@ -208,7 +198,7 @@ class Station:
         if not self.shaker_url or not self.daq_url:
             raise BadInput("give the controller's and the DAQ's addresses (--shaker, --daq) or --simulate")
         shaker = Shaker(self.shaker_url, self.config.limits, self.register_map, reconnect_s=CONSOLE_RECONNECT_S,
-                        on_event=self._link_event)
+                        on_event=self._link_event, interlock=self.emergency.latch)
         daq = Daq(self.daq_url, self.calibration, rate_hz=self.config.daq_rate_hz, reconnect_s=CONSOLE_RECONNECT_S,
                   on_event=self._link_event)
         try:
@@ -216,6 +206,9 @@ class Station:
             shaker.connect()        # limits written, watchdog on and fed: if this program dies, the rig holds
             identity = daq.open()
             daq.start()             # the live view streams whenever no session does
+        except (ShakerLinkError, DaqError) as exc:
+            close_links(Links(shaker, daq, "", None))
+            raise wrong_peer_or(exc, self.shaker_url, self.daq_url, self.register_map) from None
         except BaseException:
             close_links(Links(shaker, daq, "", None))
             raise
@@ -242,9 +235,11 @@ class Station:
         self.post(Notice(message))
 
     # ----- manual commands: checked here, sent on the command thread ------------------------------------
-    def _refuse_manual(self, status: ShakerStatus | None, need_hydraulics: bool) -> list[str]:
+    def _refuse_manual(self, status: ShakerStatus | None, need_hydraulics: bool, motion: bool = True) -> list[str]:
         if self.session_running:
             return ["a session is running: abort it first"]
+        if motion and self.emergency.latched:
+            return [f"{self.emergency.latch.reason}: confirm the reset first"]
         if self.shaker is None:
             return ["not connected"]
         if status is not None and status.state == "ALARM":
@@ -268,7 +263,7 @@ class Station:
         return []
 
     def hydraulics(self, on: bool, status: ShakerStatus | None) -> list[str]:
-        problems = self._refuse_manual(status, need_hydraulics=False)
+        problems = self._refuse_manual(status, need_hydraulics=False, motion=on)
         return self._manual(f"hydraulics {'on' if on else 'off'}", problems, lambda s: s.hydraulics(on))
 
     def move(self, static_m: float, status: ShakerStatus | None) -> list[str]:
@@ -292,8 +287,9 @@ class Station:
 
     def fade_stop(self, status: ShakerStatus | None) -> list[str]:
         """Stop: fade a running waveform out (then hold), else hold at once."""
-        problems = self._refuse_manual(None, need_hydraulics=False)
-        running = status is not None and status.state == "RUNNING"
+        problems = self._refuse_manual(None, need_hydraulics=False, motion=False)
+        # A fade is a move to the static position: after an E-STOP only STOP holds.
+        running = status is not None and status.state == "RUNNING" and not self.emergency.latched
 
         def stop(s: Shaker) -> None:
             s.fade_out() if running else s.stop()
@@ -309,9 +305,7 @@ class Station:
     def estop(self) -> None:
         """STOP and hydraulics off at once, no fade, on the E-STOP's thread and line; a
         session (or a QC run) is told to stop too (its safe stop then finds the rig at rest)."""
-        self._estop_pressed_at = time.monotonic()
-        self.estop_done.clear()
-        self._estop_pressed.set()
+        self.emergency.press()
         self._abort.set()
         runner = self.runner
         if runner is not None:
@@ -319,82 +313,28 @@ class Station:
             runner.bus.publish("log", message="E-STOP pressed by the operator: STOP and hydraulics off")
         self._interrupt_qc()
 
+    def _refuse_latched(self, what: str) -> bool:
+        if not self.emergency.latched:
+            return False
+        self.post(Notice(f"{what} refused, nothing sent: {self.emergency.latch.reason}: confirm the reset first",
+                         "refused"))
+        return True
+
     def _open_estop_line(self, url: str | None) -> None:
-        """The E-STOP's own Modbus connection (no heartbeat, used for nothing else), kept
-        open while the console runs.  A serial line takes one client: there the E-STOP
-        shares the session's or the console's link instead."""
-        if not url or url.startswith("rtu:"):
+        """The E-STOP's own line to ``url``; where none can be opened, the operator is told
+        (the E-STOP then uses the session's or the console's link)."""
+        if not url:
             return
-        with self._estop_lock:
-            line = self._estop_line
-            if line is not None and line.url == url:
-                return
-            self._estop_line = None
-        if line is not None:
-            line.close()
-        line = Shaker(url, self.config.limits, self.register_map, timeout_s=ESTOP_TIMEOUT_S,
-                     reconnect_s=ESTOP_TIMEOUT_S)
         try:
-            line.connect(heartbeat=False)
+            self.emergency.open(url)
         except RigError as exc:
             self.post(Notice(f"E-STOP line to {url} not opened ({exc}); the E-STOP will use the session's link"))
-            line.close()
-            return
-        with self._estop_lock:
-            self._estop_line = line
-
-    def _estop_loop(self) -> None:
-        while True:
-            self._estop_pressed.wait()
-            if self._closed.is_set():
-                return
-            self._estop_pressed.clear()
-            self._estop()
-
-    def _estop(self) -> None:
-        """Each write on the first link that answers: the E-STOP's line, the active link, a new one."""
-        failures: list[str] = []
-        used: list[str] = []
-        with self._estop_lock:
-            line = self._estop_line
-        own: Shaker | None = None
-        candidates: list[tuple[str, Callable[[], Shaker | None]]] = [
-            ("E-STOP line", lambda: line), ("session/console link", self.active_shaker), ("new link", lambda: own)]
-        try:
-            for name, step in (("STOP", lambda s: s.stop()), ("hydraulics off", lambda s: s.hydraulics(False))):
-                errors = []
-                for which, get in candidates:
-                    link = get()
-                    if link is None and which == "new link" and self.shaker_url:
-                        own = link = Shaker(self.shaker_url, self.config.limits, self.register_map, reconnect_s=0.5)
-                        try:
-                            own.connect(heartbeat=False)
-                        except Exception as exc:  # noqa: BLE001 — said on the banner; the watchdog is the last guard
-                            errors.append(f"{which}: {exc}")
-                            continue
-                    if link is None:
-                        continue
-                    try:
-                        step(link)
-                    except Exception as exc:  # noqa: BLE001 — the next link is tried
-                        errors.append(f"{which}: {exc}")
-                        continue
-                    used.append(which)
-                    break
-                else:
-                    failures.append(f"{name}: " + ("; ".join(errors) or "no controller address"))
-        finally:
-            if own is not None:
-                own.close()
-        done = EstopDone(failures, time.monotonic() - self._estop_pressed_at, ", ".join(dict.fromkeys(used)))
-        self.last_estop = done
-        self.estop_done.set()
-        self.post(done)
 
     # ----- sessions ---------------------------------------------------------------------------------------
     def run_plan(self, opt: RunOptions, identify: IdentifySettings | None) -> bool:
-        """Start a session (False if one is running).  ``opt`` is what ``rig run`` would get."""
-        if self.session_running:
+        """Start a session (False if one is running or an E-STOP is latched).  ``opt`` is
+        what ``rig run`` would get."""
+        if self.session_running or self._refuse_latched("session"):
             return False
         self._abort.clear()
         self._session = threading.Thread(target=self._run_session, args=(opt, identify), name="rig-session",
@@ -413,8 +353,9 @@ class Station:
 
     # ----- QC mode ----------------------------------------------------------------------------------------
     def run_qc(self, request: QcRequest) -> bool:
-        """Test one unit with ``python -m rig qc run`` (False if a session or a QC run is going)."""
-        if self.session_running:
+        """Test one unit with ``python -m rig qc run`` (False if a session or a QC run is
+        going, or an E-STOP is latched)."""
+        if self.session_running or self._refuse_latched(f"QC of unit {request.serial}"):
             return False
         self._abort.clear()
         self._session = threading.Thread(target=self._run_qc, args=(request,), name="rig-session", daemon=True)
@@ -495,6 +436,7 @@ class Station:
         bus.subscribe(self.post)                 # queued: the acquisition never waits on the window
         log: SessionLog | None = None
         links = connect(prep, on_event=lambda m: bus.publish("log", message=m))
+        links.shaker.interlock = self.emergency.latch   # before the session's first motion command
         try:
             runner = SessionRunner(prep, links, bus, Console(file=io.StringIO()))
             if self._abort.is_set():
@@ -580,12 +522,7 @@ class Station:
         self.abort("the console is closing")
         self.wait_session(timeout_s)
         self._closed.set()
-        self._estop_pressed.set()
-        self._estopper.join(timeout=2)
-        with self._estop_lock:
-            line, self._estop_line = self._estop_line, None
-        if line is not None:
-            line.close()
+        self.emergency.close()
         self._commands.submit(self._release)
         self._commands.shutdown(wait=True)
         self._fits.close()
