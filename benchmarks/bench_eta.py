@@ -30,7 +30,7 @@ TARGET = 0.20
 ANNOUNCED = re.compile(r"session: \d+ experiments?, about (\d+):(\d\d) min:s of rig time")
 TOOK = re.compile(r"session took .*?(?:about (\d+):(\d\d) min:s of rig time|(\d+):(\d\d) min:s of rig time)")
 PACE = re.compile(r"the links run ([0-9.]+) rig seconds per second")
-ETA = re.compile(r"session ETA (\d+):(\d\d) \(min:s, wall clock\)")
+ETA = re.compile(r"About (\d+):(\d\d) left \(m:s of wall clock\)")
 STAMP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d+) (session-start|experiment-done|session-end)", re.M)
 
 

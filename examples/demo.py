@@ -51,6 +51,7 @@ def main() -> int:
         print(f"rig run failed (exit {code}); see {out}/session.log")
         return code
 
+    from identify.model import DEFAULT_ESTIMATE
     from simulator.truth import load_truth
 
     truth = load_truth(args.truth, "2dof").theta
@@ -71,7 +72,7 @@ def main() -> int:
     if residual:
         print("  * residual-based std: the residuals exceed the measurement noise (the report says by how much)")
     print(f"\nreport: {out}/report.txt   same numbers from the files: python -m identify fit {out} "
-          f"--model 2dof --estimate theta4,theta6,theta16 --params {args.start} --output RESULT.json")
+          f"--model 2dof --estimate {','.join(DEFAULT_ESTIMATE['2dof'])} --params {args.start} --output RESULT.json")
     took_s = sim.rig_time_s()
     announced_s = json.loads((out / "session.json").read_text())["estimated_rig_time_s"]
     print(f"rig time on the simulator's clock (hydraulics on to off): announced {announced_s / 60:.1f} min, took "

@@ -26,9 +26,10 @@ from identify.dataset import csv_bytes, read_dataset, read_manifest
 from identify.differentiation import SCHEMES, Grid
 from identify.errors import ComputationError, InputError
 from identify.estimator import EstimationError
+from identify.exit_codes import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NOT_CONVERGED, EXIT_OK
 from identify.files import atomic_write_bytes
 from identify.fit import DEFAULT_POINTS, choose_grid, fit_experiments
-from identify.model import CompiledModel, load_model
+from identify.model import DEFAULT_ESTIMATE, CompiledModel, load_model
 from identify.parameters import Parameters
 from identify.periodic import PeriodicSolver
 from identify.preparation import model_columns, prepare_periodic, resolve_outputs
@@ -40,7 +41,6 @@ if TYPE_CHECKING:
 
     from identify import batch, sinks
 
-EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT, EXIT_INTERRUPTED = 0, 1, 2, 130
 TABLE_ROWS = 40  # a longer batch shows only its failed sessions on the terminal (summary.csv has all)
 
 
@@ -492,9 +492,9 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_.add_argument("dataset")
     cmp_.add_argument("--params-1dof", help="start values of the 1-dof fit (default: nominal)")
     cmp_.add_argument("--params-2dof", help="start values of the 2-dof fit (default: nominal)")
-    cmp_.add_argument("--estimate-1dof", default="theta5,theta6,theta7",
+    cmp_.add_argument("--estimate-1dof", default=",".join(DEFAULT_ESTIMATE["1dof"]),
                       help="(theta4 and theta5 enter the 1-dof gas force as a product: estimate one of them)")
-    cmp_.add_argument("--estimate-2dof", default="theta4,theta6,theta16")
+    cmp_.add_argument("--estimate-2dof", default=",".join(DEFAULT_ESTIMATE["2dof"]))
     cmp_.add_argument("--experiments", help="comma-separated labels or letters (default: all periodic)")
     cmp_.add_argument("--scheme", choices=SCHEMES, default="bdf2")
     cmp_.add_argument("--n", type=int, default=800)

@@ -370,6 +370,11 @@ _BUILTIN = {
 }
 
 
+# What an identification of a built-in damper model estimates unless told otherwise (the
+# rest comes from drawings and gas data): one definition for every command, window and script.
+DEFAULT_ESTIMATE = {"1dof": ("theta5", "theta6", "theta7"), "2dof": ("theta4", "theta6", "theta16")}
+
+
 def builtin_models() -> list[str]:
     return list(_BUILTIN)
 

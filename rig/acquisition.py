@@ -25,10 +25,10 @@ import numpy as np
 from identify.plans import ExperimentSpec
 from rig.clock import WALL_CLOCK, Clock
 from rig.config import RigConfig
-from rig.criterion import MIN_BLOCKS, bias_bound
+from rig.criterion import MIN_BLOCKS, block_cycles, blocks_bias, change_passes, drift_passes, first_block_sample
 from rig.daq import CHANNELS, Daq, Samples
 from rig.errors import RigFault
-from rig.events import EventBus, Phase
+from rig.events import EventBus, Kind, Phase
 from rig.settling import Hold, move_duration_s
 from rig.shaker import AlarmError, Shaker, ShakerTimeout
 
@@ -226,7 +226,7 @@ class Acquisition:
 
     def _enter(self, phase: Phase, label: str | None, **data: Any) -> None:
         self.phase = phase
-        self.bus.publish("phase", label, phase=phase.value, **data)
+        self.bus.publish(Kind.PHASE, label, phase=phase.value, **data)
 
     def _check_stop(self) -> None:
         if self.stop_requested.is_set():
@@ -236,8 +236,16 @@ class Acquisition:
                        time_constant_s: float | None = None) -> ExperimentRecord:
         """Capture one experiment (by way of a conditioning ``hold``, if given;
         ``time_constant_s``: the gas's relaxation the model predicts there); raises
-        :class:`AlarmError`, :class:`Interrupted`, :class:`AcquisitionError` or a link
-        error, leaving the shaker to :meth:`safe_stop`."""
+        :class:`AlarmError` (after entering ALARM), :class:`Interrupted`,
+        :class:`AcquisitionError` or a link error, leaving the shaker to :meth:`safe_stop`."""
+        try:
+            return self._run_experiment(spec, label, hold, time_constant_s)
+        except AlarmError as exc:
+            self._enter(Phase.ALARM, label, message=str(exc))
+            raise
+
+    def _run_experiment(self, spec: ExperimentSpec, label: str, hold: Hold | None,
+                        time_constant_s: float | None) -> ExperimentRecord:
         # A stop asked between experiments (an operator's E-STOP switched the hydraulics off)
         # must not be answered by switching them on again for the next one.
         self._check_stop()
@@ -271,7 +279,7 @@ class Acquisition:
             self._recorder = None
             self._count_stream(issued, streaming)
         record.stream_lost = self.daq.counters.lost_samples - lost0
-        self.bus.publish("log", label, message=f"DAQ: {issued} samples taken, {record.stream_lost} lost in the "
+        self.bus.publish(Kind.LOG, label, message=f"DAQ: {issued} samples taken, {record.stream_lost} lost in the "
                                                f"stream, {record.lost_samples} in the captured window")
         self._enter(Phase.STOPPING, label)
         self.shaker.fade_out()
@@ -293,7 +301,7 @@ class Acquisition:
         in the DAQ's samples (the rig's own time at any link speed), should the damper
         not follow the model; the steady-state criterion decides the rest either way."""
         target_c = hold.end_temperature_k - 273.15
-        self.bus.publish("log", label, message=f"conditioning: holding at {hold.position_m * 1e3:.1f} mm until the "
+        self.bus.publish(Kind.LOG, label, message=f"conditioning: holding at {hold.position_m * 1e3:.1f} mm until the "
                                                f"gas is at {target_c:.2f} °C (model: {hold.duration_s:.1f} s)")
         rate = self.daq.rate_hz
         side = math.copysign(1.0, hold.arrival_temperature_k - hold.end_temperature_k)
@@ -334,7 +342,7 @@ class Acquisition:
             self._count_stream(self.daq.stop(), streaming)
             self._recorder = None
         left_c = _line_at_end(values[:, gas], present)[1] if np.count_nonzero(present) > 1 else math.nan
-        self.bus.publish("log", label, message=f"conditioning: the gas was at {left_c:.2f} °C (wanted "
+        self.bus.publish(Kind.LOG, label, message=f"conditioning: the gas was at {left_c:.2f} °C (wanted "
                                                f"{target_c:.2f} °C) when the move on was commanded, after "
                                                f"{(left - arrived) / rate:.1f} s at {hold.position_m * 1e3:.1f} mm, "
                                                f"{lead * 1e3:.0f} ms ahead of the crossing (the stroke's delay on "
@@ -395,7 +403,7 @@ class Acquisition:
         daq_s = start_s + stop_s
         self.answer_s = daq_s + HOLD_END_MODBUS_TRANSACTIONS * modbus_s
         self.overhead_s = POLL_S / 2 + STATUS_POLL_S + daq_s + EXPERIMENT_MODBUS_TRANSACTIONS * modbus_s
-        self.bus.publish("log", None, message=f"pace probe: {sum(samples)} samples taken, "
+        self.bus.publish(Kind.LOG, None, message=f"pace probe: {sum(samples)} samples taken, "
                                               f"{self.daq.counters.lost_samples - lost0} lost in the stream ("
                                               f"{len(paces)} probes of {PACE_PROBE_S * 1e3:.0f} ms, paces "
                                               f"{min(paces):.3g}…{max(paces):.3g}); the links run {pace:.3g} rig "
@@ -438,9 +446,9 @@ class Acquisition:
                             time_constant_s: float | None) -> ExperimentRecord:
         ss, rate = self.config.steady_state, self.daq.rate_hz
         spp = rate / spec.frequency_hz                       # samples per period
-        start = int(math.ceil((ss.ramp_time_s + 0.5) * rate))  # after the fade-in (+ the actuator's lag)
+        start = first_block_sample(ss, rate)                 # after the fade-in (+ the actuator's lag)
         drift = ss.drift if ss.criterion == "drift" else None
-        m = max(1, math.ceil(ss.block_s * spec.frequency_hz))  # cycles per block
+        m = block_cycles(ss, spec.frequency_hz)
         thresholds = np.array([ss.thresholds[c] for c in CHANNELS])
         fitted = [CHANNELS.index(c) for c in drift.noise] if drift is not None else []
         history: list[np.ndarray] = []                         # consecutive block means of the fitted channels
@@ -461,33 +469,33 @@ class Acquisition:
                 # nor count as the reference of the next comparison (nor as a point of the
                 # decay, whose cycles must follow each other).
                 history.clear()
-                self.bus.publish("log", label, message=f"settling block ending at cycle {cycles}: "
+                self.bus.publish(Kind.LOG, label, message=f"settling block ending at cycle {cycles}: "
                                                        f"{np.count_nonzero(~present)} samples lost, not compared")
             elif drift is not None:
                 history = (history + [means[fitted]])[-drift.fit_cycles:]
                 if len(history) >= MIN_BLOCKS:
-                    fit = bias_bound(drift, tuple(drift.noise), np.array(history), m / spec.frequency_hz, m * spp,
-                                     spec.periods / m, time_constant_s)
+                    fit = blocks_bias(drift, np.array(history), m, spec.frequency_hz, spp, spec.periods,
+                                      time_constant_s)
                     # the cycle-to-cycle change too: what the console and the GUI show of settling
                     change = np.abs(means - prev_means) if prev_means is not None else np.full(len(CHANNELS), np.nan)
-                    self.bus.publish("progress", label, phase=Phase.SETTLING.value, cycles=cycles,
+                    self.bus.publish(Kind.PROGRESS, label, phase=Phase.SETTLING.value, cycles=cycles,
                                      change={c: float(x) for c, x in zip(CHANNELS, change, strict=True)},
                                      bias_sigma=fit.bias_sigma, ratio=fit.ratio,
                                      drift={c: float(x) for c, x in zip(drift.noise, fit.drift, strict=True)})
-                    if cycles >= ss.min_cycles and fit.bias_sigma < drift.fraction:
+                    if drift_passes(ss, cycles, fit):
                         settled = True
                         break
             elif prev_means is not None:
                 change = np.abs(means - prev_means)
-                self.bus.publish("progress", label, phase=Phase.SETTLING.value, cycles=cycles,
+                self.bus.publish(Kind.PROGRESS, label, phase=Phase.SETTLING.value, cycles=cycles,
                                  change={c: float(x) for c, x in zip(CHANNELS, change, strict=True)})
-                if cycles >= ss.min_cycles and np.all(change < thresholds):
+                if change_passes(ss, cycles, change, thresholds):
                     settled = True
                     break
             if cycles >= ss.max_cycles:
                 break
             prev_means, block = means, block + 1
-        self.bus.publish("log", label, message=(f"steady state after {cycles} cycles" if settled else
+        self.bus.publish(Kind.LOG, label, message=(f"steady state after {cycles} cycles" if settled else
                                                 f"no steady state within {ss.max_cycles} cycles: captured anyway, "
                                                 f"flagged"))
         self._enter(Phase.CAPTURING, label, cycles=cycles)
@@ -509,12 +517,12 @@ class Acquisition:
             expected = missed / seen * n if seen else 0.0
             steady = lost <= expected + 3 * math.sqrt(expected)
             if lost and steady:
-                self.bus.publish("log", label, message=f"capture window {attempt + 1} lost {lost} samples, as the "
+                self.bus.publish(Kind.LOG, label, message=f"capture window {attempt + 1} lost {lost} samples, as the "
                                                        f"line's steady loss predicts ({missed / seen:.2%}): kept, "
                                                        "the holes declared")
             if lost == 0 or steady:
                 break
-            self.bus.publish("log", label, message=f"capture window {attempt + 1} lost {lost} samples"
+            self.bus.publish(Kind.LOG, label, message=f"capture window {attempt + 1} lost {lost} samples"
                                                    + ("; capturing again" if attempt < ss.max_recaptures else ""))
         assert best is not None  # the loop ran at least once
         a, values, present, lost, over, attempt = best
@@ -545,7 +553,7 @@ class Acquisition:
                 last_status = now
                 if capture:
                     a, n = capture
-                    self.bus.publish("progress", label, phase=Phase.CAPTURING.value,
+                    self.bus.publish(Kind.PROGRESS, label, phase=Phase.CAPTURING.value,
                                      fraction=min(max((rec.end - a) / n, 0.0), 1.0))
             self.clock.sleep(POLL_S)
 
@@ -560,13 +568,13 @@ class Acquisition:
         try:
             st = self.shaker.status()
         except Exception as exc:  # noqa: BLE001 — link gone: report, keep trying the rest
-            self.bus.publish("log", None, message=f"safe stop: status unreadable ({exc})")
+            self.bus.publish(Kind.LOG, None, message=f"safe stop: status unreadable ({exc})")
             # The link had its whole reconnect time just now: each remaining step gets one
             # quick try, so the record is written while the controller's watchdog takes over.
             patience = QUICK_RECONNECT_S
         veto = self.shaker.veto("fade out")
         if st is not None and st.state == "RUNNING" and veto is not None:
-            self.bus.publish("log", None, message=f"safe stop: no fade ({veto})")
+            self.bus.publish(Kind.LOG, None, message=f"safe stop: no fade ({veto})")
         elif st is not None and st.state == "RUNNING":
             steps.append(("fade out", self.shaker.fade_out))
             steps.append(("wait at static", lambda: self.shaker.wait_for({"AT_STATIC", "ALARM"}, 30.0)))
@@ -580,8 +588,8 @@ class Acquisition:
                     step()
                 except Exception as exc:  # noqa: BLE001 — every step is tried; each failure is on record
                     failed.append(f"{name}: {exc}")
-                    self.bus.publish("log", None, message=f"safe stop: {name} failed ({exc})")
-        self.bus.publish("log", None, message=f"safe stop done: {', '.join(done)}" if not failed
+                    self.bus.publish(Kind.LOG, None, message=f"safe stop: {name} failed ({exc})")
+        self.bus.publish(Kind.LOG, None, message=f"safe stop done: {', '.join(done)}" if not failed
                          else f"safe stop incomplete: {len(failed)} of {len(steps)} steps failed")
         self._enter(Phase.IDLE, None)
         return failed

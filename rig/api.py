@@ -5,7 +5,7 @@
     with rig.open(shaker="tcp://127.0.0.1:5020", daq="socket://127.0.0.1:5021") as r:
         print(r.status())
         session = r.run_plan("standard", experiments=["j", "n"], out="sessions/unit-17")
-        result = session.identify(estimate=["theta4", "theta6", "theta16"])
+        result = session.identify()            # the model's default set: theta4, theta6, theta16
         print(result.report())
 
 Nothing here runs a subprocess: a :class:`Rig` holds the same two links as ``rig run``
@@ -27,11 +27,12 @@ from typing import TYPE_CHECKING, Any, Literal
 from rich.console import Console
 
 from identify.dataset import Experiment
+from identify.model import DEFAULT_ESTIMATE
 from rig.acquisition import Acquisition
 from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration
-from rig.errors import RigFault
-from rig.events import Event, EventBus
+from rig.errors import BadInput, RigFault
+from rig.events import Event, EventBus, LinkNotice, Subscriber
 from rig.progress import ConsoleProgress, ProgressBar
 from rig.registers import RegisterMap, load_register_map
 from rig.run import (
@@ -39,14 +40,15 @@ from rig.run import (
     Links,
     RunOptions,
     RunResult,
+    SessionContext,
     SessionRunner,
     close_links,
     fit_session,
     open_links,
     prepare,
+    run_lifecycle,
 )
 from rig.session import Session as SessionFolder
-from rig.session import SessionLog
 from rig.shaker import ShakerStatus
 
 if TYPE_CHECKING:
@@ -89,28 +91,23 @@ class Session:
         """Capture every planned experiment; returns when the session has ended."""
         if self._result is not None:
             raise RuntimeError("this session has run; plan a new one (or resume it with resume=True)")
-        links = self._rig._links
-        bus = EventBus()
-        for callback in self._subscribers:
-            bus.subscribe(callback)
-        runner = SessionRunner(self._prepared, links, bus, self._rig._console)
-        self._folder = folder = runner.open_session()
-        session_log = SessionLog(folder.path / "session.log")
-        bus.subscribe(session_log, inline=True)
-        estimates = runner.estimates_s(folder, links.shaker.status().position_m)
-        folder.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
-        if self._progress == "bar" or (self._progress == "auto" and _in_notebook()):
-            bus.subscribe(ProgressBar(estimates))
-        elif self._progress:
-            bus.subscribe(ConsoleProgress(self._rig._console, estimates, runner.acquisition.current_pace,
-                                          runner.acquisition.clock.monotonic))
-        self._rig._bus = bus
-        try:
-            self._result = result = runner.run(folder)
-        finally:
-            self._rig._bus = None
-            bus.close()
-            session_log.close()
+        rig = self._rig
+
+        def runner_changed(runner: SessionRunner | None) -> None:
+            rig._bus = runner.bus if runner is not None else None   # the links' notices go to the session
+
+        def progress(ctx: SessionContext) -> list[Subscriber]:
+            self._folder = ctx.session
+            if self._progress == "bar" or (self._progress == "auto" and _in_notebook()):
+                return [ProgressBar(ctx.estimates_s)]
+            if self._progress:
+                return [ConsoleProgress(rig._console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock)]
+            return []
+
+        self._result = result = run_lifecycle(self._prepared, rig._console, links=rig._links,
+                                              subscribers=self._subscribers, attach=progress,
+                                              on_runner=runner_changed)
+        self._folder = result.session
         if result.error is not None:
             raise result.error
         if result.exit_code != EXIT_OK:
@@ -131,14 +128,18 @@ class Session:
         """The captured experiments as ``dataset.json`` lists them (label, file, settle cycles, …)."""
         return list(self._folder.manifest["experiments"]) if self._folder is not None else []
 
-    def identify(self, model: str = "2dof", estimate: Sequence[str] = ("theta4", "theta6", "theta16"),
+    def identify(self, model: str = "2dof", estimate: Sequence[str] | None = None,
                  params: str | Path | None = None) -> FitResult:
         """Fit the captured experiments (the same :class:`~identify.result.FitResult` as
-        ``identify.fit``); RESULT.json and report.txt go into the session folder."""
+        ``identify.fit``); RESULT.json and report.txt go into the session folder.
+        ``estimate``: by default a built-in model's set (``identify.model.DEFAULT_ESTIMATE``)."""
         if self._folder is None:
             raise RuntimeError("nothing captured yet: run() the session first")
         captured: list[Experiment] = self._result.captured if self._result is not None else []
-        return fit_session(self._folder, model, params, list(estimate), captured)
+        if estimate is None and model not in DEFAULT_ESTIMATE:
+            raise BadInput(f"model {model}: name the parameters to estimate (estimate=[...])")
+        names = list(estimate) if estimate is not None else list(DEFAULT_ESTIMATE[model])
+        return fit_session(self._folder, model, params, names, captured)
 
 
 class Rig:
@@ -158,12 +159,12 @@ class Rig:
         self._idle_bus = EventBus()
         self._stopper = Acquisition(self._links.shaker, self._links.daq, self.config, self._idle_bus)
 
-    def _link_event(self, message: str) -> None:
+    def _link_event(self, notice: LinkNotice) -> None:
         bus = self._bus
         if bus is not None:
-            bus.publish("log", message=message)
+            bus.publish_link(notice)
         else:
-            log.warning("%s", message)
+            log.warning("%s", notice.message)
 
     # ----- the lab procedure ---------------------------------------------------------------------
     def status(self) -> ShakerStatus:

@@ -25,21 +25,16 @@ import traceback
 from pathlib import Path
 
 from identify.errors import InputError
+from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK
+from identify.model import DEFAULT_ESTIMATE
 from rig.config import load_rig_config
 from rig.daq import Calibration, Daq
 from rig.errors import BadInput, RigFault
+from rig.gui.options import ConsoleOptions, add_console_arguments, add_link_arguments
 from rig.plans import comma_list
 from rig.qc.cli import add_parser as add_qc_parser
 from rig.registers import load_register_map
-from rig.run import (
-    EXIT_ABORTED,
-    EXIT_BAD_INPUT,
-    EXIT_INTERNAL,
-    EXIT_INTERRUPTED,
-    EXIT_OK,
-    RunOptions,
-    run_session,
-)
+from rig.run import RunOptions, run_session
 from rig.shaker import LimitError, Shaker
 
 
@@ -167,7 +162,7 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 def cmd_gui(args: argparse.Namespace) -> int:
     from rig.gui.main_window import run_gui  # Qt is loaded for this command only
 
-    return run_gui(args)
+    return run_gui(ConsoleOptions.from_namespace(args))
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -175,14 +170,8 @@ def build_parser() -> argparse.ArgumentParser:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 
-    def common(p: argparse.ArgumentParser, shaker_required: bool = True) -> None:
-        p.add_argument("--shaker", required=shaker_required, help="tcp://HOST:PORT or rtu:///dev/DEVICE")
-        p.add_argument("--register-map", help="register map TOML (default: the datasheet's)")
-        p.add_argument("--rig-config",
-                       help="limits and steady-state criteria TOML (default: rig/config/rig-default.toml)")
-
     run = sub.add_parser("run", help="run a plan of experiments into a session folder")
-    common(run, shaker_required=False)
+    add_link_arguments(run, shaker_required=False)
     run.add_argument("--plan", default="standard", help="standard or PLAN.toml")
     run.add_argument("--daq", help="device path, socket://HOST:PORT or any pyserial URL")
     run.add_argument("--out", required=True, help="session folder")
@@ -202,23 +191,23 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--calibration", help="DAQ calibration TOML of this rig")
     run.add_argument("--model", default="2dof", help="model for --identify")
     run.add_argument("--params", help="start values and priors for --identify (default: nominal)")
-    run.add_argument("--estimate", default="theta4,theta6,theta16", help="parameters for --identify")
+    run.add_argument("--estimate", default=",".join(DEFAULT_ESTIMATE["2dof"]), help="parameters for --identify")
     run.add_argument("--date", help="label date yymmdd (default: today)")
     run.add_argument("--unit", default="unknown", help="serial number of the damper under test")
     run.set_defaults(func=cmd_run)
 
     status = sub.add_parser("status", help="controller state, alarm, position, force")
-    common(status)
+    add_link_arguments(status)
     status.set_defaults(func=cmd_status)
 
     move = sub.add_parser("move", help="hydraulics on and move to a static position")
-    common(move)
+    add_link_arguments(move)
     move.add_argument("position_mm", type=float)
     move.add_argument("--wait", type=float, default=60.0, help="seconds to wait for AT_STATIC (0: do not wait)")
     move.set_defaults(func=cmd_move)
 
     stop = sub.add_parser("stop", help="stop motion (or fade out, or reset an alarm)")
-    common(stop)
+    add_link_arguments(stop)
     stop.add_argument("--fade", action="store_true", help="fade the waveform out instead of stopping at once")
     stop.add_argument("--reset", action="store_true", help="reset a latched alarm")
     stop.add_argument("--hydraulics-off", action="store_true")
@@ -232,18 +221,7 @@ def build_parser() -> argparse.ArgumentParser:
     mon.set_defaults(func=cmd_monitor)
 
     gui = sub.add_parser("gui", help="the operator's console (live view, manual control, plans, fits)")
-    common(gui, shaker_required=False)
-    gui.add_argument("--daq", help="device path, socket://HOST:PORT or any pyserial URL")
-    gui.add_argument("--simulate", action="store_true",
-                     help="start the virtual rig (python -m simulator serve) on free loopback ports and use it")
-    gui.add_argument("--speed", type=float, default=1.0, help="--simulate: simulated seconds per wall second")
-    gui.add_argument("--params", help="--simulate: the simulated damper's true parameters (TRUTH.json)")
-    gui.add_argument("--fault", action="append", default=[], metavar="KIND[@T][=V]",
-                     help="--simulate: a fault to inject (repeatable; see python -m simulator serve --help)")
-    gui.add_argument("--plan", default="standard", help="standard or PLAN.toml")
-    gui.add_argument("--experiments", help="comma-separated letters of the plan (default: all)")
-    gui.add_argument("--out", default="sessions", help="folder in which new session folders are made")
-    gui.add_argument("--calibration", help="DAQ calibration TOML of this rig")
+    add_console_arguments(gui)
     gui.set_defaults(func=cmd_gui)
 
     add_qc_parser(sub)

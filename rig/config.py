@@ -7,7 +7,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rig.criterion import DriftCriterion
+from rig.criterion import DriftCriterion, SteadyStateCriteria
 from rig.errors import BadInput
 from rig.registers import CONFIG_DIR
 from rig.tomlfile import read_toml
@@ -32,24 +32,6 @@ class Limits:
 
 
 CRITERIA = ("change", "drift")
-
-
-@dataclass(frozen=True)
-class SteadyStateCriteria:
-    """When a periodic experiment counts as settled (engineering units per channel).
-
-    ``criterion``: ``change`` compares the channel means of consecutive blocks with the
-    thresholds; ``drift`` bounds the bias the transient left over the capture window
-    would cause in the fit (:mod:`rig.criterion`)."""
-
-    block_s: float
-    thresholds: dict[str, float]
-    min_cycles: int
-    max_cycles: int
-    max_recaptures: int
-    ramp_time_s: float
-    criterion: str = "change"
-    drift: DriftCriterion | None = None
 
 
 def steady_state_from_table(ss: dict, where: str, error: type[BadInput]) -> SteadyStateCriteria:

@@ -42,6 +42,9 @@ GUARD = 2.0     # standard errors added to the fitted amplitude (one-sided, ~98 
 # Block means before the law is fitted: three determine y∞, A and r, and the bound
 # then takes the worst of every ratio in the model's range, all of them fitting.
 MIN_BLOCKS = 3
+# The first settling block begins this long after RUN's fade-in: the actuator's lag behind
+# its command, which the acquisition skips and the settling prediction starts from.
+DAQ_LAG_S = 0.5
 
 
 @dataclass(frozen=True)
@@ -66,6 +69,24 @@ class DriftCriterion:
         if f > 0 and model_time_constant_s and math.isfinite(model_time_constant_s):
             return model_time_constant_s / f, min(self.max_time_constant_s, f * model_time_constant_s)
         return 0.0, self.max_time_constant_s
+
+
+@dataclass(frozen=True)
+class SteadyStateCriteria:
+    """When a periodic experiment counts as settled (engineering units per channel).
+
+    ``criterion``: ``change`` compares the channel means of consecutive blocks with the
+    thresholds; ``drift`` bounds the bias the transient left over the capture window
+    would cause in the fit (the criterion above)."""
+
+    block_s: float
+    thresholds: dict[str, float]
+    min_cycles: int
+    max_cycles: int
+    max_recaptures: int
+    ramp_time_s: float
+    criterion: str = "change"
+    drift: DriftCriterion | None = None
 
 
 @dataclass(frozen=True)
@@ -128,3 +149,45 @@ def bias_bound(criterion: DriftCriterion, channels: tuple[str, ...], means: np.n
                                    math.exp(-block_s / fastest) if fastest > 0 else 0.0)
     z = upper * math.sqrt(window_blocks * samples_per_block) / sigma
     return DriftFit(r, drift, float(np.sqrt(np.sum(z**2))))
+
+
+# ----- the blocks both the acquisition and its prediction (rig.settling) compare -------------------------
+def first_block_sample(criteria: SteadyStateCriteria, rate_hz: float) -> int:
+    """The sample (counted from RUN and the DAQ's START) at which the first block begins."""
+    return math.ceil((criteria.ramp_time_s + DAQ_LAG_S) * rate_hz)
+
+
+def first_block_s(criteria: SteadyStateCriteria, rate_hz: float) -> float:
+    """Time from RUN (and the DAQ's START) to the first comparison block."""
+    return first_block_sample(criteria, rate_hz) / rate_hz
+
+
+def block_cycles(criteria: SteadyStateCriteria, frequency_hz: float) -> int:
+    """Whole cycles per comparison block (at least ``block_s``)."""
+    return max(1, math.ceil(criteria.block_s * frequency_hz))
+
+
+def last_block_cycles(criteria: SteadyStateCriteria, m: int) -> int:
+    """Cycles at the block where the acquisition gives up (the first at or past max_cycles)."""
+    return max(1, math.ceil(criteria.max_cycles / m)) * m
+
+
+def blocks_bias(drift: DriftCriterion, means: np.ndarray, m: int, frequency_hz: float, samples_per_period: float,
+                periods: int, time_constant_s: float | None) -> DriftFit:
+    """:func:`bias_bound` on the latest block means of ``m`` cycles each, before a capture
+    of ``periods`` cycles."""
+    return bias_bound(drift, tuple(drift.noise), means, m / frequency_hz, m * samples_per_period, periods / m,
+                      time_constant_s)
+
+
+def drift_passes(criteria: SteadyStateCriteria, cycles: int, fit: DriftFit) -> bool:
+    """The drift criterion, at a block ending ``cycles`` after RUN."""
+    assert criteria.drift is not None   # a drift criterion always has its settings (rig.config)
+    return cycles >= criteria.min_cycles and fit.bias_sigma < criteria.drift.fraction
+
+
+def change_passes(criteria: SteadyStateCriteria, cycles: int | np.ndarray, change: np.ndarray,
+                  thresholds: np.ndarray) -> np.ndarray:
+    """The change criterion: every channel's block-to-block change (last axis) below its
+    threshold, at blocks ending ``cycles`` after RUN (NaN, the first block's, fails)."""
+    return (np.asarray(cycles) >= criteria.min_cycles) & np.all(change < thresholds, axis=-1)

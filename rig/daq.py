@@ -25,6 +25,7 @@ import numpy as np
 import serial
 
 from rig.errors import AddressError, BadInput, RigFault
+from rig.events import LinkCondition, LinkNotice
 from rig.frames import Block, FrameParser, LossCounters
 from rig.registers import CONFIG_DIR
 from rig.tomlfile import read_toml
@@ -206,7 +207,7 @@ class Daq:
 
     def __init__(self, url: str, calibration: Calibration | None = None, *, rate_hz: int = 2000,
                  port: SerialLine | None = None,
-                 on_event: Callable[[str], object] = lambda message: None, reconnect_s: float = 10.0) -> None:
+                 on_event: Callable[[LinkNotice], object] = lambda notice: None, reconnect_s: float = 10.0) -> None:
         if port is None:
             check_daq_address(url)
         self.url, self.rate_hz, self.on_event, self.reconnect_s = url, rate_hz, on_event, reconnect_s
@@ -244,6 +245,12 @@ class Daq:
         if self._unjournaled:
             self.journal.write(bytes(self._unjournaled))
         self._unjournaled = None
+
+    def detach_journal(self) -> None:
+        """Close the session's journal (the links outlive a script's session)."""
+        journal, self.journal = self.journal, None
+        if journal is not None:
+            journal.close()
 
     def subscribe(self, listener: Callable[[Samples], None]) -> None:
         """Call ``listener`` from the reader thread with every calibrated block (keep it quick)."""
@@ -308,7 +315,7 @@ class Daq:
 
     def _reopen_idle(self, exc: Exception) -> bool:
         """Reopen the line outside a stream; True once it is open and quiet again."""
-        self.on_event(f"DAQ link lost ({exc}); reopening {self.url}")
+        self.on_event(LinkNotice("DAQ", LinkCondition.LOST, f"DAQ link lost ({exc}); reopening {self.url}"))
         deadline, delay = time.monotonic() + self.reconnect_s, 0.05
         while time.monotonic() < deadline:
             time.sleep(delay)
@@ -320,7 +327,7 @@ class Daq:
                 self._drain(0.3)
             except (DaqError, serial.SerialException, OSError):
                 continue
-            self.on_event("DAQ link back")
+            self.on_event(LinkNotice("DAQ", LinkCondition.BACK, "DAQ link back"))
             return True
         return False
 
@@ -357,9 +364,10 @@ class Daq:
         try:
             self._line.write(b"STOP\n")
         except (serial.SerialException, OSError) as exc:
-            self.on_event(f"DAQ STOP not sent: {exc}")
+            self.on_event(LinkNotice("DAQ", LinkCondition.WARNING, f"DAQ STOP not sent: {exc}"))
         if not self._stopped.wait(timeout_s):
-            self.on_event(f"DAQ at {self.url}: no 'OK STOP' within {timeout_s:g} s; tail losses unknown")
+            self.on_event(LinkNotice("DAQ", LinkCondition.WARNING,
+                                     f"DAQ at {self.url}: no 'OK STOP' within {timeout_s:g} s; tail losses unknown"))
         self._streaming.clear()
         if self._thread is not None:
             self._thread.join(timeout=2)
@@ -409,7 +417,7 @@ class Daq:
             self._unjournaled += data
 
     def _reopen(self, exc: Exception) -> bool:
-        self.on_event(f"DAQ link lost ({exc}); reopening {self.url}")
+        self.on_event(LinkNotice("DAQ", LinkCondition.LOST, f"DAQ link lost ({exc}); reopening {self.url}"))
         deadline, delay = time.monotonic() + self.reconnect_s, 0.05
         while self._streaming.is_set() and time.monotonic() < deadline:
             time.sleep(delay)
@@ -417,12 +425,13 @@ class Daq:
             try:
                 self._line.close()
                 self._port = self._open_port()
-                self.on_event("DAQ link back; the stream continues (the gap is counted as lost samples)")
+                self.on_event(LinkNotice("DAQ", LinkCondition.BACK,
+                                         "DAQ link back; the stream continues (the gap is counted as lost samples)"))
                 return True
             except DaqError:
                 continue
         self.reader_error = f"DAQ link to {self.url} lost and not back within {self.reconnect_s:g} s"
-        self.on_event(self.reader_error)
+        self.on_event(LinkNotice("DAQ", LinkCondition.GONE, self.reader_error))
         self._stopped.set()
         return False
 

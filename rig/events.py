@@ -21,6 +21,8 @@ from typing import Any
 
 
 class Phase(StrEnum):
+    """The acquisition's states (rig.acquisition); a ``phase`` event enters one."""
+
     IDLE = "idle"
     MOVING = "moving"
     SETTLING = "settling"
@@ -29,12 +31,64 @@ class Phase(StrEnum):
     ALARM = "alarm"
 
 
+class Kind(StrEnum):
+    """Every kind of event a session publishes, declared once with its fields
+    (:data:`FIELDS`; a publisher that leaves one out is a bug, raised at once).
+    Subscribers read the fields; ``message`` is prose for people only."""
+
+    SESSION_START = "session-start"          # shaker, daq (addresses), identity (the DAQ's *IDN?)
+    PHASE = "phase"                          # phase (Phase); moving: target_mm; capturing: cycles; stopping: reason;
+    #                                          alarm: message
+    PROGRESS = "progress"                    # phase; settling: cycles, change {channel: |Δ block mean|}
+    #                                          [drift criterion: bias_sigma, ratio, drift]; capturing: fraction
+    EXPERIMENT_DONE = "experiment-done"      # file, samples, lost (in the window), flags: on disk, in dataset.json
+    EXPERIMENT_FAILED = "experiment-failed"  # message: skipped after an alarm (--on-alarm skip)
+    ALARM = "alarm"                          # message: the controller's alarm, as it ended the experiment
+    LINK = "link"                            # link ("controller", "DAQ"), state (LinkCondition), message
+    LOG = "log"                              # message: anything else worth a line
+    SESSION_END = "session-end"              # message: the status written to session.json; exit_code
+
+
+FIELDS: dict[Kind, tuple[str, ...]] = {
+    Kind.SESSION_START: ("shaker", "daq", "identity"),
+    Kind.PHASE: ("phase",),
+    Kind.PROGRESS: ("phase",),
+    Kind.EXPERIMENT_DONE: ("file", "samples", "lost", "flags"),
+    Kind.EXPERIMENT_FAILED: ("message",),
+    Kind.ALARM: ("message",),
+    Kind.LINK: ("link", "state", "message"),
+    Kind.LOG: ("message",),
+    Kind.SESSION_END: ("message", "exit_code"),
+}
+
+
+class LinkCondition(StrEnum):
+    LOST = "lost"                            # a request failed: reconnecting
+    BACK = "back"
+    GONE = "gone"                            # not back within the reconnect time
+    HEARTBEAT_FAILING = "heartbeat-failing"  # the controller's watchdog will trip if it goes on
+    HEARTBEAT_BACK = "heartbeat-back"
+    WARNING = "warning"                      # anything else a link has to say (a STOP not answered)
+
+
+@dataclass(frozen=True)
+class LinkNotice:
+    """What a driver (rig.shaker, rig.daq) says of its link, for whoever listens (``on_event``)."""
+
+    link: str                                # "controller" or "DAQ"
+    state: LinkCondition
+    message: str
+
+    def __str__(self) -> str:
+        return self.message
+
+
 @dataclass(frozen=True)
 class Event:
-    """``kind``: session-start, phase, progress, captured, experiment-done,
-    experiment-failed, alarm, log, identified, session-end."""
+    """One event of a session: its :class:`Kind`, the experiment's label (None: the
+    session's), the kind's fields (:data:`FIELDS`) and the wall-clock time."""
 
-    kind: str
+    kind: Kind
     experiment: str | None = None
     data: dict[str, Any] = field(default_factory=dict)
     time: float = field(default_factory=time.time)
@@ -67,7 +121,7 @@ class EventBus:
                     failures += 1
                     if failures == 1:
                         log.exception("event subscriber %s failed on a %r event; it gets the next events, "
-                                      "the session goes on", name, event.kind)
+                                      "the session goes on", name, str(event.kind))
             if failures > 1:
                 log.error("event subscriber %s failed on %d events in all", name, failures)
 
@@ -76,6 +130,10 @@ class EventBus:
         self._queued.append((q, thread))
 
     def publish(self, kind: str, experiment: str | None = None, **data: Any) -> Event:
+        kind = Kind(kind)                    # an undeclared kind is a bug: ValueError
+        missing = [f for f in FIELDS[kind] if f not in data]
+        if missing:
+            raise TypeError(f"{kind} event without {', '.join(missing)}")
         event = Event(kind, experiment, data)
         with self._inline_lock:
             for fn in self._inline:
@@ -83,6 +141,10 @@ class EventBus:
         for q, _ in self._queued:
             q.put(event)
         return event
+
+    def publish_link(self, notice: LinkNotice) -> None:
+        """A driver's notice of its link (``on_event`` of rig.shaker and rig.daq)."""
+        self.publish(Kind.LINK, link=notice.link, state=notice.state.value, message=notice.message)
 
     def close(self, timeout_s: float = 2.0) -> None:
         """Let queued subscribers finish what they were given."""

@@ -4,44 +4,38 @@ Most of a session is settling, and an experiment settles for as long as the gas 
 to get from where the one before left it to its own periodic temperature (a move up
 the stroke compresses the gas and heats it, a move down cools it).  So the rig time of
 an experiment depends on its predecessor; with the model's prediction of every
-predecessor–successor pair (:mod:`rig.settling`, through the plan's duration
-estimate), the order of least total rig time is a shortest Hamiltonian path, exact by
-dynamic programming over subsets up to ``EXACT_UP_TO`` experiments, greedy beyond.
+predecessor–successor pair (:mod:`rig.settling`, through the plan's duration estimate,
+which :meth:`rig.plans.Plan.ordered` hands in), the order of least total rig time is a
+shortest Hamiltonian path, exact by dynamic programming over subsets up to
+``EXACT_UP_TO`` experiments, greedy beyond.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 import numpy as np
 
-from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
-from rig.config import RigConfig
 
 EXACT_UP_TO = 16    # 2^16 subsets × 16² steps: about a second
+# The predicted rig time [s] of each experiment of a sequence run in that order from rest.
+Durations = Callable[[Sequence[ExperimentSpec]], Sequence[float]]
 
 
-def transition_costs(experiments: Sequence[ExperimentSpec], config: RigConfig, start_position_m: float,
-                     params: Parameters | None = None) -> tuple[np.ndarray, np.ndarray]:
+def transition_costs(experiments: Sequence[ExperimentSpec], durations: Durations) -> tuple[np.ndarray, np.ndarray]:
     """Predicted rig time [s] of each experiment first (from rest), and of j right after i."""
-    from rig.plans import Plan, estimate_experiment_durations
-
-    # Noise-free: an order is chosen on the transients its transitions leave, and the
-    # noise floor each experiment settles to is its own whatever comes before it.
     n = len(experiments)
-    first = np.array([estimate_experiment_durations(Plan("first", (e,)), config, start_position_m, params,
-                                                    noise_draws=0)[0].total_s for e in experiments])
-    # Every pair (i, j) as a two-experiment stretch of one long plan: j's lead-in starts from
-    # i's periodic state; what i inherits from the pair before it is not read.
+    first = np.array([durations((e,))[0] for e in experiments])
+    # Every pair (i, j) as a two-experiment stretch of one long sequence: j's lead-in starts
+    # from i's periodic state; what i inherits from the pair before it is not read.
     pairs = [(i, j) for i in range(n) for j in range(n) if i != j]
     sequence = tuple(replace(experiments[k], letter=f"{k}.{p}") for p, ij in enumerate(pairs) for k in ij)
-    durations = estimate_experiment_durations(Plan("pairs", sequence), config, start_position_m, params,
-                                              noise_draws=0)
+    times = durations(sequence)
     after = np.full((n, n), np.inf)
     for p, (i, j) in enumerate(pairs):
-        after[i, j] = durations[2 * p + 1].total_s
+        after[i, j] = times[2 * p + 1]
     return first, after
 
 
@@ -82,8 +76,7 @@ def quickest_order(first: np.ndarray, after: np.ndarray) -> list[int]:
     return order[::-1]
 
 
-def thermal_order(experiments: Sequence[ExperimentSpec], config: RigConfig, start_position_m: float = 0.0,
-                  params: Parameters | None = None) -> tuple[ExperimentSpec, ...]:
+def thermal_order(experiments: Sequence[ExperimentSpec], durations: Durations) -> tuple[ExperimentSpec, ...]:
     """The experiments in the order of least predicted rig time."""
-    first, after = transition_costs(experiments, config, start_position_m, params)
+    first, after = transition_costs(experiments, durations)
     return tuple(experiments[k] for k in quickest_order(first, after))

@@ -16,8 +16,10 @@ import numpy as np
 from identify.parameters import Parameters
 from identify.plans import STANDARD_SET, ExperimentSpec
 from rig.config import RigConfig
+from rig.criterion import first_block_s
 from rig.errors import BadInput
-from rig.settling import DRIFT_DRAWS, PAUSE_S, Conditioning, Hold, first_block_s, move_duration_s, predict_settling
+from rig.ordering import thermal_order
+from rig.settling import DRIFT_DRAWS, PAUSE_S, Conditioning, Hold, move_duration_s, predict_settling
 from rig.shaker import check_waveform
 from rig.tomlfile import read_toml
 
@@ -55,11 +57,15 @@ class Plan:
     def ordered(self, config: RigConfig, start_position_m: float = 0.0) -> Plan:
         """The plan in the order it runs: as listed when ``order = "fixed"``, else the
         order of least predicted rig time from rest at ``start_position_m``."""
-        from rig.ordering import thermal_order
-
         if self.order == "fixed" or len(self.experiments) < 2:
             return self
-        return replace(self, experiments=thermal_order(self.experiments, config, start_position_m))
+
+        def durations(sequence: Sequence[ExperimentSpec]) -> list[float]:
+            # Noise-free: an order is chosen on the transients its transitions leave, and the
+            # noise floor each experiment settles to is its own whatever comes before it.
+            return [d.total_s for d in estimate_experiment_durations(Plan("order", tuple(sequence)), config,
+                                                                     start_position_m, noise_draws=0)]
+        return replace(self, experiments=thermal_order(self.experiments, durations))
 
     def with_periods(self, periods: int | None) -> Plan:
         if periods is None:

@@ -1,4 +1,6 @@
-"""Terminal progress of a session: a queued subscriber of the session's events.
+"""Terminal progress of a session: a queued subscriber of the session's events, and
+:func:`describe`, an event in a sentence (the terminal, the console's log pane, the
+session browser's view of session.log).
 
 One line per phase, settling and capture progress, and the session's ETA: the rig
 time announced at the start comes from the plan's per-experiment estimates; while the
@@ -9,17 +11,92 @@ the links' pace (a simulator's speed, corrected from the session's own streams).
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable
+from pathlib import Path
 
 from rich.console import Console
+from rich.markup import escape
 
-from rig.events import Event
+from identify.notation import at_place, decimal_place
+from rig.events import Event, Kind, Phase
+from rig.session import read_log
+
+# How the settling change of each channel is said: its word, unit and decimals (the
+# block means' resolution: a block averages thousands of samples of the transducer's noise).
+CHANGE_WORDS = {"stroke_mm": ("stroke", "mm", 3), "force_N": ("force", "N", 1), "pressure_bar": ("pressure", "bar", 4),
+                "gas_temperature_C": ("gas temperature", "°C", 3)}
+PHASE_SENTENCES = {Phase.SETTLING: "Excitation running, settling.", Phase.IDLE: "At rest."}
+
+
+def describe(e: Event) -> str:
+    """An event as a sentence for people (the terminal, the console's log pane, the session
+    browser), from its fields, numbers rounded to what they mean."""
+    d = e.data
+    if e.kind == Kind.SESSION_START:
+        return f"Session started: controller at {d['shaker']}, DAQ at {d['daq']} ({d['identity']})."
+    if e.kind == Kind.PHASE:
+        phase = Phase(d["phase"])
+        if phase is Phase.MOVING:
+            return f"Moving to the static position {d['target_mm']:.1f} mm."
+        if phase is Phase.CAPTURING:
+            return f"Now capturing, after {d['cycles']} settling cycles."
+        if phase is Phase.STOPPING:
+            return f"Stopping: {d['reason']}." if d.get("reason") else "Fading out and stopping."
+        if phase is Phase.ALARM:
+            return f"ALARM: {d['message']}."
+        return PHASE_SENTENCES[phase]
+    if e.kind == Kind.PROGRESS and d["phase"] == Phase.CAPTURING:
+        return f"Captured {100 * d['fraction']:.0f} % of the window."
+    if e.kind == Kind.PROGRESS:
+        moved = ", ".join(f"{word} {_fixed(d['change'].get(channel), decimals)} {unit}"
+                          for channel, (word, unit, decimals) in CHANGE_WORDS.items() if channel in d["change"])
+        text = f"Cycle {d['cycles']}: the block means moved by {moved}"
+        if "bias_sigma" in d:
+            bias = d["bias_sigma"]
+            text += (f"; the transient decays ×{d['ratio']:.3f} per cycle and could bias the fit by up to "
+                     f"{at_place(bias, decimal_place(bias)) if bias > 0 else '0'} σ")
+        return text + "."
+    if e.kind == Kind.EXPERIMENT_DONE:
+        lost = "none lost in the window" if not d["lost"] else f"{d['lost']} lost in the window"
+        flags = f"; FLAGGED: {'; '.join(d['flags'])}" if d["flags"] else ""
+        return f"Written to {d['file']}: {d['samples']} samples, {lost}{flags}."
+    if e.kind == Kind.SESSION_END:
+        return f"Session {d['message']}."
+    return _sentence(str(d.get("message", "")))
+
+
+def _fixed(x: float | None, decimals: int) -> str:
+    return "—" if x is None or not math.isfinite(x) else f"{x:.{decimals}f}"
+
+
+def _sentence(text: str) -> str:
+    """A driver's or the acquisition's message as a sentence: capital first, a full stop last."""
+    text = text.strip()
+    if not text:
+        return ""
+    return text[0].upper() + text[1:] + ("" if text[-1] in ".!?)" else ".")
+
+
+def log_text(path: Path) -> str:
+    """A session.log as people read it: time, experiment, sentence, one event a line."""
+    try:
+        events = read_log(path)
+    except OSError as exc:
+        return f"({path.name} unreadable: {exc.strerror or exc})"
+    lines = []
+    for e in events:
+        stamp = time.strftime("%H:%M:%S", time.localtime(e.time)) + f".{int(e.time % 1 * 1000):03d}" if e.time else ""
+        lines.append(f"{stamp:12} {e.experiment or '':9} {describe(e)}".rstrip())
+    return "\n".join(lines)
 
 
 class ConsoleProgress:
-    """Queued subscriber: one line per phase, settling and capture progress, and the
-    session's ETA (wall clock, from the rig-time estimate corrected by what is done)."""
+    """Queued subscriber: the session in sentences, each line under the experiment it
+    belongs to (``[ 2/14] 261126e``, the experiment's place in the session: an
+    experiment's file is written while the next one moves), and the session's ETA (wall
+    clock, from the rig-time estimate corrected by what is done)."""
 
     def __init__(self, console: Console, estimates_s: dict[str, float], pace: float | Callable[[], float] = 1.0,
                  rig_clock: Callable[[], float] = time.monotonic) -> None:
@@ -30,6 +107,7 @@ class ConsoleProgress:
         self._pace = pace if callable(pace) else lambda: pace
         self.rig_started = rig_clock()
         self.total, self.done, self.done_s = len(estimates_s), 0, 0.0
+        self.number = {label: i + 1 for i, label in enumerate(estimates_s)}
         self._captured = 0.0
         plural = "s" if self.total != 1 else ""
         console.print(f"session: {self.total} experiment{plural}, about {_min_s(sum(estimates_s.values()))} min:s of "
@@ -48,35 +126,34 @@ class ConsoleProgress:
         total, pace = sum(self.estimates.values()), self._pace()
         ratio = (self.rig_clock() - self.rig_started) * pace / self.done_s
         left = (total - self.done_s) * (1 + (ratio - 1) * self.done_s / total) / pace
-        return f", session ETA {_min_s(left)} (min:s, wall clock)"
+        return f" About {_min_s(left)} left (m:s of wall clock)."
+
+    def _head(self, label: str | None) -> str:
+        width = 2 * len(str(self.total)) + 3 + 8
+        if label is None or label not in self.number:
+            return escape(f"{'[session]':<{width}}")      # not a rich style tag
+        return f"{f'[{self.number[label]:{len(str(self.total))}d}/{self.total}]'} {label:<8}"
 
     def __call__(self, e: Event) -> None:
-        if e.kind in ("experiment-done", "experiment-failed"):
+        def say(text: str, style: str = "") -> None:
+            self.console.print(f"{self._head(e.experiment)} {text}", style=style, highlight=False)
+
+        if e.kind in (Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED):
             self.done += 1
             self.done_s += self.estimates.get(e.experiment or "", 0.0)
-        number = self.done if e.kind == "experiment-done" else min(self.done + 1, self.total)
-        head = f"[{number:2d}/{self.total}] {e.experiment or '':<8}"
-        if e.kind == "phase":
-            extra = ("".join(f" {k}={v}" for k, v in e.data.items() if k != "phase")
-                     if e.data["phase"] != "capturing" else f" after {e.data.get('cycles')} settling cycles")
+        if e.kind == Kind.PHASE:
             self._captured = 0.0
-            self.console.print(f"{head} {e.data['phase']}{extra}", highlight=False)
-        elif e.kind == "progress" and e.data.get("phase") == "settling":
-            ch = e.data["change"]
-            self.console.print(f"{head}   cycle {e.data['cycles']:4d}: change stroke {ch['stroke_mm']:.3f} mm, "
-                               f"force {ch['force_N']:.1f} N, pressure {ch['pressure_bar']:.4f} bar, "
-                               f"temperature {ch['gas_temperature_C']:.3f} °C"
-                               + (f"; decay {e.data['ratio']:.3f}/cycle, bias ≤ {e.data['bias_sigma']:.2f} σ"
-                                  if "bias_sigma" in e.data else ""), highlight=False, style="dim")
-        elif e.kind == "progress" and e.data.get("phase") == "capturing":
+            if e.data["phase"] != Phase.ALARM:          # the alarm event that follows says it, in red
+                say(describe(e))
+        elif e.kind == Kind.PROGRESS and e.data.get("phase") == Phase.SETTLING:
+            say(describe(e), "dim")
+        elif e.kind == Kind.PROGRESS and e.data.get("phase") == Phase.CAPTURING:
             if e.data["fraction"] >= self._captured + 0.25:
                 self._captured = e.data["fraction"]
-                self.console.print(f"{head}   captured {100 * self._captured:.0f} %", highlight=False, style="dim")
-        elif e.kind == "experiment-done":
-            flags = f" FLAGGED: {'; '.join(e.data['flags'])}" if e.data["flags"] else ""
-            self.console.print(f"{head} [green]captured[/green] {e.data['file']} ({e.data['samples']} samples, "
-                               f"{e.data['lost']} lost in window){flags}{self._eta()}", highlight=False)
-        elif e.kind == "session-end":
+                say(describe(e), "dim")
+        elif e.kind == Kind.EXPERIMENT_DONE:
+            say(f"[green]{describe(e)}[/green]{self._eta()}")
+        elif e.kind == Kind.SESSION_END:
             took, announced, pace = self.rig_clock() - self.rig_started, sum(self.estimates.values()), self._pace()
             if pace > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
                 self.console.print(f"session took {_min_s(took)} min:s of wall clock at {pace:.3g} rig seconds "
@@ -85,9 +162,8 @@ class ConsoleProgress:
             else:
                 self.console.print(f"session took {_min_s(took)} min:s of rig time; announced {_min_s(announced)}",
                                    highlight=False)
-        elif e.kind in ("log", "alarm", "experiment-failed"):
-            style = "red" if e.kind != "log" else "dim"
-            self.console.print(f"{head} {e.data.get('message', '')}", style=style, highlight=False)
+        elif e.kind in (Kind.LOG, Kind.LINK, Kind.ALARM, Kind.EXPERIMENT_FAILED):
+            say(describe(e), "dim" if e.kind == Kind.LOG else "red")
 
 
 class ProgressBar:

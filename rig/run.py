@@ -24,10 +24,11 @@ after the safe stop; 70 an internal error (a bug: traceback shown) after the saf
 
 from __future__ import annotations
 
+import logging
 import shlex
 import signal
 import threading
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
@@ -38,12 +39,20 @@ import numpy as np
 from rich.console import Console
 
 from identify.dataset import Experiment
+from identify.exit_codes import (
+    EXIT_ABORTED,
+    EXIT_INTERNAL,
+    EXIT_INTERRUPTED,
+    EXIT_NOT_CONVERGED,
+    EXIT_OK,
+)
 from identify.files import atomic_write_bytes
+from identify.model import DEFAULT_ESTIMATE
 from rig.acquisition import Acquisition, ExperimentRecord, Interrupted
 from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq, DaqError, check_daq_address
 from rig.errors import RigError, RigFault
-from rig.events import EventBus
+from rig.events import EventBus, Kind, LinkNotice, Subscriber
 from rig.peers import wrong_peer_or
 from rig.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
 from rig.progress import ConsoleProgress
@@ -54,7 +63,6 @@ from rig.shaker import AlarmError, Shaker, ShakerAddress, ShakerError, ShakerLin
 if TYPE_CHECKING:  # the numerics are imported when a fit runs, not with the command line
     from identify.result import FitResult
 
-EXIT_OK, EXIT_NOT_CONVERGED, EXIT_BAD_INPUT, EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED = 0, 1, 2, 3, 70, 130
 INTERRUPTING_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
 
 
@@ -75,7 +83,7 @@ class RunOptions:
     register_map: str | None = None
     model: str = "2dof"
     params: str | None = None
-    estimate: list[str] = field(default_factory=lambda: ["theta4", "theta6", "theta16"])
+    estimate: list[str] = field(default_factory=lambda: list(DEFAULT_ESTIMATE["2dof"]))
     date: str | None = None
     unit_serial: str = "unknown"
     order: str | None = None                # thermal or fixed; None: the plan's, and a --experiments list as given
@@ -185,14 +193,14 @@ def _check_identification(opt: RunOptions) -> None:
 
 
 # ----- connect: both links, and the controller's state ------------------------------------------------
-def connect(prep: Prepared, on_event: Callable[[str], object]) -> Links:
+def connect(prep: Prepared, on_event: Callable[[LinkNotice], object]) -> Links:
     """Open both links for a prepared session.  The caller closes them (:func:`close_links`)."""
     return open_links(prep.shaker_url, prep.daq_url, prep.config, prep.calibration, prep.register_map,
                       reset_alarm=prep.options.reset_alarm, on_event=on_event)
 
 
 def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Calibration,
-               register_map: RegisterMap, *, reset_alarm: bool, on_event: Callable[[str], object]) -> Links:
+               register_map: RegisterMap, *, reset_alarm: bool, on_event: Callable[[LinkNotice], object]) -> Links:
     """Open the controller and the DAQ and read the controller's state; a latched alarm
     is refused unless ``reset_alarm``.  On any failure both links are closed again."""
     shaker = Shaker(shaker_url, config.limits, register_map, reconnect_s=config.reconnect_s, on_event=on_event)
@@ -247,11 +255,20 @@ class SessionRunner:
         self._durations: list[ExperimentDuration] | None = None   # the plan's prediction (durations)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="session-writer")
         self._writing: tuple[str, Future[None]] | None = None
+        self.signals: list[int] = []       # SIGINT, SIGTERM, SIGHUP received while the session ran
         # One time line for the rig: the acquisition waits on the shaker's clock (the wall
         # clock, or a simulated one when a test drives an in-process simulator).
         self.acquisition = Acquisition(links.shaker, links.daq, prep.config, bus, links.shaker.clock)
 
     def open_session(self) -> Session:
+        """The session folder, with the DAQ's journal attached (see :meth:`create_session`)."""
+        session = self.create_session()
+        self.links.daq.attach_journal(session.journal_path)
+        return session
+
+    def create_session(self) -> Session:
+        """The new session's folder (its ``session.json`` says ``running``), or the stored
+        one reopened for a resume."""
         prep, opt = self.prep, self.prep.options
         if prep.stored is not None:
             session = prep.stored
@@ -269,7 +286,6 @@ class SessionRunner:
                                      identify={"model": opt.model, "estimate": opt.estimate,
                                                "params": str(Path(opt.params).resolve()) if opt.params else None}
                                      if opt.identify else None)
-        self.links.daq.attach_journal(session.journal_path)
         return session
 
     def durations(self, session: Session, start_position_m: float) -> list[ExperimentDuration]:
@@ -302,21 +318,21 @@ class SessionRunner:
         prep, bus, acq = self.prep, self.bus, self.acquisition
         todo = [e for e in prep.plan.experiments if e.letter not in session.completed()]
         result = RunResult("running", EXIT_OK, session)
-        bus.publish("session-start", message=f"shaker {prep.shaker_url}, DAQ {prep.daq_url} ({self.links.identity})")
+        bus.publish(Kind.SESSION_START, shaker=prep.shaker_url, daq=prep.daq_url, identity=self.links.identity)
         if self.links.latched_alarm:
-            bus.publish("log", message=f"alarm latched before the session: {self.links.latched_alarm}; "
+            bus.publish(Kind.LOG, message=f"alarm latched before the session: {self.links.latched_alarm}; "
                                        "cleared by --reset-alarm")
         if prep.stored is not None:
             kept = sorted(session.completed())
             plural = "s" if len(kept) != 1 else ""
-            bus.publish("log", message=f"resuming: {len(kept)} experiment{plural} kept as captured "
+            bus.publish(Kind.LOG, message=f"resuming: {len(kept)} experiment{plural} kept as captured "
                                        f"({', '.join(kept) or 'none'}), {len(todo)} to do")
         self.state = "running"
         reason = "end of session"
         planned = {d.letter: d for d in self.durations(session, self.links.start_position_m)}
         previous = ""
         try:
-            with _interrupt_on_signals(acq.stop_requested) as received:
+            with _interrupt_on_signals(acq.stop_requested, self.signals) as received:
                 try:
                     for spec in todo:
                         # A hold is planned from the periodic state the experiment before
@@ -331,11 +347,11 @@ class SessionRunner:
                     result.status, result.exit_code = f"interrupted ({name})", EXIT_INTERRUPTED
                 except RigError as exc:
                     reason = str(exc)
-                    bus.publish("log", message=f"aborting: {exc}")
+                    bus.publish(Kind.LOG, message=f"aborting: {exc}")
                     result.status, result.exit_code = f"aborted: {exc}", EXIT_ABORTED
                 except BaseException as exc:  # a bug: the rig is stopped all the same, then it is shown
                     reason = f"internal error: {type(exc).__name__}: {exc}"
-                    bus.publish("log", message=f"aborting on an internal error: {type(exc).__name__}: {exc}")
+                    bus.publish(Kind.LOG, message=f"aborting on an internal error: {type(exc).__name__}: {exc}")
                     result.status, result.exit_code, result.error = f"aborted: {reason}", EXIT_INTERNAL, exc
                 else:
                     if result.skipped:
@@ -362,7 +378,7 @@ class SessionRunner:
             else:
                 self.state = result.status.split(":")[0].split(" ")[0]
             session.finish(result.status)
-            bus.publish("session-end", message=result.status)
+            bus.publish(Kind.SESSION_END, message=result.status, exit_code=result.exit_code)
         return result
 
     def _experiment(self, spec: Any, session: Session, result: RunResult, planned: ExperimentDuration,
@@ -372,7 +388,7 @@ class SessionRunner:
             record: ExperimentRecord = self.acquisition.run_experiment(
                 spec, label, None if after_skip else planned.hold, planned.time_constant_s)
         except AlarmError as exc:
-            self.bus.publish("alarm", label, message=str(exc))
+            self.bus.publish(Kind.ALARM, label, message=str(exc))
             if self.prep.options.on_alarm != "skip":
                 raise
             failures = self.acquisition.safe_stop(str(exc))
@@ -383,7 +399,7 @@ class SessionRunner:
             except ShakerError as reset_exc:
                 raise RigFault(f"{exc}; the alarm could not be reset ({reset_exc})") from None
             result.skipped.append(label)
-            self.bus.publish("experiment-failed", label, message=f"{label} skipped after the alarm ({exc})")
+            self.bus.publish(Kind.EXPERIMENT_FAILED, label, message=f"{label} skipped after the alarm ({exc})")
             return
         # Written while the next experiment moves and settles: at rest between
         # experiments the gas cools (on a simulator at 50x, the second a CSV takes to
@@ -392,11 +408,15 @@ class SessionRunner:
         self._written(result)
         self._writing = (label, self._writer.submit(self._write, session, record, result))
 
+    def close(self) -> None:
+        """The writer's thread ended (after the write it holds, which :meth:`run` waited for)."""
+        self._writer.shutdown(wait=True)
+
     def _write(self, session: Session, record: ExperimentRecord, result: RunResult) -> None:
         """On the writer's thread: the experiment on disk, then captured, then announced."""
         experiment = session.write_experiment(record)
         result.captured.append(experiment)
-        self.bus.publish("experiment-done", record.label, file=experiment.file, samples=len(record.index),
+        self.bus.publish(Kind.EXPERIMENT_DONE, record.label, file=experiment.file, samples=len(record.index),
                          lost=record.lost_samples, flags=record.flags)
 
     def _written(self, result: RunResult) -> None:
@@ -410,11 +430,10 @@ class SessionRunner:
 
 
 @contextmanager
-def _interrupt_on_signals(stop: threading.Event) -> Iterator[list[int]]:
+def _interrupt_on_signals(stop: threading.Event, received: list[int]) -> Iterator[list[int]]:
     """SIGINT, SIGTERM and SIGHUP ask the acquisition to stop (it then takes the safe
-    stop); the signals received are listed.  Outside the main thread (a GUI's worker)
-    the owner of the thread sets ``stop`` itself."""
-    received: list[int] = []
+    stop); the signals received are appended to ``received``.  Outside the main thread
+    (a GUI's worker) the owner of the thread sets ``stop`` itself."""
     if threading.current_thread() is not threading.main_thread():
         yield received
         return
@@ -440,10 +459,9 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
     session = result.session
     if result.error is not None:
         raise result.error
-    if result.exit_code != EXIT_OK:
-        console.print(f"[red]session {result.status}[/red]", highlight=False)
-        console.print(f"captured experiments are kept in {session.path}; to finish the session: "
-                      f"{resume_command(session, opt)}", highlight=False)
+    if result.exit_code != EXIT_OK:   # one line: what happened, where the data is, how to go on
+        console.print(f"[red]session {result.status}[/red]; what was captured is kept in {session.path}; to finish "
+                      f"the session: {resume_command(session, opt)}", highlight=False)
         return result.exit_code
     console.print(f"session {result.status}: {session.path}", highlight=False)
     if opt.identify:
@@ -452,34 +470,135 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
 
 
 def execute(prep: Prepared, console: Console) -> RunResult:
-    """Connect, run the prepared plan, tear down: the session's log and console progress
-    on, the links closed whatever happens.  A bug inside the run comes back in
-    ``result.error`` after the safe stop, for the caller to record and then raise."""
-    bus = EventBus()
-    links = connect(prep, on_event=lambda m: bus.publish("log", message=m))
-    log: SessionLog | None = None
-    result: RunResult | None = None
-    try:
-        runner = SessionRunner(prep, links, bus, console)
-        session = runner.open_session()
-        log = SessionLog(session.path / "session.log")
-        bus.subscribe(log, inline=True)
-        estimates = runner.estimates_s(session, links.start_position_m)
-        # On record, so that the estimate can be checked against what the session took.
-        session.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
-        bus.subscribe(ConsoleProgress(console, estimates, runner.acquisition.current_pace,
-                                      runner.acquisition.clock.monotonic))
-        if runner.pace is not None and runner.pace > 1.0:   # a simulator faster than the rig's own time
-            console.print(f"the links run {runner.pace:.3g} rig seconds per second: conditioning holds shorter "
-                          f"than {prep.config.min_hold_s * runner.pace:.0f} s are not planned (session.log has "
+    """``rig run`` and ``rig qc run``: the lifecycle with the terminal's progress lines."""
+    def progress(ctx: SessionContext) -> list[Subscriber]:
+        if ctx.pace > 1.0:   # a simulator faster than the rig's own time
+            console.print(f"the links run {ctx.pace:.3g} rig seconds per second: conditioning holds shorter "
+                          f"than {prep.config.min_hold_s * ctx.pace:.0f} s are not planned (session.log has "
                           "the pace probe)", style="dim", highlight=False)
-        result = runner.run(session)
+        return [ConsoleProgress(console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock)]
+    return run_lifecycle(prep, console, attach=progress)
+
+
+# ----- the one lifecycle ------------------------------------------------------------------------------
+@dataclass
+class SessionContext:
+    """What a caller's subscribers are built from, once the session's rig time is predicted."""
+
+    runner: SessionRunner
+    session: Session
+    estimates_s: dict[str, float]            # rig time per experiment still to do, by label
+    pace: float                              # the links' rig seconds per second (1 on a rig)
+
+    @property
+    def rig_clock(self) -> Callable[[], float]:
+        return self.runner.acquisition.clock.monotonic
+
+    @property
+    def current_pace(self) -> Callable[[], float]:
+        """The pace as the session corrects it from its own streams (for the time left)."""
+        return self.runner.acquisition.current_pace
+
+
+def run_lifecycle(prep: Prepared, console: Console, *, links: Links | None = None, bus: EventBus | None = None,
+                  subscribers: Sequence[Subscriber] = (),
+                  attach: Callable[[SessionContext], Sequence[Subscriber]] | None = None,
+                  on_runner: Callable[[SessionRunner | None], object] | None = None) -> RunResult:
+    """A prepared session from its links to its teardown, the one way every entry runs one
+    (``rig run``, ``rig qc run``, the console, ``rig.open(...).run_plan()``):
+
+    links (opened here unless the caller holds them) → the session folder → its journal
+    and session.log → the pace probe → the predicted durations (on record) → the
+    caller's ``attach`` subscribers, built from them → every experiment → the safe stop
+    → the honest status → the links (if opened here), the bus (if made here) and the
+    log closed.
+
+    ``subscribers`` get every event from the first (queued: the acquisition never waits
+    on them); ``on_runner`` is told the runner once it exists and None once it is gone
+    (the console's Abort and E-STOP reach the session through it).  A failure before the
+    session folder exists is raised: nothing written, nothing moved.  From the moment it
+    exists, whatever happens ends in a status that is not ``running``: ``aborted: …``
+    (exit 3; 70 for a bug, which comes back in ``result.error`` for the caller to raise
+    once the record is written), ``interrupted (…)`` (130) or ``ended: …``, with the
+    safe stop wherever motion may have started (:meth:`SessionRunner.run`)."""
+    own_bus, own_links = bus is None, links is None
+    bus = bus if bus is not None else EventBus()
+    for fn in subscribers:
+        bus.subscribe(fn)
+    runner: SessionRunner | None = None
+    log: SessionLog | None = None
+    moved = False
+    try:
+        if links is None:
+            links = connect(prep, on_event=bus.publish_link)
+        else:
+            # Links held across sessions (a script's rig): the actuator may have moved since they connected.
+            links.start_position_m = links.shaker.status().position_m
+        runner = SessionRunner(prep, links, bus, console)
+        if on_runner is not None:
+            on_runner(runner)
+        session = runner.create_session()      # from here on, session.json says how the session ended
+        with _interrupt_on_signals(runner.acquisition.stop_requested, runner.signals):
+            try:
+                links.daq.attach_journal(session.journal_path)
+                log = SessionLog(session.path / "session.log")
+                bus.subscribe(log, inline=True)
+                estimates = runner.estimates_s(session, links.start_position_m)   # the pace probe, then durations
+                # On record, so that the estimate can be checked against what the session took.
+                session.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
+                for fn in attach(SessionContext(runner, session, estimates, runner.pace or 1.0)) if attach else ():
+                    bus.subscribe(fn)
+            except BaseException as exc:  # noqa: BLE001 — nothing has moved yet: on record, no safe stop needed
+                return _ended_before_motion(runner, session, exc)
+            moved = True
+            return runner.run(session)
     finally:
-        close_links(links, disarm=result is None)   # first: the links' threads publish to the log
-        bus.close()
-        if log is not None:
-            log.close()
+        if on_runner is not None:
+            on_runner(None)
+        _teardown(runner, links, own_links, bus if own_bus else None, log, disarm=not moved)
+
+
+def _ended_before_motion(runner: SessionRunner, session: Session, exc: BaseException) -> RunResult:
+    """The status of a session that failed between its folder and its first command
+    (journal, log, pace probe, durations): the rig was not moved, so no safe stop."""
+    result = RunResult("running", EXIT_ABORTED, session)
+    if isinstance(exc, (Interrupted, KeyboardInterrupt)):
+        name = signal.Signals(runner.signals[-1]).name if runner.signals else "SIGINT"
+        result.status, result.exit_code = f"interrupted ({name}) before anything moved", EXIT_INTERRUPTED
+    elif isinstance(exc, RigError):
+        result.status = f"aborted: {exc} (before anything moved)"
+    else:
+        reason = f"internal error: {type(exc).__name__}: {exc}"
+        result.status, result.exit_code, result.error = f"aborted: {reason} (before anything moved)", EXIT_INTERNAL, exc
+    runner.state = result.status.split(":")[0].split(" ")[0]
+    runner.bus.publish(Kind.LOG, message=f"session {result.status}")
+    session.finish(result.status)
+    runner.bus.publish(Kind.SESSION_END, message=result.status, exit_code=result.exit_code)
     return result
+
+
+def _teardown(runner: SessionRunner | None, links: Links | None, own_links: bool, bus: EventBus | None,
+              log: SessionLog | None, *, disarm: bool) -> None:
+    """The writer's thread, then the links (their threads publish to the log; a caller's
+    links are kept open, their stream stopped and the session's journal let go), then
+    the bus, then the log.  A failure here is said but changes nothing of the record
+    already written."""
+    steps: list[tuple[str, Callable[[], object]]] = []
+    if runner is not None:
+        steps.append(("session writer", runner.close))
+    if links is not None and own_links:
+        steps.append(("links", lambda: close_links(links, disarm=disarm)))
+    elif links is not None:
+        steps += [("DAQ stream", links.daq.stop), ("DAQ journal", links.daq.detach_journal)]
+    if bus is not None:
+        steps.append(("event bus", bus.close))
+    if log is not None:
+        steps.append(("session log", log.close))
+    for what, close in steps:
+        try:
+            close()
+        except Exception as exc:  # noqa: BLE001 — the session's status is on record already
+            logging.getLogger(__name__).error("closing the %s failed: %s", what, exc)
 
 
 def resume_command(session: Session, opt: RunOptions) -> str:

@@ -14,7 +14,6 @@ import io
 import json
 import os
 import platform
-import time
 from dataclasses import dataclass
 from importlib import metadata
 from pathlib import Path
@@ -27,8 +26,8 @@ from identify.dataset import FORMAT, Experiment, csv_bytes, write_manifest
 from identify.files import atomic_write_bytes
 from rig.acquisition import ExperimentRecord
 from rig.daq import CHANNELS
-from rig.errors import BadInput
-from rig.events import Event
+from rig.errors import BadInput, RigFault
+from rig.events import Event, Kind
 
 SESSION_FILE = "session.json"
 CSV_SLICE_ROWS = 1000                # rows per pandas call when an experiment is written (see _csv_in_slices)
@@ -36,6 +35,11 @@ CSV_SLICE_ROWS = 1000                # rows per pandas call when an experiment i
 
 class SessionError(BadInput):
     """A session folder that cannot be created or resumed (says which and why)."""
+
+
+class SessionWriteError(RigFault):
+    """A file of a running session could not be written (a full, removed or read-only
+    disk): the session aborts, after the safe stop; what was written before is kept."""
 
 
 def _software() -> dict[str, str]:
@@ -138,7 +142,6 @@ class Session:
         columns = {"time_s": record.time_s, **{c: record.values[:, i] for i, c in enumerate(CHANNELS)}}
         payload = _csv_in_slices(columns)
         file = f"{record.label}.csv"
-        atomic_write_bytes(self.path / file, payload)
         entry = {"label": record.label, "file": file, **record.spec.metadata(), "sample_rate_Hz": record.rate_hz,
                  "periods": record.spec.periods, "settle_cycles": record.settle_cycles,
                  "steady_state": record.settled, "lost_samples": record.lost_samples,
@@ -146,9 +149,14 @@ class Session:
                  "recaptures": record.recaptures, "captured": _dt.datetime.now().isoformat(timespec="seconds")}
         if record.flags:
             entry["flags"] = record.flags
-        self.manifest["experiments"] = [e for e in self.manifest["experiments"] if e["label"] != record.label]
-        self.manifest["experiments"].append(entry)
-        write_manifest(self.path, self.manifest)
+        try:
+            atomic_write_bytes(self.path / file, payload)
+            self.manifest["experiments"] = [e for e in self.manifest["experiments"] if e["label"] != record.label]
+            self.manifest["experiments"].append(entry)
+            write_manifest(self.path, self.manifest)
+        except OSError as exc:
+            raise SessionWriteError(f"{self.path}: experiment {record.label} was captured but could not be written "
+                                    f"({exc.strerror or exc})") from None
         exp = Experiment(record.label, "periodic", file, dict(entry))
         # Identification in memory sees exactly the numbers in the file.
         exp.data = pd.read_csv(io.BytesIO(payload))
@@ -164,22 +172,59 @@ class Session:
 
 
 class SessionLog:
-    """Inline subscriber: every event as a line in ``session.log``, flushed at once."""
+    """Inline subscriber: every event as one JSON object per line of ``session.log``
+    (``time`` ISO 8601 to the millisecond, ``kind``, ``experiment``, then the kind's
+    fields, :data:`rig.events.FIELDS`), flushed at once, so that tools can read it
+    (:func:`read_log`) and a crash loses no line but the one being written.
+"""
 
     def __init__(self, path: Path) -> None:
-        self._file = open(path, "a", encoding="utf-8")
+        try:
+            self._file = open(path, "a", encoding="utf-8")
+        except OSError as exc:
+            raise SessionWriteError(f"{path}: the session log cannot be written ({exc.strerror or exc})") from None
 
     def __call__(self, event: Event) -> None:
         # Milliseconds: what a session spends between two phases is what a rig's time is made of.
-        stamp = time.strftime("%Y-%m-%d %H:%M:%S", time.localtime(event.time)) + f".{int(event.time % 1 * 1000):03d}"
-        details = " ".join(f"{k}={v}" for k, v in event.data.items() if k != "message")
-        text = event.data.get("message", "")
-        gap = " " if text and details else ""
-        self._file.write(f"{stamp} {event.kind:<18} {event.experiment or '-':<10} {text}{gap}{details}\n")
+        stamp = _dt.datetime.fromtimestamp(event.time).astimezone().isoformat(timespec="milliseconds")
+        record = {"time": stamp, "kind": str(event.kind), "experiment": event.experiment,
+                  **{k: _plain(v) for k, v in event.data.items()}}
+        self._file.write(json.dumps(record, ensure_ascii=False, default=str) + "\n")
         self._file.flush()
 
     def close(self) -> None:
         self._file.close()
+
+
+def _plain(value: Any) -> Any:
+    """A field as JSON holds it: floats to six significant digits (no channel is measured
+    finer; seventeen digits of float noise helped no reader), NaN and infinity as null."""
+    if isinstance(value, dict):
+        return {str(k): _plain(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(f"{value:.6g}") if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def read_log(path: Path) -> list[Event]:
+    """The events of a ``session.log`` (a line that is not a JSON object, as sessions
+    before this format wrote, comes back as a log event holding the line)."""
+    events = []
+    for line in Path(path).read_text(encoding="utf-8", errors="replace").splitlines():
+        try:
+            record = json.loads(line)
+            stamp = _dt.datetime.fromisoformat(record.pop("time")).timestamp()
+            kind, experiment = Kind(record.pop("kind")), record.pop("experiment")
+        except (ValueError, KeyError, TypeError, AttributeError):
+            if line.strip():
+                events.append(Event(Kind.LOG, None, {"message": line}, 0.0))
+            continue
+        events.append(Event(kind, experiment, record, stamp))
+    return events
 
 
 def _csv_in_slices(columns: dict[str, np.ndarray]) -> bytes:

@@ -33,11 +33,18 @@ from identify.model import CompiledModel, load_model
 from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
 from rig.config import SteadyStateCriteria
-from rig.criterion import MIN_BLOCKS, bias_bound
+from rig.criterion import (
+    MIN_BLOCKS,
+    block_cycles,
+    blocks_bias,
+    change_passes,
+    drift_passes,
+    first_block_s,
+    last_block_cycles,
+)
 
 FloatOrArray = TypeVar("FloatOrArray", float, np.ndarray)
 MOVE_PEAK_SPEED_M_S = 0.05     # the controller's half-cosine profile for moves to a static position
-DAQ_LAG_S = 0.5                # the acquisition skips ramp + this before its first block
 PAUSE_S = 1.0                  # at rest between experiments: commands, handshakes, writing the data
 
 # RK4 steps per half period of a waveform, integrated between the triangle's kinks
@@ -119,25 +126,10 @@ def move_duration_s(distance_m: FloatOrArray) -> FloatOrArray:
     return math.pi * abs(distance_m) / (2 * MOVE_PEAK_SPEED_M_S)
 
 
-def first_block_s(criteria: SteadyStateCriteria, rate_hz: float) -> float:
-    """Time from RUN (and DAQ start) to the first comparison block."""
-    return math.ceil((criteria.ramp_time_s + DAQ_LAG_S) * rate_hz) / rate_hz
-
-
-def block_cycles(criteria: SteadyStateCriteria, frequency_hz: float) -> int:
-    """Whole cycles per comparison block (at least ``block_s``)."""
-    return max(1, math.ceil(criteria.block_s * frequency_hz))
-
-
 def earliest_cycles(criteria: SteadyStateCriteria, frequency_hz: float) -> int:
     """Cycles of the first comparison that can pass: two blocks, min_cycles, whole blocks."""
     m = block_cycles(criteria, frequency_hz)
-    return min(max(2, math.ceil(criteria.min_cycles / m)) * m, _last_block_cycles(criteria, m))
-
-
-def _last_block_cycles(criteria: SteadyStateCriteria, m: int) -> int:
-    """Cycles at the block where the acquisition gives up (the first at or past max_cycles)."""
-    return max(1, math.ceil(criteria.max_cycles / m)) * m
+    return min(max(2, math.ceil(criteria.min_cycles / m)) * m, last_block_cycles(criteria, m))
 
 
 class GasThermalModel:
@@ -579,7 +571,7 @@ def _apply_drift_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.nd
     fitted = [channels.index(c) for c in drift.noise]
     sigma = np.array(list(drift.noise.values()))
     n = len(T_start)
-    last = np.array([_last_block_cycles(criteria, int(k)) for k in m])
+    last = np.array([last_block_cycles(criteria, int(k)) for k in m])
     scale, draws = (1.0, draws) if draws > 0 else (0.0, 1)
     passed = np.tile(last[:, None], (1, draws))                     # cycle each draw passed (or gave up) at
     ok = np.zeros((n, draws), dtype=bool)
@@ -599,11 +591,11 @@ def _apply_drift_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.nd
             block_sum[i] = 0.0
             for d in np.flatnonzero(open_[i]):
                 if len(history[i]) >= MIN_BLOCKS:
-                    fit = bias_bound(drift, tuple(drift.noise), np.array([h[d] for h in history[i]]),
-                                     m[i] / runs.frequency_hz[i], m[i] * spp, periods[i] / m[i], float(tau[i]))
+                    fit = blocks_bias(drift, np.array([h[d] for h in history[i]]), int(m[i]),
+                                      runs.frequency_hz[i], spp, periods[i], float(tau[i]))
                     if d == 0:
                         limiting[i] = fitted[int(np.argmax(np.abs(fit.drift) / sigma))]
-                    if cycle >= criteria.min_cycles and fit.bias_sigma < drift.fraction:
+                    if drift_passes(criteria, cycle, fit):
                         passed[i, d], ok[i, d], open_[i, d] = cycle, True, False
                         continue
                 if cycle >= last[i]:
@@ -620,7 +612,7 @@ def _apply_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray,
     """The acquisition's block comparison on the predicted cycle means: settle cycles,
     whether the criterion passed, and the channel closest to its threshold at the last comparison."""
     n = len(T_start)
-    last = np.array([_last_block_cycles(criteria, int(k)) for k in m])
+    last = np.array([last_block_cycles(criteria, int(k)) for k in m])
     cycles, settled = last.copy(), np.zeros(n, dtype=bool)
     open_ = np.ones(n, dtype=bool)
     T = T_start.copy()
@@ -635,7 +627,7 @@ def _apply_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray,
             continue
         block = block_sum[ends] / m[ends, None]
         change = np.abs(block - previous[ends])                  # NaN at the first block: fails below
-        passed = (cycle >= criteria.min_cycles) & np.all(change < thresholds, axis=1)
+        passed = change_passes(criteria, cycle, change, thresholds)
         worst[ends] = np.divide(change, thresholds, out=np.full_like(change, np.inf),
                                 where=(thresholds > 0) & ~np.isnan(change))
         idx = np.flatnonzero(ends)

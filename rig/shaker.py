@@ -24,6 +24,7 @@ from pymodbus.framer import FramerType
 from rig.clock import WALL_CLOCK, Clock
 from rig.config import Limits
 from rig.errors import AddressError, BadInput, RigFault
+from rig.events import LinkCondition, LinkNotice
 from rig.registers import RegisterMap, load_register_map
 
 EXCEPTION_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
@@ -152,7 +153,7 @@ class Shaker:
 
     def __init__(self, url: str, limits: Limits, register_map: RegisterMap | None = None, *,
                  timeout_s: float = 1.0, reconnect_s: float = 20.0,
-                 on_event: Callable[[str], object] = lambda message: None,
+                 on_event: Callable[[LinkNotice], object] = lambda notice: None,
                  client: Any = None, clock: Clock = WALL_CLOCK, interlock: MotionInterlock | None = None) -> None:
         """``client``: a pymodbus-like client to use instead of one made from ``url``
         (tests inject faults through it).  ``interlock``: asked before every command that
@@ -341,13 +342,14 @@ class Shaker:
                         raise ShakerLinkError(f"Modbus link to {self.url} lost and not back within "
                                               f"{patience:g} s ({exc})") from None
                     if delay == 0.05:
-                        self.on_event(f"Modbus link to {self.url} lost ({exc}); reconnecting")
+                        self.on_event(LinkNotice("controller", LinkCondition.LOST,
+                                                  f"Modbus link to {self.url} lost ({exc}); reconnecting"))
                     self._reconnect()
                     self.clock.sleep(delay)
                     delay = min(2 * delay, 1.0)
                     continue
                 if deadline is not None:
-                    self.on_event(f"Modbus link to {self.url} back")
+                    self.on_event(LinkNotice("controller", LinkCondition.BACK, f"Modbus link to {self.url} back"))
                 if result.isError():
                     code = int(getattr(result, "exception_code", 0) or 0)
                     raise ShakerError(f"controller refused {what or method} "
@@ -372,9 +374,10 @@ class Shaker:
                 self._write_holding({"heartbeat": self._beat}, patience_s=0.0)
             except Exception as exc:  # noqa: BLE001 — a failing heartbeat is said once; the watchdog then trips
                 if not failing:
-                    self.on_event(f"heartbeat failing: {exc}")
+                    self.on_event(LinkNotice("controller", LinkCondition.HEARTBEAT_FAILING,
+                                             f"heartbeat failing: {exc}"))
                 failing = True
             else:
                 if failing:
-                    self.on_event("heartbeat back")
+                    self.on_event(LinkNotice("controller", LinkCondition.HEARTBEAT_BACK, "heartbeat back"))
                 failing = False

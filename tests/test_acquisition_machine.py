@@ -21,12 +21,12 @@ import pytest
 
 from identify.plans import STANDARD_SET
 from rig.acquisition import POLL_S, STATUS_POLL_S, Acquisition, ExperimentRecord, Interrupted, Recorder
-from rig.config import DEFAULT_RIG_CONFIG, load_rig_config
+from rig.config import load_rig_config
 from rig.daq import CHANNELS
 from rig.run import EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK
 from rig.shaker import AlarmError
 from simulator.controller import Alarm, State
-from tests.virtual_rig_inprocess import SHAKER_URL, InProcessRig
+from tests.virtual_rig_inprocess import SHAKER_URL, InProcessRig, quick_rig_config
 
 J, N = (next(s for s in STANDARD_SET if s.letter == x) for x in "jn")   # 2 Hz: short experiments
 SAFE_STOP_DONE = "safe stop done: stream stopped, STOP, hydraulics off"                 # it was not running
@@ -36,24 +36,9 @@ LINK_LOST = f"Modbus link to {SHAKER_URL} lost ({RESET}); reconnecting"
 LINK_GONE = f"Modbus link to {SHAKER_URL} lost and not back within 3 s ({RESET})"
 # Once the safe stop found the link gone, each remaining step gets one quick try.
 LINK_STILL_GONE = f"Modbus link to {SHAKER_URL} lost and not back within 0.5 s ({RESET})"
-# Steady-state criteria loose enough that j settles after about half a minute of simulated
-# time (the default ones take 150 s), on the change criterion without conditioning holds
-# (the machine, not the criterion, is tested here); a Modbus link may be away 3 s.
-TEST_CONFIG = {'criterion = "drift"': 'criterion = "change"', "max_hold_s = 300.0": "max_hold_s = 0.0",
-               "force_N = 5.0": "force_N = 50.0", "pressure_bar = 0.0005": "pressure_bar = 0.1",
-               "gas_temperature_C = 0.003": "gas_temperature_C = 3.0", "max_cycles = 1500": "max_cycles = 200",
-               "reconnect_s = 20.0": "reconnect_s = 3.0"}
-
-
 @pytest.fixture
 def rig_config(tmp_path: Path) -> Path:
-    text = DEFAULT_RIG_CONFIG.read_text()
-    for old, new in TEST_CONFIG.items():
-        assert old in text, f"{DEFAULT_RIG_CONFIG} no longer has {old!r}"
-        text = text.replace(old, new)
-    path = tmp_path / "rig.toml"
-    path.write_text(text)
-    return path
+    return quick_rig_config(tmp_path)
 
 
 @pytest.fixture
@@ -144,7 +129,7 @@ def test_the_pace_is_the_median_of_several_probes_which_one_stalled_probe_does_n
     from rig.events import EventBus
 
     links = _BusyHostLinks()
-    acq = Acquisition(links, links, load_rig_config(DEFAULT_RIG_CONFIG), EventBus(), links)
+    acq = Acquisition(links, links, load_rig_config(), EventBus(), links)
     assert acq.measure_pace() == pytest.approx(10.0)
     assert acq.current_pace() == pytest.approx(10.0)
     # the median DAQ start (4 ms), not the 300 ms one: a hold's end to RUN is its
@@ -160,7 +145,7 @@ def test_the_session_corrects_the_probed_pace_from_its_own_streams():
 
     links = _BusyHostLinks()
     links.PACES = [6.95] * 5       # every probe on a starved simulator
-    acq = Acquisition(links, links, load_rig_config(DEFAULT_RIG_CONFIG), EventBus(), links)
+    acq = Acquisition(links, links, load_rig_config(), EventBus(), links)
     assert acq.measure_pace() == pytest.approx(6.95)
     since = links.now
     links.now += PACE_FROM_STREAMS_S / 2
@@ -255,7 +240,7 @@ def test_an_estop_while_settling_raises_the_alarm_at_the_next_status_poll(vrig):
     vrig.when("settling", 3.0, lambda: vrig.inject("estop"))
     with pytest.raises(AlarmError, match=r"^shaker alarm: emergency stop \(stroke 1[23]\d\.\d\d mm"):
         acq.run_experiment(J, "261122j")
-    assert [p for _, _, p in vrig.phases()] == ["moving", "settling"]
+    assert [p for _, _, p in vrig.phases()] == ["moving", "settling", "alarm"]
     assert not vrig.sim.daq.streaming                  # the stream is stopped on the way out
     assert acq.safe_stop("alarm") == []
     assert_at_rest(vrig, Alarm.EMERGENCY_STOP)

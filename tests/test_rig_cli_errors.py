@@ -3,9 +3,11 @@ no traceback, and no session folder left behind."""
 
 from __future__ import annotations
 
+import json
 import socket
 import subprocess
 import sys
+import threading
 from pathlib import Path
 
 import pytest
@@ -102,8 +104,10 @@ def test_a_misspelt_key_in_a_plan_is_refused(tmp_path):
 
 def test_an_out_folder_that_cannot_be_made_is_bad_input(virtual_rig, tmp_path):
     sim = virtual_rig()
+    # one experiment: the standard plan's thermal ordering is 8 s of CPU, past the timeout on a loaded host
     r = subprocess.run([sys.executable, "-m", "rig", "run", "--shaker", sim.modbus_url, "--daq", sim.daq_url,
-                        "--out", "/proc/no-session-here"], capture_output=True, text=True, timeout=HANG_S)
+                        "--experiments", "j", "--out", "/proc/no-session-here"], capture_output=True, text=True,
+                       timeout=HANG_S)
     assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
     assert "--out /proc/no-session-here: cannot create the session folder" in r.stderr
 
@@ -158,3 +162,39 @@ def test_swapped_addresses_are_named_in_one_line_and_the_simulator_goes_on(virtu
     assert probe_daq(sim.daq_url) == "DAQ4,SIM0001,1.00"
     log = sim.stop()
     assert "hydraulics on" not in log and "Traceback" not in log, log
+
+
+class DaqCutAtStart:
+    """A DAQ on TCP that answers the handshake, then drops the line at the first START and
+    answers no more (a cable pulled as the session begins)."""
+
+    def __init__(self) -> None:
+        self.server = socket.create_server(("127.0.0.1", 0))
+        self.url = f"socket://127.0.0.1:{self.server.getsockname()[1]}"
+        self.thread = threading.Thread(target=self._serve, daemon=True)
+        self.thread.start()
+
+    def _serve(self) -> None:
+        conn, _ = self.server.accept()
+        self.server.close()                            # no second client: the line stays cut
+        with conn, conn.makefile("rwb", buffering=0) as line:
+            for raw in line:
+                command = raw.strip().decode()
+                if command == "START":
+                    return
+                answer = {"*IDN?": "DAQ4,virtual,cut-at-start,1.0", "STOP": "OK STOP 0"}.get(command, "OK")
+                line.write(answer.encode() + b"\n")
+
+
+def test_a_daq_cut_at_the_first_start_is_one_line_and_on_record(virtual_rig, tmp_path):
+    """Before any motion (the pace probe's START): exit 3, one line, session.json not running."""
+    sim, daq = virtual_rig(), DaqCutAtStart()
+    config = tmp_path / "rig.toml"
+    config.write_text(DEFAULT_RIG_CONFIG.read_text().replace("reconnect_s = 20.0", "reconnect_s = 1.0"))
+    # one experiment: no thermal ordering to compute (seconds of CPU that a loaded host stretches)
+    r, out = rig_run(tmp_path, "--rig-config", str(config), "--experiments", "j", shaker=sim.modbus_url, daq=daq.url)
+    assert r.returncode == 3 and "Traceback" not in r.stderr, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "link lost during 'START'" in lines[0], r.stderr
+    status = json.loads((out / "session.json").read_text())["status"]
+    assert status.startswith("aborted: DAQ at ") and status.endswith("(before anything moved)"), status

@@ -11,7 +11,7 @@ import pytest
 
 from rig.config import load_rig_config
 from rig.errors import AddressError, BadInput, RigFault
-from rig.events import EventBus
+from rig.events import FIELDS, EventBus, Kind, Phase
 from rig.shaker import Shaker, ShakerAddress, ShakerLinkError
 
 
@@ -60,8 +60,8 @@ class FlakyClient:
 
 def shaker(clock: StepClock, client: FlakyClient, events: list[str], reconnect_s: float = 5.0) -> Shaker:
     limits = load_rig_config().limits
-    return Shaker("tcp://127.0.0.1:1", limits, reconnect_s=reconnect_s, on_event=events.append, client=client,
-                  clock=clock)
+    return Shaker("tcp://127.0.0.1:1", limits, reconnect_s=reconnect_s,
+                  on_event=lambda notice: events.append(notice.message), client=client, clock=clock)
 
 
 def test_a_connection_reset_within_the_reconnect_time_is_a_lost_and_found_link():
@@ -108,8 +108,9 @@ def test_a_failing_queued_subscriber_is_logged_and_the_others_still_get_every_ev
     bus.subscribe(broken)
     bus.subscribe(fine)
     with caplog.at_level(logging.ERROR, logger="rig.events"):
-        for kind in ("session-start", "phase", "session-end"):
-            bus.publish(kind)
+        bus.publish(Kind.SESSION_START, shaker="tcp://rig:502", daq="socket://rig:4001", identity="DAQ4,test")
+        bus.publish(Kind.PHASE, phase=Phase.IDLE)
+        bus.publish(Kind.SESSION_END, message="complete", exit_code=0)
         assert done.wait(10)
         bus.close()
     assert got == ["session-start", "phase", "session-end"]
@@ -122,7 +123,16 @@ def test_a_failing_inline_subscriber_reaches_the_publisher():
     bus = EventBus()
     bus.subscribe(lambda event: (_ for _ in ()).throw(OSError("disk full")), inline=True)
     with pytest.raises(OSError, match="disk full"):
-        bus.publish("experiment-done")
+        bus.publish(Kind.LOG, message="written")
+
+
+def test_event_kinds_and_their_fields_are_declared_once():
+    bus = EventBus()
+    with pytest.raises(ValueError, match="'captured' is not a valid Kind"):
+        bus.publish("captured")
+    with pytest.raises(TypeError, match="experiment-done event without samples, lost, flags"):
+        bus.publish(Kind.EXPERIMENT_DONE, "261122j", file="261122j.csv")
+    assert set(FIELDS) == set(Kind)
 
 
 def test_the_recorder_holds_a_bounded_stretch_however_long_the_stream():

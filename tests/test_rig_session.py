@@ -18,6 +18,7 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from rig.frames import FrameParser
+from rig.session import read_log
 from tests.conftest import HANG_S
 
 TOLERANCE = {"theta4": 1e-3, "theta6": 1e-3, "theta16": 1e-2}
@@ -178,9 +179,12 @@ def test_an_alarm_ends_the_command_with_exit_3_after_the_safe_stop(virtual_rig, 
     out = tmp_path / "abort"
     r = run_rig(sim, out, "--experiments", "j,n")
     assert r.returncode == 3, r.stderr[-3000:]
-    log = (out / "session.log").read_text()
-    assert "alarm              261122j    shaker alarm: emergency stop" in log
-    assert "reason=shaker alarm: emergency stop" in log and "safe stop done" in log
+    events = read_log(out / "session.log")
+    assert [(e.experiment, e.data["message"][:28]) for e in events if e.kind == "alarm"] == \
+        [("261122j", "shaker alarm: emergency stop")]
+    assert any(e.kind == "phase" and e.data.get("reason", "").startswith("shaker alarm: emergency stop")
+               for e in events)
+    assert "safe stop done" in (out / "session.log").read_text()
     assert json.loads((out / "session.json").read_text())["status"].startswith("aborted: shaker alarm: emergency stop")
     assert manifest(out)["experiments"] == []
 
@@ -293,4 +297,4 @@ def test_the_eta_trusts_the_experiments_done_as_far_as_they_are_the_session():
                                lambda: now[0])
     now[0] = 12.0
     progress(Event("experiment-done", "261126a", {"file": "261126a.csv", "samples": 6000, "lost": 0, "flags": []}))
-    assert "session ETA 0:11 (min:s, wall clock)" in out.getvalue(), out.getvalue()
+    assert "About 0:11 left (m:s of wall clock)." in out.getvalue(), out.getvalue()

@@ -29,11 +29,11 @@ from typing import Any
 from pymodbus.constants import ExcCodes
 from rich.console import Console
 
-from rig.config import load_rig_config
+from rig.config import DEFAULT_RIG_CONFIG, load_rig_config
 from rig.daq import Calibration, Daq
 from rig.events import Event, EventBus
 from rig.registers import load_register_map
-from rig.run import Links, RunOptions, SessionRunner, prepare
+from rig.run import Links, RunOptions, RunResult, SessionRunner, prepare, run_lifecycle
 from rig.session import Session, SessionLog
 from rig.shaker import Shaker
 from simulator.controller import ShakerController
@@ -42,12 +42,30 @@ from simulator.faults import FaultLog, parse_fault
 from simulator.modbus import ControllerContext
 from simulator.truth import load_truth
 
+# Steady-state criteria loose enough that j settles after about half a minute of simulated
+# time (the default ones take 150 s), on the change criterion without conditioning holds
+# (the machine, not the criterion, is tested here); a Modbus link may be away 3 s.
+TEST_CONFIG = {'criterion = "drift"': 'criterion = "change"', "max_hold_s = 300.0": "max_hold_s = 0.0",
+               "force_N = 5.0": "force_N = 50.0", "pressure_bar = 0.0005": "pressure_bar = 0.1",
+               "gas_temperature_C = 0.003": "gas_temperature_C = 3.0", "max_cycles = 1500": "max_cycles = 200",
+               "reconnect_s = 20.0": "reconnect_s = 3.0"}
 SHAKER_URL = "tcp://virtual-rig:502"      # only named in messages: nothing listens there
 DAQ_URL = "socket://virtual-rig:4001"
 READ_POLL_S = 0.05      # a read with nothing to read gives up after this (wall) time, like pyserial in rig.daq
 HANG_S = 10.0           # wall time after which a wait in the harness is a failure, never a delay
 MAX_STEP_S = 0.25       # simulated time per step: bounds what the DAQ's FIFO must hold between two drains
 _HALF_STEP_S = 0.5 / PHYSICS_RATE_HZ
+
+
+def quick_rig_config(folder: Path) -> Path:
+    """The default rig configuration with :data:`TEST_CONFIG`'s changes, written into ``folder``."""
+    text = DEFAULT_RIG_CONFIG.read_text()
+    for old, new in TEST_CONFIG.items():
+        assert old in text, f"{DEFAULT_RIG_CONFIG} no longer has {old!r}"
+        text = text.replace(old, new)
+    path = folder / "rig.toml"
+    path.write_text(text)
+    return path
 
 
 # ----- the DAQ's serial line ---------------------------------------------------------------------------
@@ -289,15 +307,13 @@ class InProcessRig:
         self.bus.subscribe(lambda e: self.events.append((self.clock.monotonic(), e)), inline=True)
         self.register_map = load_register_map()
         self.shaker = Shaker(SHAKER_URL, self.config.limits, self.register_map, reconnect_s=self.config.reconnect_s,
-                             on_event=self._log, client=self.client, clock=self.clock)
+                             on_event=self.bus.publish_link, client=self.client, clock=self.clock)
         self.daq = Daq(DAQ_URL, Calibration.from_file(), rate_hz=self.config.daq_rate_hz, port=self.line.host,
-                       reconnect_s=self.config.reconnect_s, on_event=self._log)
+                       reconnect_s=self.config.reconnect_s, on_event=self.bus.publish_link)
         self.identity = ""
         self._beat = 0
         self._session_log: SessionLog | None = None
 
-    def _log(self, message: str) -> None:
-        self.bus.publish("log", message=message)
 
     def connect(self) -> None:
         """What rig.run.connect does, with the heartbeat on simulated time."""
@@ -340,8 +356,10 @@ class InProcessRig:
         """(simulated time, experiment, phase) of every phase entered."""
         return [(t, e.experiment, e.data["phase"]) for t, e in self.events if e.kind == "phase"]
 
-    def messages(self, kind: str = "log") -> list[str]:
-        return [e.data.get("message", "") for _, e in self.events if e.kind == kind]
+    def messages(self, *kinds: str) -> list[str]:
+        """The messages of events of these kinds, in order (default: log lines and link notices)."""
+        kinds = kinds or ("log", "link")
+        return [e.data.get("message", "") for _, e in self.events if e.kind in kinds]
 
     def open_session(self, out: Path, letters: list[str], on_alarm: str = "abort") -> tuple[SessionRunner, Session]:
         """``rig run`` from ``prepare`` on, with these links: the runner and its session
@@ -354,6 +372,14 @@ class InProcessRig:
         self._session_log = SessionLog(session.path / "session.log")
         self.bus.subscribe(self._session_log, inline=True)
         return runner, session
+
+    def run_session(self, out: Path, letters: list[str], on_alarm: str = "abort", **hooks: Any) -> RunResult:
+        """``rig run`` from ``prepare`` on, through :func:`rig.run.run_lifecycle`, on these
+        links and this bus (both stay open: the harness closes them)."""
+        prep = prepare(RunOptions(plan="standard", shaker=SHAKER_URL, daq=DAQ_URL, out=out, experiments=letters,
+                                  on_alarm=on_alarm, rig_config=str(self.rig_config), date="261122"))
+        return run_lifecycle(prep, Console(file=io.StringIO()),
+                             links=Links(self.shaker, self.daq, self.identity, None), bus=self.bus, **hooks)
 
     def close(self) -> None:
         """Links first (their threads publish), then the bus and the log, then the simulator."""

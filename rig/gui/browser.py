@@ -14,9 +14,11 @@ import pyqtgraph as pg
 from PySide6 import QtCore, QtWidgets
 
 from identify.dataset import read_manifest
+from identify.model import DEFAULT_ESTIMATE
 from rig.gui.fit_view import fill_parameter_table, parameter_table
 from rig.gui.plotting import labelled
 from rig.gui.station import IdentifySettings
+from rig.progress import log_text
 
 EXPERIMENT_COLUMNS = ("experiment", "f [Hz]", "static [mm]", "amplitude [mm]", "periods", "settle cycles",
                       "steady", "lost samples", "flags")
@@ -87,7 +89,7 @@ class SessionBrowser(QtWidgets.QWidget):
         self.model.setObjectName("refitModelBox")
         self.model.addItems(["2dof", "1dof"])
         self.model.currentTextChanged.connect(self._model_changed)
-        self.estimate = QtWidgets.QLineEdit("theta4,theta6,theta16")
+        self.estimate = QtWidgets.QLineEdit(",".join(DEFAULT_ESTIMATE["2dof"]))
         self.estimate.setObjectName("refitEstimateEdit")
         self.start = QtWidgets.QLineEdit()
         self.start.setObjectName("refitParamsEdit")
@@ -127,7 +129,7 @@ class SessionBrowser(QtWidgets.QWidget):
             self.start.setText(path)
 
     def _model_changed(self, model: str) -> None:
-        self.estimate.setText("theta5,theta6,theta7" if model == "1dof" else "theta4,theta6,theta16")
+        self.estimate.setText(",".join(DEFAULT_ESTIMATE.get(model, DEFAULT_ESTIMATE["2dof"])))
 
     def open_folder(self, folder: Path) -> bool:
         """Show a session or dataset folder; False (and why, in the summary) if it is neither."""
@@ -163,7 +165,8 @@ class SessionBrowser(QtWidgets.QWidget):
             for j, value in enumerate(cells):
                 self.table.setItem(i, j, QtWidgets.QTableWidgetItem(f"{value:g}" if isinstance(value, float)
                                                                     else str(value)))
-        self.log.setPlainText(_read_text(folder / "session.log") or "(no session.log)")
+        log = folder / "session.log"
+        self.log.setPlainText(log_text(log) if log.is_file() else "(no session.log)")
         self.report.setPlainText(_read_text(folder / "report.txt") or "(no report.txt: not identified yet)")
         doc = _read_json(folder / "RESULT.json")
         self.params.setRowCount(0)

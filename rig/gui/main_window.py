@@ -10,7 +10,6 @@ most :data:`REDRAW_HZ` times a second.
 
 from __future__ import annotations
 
-import argparse
 import datetime as _dt
 import os
 import queue
@@ -22,14 +21,16 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from identify.exit_codes import EXIT_BAD_INPUT
 from rig.daq import check_daq_address
 from rig.errors import BadInput
 from rig.estop import EstopDone
-from rig.events import Event
+from rig.events import Event, Kind
 from rig.gui.browser import SessionBrowser
 from rig.gui.controls import ControllerPanel, ManualPanel
 from rig.gui.fit_view import FitView
 from rig.gui.live import LiveView
+from rig.gui.options import ConsoleOptions
 from rig.gui.plan_panel import PlanPanel
 from rig.gui.qc import QcDone, QcRequest
 from rig.gui.qc_panel import QcPanel
@@ -48,14 +49,16 @@ from rig.gui.station import (
     session_options,
 )
 from rig.plans import comma_list, load_plan
+from rig.progress import describe
 from rig.qc.spec import load_spec
-from rig.run import EXIT_BAD_INPUT, RunOptions
+from rig.run import RunOptions
 from rig.shaker import ShakerAddress, ShakerStatus
 from rig.virtual import VirtualRig
 
 REDRAW_HZ = 30
 DRAIN_MAX = 5000                 # records taken from the queue per tick, so a flood cannot freeze the window
-LOGGED_EVENTS = ("session-start", "phase", "experiment-done", "experiment-failed", "alarm", "log", "session-end")
+LOGGED_EVENTS = (Kind.SESSION_START, Kind.PHASE, Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED, Kind.ALARM, Kind.LOG,
+                 Kind.LINK, Kind.SESSION_END)
 ESTOP_KEYS = ("Esc", "F12")
 GIL_SWITCH_S = 0.0005
 SIMULATOR_NICE = 5
@@ -75,7 +78,7 @@ def application() -> QtWidgets.QApplication:
 
 
 class MainWindow(QtWidgets.QMainWindow):
-    def __init__(self, args: argparse.Namespace) -> None:
+    def __init__(self, args: ConsoleOptions) -> None:
         super().__init__()
         if args.simulate and (args.shaker or args.daq):
             raise BadInput("gui: either --simulate or --shaker/--daq, not both")
@@ -90,7 +93,7 @@ class MainWindow(QtWidgets.QMainWindow):
         shaker, daq = args.shaker, args.daq
         if args.simulate:
             # The simulated hardware yields the CPU to the console, as real hardware would not need it.
-            self.simulated = VirtualRig(speed=args.speed, params=args.params, faults=list(args.fault),
+            self.simulated = VirtualRig(speed=args.speed, params=args.params, faults=list(args.faults),
                                         nice=SIMULATOR_NICE)
             shaker, daq = self.simulated.modbus_url, self.simulated.daq_url
         self.queue: queue.Queue[object] = queue.Queue()
@@ -119,15 +122,12 @@ class MainWindow(QtWidgets.QMainWindow):
     def from_args(cls, argv: Sequence[str]) -> MainWindow:
         """The window for the command line's arguments (``gui`` itself may be left out),
         not shown, no event loop run."""
-        from rig.cli import build_parser
-
-        argv = list(argv)
-        args = build_parser().parse_args(argv if argv[:1] == ["gui"] else ["gui", *argv])
+        options = ConsoleOptions.parse(argv)
         application()
-        return cls(args)
+        return cls(options)
 
     # ----- layout ----------------------------------------------------------------------------------
-    def _build(self, args: argparse.Namespace, shaker: str | None, daq: str | None) -> None:
+    def _build(self, args: ConsoleOptions, shaker: str | None, daq: str | None) -> None:
         top = QtWidgets.QHBoxLayout()
         self.shaker_edit = QtWidgets.QLineEdit(shaker or "")
         self.shaker_edit.setPlaceholderText("tcp://HOST:PORT or rtu:///dev/DEVICE")
@@ -421,10 +421,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.reset_button.setEnabled(alarm)
 
     def _log_event(self, e: Event) -> None:
-        details = " ".join(f"{k}={v}" for k, v in e.data.items() if k not in ("message", "phase", "change"))
-        text = " ".join(x for x in (e.experiment or "", e.kind if e.kind != "phase" else e.data["phase"],
-                                    str(e.data.get("message", "")), details) if x)
-        self._say(text, "error" if e.kind in ("alarm", "experiment-failed") else "info",
+        text = f"{e.experiment}: {describe(e)}" if e.experiment else describe(e)
+        self._say(text, "error" if e.kind in (Kind.ALARM, Kind.EXPERIMENT_FAILED) else "info",
                   time.strftime("%H:%M:%S", time.localtime(e.time)))
 
     def _say(self, text: str, level: str = "info", stamp: str | None = None) -> None:
@@ -450,7 +448,7 @@ class MainWindow(QtWidgets.QMainWindow):
         event.accept()
 
 
-def run_gui(args: argparse.Namespace) -> int:
+def run_gui(args: ConsoleOptions) -> int:
     if (sys.platform.startswith("linux") and not os.environ.get("QT_QPA_PLATFORM")
             and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY"))):
         # Qt would abort the process (exit 134) with a page about platform plugins.

@@ -14,6 +14,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
+from identify.exit_codes import EXIT_INTERRUPTED
 from identify.plans import ExperimentSpec
 from rig.config import RigConfig
 from rig.events import Event
@@ -68,7 +69,7 @@ class PlanProgress:
             self.ended = str(e.data.get("message", ""))
             for r in self.rows:
                 if r.status in ACTIVE:
-                    r.status = "interrupted" if self.ended.startswith("interrupted") else "failed"
+                    r.status = "interrupted" if e.data["exit_code"] == EXIT_INTERRUPTED else "failed"
                     r.finished = self.clock()
             return None
         row = self.by_label.get(e.experiment or "")

@@ -14,9 +14,9 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERRUPTED
 from rig.qc.judge import Outcome
 from rig.qc.run import EXIT_BY_VERDICT
-from rig.run import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERRUPTED
 
 VERDICT_BY_EXIT = {code: outcome for outcome, code in EXIT_BY_VERDICT.items()}
 # What the operator is told to do: an INCONCLUSIVE unit is neither passed nor failed, it is tested again.

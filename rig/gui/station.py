@@ -7,7 +7,7 @@ Threads:
 
 ``rig-command``   manual commands, connecting, reconnecting after a session (one at a time)
 ``rig-status``    reads the controller's status and the DAQ's counters, 4 times a second
-``rig-session``   prepare → connect → :class:`rig.run.SessionRunner` → tear down, as ``rig run``;
+``rig-session``   prepare → :func:`rig.run.run_lifecycle` (links → session → safe stop → teardown), as ``rig run``;
                   or QC mode's ``python -m rig qc run`` as a child process (:mod:`rig.gui.qc`)
 ``fit``           identification and re-fits, one at a time, each in a process of its own
                   (:mod:`rig.gui.fits`: a fit in this process would stall the window)
@@ -40,11 +40,12 @@ from pathlib import Path
 from rich.console import Console
 
 from identify.errors import IdentifyError, InputError
+from identify.model import DEFAULT_ESTIMATE
 from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq, DaqError
 from rig.errors import BadInput, RigError
 from rig.estop import EStop
-from rig.events import EventBus
+from rig.events import Event, Kind, LinkCondition, LinkNotice, Subscriber
 from rig.gui import fits
 from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
@@ -56,12 +57,12 @@ from rig.run import (
     Links,
     RunOptions,
     RunResult,
+    SessionContext,
     SessionRunner,
     close_links,
-    connect,
     prepare,
+    run_lifecycle,
 )
-from rig.session import SessionLog
 from rig.shaker import Shaker, ShakerLinkError, ShakerStatus, check_waveform
 
 STATUS_PERIOD_S = 0.25
@@ -138,7 +139,7 @@ class QcStarted:
 class IdentifySettings:
     model: str = "2dof"
     params: str | None = None
-    estimate: list[str] = field(default_factory=lambda: ["theta4", "theta6", "theta16"])
+    estimate: list[str] = field(default_factory=lambda: list(DEFAULT_ESTIMATE["2dof"]))
 
 
 class Station:
@@ -227,12 +228,22 @@ class Station:
             self.post(LinkState(False, "disconnected"))
         return self._commands.submit(self._job, "disconnect", job)
 
-    def _link_event(self, message: str) -> None:
-        if message.startswith("heartbeat failing"):
+    def _link_event(self, notice: LinkNotice) -> None:
+        """The console's own links (outside sessions)."""
+        self._heartbeat(notice.state)
+        self.post(Notice(notice.message))
+
+    def _session_event(self, event: Event) -> None:
+        """A session's events, for the window (queued: the acquisition never waits on it)."""
+        if event.kind == Kind.LINK:
+            self._heartbeat(LinkCondition(event.data["state"]))
+        self.post(event)
+
+    def _heartbeat(self, state: LinkCondition) -> None:
+        if state is LinkCondition.HEARTBEAT_FAILING:
             self.heartbeat_ok = False
-        elif message.startswith("heartbeat back"):
+        elif state is LinkCondition.HEARTBEAT_BACK:
             self.heartbeat_ok = True
-        self.post(Notice(message))
 
     # ----- manual commands: checked here, sent on the command thread ------------------------------------
     def _refuse_manual(self, status: ShakerStatus | None, need_hydraulics: bool, motion: bool = True) -> list[str]:
@@ -310,7 +321,7 @@ class Station:
         runner = self.runner
         if runner is not None:
             runner.acquisition.stop_requested.set()
-            runner.bus.publish("log", message="E-STOP pressed by the operator: STOP and hydraulics off")
+            runner.bus.publish(Kind.LOG, message="E-STOP pressed by the operator: STOP and hydraulics off")
         self._interrupt_qc()
 
     def _refuse_latched(self, what: str) -> bool:
@@ -347,7 +358,7 @@ class Station:
         self._abort.set()
         runner = self.runner
         if runner is not None:
-            runner.bus.publish("log", message=f"{why}: safe stop")
+            runner.bus.publish(Kind.LOG, message=f"{why}: safe stop")
             runner.acquisition.stop_requested.set()
         self._interrupt_qc()
 
@@ -432,30 +443,23 @@ class Station:
         self._open_estop_line(prep.shaker_url)
         self._was_connected = self.shaker is not None
         self._commands.submit(self._release).result()
-        bus = EventBus()
-        bus.subscribe(self.post)                 # queued: the acquisition never waits on the window
-        log: SessionLog | None = None
-        links = connect(prep, on_event=lambda m: bus.publish("log", message=m))
-        links.shaker.interlock = self.emergency.latch   # before the session's first motion command
-        try:
-            runner = SessionRunner(prep, links, bus, Console(file=io.StringIO()))
-            if self._abort.is_set():
-                runner.acquisition.stop_requested.set()
-            session = runner.open_session()
-            log = SessionLog(session.path / "session.log")
-            bus.subscribe(log, inline=True)
-            progress = PlanProgress(prep.plan, prep.config, session.meta["date"], self.speed, session.completed())
-            self.post(SessionOpened(session.path, progress, opt))
+
+        def runner_changed(runner: SessionRunner | None) -> None:
+            if runner is not None:
+                runner.links.shaker.interlock = self.emergency.latch   # before the session's first motion command
             self.runner = runner
-            if self._abort.is_set():             # Abort or E-STOP while the links were opened
+            if runner is not None and self._abort.is_set():   # Abort or E-STOP while the links were opened
                 runner.acquisition.stop_requested.set()
-            result = runner.run(session)
-        finally:
-            self.runner = None
-            close_links(links)                   # first: the links' threads publish to the log
-            bus.close()
-            if log is not None:
-                log.close()
+
+        def opened(ctx: SessionContext) -> list[Subscriber]:
+            progress = PlanProgress(prep.plan, prep.config, ctx.session.meta["date"], self.speed,
+                                    ctx.session.completed())
+            self.post(SessionOpened(ctx.session.path, progress, opt))
+            return []
+
+        # The window's queue: the acquisition never waits on it.
+        result = run_lifecycle(prep, Console(file=io.StringIO()), subscribers=[self._session_event], attach=opened,
+                               on_runner=runner_changed)
         if result.error is not None:
             self.post(Notice(f"internal error in the session: {result.error!r}", "error"))
         return result
