@@ -74,7 +74,7 @@ def main() -> None:
         folders = [root / "station" / f"SN-{100 + i:04d}" for i in range(args.units)]
         client.gather(client.map(make_unit, folders, range(args.units), pure=False))
         db = root / "station" / "qc-records.sqlite"
-        Records.open(str(db)).close()
+        Records.open(str(db), create=True).close()
         recorded = folders[:-1]
         client.gather(client.map(lambda f: qc_judge(f, "default", str(db), "bench"), recorded, pure=False))
         base = [sys.executable, "-m", "identify", "batch", *map(str, folders), "--estimate", ",".join(SPEC.estimate),

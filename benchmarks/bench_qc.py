@@ -11,7 +11,13 @@ Printed:
     units of each kind (target 0 false accepts, and the failed characteristic the fault's
     own), judged on generated data.
 
-    python benchmarks/bench_qc.py [--units 20]
+  * with ``--sessions``: every unit (``--units`` good and faulty ones, and one on each side
+    of the pre-charge, damping and friction limits) run through the spec's plan on the
+    in-process virtual rig with its own damper, judged on that session: the rig-time
+    distribution (target: median <= 45 s, none over 90 s) and the decision table (target
+    0 false rejects, 0 false accepts; a unit on a limit never PASS).
+
+    python benchmarks/bench_qc.py [--units 20] [--sessions [--jobs 2]]
 """
 
 from __future__ import annotations
@@ -35,6 +41,7 @@ from rig.qc.evaluate import evaluate  # noqa: E402
 from rig.qc.spec import load_spec  # noqa: E402
 from rig.run import Links, RunOptions, SessionRunner, prepare  # noqa: E402
 from simulator.generate import generate  # noqa: E402
+from simulator.physics import Damper  # noqa: E402
 from simulator.truth import load_truth  # noqa: E402
 from tests.virtual_rig_inprocess import DAQ_URL, SHAKER_URL, InProcessRig  # noqa: E402
 
@@ -42,9 +49,9 @@ FAULT_OF = {"gas-leak": "gas_precharge_bar", "worn-seal": "friction_10bar_N", "w
 PHYSICAL = set(FAULT_OF.values())
 
 
-def rig_session(spec, out: Path) -> tuple[float, str]:
+def rig_session(spec, out: Path, truth: Damper | None = None, seed: int = 0) -> tuple[float, str]:
     """The spec's plan as qc run executes it, on the in-process virtual rig."""
-    rig = InProcessRig(DEFAULT_RIG_CONFIG)
+    rig = InProcessRig(DEFAULT_RIG_CONFIG, seed=seed, truth=truth)
     try:
         rig.connect()
         prep = prepare(RunOptions(plan=spec.source, shaker=SHAKER_URL, daq=DAQ_URL, out=out, date="261122",
@@ -59,10 +66,97 @@ def rig_session(spec, out: Path) -> tuple[float, str]:
         rig.close()
 
 
+def limit_units() -> dict[str, Damper]:
+    """The nominal damper with one characteristic exactly on each of its limits (the
+    gas pre-charge through the gas amount θ5 and its heat capacity θ15, the damping
+    through θ3, the friction at 10 bar through θ8)."""
+    base = load_truth().theta
+    spec = load_spec("default")
+    out = {}
+    for c in spec.characteristics:
+        for side, limit in (("low", c.low), ("high", c.high)):
+            theta = dict(base)
+            assert limit is not None
+            if c.kind == "gas_pressure":
+                factor = limit / c.nominal
+                theta["theta5"] *= factor
+                theta["theta15"] *= factor
+            elif c.kind == "orifice_force":
+                theta["theta3"] = limit / c.args["velocity_m_s"] ** 2
+            elif c.kind == "friction":
+                theta["theta8"] = limit - theta["theta9"] * c.args["pressure_bar"] * 1e5
+            else:
+                continue
+            out[f"{c.name}@{side}"] = Damper(theta, "2dof")
+    return out
+
+
+def judged_session(job: tuple[str, int, Damper | None]) -> tuple[str, int, float, str, str, list[str]]:
+    """One unit through the spec's plan on the in-process rig, judged on its session:
+    (kind, seed, rig seconds, session status, verdict, failed characteristics)."""
+    kind, seed, truth = job
+    spec = load_spec("default")
+    with tempfile.TemporaryDirectory() as tmp:
+        rig_s, status = rig_session(spec, Path(tmp) / "session", truth, seed)
+        if status != "complete":
+            return kind, seed, rig_s, status, "-", []
+        ev = evaluate(spec, Path(tmp) / "session")
+    failed = [j.name for j in ev.judgement.characteristics if j.outcome.value == "FAIL"]
+    return kind, seed, rig_s, status, ev.judgement.verdict.value, failed
+
+
+def sessions(units: int, jobs: int) -> int:
+    """Rig-time distribution and decision table over units run through the plan."""
+    import multiprocessing
+
+    import numpy as np
+
+    # The units on the limits first, then good and faulty ones in turn: a run cut short
+    # still covers every kind.
+    todo: list[tuple[str, int, Damper | None]] = [(name, 3000 + i, d) for i, (name, d)
+                                                  in enumerate(limit_units().items())]
+    for i in range(units):
+        fault = list(FAULT_OF)[i % 3]
+        todo += [("good", 1000 + i, load_truth(None, "2dof", "good", 1000 + i)),
+                 (fault, 2000 + i, load_truth(None, "2dof", fault, 2000 + i))]
+    rows = []
+    t0 = time.perf_counter()
+    with multiprocessing.get_context("fork").Pool(jobs) as pool:
+        for row in pool.imap_unordered(judged_session, todo):
+            rows.append(row)
+            kind, seed, rig_s, status, verdict, failed = row
+            print(f"  {kind:<28} seed {seed}: {rig_s:6.1f} s rig time, {status}, {verdict} {' '.join(failed)}",
+                  flush=True)
+    taken = np.array([r[2] for r in rows])
+    print(f"\n{len(rows)} units through the plan on the in-process rig at 1x (no link latency), "
+          f"{time.perf_counter() - t0:.0f} s wall")
+    print(f"  rig time per unit: median {np.median(taken):.1f} s (target <= 45 s), 90th percentile "
+          f"{np.percentile(taken, 90):.1f} s, max {taken.max():.1f} s (target none over 90 s); "
+          f"{'met' if np.median(taken) <= 45 and taken.max() <= 90 else 'NOT met'}")
+    for group in ("good", "faulty", "on a limit"):
+        sel = [r for r in rows if (r[0] == "good") == (group == "good") and ("@" in r[0]) == (group == "on a limit")]
+        if sel:
+            t = np.array([r[2] for r in sel])
+            counts = Counter(r[4] for r in sel)
+            print(f"  {group:<11} {len(sel):>3} units: rig time median {np.median(t):5.1f} s, max {t.max():5.1f} s; "
+                  f"PASS {counts['PASS']}, FAIL {counts['FAIL']}, INCONCLUSIVE {counts['INCONCLUSIVE']}, "
+                  f"no verdict {counts['-']}")
+    false_rejects = sum(1 for r in rows if r[0] == "good" and r[4] == "FAIL")
+    false_accepts = sum(1 for r in rows if r[0] != "good" and r[4] == "PASS")
+    print(f"  false rejects {false_rejects} (target 0), false accepts {false_accepts} (target 0; a unit on a "
+          f"limit counts as faulty: PASS never)")
+    return int(bool(false_rejects or false_accepts or np.median(taken) > 45 or taken.max() > 90))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--units", type=int, default=20, help="good units, and faulty units, each (default 20)")
+    parser.add_argument("--sessions", action="store_true",
+                        help="run every unit through the plan on the in-process rig (rig-time distribution)")
+    parser.add_argument("--jobs", type=int, default=1, help="--sessions: units run at once")
     args = parser.parse_args()
+    if args.sessions:
+        return sessions(args.units, args.jobs)
     spec = load_spec("default")
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()

@@ -54,7 +54,8 @@ ESTIMATE = ["theta4", "theta6", "theta16"]
 START = ROOT / "examples" / "start-2dof.json"
 
 
-def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tuple[str, ...] = ()) -> dict:
+def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tuple[str, ...] = (),
+             plan: str = "standard") -> dict:
     """One session in this process; returns its figures (JSON-able)."""
     from rich.console import Console
 
@@ -84,7 +85,7 @@ def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tu
         for fault in faults:
             rig.when("settling", 0.0, partial(rig.inject, fault))
         letters = ["a"] if hold_cycles else None
-        prep = prepare(RunOptions(plan="standard", shaker=SHAKER_URL, daq=DAQ_URL, out=out / "session",
+        prep = prepare(RunOptions(plan=plan, shaker=SHAKER_URL, daq=DAQ_URL, out=out / "session",
                                   experiments=letters, rig_config=str(config), date="261122", order=order))
         runner = SessionRunner(prep, Links(rig.shaker, rig.daq, rig.identity, None), rig.bus,
                                Console(file=io.StringIO()))
@@ -112,9 +113,9 @@ def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tu
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
 
 
-def _run(name: str, hold: int, seed: int, settings: list[str]) -> dict:
-    proc = subprocess.run([sys.executable, __file__, "--case", name, "--hold", str(hold), "--seed", str(seed)]
-                          + [f"--set={s}" for s in settings],
+def _run(name: str, hold: int, seed: int, settings: list[str], plan: str = "standard") -> dict:
+    proc = subprocess.run([sys.executable, __file__, "--case", name, "--hold", str(hold), "--seed", str(seed),
+                           "--plan", plan] + [f"--set={s}" for s in settings],
                           capture_output=True, text=True, cwd=ROOT)
     if proc.returncode:
         sys.exit(f"{name} (seed {seed}): {proc.stderr[-2000:]}")
@@ -122,13 +123,11 @@ def _run(name: str, hold: int, seed: int, settings: list[str]) -> dict:
 
 
 def print_side_by_side(results: dict, shown: list[str], hold: int) -> None:
-    from identify.plans import STANDARD_SET
-
     print("rig time per experiment [s] (settle cycles); simulated time, in-process rig")
     print(f"{'':4}" + "".join(f"{n:>22}" for n in shown))
-    for e in STANDARD_SET:
-        print(f"{e.letter:4}" + "".join(f"{results[n]['per'][e.letter][0]:>14.1f} ({results[n]['per'][e.letter][1]:>4})"
-                                        for n in shown))
+    for letter in sorted(results[shown[0]]["per"]):
+        print(f"{letter:4}" + "".join(f"{results[n]['per'][letter][0]:>14.1f} ({results[n]['per'][letter][1]:>4})"
+                                      for n in shown))
     print(f"{'total':6}" + "".join(f"{results[n]['taken_s']:>22.1f}" for n in shown))
     print(f"{'ETA':6}" + "".join(f"{results[n]['eta_s']:>22.1f}" for n in shown))
     print(f"{'ETA/taken':10}" + "".join(f"{results[n]['eta_s'] / results[n]['taken_s'] - 1:>+18.1%}" for n in shown))
@@ -192,19 +191,24 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=1,
                     help="run each case over this many noise seeds (0, 1, …) and print the statistics")
     ap.add_argument("--jobs", type=int, default=1, help="cases run at once (rig time is simulated: unaffected)")
+    ap.add_argument("--plan", default="standard",
+                    help="the plan every case runs: standard or PLAN.toml (e.g. one rig design wrote)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a key of rig-default.toml in every case (e.g. drift_sigma_fraction=3.0)")
     args = ap.parse_args()
     if args.case:
         with tempfile.TemporaryDirectory() as tmp:
             print(json.dumps(run_case(args.case, args.hold if args.case == "hold" else 0, Path(tmp), args.seed,
-                                      tuple(args.set))))
+                                      tuple(args.set), str(Path(args.plan).resolve()) if args.plan != "standard"
+                                      else "standard")))
         return
     shown = args.cases.split(",")
     seeds = list(range(args.seeds))
     jobs = [(n, s) for s in seeds for n in shown] + ([("hold", 0)] if args.hold else [])
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
-        done = dict(zip(jobs, pool.map(lambda job: _run(job[0], args.hold, job[1], args.set), jobs), strict=True))
+        done = dict(zip(jobs, pool.map(lambda job: _run(job[0], args.hold, job[1], args.set, args.plan), jobs),
+                        strict=True))
+    print(f"plan: {args.plan}")
     if len(seeds) == 1:
         print_side_by_side({n: r for (n, _), r in done.items()}, shown, args.hold)
     else:

@@ -2,7 +2,8 @@
 into out/screenshots/ (qc-report-pass.png, qc-report-fail.png), plus the control chart
 of a small batch (qc-chart-damping.png), so that a person can look at what the station
 shows.  The units are simulated (a good one and one with a worn orifice), judged with
-the default spec through the public command line.
+the default spec through the public command line: their reports carry the SIMULATED
+watermark, and the chart counts them with --include-simulated.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ def main() -> int:
                     "--unit-seed", str(seed), "--seed", str(seed), "--serial", f"SN-{4200 + seed}", "--out", str(data))
             if r.returncode != 0:
                 raise SystemExit(r.stderr)
-            r = run("-m", "rig", "qc", "judge", str(data), "--db", str(db), "--operator", "screenshots")
+            r = run("-m", "rig", "qc", "judge", str(data), "--db", str(db), "--create-db", "--operator", "screenshots")
             if r.returncode not in (0, 1):
                 raise SystemExit(r.stderr)
             (reports[verdict],) = data.glob("qc-report-*.html")
@@ -57,7 +58,7 @@ def main() -> int:
             run("-m", "simulator", "generate", "--plan", "rig/qc/specs/default.toml", "--unit", "good", "--unit-seed",
                 str(seed), "--seed", str(seed), "--serial", f"SN-{4200 + seed}", "--out", str(data))
             run("-m", "rig", "qc", "judge", str(data), "--db", str(db), "--operator", "screenshots")
-        r = run("-m", "rig", "qc", "history", "--db", str(db), "--chart", str(tmp / "charts"))
+        r = run("-m", "rig", "qc", "history", "--db", str(db), "--include-simulated", "--chart", str(tmp / "charts"))
         if r.returncode != 0:
             raise SystemExit(r.stderr)
         shutil.copy(tmp / "charts" / "damping_force_0.3_N.png", out / "qc-chart-damping.png")

@@ -75,19 +75,19 @@ class FitSettings:
     priors: dict[str, float | None]
     estimate: tuple[str, ...]  # stable names, in the order given
     n: int | None = None  # None: as `identify fit` chooses it, per session
-    scheme: str = "bdf2"
+    scheme: str | None = None  # None: as `identify fit` chooses it, per session
     max_iterations: int = 40
     oversample: int | None = None
 
     @classmethod
     def resolve(cls, model: str, params: str | None, estimate: Sequence[str], *, n: int | None = None,
-                scheme: str = "bdf2", max_iterations: int = 40, oversample: int | None = None) -> FitSettings:
+                scheme: str | None = None, max_iterations: int = 40, oversample: int | None = None) -> FitSettings:
         compiled = load_model(model)  # also fills the on-disk code cache the local workers load from
         start = Parameters.from_file(compiled, params) if params else Parameters(compiled)
         if not estimate:
             raise BatchError("--estimate names no parameter")
         names = tuple(dict.fromkeys(start[k].name for k in estimate))  # aliases to names, once each
-        Grid(n or DEFAULT_POINTS, scheme, oversample=oversample or 1)
+        Grid(n or DEFAULT_POINTS, scheme or "bdf2", oversample=oversample or 1)
         if max_iterations < 1:
             raise BatchError(f"--max-iterations must be at least 1, got {max_iterations}")
         return cls(model, compiled.name, compiled.version, start.as_dict(), {p.name: p.prior_std for p in start},

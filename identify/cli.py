@@ -30,7 +30,7 @@ from identify.exit_codes import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NOT_CONVE
 from identify.files import atomic_write_bytes
 from identify.fit import DEFAULT_POINTS, choose_grid, fit_experiments
 from identify.model import DEFAULT_ESTIMATE, CompiledModel, load_model
-from identify.parameters import Parameters
+from identify.parameters import Parameters, load_document
 from identify.periodic import PeriodicSolver
 from identify.preparation import model_columns, prepare_periodic, resolve_outputs
 from identify.result import FitResult
@@ -38,6 +38,7 @@ from identify.transient import drop_test
 
 if TYPE_CHECKING:
     from rich.console import Console
+    from rich.table import Table
 
     from identify import batch, sinks
 
@@ -81,6 +82,28 @@ def _load_params(model: CompiledModel, path: str | None) -> Parameters:
     return Parameters.from_file(model, path) if path else Parameters(model)
 
 
+def _grid_args(args: argparse.Namespace) -> tuple[str | None, int | None, int | None, str | None]:
+    """--scheme, --n and --oversample as given, those not given taken from the fit whose
+    RESULT.json is --params (a spectral fit predicted on bdf2's 800 points was 95 % off,
+    silently), and a sentence saying what was taken."""
+    given = (args.scheme, args.n, args.oversample)
+    if not args.params:
+        return (*given, None)
+    doc, source = load_document(args.params)
+    scheme = doc.get("scheme") if isinstance(doc, dict) and "parameters" in doc else None
+    if scheme not in SCHEMES or args.scheme not in (None, scheme):
+        return (*given, None)
+    n = args.n if args.n is not None else doc.get("n") if isinstance(doc.get("n"), int) else None
+    oversample = args.oversample if args.oversample is not None else (
+        doc.get("oversample") if isinstance(doc.get("oversample"), int) else None)
+    taken = [f"scheme {scheme}"] if args.scheme is None else []
+    taken += [f"n = {n}"] if args.n is None and n is not None else []
+    taken += [f"oversample {oversample}"] if args.oversample is None and oversample is not None else []
+    note = (f"{', '.join(taken)}: the fit's, from {source} (--scheme, --n, --oversample to change)"
+            if taken else None)
+    return scheme, n, oversample, note
+
+
 def _progress(console, params: Parameters, estimate: list[str]):
     """Per iteration a row of the estimates under a header naming them, in ``--estimate``
     order (the estimator reports them in the model's declaration order)."""
@@ -109,12 +132,14 @@ def run_fit(args: argparse.Namespace) -> int:
     if not estimate:
         raise UsageError("--estimate names no parameter")
     params.copy().set_estimated(estimate)  # names checked before the (slower) folding
-    n, oversample, notes = choose_grid(model, ds.select(labels), outputs, args.n, args.scheme, args.oversample)
-    grid = Grid(n, args.scheme, oversample=oversample)
+    scheme, n_given, oversample_given, taken = _grid_args(args)
+    choice = choose_grid(model, ds.select(labels), outputs, n_given, scheme, oversample_given)
+    n, oversample = choice.n, choice.oversample
+    grid = Grid(n, choice.scheme, oversample=oversample)
     plural = "s" if len(labels) != 1 else ""
     console.print(f"fitting {', '.join(estimate)} of model {model.name} on {len(labels)} experiment{plural} "
                   f"({grid.scheme}, n = {grid.n})", highlight=False)
-    for note in notes:
+    for note in [taken] * bool(taken) + choice.notes + [f"warning: {w}" for w in choice.warnings]:
         console.print(f"  {note}", highlight=False)
     if args.time_limit is not None and not args.time_limit > 0:
         raise UsageError(f"--time-limit {args.time_limit:g}: must be a positive number of seconds")
@@ -130,9 +155,10 @@ def run_fit(args: argparse.Namespace) -> int:
             console.print(f"experiment {group[0].label}", highlight=False)
         progress = _progress(console, params, estimate) if not args.quiet else None
         try:
-            result = fit_experiments(model, group, params, estimate, n=n, scheme=args.scheme, outputs=outputs,
+            result = fit_experiments(model, group, params, estimate, n=n, scheme=choice.scheme, outputs=outputs,
                                      max_iterations=args.max_iterations, progress=progress, fixed=fixed,
-                                     stability=args.stability, oversample=oversample, time_limit_s=args.time_limit)
+                                     stability=args.stability, oversample=oversample, time_limit_s=args.time_limit,
+                                     announce=lambda text: console.print(f"  {text}", highlight=False))
         except EstimationError as exc:
             console.print(f"[red]fit failed:[/red] {exc}", highlight=False)
             _write_failed(args.output, model, params, str(exc))
@@ -150,6 +176,11 @@ def run_fit(args: argparse.Namespace) -> int:
                       "--params RESULT.json", highlight=False, soft_wrap=True)
     if args.per_experiment:
         _per_experiment_table(results)
+        if args.report:
+            atomic_write_bytes(Path(args.report), "".join(f"=== experiment {label} ===\n{r.fit_report()}\n"
+                                                          for label, r in results).encode())
+        for label, r in results if args.figures else []:  # a folder per experiment: the same file names in each
+            _write_figures(r, Path(args.figures) / label, console)
         for label, r in results:
             for w in r.warnings:
                 print(f"warning ({label}): {w}")
@@ -164,40 +195,60 @@ def run_fit(args: argparse.Namespace) -> int:
     if args.report:
         atomic_write_bytes(Path(args.report), (report + "\n").encode())
     if args.figures:
-        from identify.figures import write_figures
-
-        for path in write_figures(result, Path(args.figures)):
-            console.print(f"figure {path}", highlight=False, soft_wrap=True)  # a path whole, to copy
+        _write_figures(result, Path(args.figures), console)
     return EXIT_INTERRUPTED if interrupted else EXIT_OK if result.converged else EXIT_NOT_CONVERGED
+
+
+def _write_figures(result: FitResult, folder: Path, console: Console) -> None:
+    from identify.figures import write_figures
+
+    for path in write_figures(result, folder):
+        console.print(f"figure {path}", highlight=False, soft_wrap=True)  # a path whole, to copy
 
 
 def _write_failed(path: str, model: CompiledModel, params: Parameters, message: str) -> None:
     doc = {"model": model.name, "converged": False, "iterations": 0, "message": message,
-           "parameters": {p.name: {"value": p.value, "std": None, "estimated": p.vary, "unit": p.unit}
+           "parameters": {p.name: {"value": p.value, "std": None, "estimated": p.vary, "unit": p.unit,
+                                   **{k: v for k, v in (("prior_std", p.prior_std), ("min", p.minimum),
+                                                        ("max", p.maximum), ("initial", p.initial)) if v is not None}}
                           for p in params},
            "correlation": {}, "channels": {}, "experiments": {}}
     atomic_write_bytes(Path(path), (json.dumps(doc, indent=2) + "\n").encode())
 
 
-def _per_experiment_table(results: list[tuple[str, FitResult]]) -> None:
+def _print_table(table: Table) -> None:
+    """A table on stdout, numbers never cut: on a terminal at its width (cells fold onto
+    a second line), into a file or a pipe as wide as the table needs (rich would cut it
+    to 80 columns there, `-5.16528…`)."""
     from rich.console import Console
+    from rich.measure import Measurement
+
+    console = Console()
+    if not console.is_terminal:
+        wide = console.options.update(max_width=100_000)
+        console = Console(width=max(80, Measurement.get(console, wide, table).maximum))
+    console.print(table)
+
+
+def _per_experiment_table(results: list[tuple[str, FitResult]]) -> None:
     from rich.table import Table
 
     names = results[0][1].estimated
     table = Table(title="per-experiment estimates (value ± std)")
-    table.add_column("experiment")
-    table.add_column("f [Hz]", justify="right")
+    table.add_column("experiment", overflow="fold")
+    table.add_column("f [Hz]", justify="right", overflow="fold")
     for nm in names:
-        table.add_column(nm, justify="right")
+        unit = results[0][1].params[nm].unit
+        table.add_column(f"{nm} [{notation.unit_text(unit)}]" if unit and unit != "-" else nm, justify="right",
+                         overflow="fold")
     for label, r in results:
         mark = "*" if r.std_residual is not None else ""
         table.add_row(label, f"{r.experiments[0].frequency_hz:g}",
-                      *[f"{r.value(nm):.6g} ± {r.honest_std(nm):.2g}{mark}" for nm in names])
-    console = Console()  # stdout: the table is the command's result, progress went to stderr
-    console.print(table)
+                      *[notation.plus_minus(r.value(nm), r.honest_std(nm)) + mark for nm in names])
+    _print_table(table)
     if any(r.std_residual is not None for _, r in results):
-        console.print("* residual-based σ: residuals exceed the measurement noise, so this σ includes the model "
-                      "error (the noise-only σ is in RESULT.json as std)", highlight=False)
+        print("* residual-based σ: residuals exceed the measurement noise, so this σ includes the model error "
+              "(the noise-only σ is in RESULT.json as std)")
 
 
 def run_predict(args: argparse.Namespace) -> int:
@@ -214,11 +265,12 @@ def run_predict(args: argparse.Namespace) -> int:
     t = exp.time_s
     cols: dict[str, np.ndarray] = {"time_s": t}
     if exp.kind == "periodic":
-        n, oversample, notes = choose_grid(model, [exp], [], args.n, args.scheme, args.oversample)
-        for note in notes:
+        scheme, n_given, oversample_given, taken = _grid_args(args)
+        choice = choose_grid(model, [exp], [], n_given, scheme, oversample_given)
+        for note in [taken] * bool(taken) + choice.notes + [f"warning: {w}" for w in choice.warnings]:
             print(note, file=sys.stderr)
-        grid = Grid(n, args.scheme, oversample=oversample)
-        data = prepare_periodic(model, [exp], n, [])[0]
+        grid = Grid(choice.n, choice.scheme, oversample=choice.oversample)
+        data = prepare_periodic(model, [exp], choice.n, [])[0]
         sol = PeriodicSolver(model, grid).solve(data.inputs, data.frequency_hz, theta, label=label)
         y = model.output(sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         phase = t * exp.frequency_hz
@@ -293,7 +345,7 @@ def run_compare(args: argparse.Namespace) -> int:
     for name, fit in fits.items():
         rms[name] = float(np.sqrt(np.mean(np.concatenate([e.residual(column) for e in fit.experiments]) ** 2)))
     ratio = rms["1dof"] / rms["2dof"]
-    Console().print(table)
+    _print_table(table)
     for name, fit in fits.items():
         if not fit.converged:
             print(f"warning: the {name} fit did not converge ({fit.message}); its residuals are not its best")
@@ -321,11 +373,12 @@ def run_report(args: argparse.Namespace) -> int:
              + ("  (interrupted: the last iterate)" if doc.get("interrupted") else "")]
     for name, p in doc["parameters"].items():
         if p.get("estimated"):
-            rel = f"({100 * p['std'] / abs(p['value']):.3g}%)" if p.get("std") and p["value"] else ""
-            residual = f"   [+/- {p['std_residual']:.3g} *]" if p.get("std_residual") is not None else ""
+            unit = p.get("unit", "") if p.get("unit") != "-" else ""
+            rel = f" ({100 * p['std'] / abs(p['value']):.2g} %)" if p.get("std") and p["value"] else ""
+            residual = (f"   [{notation.plus_minus(p['value'], p['std_residual'])} *]"
+                        if p.get("std_residual") is not None else "")
             bound = f"   [AT {p['at_bound'].upper()}]" if p.get("at_bound") else ""
-            lines.append(f"  {name:8s} {p['value']: .8g} +/- {p.get('std') or 0:.3g} {rel} {p.get('unit', '')}"
-                         + residual + bound)
+            lines.append(f"  {name:8s} {notation.plus_minus(p['value'], p.get('std'), unit)}{rel}" + residual + bound)
     if any(p.get("std_residual") is not None for p in doc["parameters"].values()):
         lines.append("  * residual-based σ (includes the model error; quote it): the residuals exceed the noise")
     for label, e in doc.get("experiments", {}).items():
@@ -426,14 +479,14 @@ def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) ->
         table.add_column("serial", no_wrap=True, min_width=6)
         table.add_column("conv.", no_wrap=True)
         for col in estimate:
-            table.add_column(col, justify="right", no_wrap=True)
+            table.add_column(col, justify="right", overflow="fold")
         table.add_column("fit", justify="right", no_wrap=True, min_width=4)
         for r in shown:
             mark = "*" if r.residual_std else ""
             cells = [notation.concise(r.values[p], r.stds.get(p)) + mark if p in r.values else "" for p in estimate]
             table.add_row(r.session, r.serial, converged.get(r.state, r.state), *cells,
                           "" if r.fit_s is None else f"{r.fit_s:.2f}")
-        console.print(table)
+        _print_table(table)
     for r in rows:
         if r.failed:  # the reason names a file and line: too long for a cell, whole on its own line
             console.print(f"{r.session}: {r.status}", highlight=False, soft_wrap=True)
@@ -446,9 +499,12 @@ def build_parser() -> argparse.ArgumentParser:
     def model_args(p: argparse.ArgumentParser) -> None:
         p.add_argument("--model", default="2dof", help="1dof, 2dof, duffing, bouc-wen or path/file.py:ClassName")
         p.add_argument("--params", help="START.json / RESULT.json / flat {name: value} (default: nominal)")
-        p.add_argument("--scheme", choices=SCHEMES, default="bdf2", help="grid differentiation scheme")
-        p.add_argument("--n", type=int, help=f"grid points per period (default {DEFAULT_POINTS} for bdf2; for "
-                                             "spectral chosen from the data's highest harmonic with signal)")
+        p.add_argument("--scheme", choices=SCHEMES,
+                       help="grid differentiation scheme (default: the --params RESULT.json fit's; else spectral for "
+                            "broadband records that bdf2 cannot resolve on its grid, bdf2 otherwise)")
+        p.add_argument("--n", type=int, help=f"grid points per period (default: the --params RESULT.json fit's; else "
+                                             f"{DEFAULT_POINTS} for bdf2, for spectral chosen from the data's "
+                                             f"highest harmonic with signal)")
         p.add_argument("--oversample", type=int, help="solve the model on n x this many points (default: 4 for "
                                                       "spectral grids of models with kinks such as |x|, else 1)")
 

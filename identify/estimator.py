@@ -42,11 +42,12 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from identify.differentiation import Grid
-from identify.errors import ComputationError
+from identify.errors import ComputationError, InputError
+from identify.folding import FoldedRecord
 from identify.model import CompiledModel
 from identify.parameters import Parameters
 from identify.periodic import ConvergenceError, PeriodicSolution, PeriodicSolver
-from identify.preparation import PeriodicData
+from identify.preparation import MULTISINE_LINES, PeriodicData, excited_lines
 from identify.result import ExperimentFit, FitResult
 from identify.start import MEASURED_NEWTON, Measured, measured_start
 
@@ -67,6 +68,11 @@ NOISE_SETTLED = 0.05
 MEASURED_RESTART = 0.5
 LINE_PULL_FLOOR = 1e-12  # a frequency line pulling less than this (relative) carries no residual: not a unit
 CHI2_TOLERANCE = 0.1  # a Gauss-Newton step promising less χ² decrease than this changes nothing that matters
+# Iterations that each lower the objective by less than CREEP_DECREASE (about χ² units),
+# CREEP_ITERATIONS or more of them before the fit stops: a creep along a nearly flat
+# direction, which the message then names.
+CREEP_DECREASE = 1.0
+CREEP_ITERATIONS = 4
 
 
 
@@ -92,8 +98,59 @@ def _line_pulls(Sw: np.ndarray, r: np.ndarray) -> np.ndarray:
     return cross.real.sum(axis=0) * share[:, None]
 
 
+
+def input_draws(folded: FoldedRecord, input_noise_variance: np.ndarray) -> np.ndarray:
+    """F·σu applied to fixed unit draws (seed 0), RANK then PROBES of them:
+    (n_inputs, n, RANK + PROBES), for :func:`propagated_variance`."""
+    rng = np.random.default_rng(0)
+    n_in, m = len(input_noise_variance), len(folded.filled_counts)
+    su = np.sqrt(input_noise_variance)[:, None, None]
+    z = [su * folded.noise_factor(rng.standard_normal((n_in, m, k))) for k in (RANK, PROBES)]
+    return np.concatenate(z, axis=2)
+
+
+def propagated_variance(solver: PeriodicSolver, sol: PeriodicSolution, theta: np.ndarray, output_idx: list[int],
+                        folded: FoldedRecord, input_noise_variance: np.ndarray, draws: np.ndarray) -> np.ndarray:
+    """(n_outputs,) mean over the grid of diag(H·Σu·Hᵀ): the output variance that the
+    folded input noise Σu = F·diag(σu²)·Fᵀ causes, H = dŷ/du, i.e. ‖H·F·σu‖²_F / n.
+
+    Hutch++ (Meyer, Musco, Musco & Woodruff 2021): the response is low-pass, a few
+    directions carry most of it (a gas spring passes the mean force error and a few
+    harmonics), which plain random probes estimate poorly.  Their span, found from
+    RANK random responses, is taken exactly through the adjoint; probes estimate the
+    rest.  The ``draws`` (:func:`input_draws`) are fixed, so the result is a
+    deterministic function of θ."""
+    n_in, m, n_out = len(input_noise_variance), len(folded.filled_counts), len(output_idx)
+    su = np.sqrt(input_noise_variance)[:, None, None]
+    # H·F·σu applied to the RANK span draws and the PROBES probes in one solve: (n_out, n, RANK + PROBES)
+    responses = solver.input_response(sol, theta, output_idx, draws)
+    Q = np.linalg.qr(responses[:, :, :RANK])[0]  # an orthonormal basis per output: (n_out, n, RANK)
+    basis = np.einsum("onr,op->onpr", Q, np.eye(n_out)).reshape(n_out, Q.shape[1], n_out * RANK)
+    exact = su * folded.noise_factor_t(solver.input_adjoint(sol, theta, output_idx, basis))
+    exact = np.sum(exact.reshape(n_in, m, n_out, RANK) ** 2, axis=(0, 1, 3))
+    G = responses[:, :, RANK:]
+    rest = G - Q @ (np.swapaxes(Q, 1, 2) @ G)  # BLAS; einsum's loop over the grid took 30x longer
+    return (exact + np.sum(rest**2, axis=(1, 2)) / PROBES) / solver.grid.n
+
+
+def noise_meat(solver: PeriodicSolver, sol: PeriodicSolution, theta: np.ndarray, output_idx: list[int],
+               folded: FoldedRecord, noise_variance: np.ndarray, input_noise_variance: np.ndarray,
+               Sw: np.ndarray) -> np.ndarray:
+    """(k, k) SᵀW·Cov·WS of one experiment (Sw = W·S, (n_out, n, k)): the folded output
+    noise and the folded input noise through the adjoint (Hᵀ·W·S), each with the fold's
+    exact grid covariance σ²·F·Fᵀ; the middle of the sandwich covariance."""
+    Fy = folded.noise_factor_t(Sw)
+    B = np.einsum("omk,o,oml->kl", Fy, noise_variance, Fy)
+    Fu = folded.noise_factor_t(solver.input_adjoint(sol, theta, output_idx, Sw))
+    return B + np.einsum("jmk,j,jml->kl", Fu, input_noise_variance, Fu)
+
+
 class EstimationError(ComputationError):
     """The fit cannot start (e.g. no periodic solution at the starting parameters)."""
+
+
+class PriorError(InputError):
+    """An estimated parameter whose prior cannot be sized (start and nominal 0, no prior_std)."""
 
 
 @dataclass
@@ -113,7 +170,7 @@ class Estimator:
     def __init__(self, model: CompiledModel, data: list[PeriodicData], params: Parameters, grid: Grid,
                  outputs: list[str], max_iterations: int = 40, step_tolerance: float = 0.05,
                  progress: Callable[[int, float, np.ndarray], None] | None = None, stability: bool = False,
-                 time_limit_s: float | None = None):
+                 time_limit_s: float | None = None, announce: Callable[[str], None] | None = None):
         if not data:
             raise EstimationError("no periodic experiment to fit")
         if not params.varying():
@@ -130,12 +187,14 @@ class Estimator:
         self.step_tolerance = step_tolerance
         self.progress = progress
         self.stability = stability  # Floquet multipliers of each solution in the result
+        self.announce = announce  # told of slow steps after the iterations (Floquet multipliers)
         self._noise_at: _Evaluation | None = None  # where the noise model was last computed
         self._draws: dict[str, np.ndarray] = {}  # label -> folded input-noise draws (_input_draws)
         self._inverted: dict[str, np.ndarray] = {}  # label -> states of its last measured start
         self.time_limit_s = time_limit_s  # no new iteration starts after this long
         self.residual_units: tuple[str, float, float] | None = None  # of the last residual-based covariance
         self.lower, self.upper = (b[self.index] for b in params.bounds())
+        self.start = params.vector()  # sizes the prior of a parameter whose value and nominal are 0
 
     # ----------------------------------------------------------------------------------
     def _evaluate(self, theta: np.ndarray, start: _Evaluation | None) -> _Evaluation:
@@ -214,36 +273,15 @@ class Estimator:
         return True
 
     def _propagated_variance(self, d: PeriodicData, sol: PeriodicSolution, theta: np.ndarray) -> np.ndarray:
-        """(n_outputs,) mean over the grid of diag(H·Σu·Hᵀ): the output variance that the
-        folded input noise Σu = F·diag(σu²)·Fᵀ causes, H = dŷ/du, i.e. ‖H·F·σu‖²_F / n.
-
-        Hutch++ (Meyer, Musco, Musco & Woodruff 2021): the response is low-pass, a few
-        directions carry most of it (a gas spring passes the mean force error and a few
-        harmonics), which plain random probes estimate poorly.  Their span, found from
-        RANK random responses, is taken exactly through the adjoint; probes estimate the
-        rest.  The draws are fixed, so the weights are a deterministic function of θ."""
-        n_in, m, n_out = len(d.input_noise_variance), len(d.folded.filled_counts), len(self.outputs)
-        su = np.sqrt(d.input_noise_variance)[:, None, None]
-        # H·F·σu applied to the RANK span draws and the PROBES probes in one solve: (n_out, n, RANK + PROBES)
-        responses = self.solver.input_response(sol, theta, self.output_idx, self._input_draws(d))
-        Q = np.linalg.qr(responses[:, :, :RANK])[0]  # an orthonormal basis per output: (n_out, n, RANK)
-        basis = np.einsum("onr,op->onpr", Q, np.eye(n_out)).reshape(n_out, Q.shape[1], n_out * RANK)
-        exact = su * d.folded.noise_factor_t(self.solver.input_adjoint(sol, theta, self.output_idx, basis))
-        exact = np.sum(exact.reshape(n_in, m, n_out, RANK) ** 2, axis=(0, 1, 3))
-        G = responses[:, :, RANK:]
-        rest = G - Q @ (np.swapaxes(Q, 1, 2) @ G)  # BLAS; einsum's loop over the grid took 30x longer
-        return (exact + np.sum(rest**2, axis=(1, 2)) / PROBES) / self.grid.n
+        """(n_outputs,) the grid variance the folded input noise causes (:func:`propagated_variance`)."""
+        return propagated_variance(self.solver, sol, theta, self.output_idx, d.folded, d.input_noise_variance,
+                                   self._input_draws(d))
 
     def _input_draws(self, d: PeriodicData) -> np.ndarray:
-        """F·σu applied to the fixed unit draws of :meth:`_propagated_variance`, RANK then
-        PROBES of them: (n_inputs, n, RANK + PROBES).  They do not depend on θ, so each
+        """:func:`input_draws` of an experiment: they do not depend on θ, so each
         experiment's are drawn and folded once per fit, not at every noise refresh."""
         if d.label not in self._draws:
-            rng = np.random.default_rng(0)
-            n_in, m = len(d.input_noise_variance), len(d.folded.filled_counts)
-            su = np.sqrt(d.input_noise_variance)[:, None, None]
-            z = [su * d.folded.noise_factor(rng.standard_normal((n_in, m, k))) for k in (RANK, PROBES)]
-            self._draws[d.label] = np.concatenate(z, axis=2)
+            self._draws[d.label] = input_draws(d.folded, d.input_noise_variance)
         return self._draws[d.label]
 
     def _residual_variances(self, ev: _Evaluation) -> np.ndarray:
@@ -307,17 +345,43 @@ class Estimator:
 
     def _prior_std(self, theta: np.ndarray) -> np.ndarray:
         """Prior standard deviations of the varying parameters: as given, or a fraction of
-        the parameter's size (its current or nominal value; 1 where both are zero)."""
+        the parameter's size (its current, nominal or start value; :meth:`_check_priors`
+        refuses a parameter for which all three are zero)."""
         out = np.empty(len(self.index))
         nominal = self.model.nominal_vector()
         names = self.params.names()
         for i, j in enumerate(self.index):
             std = self.params[names[j]].prior_std
             if std is None:
-                size = max(abs(theta[j]), abs(nominal[j]))
-                std = DEFAULT_PRIOR_FRACTION * size if size > 0 else 1.0
+                std = DEFAULT_PRIOR_FRACTION * max(abs(theta[j]), abs(nominal[j]), abs(self.start[j]))
             out[i] = std
         return out
+
+    def _check_priors(self, ev: _Evaluation) -> None:
+        """Refuses varying parameters without prior_std whose start and nominal are both 0:
+        there is no size to scale their steps by.  A fixed 1 in SI units was used before,
+        and a cubic stiffness of 1e10 N/m³ then crept by ones and "converged" where it
+        started.  The message suggests the change that moves the fitted outputs by their
+        RMS (to first order, from the sensitivities at the start) as an upper guide."""
+        unscaled, names = [], []
+        for i, j in enumerate(self.index):
+            p = self.params[self.params.names()[j]]
+            if p.prior_std is not None or self._prior_std(ev.theta)[i] > 0:
+                continue
+            signal = sensitivity = 0.0
+            for d, S in zip(self.data, ev.sensitivities, strict=True):
+                size = np.maximum(np.sqrt(np.mean(d.measured**2, axis=1)), 1e-300)  # outputs in their own sizes
+                signal += float(np.sum((d.measured / size[:, None]) ** 2))
+                sensitivity += float(np.sum((S[:, :, i] / size[:, None]) ** 2))
+            guide = (f"{np.sqrt(signal / sensitivity):.2g} {p.unit} would move the fitted outputs by their RMS"
+                     if sensitivity > 0 else "the fitted outputs do not depend on it at the start")
+            unscaled.append(f"{p.name} ({p.alias}: here {guide})")
+            names.append(p.name)
+        if unscaled:
+            raise PriorError(f"no prior std for {'; '.join(unscaled)}: start and nominal are 0, so nothing sets the "
+                             f"size of the steps; give each a prior_std in the START file, "
+                             f'{{"{names[0]}": {{"value": 0, "prior_std": ...}}}}, '
+                             f"a size the term may plausibly reach")
 
     # ----------------------------------------------------------------------------------
     def fit(self) -> FitResult:
@@ -331,6 +395,7 @@ class Estimator:
         try:
             ev = self._evaluate(theta, None)
             self._add_sensitivities(ev, settled=False)
+            self._check_priors(ev)
         except ConvergenceError as exc:
             raise EstimationError(f"no periodic solution at the starting parameters: {exc}") from exc
         v = self._variances(ev)
@@ -388,8 +453,10 @@ class Estimator:
                 # search then only sees the periodic solutions' numerical noise.
                 iterations = it - 1  # the steps taken, as many as the progress reported
                 converged = negligible
+                flat = self.params.names()[self.index[int(np.argmax(np.abs(step) / np.maximum(sigma, 1e-300)))]]
                 message = ("converged (the remaining step is below the tolerance)" if small else
-                           f"converged (the remaining step would lower χ² by {predicted:.2g} < {CHI2_TOLERANCE:g})"
+                           f"converged (the remaining step would lower χ² by {predicted:.2g} < {CHI2_TOLERANCE:g}: "
+                           f"the objective is nearly flat along it, mostly {flat}{self._creep(history)})"
                            if converged else
                            f"line search failed: no decrease of the objective along the Gauss–Newton step "
                            f"(predicted χ² decrease {predicted:.3g})")
@@ -410,6 +477,22 @@ class Estimator:
                 message = f"converged (last step below {self.step_tolerance:g} standard deviations)"
                 break
         return converged, iterations, message, ev
+
+    @staticmethod
+    def _creep(history: list[float]) -> str:
+        """Where the last iterations each lowered the objective by less than CREEP_DECREASE:
+        a clause saying how long the fit crept, else "".  Stopping such a creep earlier was
+        tried and refused: a two-mode fit crept so for five iterations before it found the
+        optimum, 370 lower (a step far below the residual-based σ there is no sign of
+        arrival, since that σ is large wherever the fit is poor)."""
+        drops = -np.diff(history)
+        slow = 0
+        while slow < drops.size and drops[drops.size - 1 - slow] < CREEP_DECREASE:
+            slow += 1
+        if slow < CREEP_ITERATIONS:
+            return ""
+        return (f"; the last {slow} iterations lowered the objective by {np.sum(drops[-slow:]):.2g} in all, a slow "
+                f"creep: this optimum is shallow, and another start may end elsewhere")
 
     def _bounded_step(self, x: np.ndarray, As: np.ndarray, gs: np.ndarray, scale: np.ndarray) -> np.ndarray:
         """The Gauss–Newton step from x (solved in prior-std units) for projected
@@ -470,11 +553,8 @@ class Estimator:
         k = len(self.index)
         B = np.zeros((k, k))
         for a, (d, sol, S) in enumerate(zip(self.data, ev.solutions, ev.sensitivities, strict=True)):
-            Sw = S / v[a][:, None, None]  # (n_out, n, k)
-            Fy = d.folded.noise_factor_t(Sw)
-            B += np.einsum("omk,o,oml->kl", Fy, d.noise_variance, Fy)
-            Fu = d.folded.noise_factor_t(self.solver.input_adjoint(sol, d.theta(ev.theta), self.output_idx, Sw))
-            B += np.einsum("jmk,j,jml->kl", Fu, d.input_noise_variance, Fu)
+            B += noise_meat(self.solver, sol, d.theta(ev.theta), self.output_idx, d.folded, d.noise_variance,
+                            d.input_noise_variance, S / v[a][:, None, None])
         excess = self._residual_variances(ev) / ev.noise  # (n_experiments, n_outputs)
         flagged = []
         for b, o in enumerate(self.outputs):
@@ -515,13 +595,27 @@ class Estimator:
         if E > k:
             g = np.array([np.einsum("onk,on->k", S / v[a][:, None, None], r) for a, (S, r) in enumerate(pairs)])
             return A_inv @ (g.T @ g * E / (E - k)) @ A_inv, ("experiments", float(E), float(E))
-        g = np.concatenate([_line_pulls(S / v[a][:, None, None], r) for a, (S, r) in enumerate(pairs)])
+        g = np.concatenate([self._unit_lines(d, _line_pulls(S / v[a][:, None, None], r))
+                            for a, (d, (S, r)) in enumerate(zip(self.data, pairs, strict=True))])
         q = np.sum((g * np.sqrt(np.abs(np.diag(A_inv)))) ** 2, axis=1)  # each line's pull in σ² units
         lines = int(np.count_nonzero(q > LINE_PULL_FLOOR * q.max()))
         if lines <= k:
             return None, None
-        return A_inv @ (g.T @ g * lines / (lines - k)) @ A_inv, ("frequency lines", float(lines),
+        what = "excited frequency lines" if all(self._broadband(d) for d in self.data) else "frequency lines"
+        return A_inv @ (g.T @ g * lines / (lines - k)) @ A_inv, (what, float(lines),
                                                                   float(np.sum(q) ** 2 / np.sum(q**2)))
+
+    @staticmethod
+    def _broadband(d: PeriodicData) -> bool:
+        return excited_lines(d.inputs).size >= MULTISINE_LINES
+
+    def _unit_lines(self, d: PeriodicData, pulls: np.ndarray) -> np.ndarray:
+        """The lines of a record that are units of the residual-based covariance: of a
+        multisine its excited lines, whose misfit varies with the random phases like
+        noise (the lines between them carry distortion and noise, not draws of the
+        excitation: counting them gave 921 lines where 267 were excited); of a sine
+        record every line (its harmonics)."""
+        return pulls[excited_lines(d.inputs)] if self._broadband(d) else pulls
 
     # ----------------------------------------------------------------------------------
     def _result(self, ev: _Evaluation, v: np.ndarray, converged: bool, iterations: int, message: str,
@@ -536,13 +630,23 @@ class Estimator:
         chans = [d.outputs[o] for o in self.outputs]
         experiments = []
         for a, dat in enumerate(self.data):
+            floquet = None
+            if self.stability:
+                # Integrating the variational equation over a long multisine period takes
+                # far longer than a fit step: say what the wait is for.
+                t0 = time.perf_counter()
+                if self.announce:
+                    self.announce(f"Floquet multipliers of {dat.label} ({a + 1} of {len(self.data)}) ...")
+                floquet = self.solver.floquet_multipliers(ev.solutions[a], dat.theta(ev.theta))
+                if self.announce:
+                    self.announce(f"Floquet multipliers of {dat.label}: largest |μ| {np.abs(floquet[0]):.4g}, "
+                                  f"{time.perf_counter() - t0:.1f} s")
             experiments.append(ExperimentFit(
                 label=dat.label, frequency_hz=dat.frequency_hz,
                 measured={c.column: c.from_si(dat.measured[b]) for b, c in enumerate(chans)},
                 predicted={c.column: c.from_si(ev.predicted[a][b]) for b, c in enumerate(chans)},
                 newton_iterations=ev.solutions[a].iterations,
-                floquet=(self.solver.floquet_multipliers(ev.solutions[a], dat.theta(ev.theta))
-                         if self.stability else None),
+                floquet=floquet,
             ))
         unstable = [e.label for e in experiments if e.floquet is not None and np.abs(e.floquet[0]) >= 1.0]
         if unstable:

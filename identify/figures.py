@@ -31,25 +31,24 @@ def write_figures(result: FitResult, folder: Path) -> list[Path]:
     cols = min(4, len(exps))
     rows = int(np.ceil(len(exps) / cols))
     for out in result.outputs:
-        fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 2.4 * rows), squeeze=False)
+        fig, axes = plt.subplots(rows, cols, figsize=(max(5.5, 3.6 * cols), 0.5 + 2.6 * rows), squeeze=False)
+        windows = []
         for ax, e in zip(axes.ravel(), exps, strict=False):  # the grid may have spare cells
-            tau = np.arange(len(e.measured[out])) / len(e.measured[out])
-            ax.plot(tau, e.measured[out], ".", ms=1.5, label="measured")
-            ax.plot(tau, e.predicted[out], "-", lw=1, label="model")
-            ax.set_title(f"{e.label} ({e.frequency_hz:g} Hz)", fontsize=8)
-            ax.set_xlabel("phase of the period [-]", fontsize=7)
-            ax.set_ylabel(axis_label(out), fontsize=7)
-            ax.tick_params(labelsize=7)
+            windows.append(_time_panel(ax, e, out, result.units))
         for ax in axes.ravel()[len(exps):]:
             ax.axis("off")
-        axes[0, 0].legend(fontsize=7)
-        fig.suptitle(f"{result.model}: {out} over one period", fontsize=9)
-        fig.tight_layout()
+        # Beneath the panels: inside one it hid the data of a multisine's window.
+        fig.legend(*axes[0, 0].get_legend_handles_labels(), loc="lower center", ncol=3, fontsize=7, frameon=False)
+        what = "over one period" if not any(windows) else (
+            "a window of each record (frf_*.png shows every excited line)" if all(windows) else
+            "over one period; multisines in a window of their dominant line")
+        fig.suptitle(f"{result.model}: {_label(out, result.units)}\n{what}", fontsize=9)
+        fig.tight_layout(rect=(0, 0.25 / (0.5 + 2.6 * rows), 1, 1))
         path = folder / f"fit_{out}.png"
         fig.savefig(path, dpi=110)
         plt.close(fig)
         written.append(path)
-    broadband = [e for e in exps if e.inputs and excited_lines(_first(e.inputs)).size >= MULTISINE_LINES]
+    broadband = [e for e in exps if _broadband(e)]
     for out in result.outputs if broadband else []:
         written.append(_frf_figure(result, out, broadband, folder / f"frf_{out}.png"))
     outputs = result.outputs
@@ -60,7 +59,7 @@ def write_figures(result: FitResult, folder: Path) -> list[Path]:
         stats = np.array([e.stats(out) for e in exps])
         ax.errorbar(x, stats[:, 0], yerr=2 * stats[:, 1], fmt="o", capsize=3)
         ax.axhline(0, color="k", lw=0.5)
-        ax.set_ylabel(f"residual {axis_label(out)}\nmean ± 2σ", fontsize=8)
+        ax.set_ylabel(f"residual {_label(out, result.units)}\nmean ± 2σ", fontsize=8)
     axes[-1, 0].set_xticks(x, [e.label for e in exps], rotation=60, fontsize=7)
     axes[-1, 0].set_xlabel("experiment", fontsize=8)
     fig.tight_layout()
@@ -69,6 +68,45 @@ def write_figures(result: FitResult, folder: Path) -> list[Path]:
     plt.close(fig)
     written.append(path)
     return written
+
+
+WINDOW_PERIODS = 5  # of a multisine's dominant line: what a time plot of it can show readably
+
+
+def _time_panel(ax, e: ExperimentFit, out: str, units: dict[str, str]) -> bool:
+    """Measured and model output of one experiment over its period, or for a multisine
+    (whose whole period is an unreadable band) over WINDOW_PERIODS periods of the
+    output's dominant line around its largest swing, with the misfit; whether windowed."""
+    y, model = e.measured[out], e.predicted[out]
+    n = len(y)
+    broadband = _broadband(e)
+    if not broadband:
+        tau = np.arange(n) / n
+        ax.plot(tau, y, ".", ms=1.5, label="measured")
+        ax.plot(tau, model, "-", lw=1, label="model")
+        ax.set_title(f"{e.label} ({e.frequency_hz:g} Hz)", fontsize=8)
+        ax.set_xlabel("phase of the period [-]", fontsize=7)
+    else:
+        spectrum = np.abs(np.fft.rfft(y - y.mean()))
+        dominant = max(1, int(np.argmax(spectrum)))
+        width = min(n, int(np.ceil(WINDOW_PERIODS * n / dominant)))
+        first = int(np.argmax(np.abs(y - y.mean()))) - width // 2
+        idx = np.arange(first, first + width) % n  # periodic: a window may wrap round the period's end
+        t = (first + np.arange(width)) / (n * e.frequency_hz)
+        ax.plot(t, y[idx], ".", ms=2, label="measured")
+        ax.plot(t, model[idx], "-", lw=1, label="model")
+        ax.plot(t, y[idx] - model[idx], "-", lw=0.8, color="#c03030", label="measured − model")
+        ax.set_title(f"{e.label}: {WINDOW_PERIODS} periods of its dominant line, "
+                     f"{dominant * e.frequency_hz:.3g} Hz", fontsize=8)
+        ax.set_xlabel("time in the period [s]", fontsize=7)
+    ax.set_ylabel(_label(out, units), fontsize=7)
+    ax.tick_params(labelsize=7)
+    ax.grid(alpha=0.3)
+    return broadband
+
+
+def _broadband(e: ExperimentFit) -> bool:
+    return bool(e.inputs) and excited_lines(_first(e.inputs)).size >= MULTISINE_LINES
 
 
 def _first(inputs: dict[str, np.ndarray]) -> np.ndarray:

@@ -4,6 +4,7 @@ in memory by the rig right after its last capture (so both give the same numbers
 from __future__ import annotations
 
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -13,7 +14,15 @@ from identify.errors import InputError
 from identify.estimator import Estimator
 from identify.model import CompiledModel
 from identify.parameters import Parameters
-from identify.preparation import choose_points, prepare_periodic, resolve_outputs
+from identify.preparation import (
+    BDF2_ERROR,
+    MULTISINE_LINES,
+    bdf2_error,
+    choose_points,
+    excitation,
+    prepare_periodic,
+    resolve_outputs,
+)
 from identify.result import FitResult
 
 DEFAULT_POINTS = 800  # per period on the bdf2 grid, as in the paper
@@ -23,12 +32,41 @@ DEFAULT_POINTS = 800  # per period on the bdf2 grid, as in the paper
 NONSMOOTH_OVERSAMPLE = 4
 
 
+@dataclass(frozen=True)
+class GridChoice:
+    """The grid a fit or prediction uses, and sentences saying what was chosen (notes) or
+    what may make the numbers wrong (warnings, which the result carries too)."""
+
+    scheme: str
+    n: int
+    oversample: int
+    notes: list[str] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+
+
 def choose_grid(model: CompiledModel, experiments: list[Experiment], outputs: list[str], n: int | None,
-                scheme: str, oversample: int | None) -> tuple[int, int, list[str]]:
-    """Points per period and model-grid oversampling, each as given or chosen: n from
-    the data for the spectral scheme (DEFAULT_POINTS for bdf2), oversampling for
-    spectral grids of models with kinks; and sentences saying what was chosen."""
-    notes = []
+                scheme: str | None, oversample: int | None) -> GridChoice:
+    """Scheme, points per period and model-grid oversampling, each as given or chosen:
+    the scheme from the records (spectral where the inputs are broadband, with lines
+    bdf2 would not resolve on its grid; a warning where bdf2 was asked for all the
+    same), n from the data for the spectral scheme (DEFAULT_POINTS for bdf2),
+    oversampling for spectral grids of models with kinks."""
+    notes: list[str] = []
+    warnings: list[str] = []
+    if scheme in (None, "bdf2"):
+        lines, highest, label = excitation(model, experiments)
+        error = bdf2_error(highest, n or DEFAULT_POINTS) if highest else 0.0
+        unresolved = lines >= MULTISINE_LINES and error > BDF2_ERROR
+        if unresolved and scheme is None:
+            scheme = "spectral"
+            notes.append(f"scheme spectral: {label} is broadband ({lines} excited lines up to harmonic {highest}), "
+                         f"which bdf2 on {n or DEFAULT_POINTS} points would differentiate {100 * error:.0f} % wrong "
+                         f"(--scheme bdf2 --n N to insist)")
+        elif unresolved:
+            warnings.append(f"bdf2 on {n or DEFAULT_POINTS} points differentiates the highest excited line of "
+                            f"{label} (harmonic {highest} of {lines}) {100 * error:.0f} % wrong: a resonance "
+                            f"lands elsewhere; use --scheme spectral")
+        scheme = scheme or "bdf2"
     if n is None:
         if scheme == "spectral":
             n, why = choose_points(model, experiments, outputs)
@@ -40,30 +78,33 @@ def choose_grid(model: CompiledModel, experiments: list[Experiment], outputs: li
         if oversample > 1:
             notes.append(f"model solved on {oversample} x {n} points: model {model.name!r} has kinks (|x|, sign, "
                          f"max), whose error falls only with the square of the step")
-    return n, oversample, notes
+    return GridChoice(scheme, n, oversample, notes, warnings)
 
 
 def fit_experiments(model: CompiledModel, experiments: list[Experiment], params: Parameters, estimate: list[str], *,
-                    n: int | None = DEFAULT_POINTS, scheme: str = "bdf2", outputs: list[str] | None = None,
+                    n: int | None = DEFAULT_POINTS, scheme: str | None = "bdf2", outputs: list[str] | None = None,
                     max_iterations: int = 40,
                     progress: Callable[[int, float, np.ndarray], None] | None = None,
                     fixed: dict[str, dict[int, float]] | None = None, stability: bool = False,
                     oversample: int | None = 1, linear_solver: str = "auto",
-                    time_limit_s: float | None = None) -> FitResult:
+                    time_limit_s: float | None = None, announce: Callable[[str], None] | None = None) -> FitResult:
     """Joint Bayesian fit of ``estimate`` over all ``experiments`` (shared parameters).
 
     ``params`` gives the start values and priors; it is not modified.  ``fixed`` holds
     per-experiment values of fixed parameters ({label: {parameter index: value}}, e.g.
     friction from :mod:`identify.friction`).  ``n`` or ``oversample`` None: chosen
-    (:func:`choose_grid`); ``linear_solver`` as for :class:`Grid`.  Each experiment of
+    (:func:`choose_grid`), ``scheme`` None likewise; ``linear_solver`` as for :class:`Grid`.  Each experiment of
     the result names the start of its first periodic solve (:mod:`identify.start`).
     Stopped by ``max_iterations``, ``time_limit_s`` or Ctrl-C, the result is the last
-    iterate, not converged (``interrupted`` for Ctrl-C)."""
+    iterate, not converged (``interrupted`` for Ctrl-C).  ``announce`` is told of slow
+    steps after the iterations (``stability``'s Floquet multipliers)."""
     params = params.copy()
-    start = params.as_dict()
+    # The original start: a fit restarted from a RESULT.json carries it as "initial".
+    start = {p.name: p.value if p.initial is None else p.initial for p in params}
     params.set_estimated(estimate)
     outputs = resolve_outputs(model, outputs)
-    n, oversample, _ = choose_grid(model, experiments, outputs, n, scheme, oversample)
+    grid = choose_grid(model, experiments, outputs, n, scheme, oversample)
+    n, oversample = grid.n, grid.oversample
     data = prepare_periodic(model, experiments, n, outputs)
     if fixed:
         names = params.names()
@@ -72,13 +113,14 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
             clash = [names[i] for i in d.fixed if names[i] in estimate]
             if clash:
                 raise InputError(f"{', '.join(clash)}: estimated and also fixed per experiment")
-    estimator = Estimator(model, data, params.copy(), Grid(n, scheme, linear_solver, oversample), outputs,
+    estimator = Estimator(model, data, params.copy(), Grid(n, grid.scheme, linear_solver, oversample), outputs,
                           max_iterations=max_iterations, progress=progress, stability=stability,
-                          time_limit_s=time_limit_s)
+                          time_limit_s=time_limit_s, announce=announce)
     result = estimator.fit()
     result.start = {k: start[k] for k in result.estimated}
     result.priors = {k: params[k].prior_std for k in result.estimated}
     result.oversample = oversample
+    result.warnings += grid.warnings
     channels = list(model.declaration.inputs.values())
     result.units = {ch.column: ch.unit for ch in [*channels, *(model.declaration.outputs[o] for o in outputs)]}
     for e, d in zip(result.experiments, data, strict=True):

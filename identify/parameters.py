@@ -42,6 +42,9 @@ class Parameter:
     minimum: float | None = None  # bounds the estimator respects; None: unbounded
     maximum: float | None = None
     physical: tuple[float | None, float | None] = (None, None)  # the declaration's bounds
+    # Where the fit that wrote this value started (a RESULT.json's "initial"): a restart
+    # reports the original start, not the point it went on from.
+    initial: float | None = None
 
     def at_bound(self) -> str | None:
         """"minimum" or "maximum" where the value sits on that bound, else None."""
@@ -119,19 +122,10 @@ class Parameters:
     # ----------------------------------------------------------------------------------
     @classmethod
     def from_file(cls, model: CompiledModel, path: str | Path) -> Parameters:
-        """Load START.json, RESULT.json or a flat ``{name: value}`` object."""
-        path = Path(path)
-        try:
-            doc = json.loads(path.read_text())
-        except FileNotFoundError:
-            raise ParameterError(f"{path}: parameter file not found") from None
-        except OSError as exc:
-            raise ParameterError(f"{path}: cannot read the parameter file ({exc.strerror or exc})") from None
-        except UnicodeDecodeError:
-            raise ParameterError(f"{path}: not a text (UTF-8) file") from None
-        except json.JSONDecodeError as exc:
-            raise ParameterError(f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
-        return cls.from_document(model, doc, source=str(path))
+        """Load START.json, RESULT.json (``RESULT.json#LABEL``: one experiment of a
+        --per-experiment result) or a flat ``{name: value}`` object."""
+        doc, source = load_document(path)
+        return cls.from_document(model, doc, source=source)
 
     @classmethod
     def from_document(cls, model: CompiledModel, doc: Any, source: str = "parameters") -> Parameters:
@@ -143,6 +137,12 @@ class Parameters:
         body = doc.get("parameters", doc if "model" not in doc else {})
         if not isinstance(body, dict):
             raise ParameterError(f"{source}: 'parameters' must be an object of name: value")
+        if isinstance(doc.get("per_experiment"), dict) and "parameters" not in doc:
+            labels = ", ".join(doc["per_experiment"]) or "none"
+            raise ParameterError(f"{source}: a --per-experiment result holds one parameter set per experiment "
+                                 f"({labels}), not one: name the one to use as {source}#LABEL")
+        if "model" in doc and "parameters" not in doc:
+            raise ParameterError(f"{source}: no 'parameters' in this file (a RESULT.json or START.json has them)")
         params = cls(model)
         for key, raw in body.items():
             if key in ("model", "format"):
@@ -160,6 +160,11 @@ class Parameters:
                                          f"(known: value, prior_std, min, max)")
                 value = raw.get("value")
                 prior = raw.get("prior_std")
+                initial = raw.get("initial")
+                if initial is not None:
+                    if not isinstance(initial, (int, float)) or isinstance(initial, bool) or not math.isfinite(initial):
+                        raise ParameterError(f"{source}: initial of {key!r} must be a finite number, got {initial!r}")
+                    p.initial = float(initial)
                 for bound in ("min", "max"):
                     if raw.get(bound) is not None:
                         _set_bound(p, bound, raw[bound], source)
@@ -187,6 +192,39 @@ class Parameters:
     def to_document(self) -> dict[str, Any]:
         """START.json form."""
         return {"model": self.model_name, "parameters": self.as_dict()}
+
+
+def load_document(path: str | Path) -> tuple[Any, str]:
+    """A parameter file's JSON document and the name to quote it by; ``FILE#LABEL`` gives
+    the document of experiment LABEL of a --per-experiment result."""
+    path = Path(path)
+    label = None
+    if not path.exists() and "#" in path.name:
+        name, _, label = path.name.rpartition("#")
+        path = path.with_name(name)
+    try:
+        doc = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ParameterError(f"{path}: parameter file not found") from None
+    except OSError as exc:
+        raise ParameterError(f"{path}: cannot read the parameter file ({exc.strerror or exc})") from None
+    except UnicodeDecodeError:
+        raise ParameterError(f"{path}: not a text (UTF-8) file") from None
+    except json.JSONDecodeError as exc:
+        raise ParameterError(f"{path}: not valid JSON (line {exc.lineno}, column {exc.colno}: {exc.msg})") from None
+    if label is None:
+        return doc, str(path)
+    return _experiment_document(doc, label, str(path)), f"{path}#{label}"
+
+
+def _experiment_document(doc: Any, label: str, source: str) -> dict[str, Any]:
+    """The RESULT.json document of one experiment of a --per-experiment result."""
+    fits = doc.get("per_experiment") if isinstance(doc, dict) else None
+    if not isinstance(fits, dict):
+        raise ParameterError(f"{source}#{label}: {source} is not a --per-experiment result (no 'per_experiment')")
+    if label not in fits or not isinstance(fits[label], dict):
+        raise ParameterError(f"{source}#{label}: no experiment {label!r} in it (experiments: {', '.join(fits)})")
+    return dict(fits[label])
 
 
 def _set_bound(p: Parameter, bound: str, raw: Any, source: str) -> None:

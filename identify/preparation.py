@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from identify.dataset import DatasetError, Experiment
+from identify.differentiation import BDF2_D1
 from identify.errors import InputError
 from identify.folding import FoldedRecord, fold
 from identify.model import CompiledModel
@@ -92,22 +93,32 @@ RELATIVE_FLOOR = 1e-4
 OWN_SAMPLES_FACTOR = 4
 
 
+def _fold_own(exp: Experiment, columns: list[str]) -> tuple[FoldedRecord, int, bool]:
+    """One record folded onto its own samples per period where they are whole (else the
+    power of two above): the folded record, its size, and whether they were whole."""
+    per_period = exp.sample_rate_hz / exp.frequency_hz
+    samples = int(round(per_period))
+    whole = abs(per_period - samples) < 1e-6 * per_period
+    size = samples if whole else 1 << int(np.ceil(np.log2(per_period)))
+    return fold(exp.label, exp.time_s, {c: exp.column(c) for c in columns}, exp.frequency_hz, size,
+                exp.sample_rate_hz), size, whole
+
+
 def choose_points(model: CompiledModel, experiments: list[Experiment], outputs: list[str]) -> tuple[int, str]:
     """Grid points per period for the spectral scheme, from the data, and a sentence
     saying why: the smallest power of two with SIGNAL_MARGIN to spare above twice the
     highest harmonic that stands out of its column's noise, or the records' own samples
-    per period where they are whole and not many more (every record the same)."""
+    per period where they are whole and not many more (every record the same).  Never
+    more points than a record has samples per period: such a grid only interpolates
+    between the samples (a level whose content reached near the Nyquist line got twice
+    the points of its sibling levels)."""
     d = model.declaration
     columns = [ch.column for ch in d.inputs.values()] + [d.outputs[o].column for o in outputs]
-    best, why, sizes = 0, "", set()
+    best, why, sizes, finest = 0, "", set(), None
     for exp in experiments:
-        per_period = exp.sample_rate_hz / exp.frequency_hz
-        samples = int(round(per_period))
-        whole = abs(per_period - samples) < 1e-6 * per_period
-        size = samples if whole else 1 << int(np.ceil(np.log2(per_period)))
+        folded, size, whole = _fold_own(exp, columns)
         sizes.add(size if whole else 0)
-        folded = fold(exp.label, exp.time_s, {c: exp.column(c) for c in columns}, exp.frequency_hz, size,
-                      exp.sample_rate_hz)
+        finest = size if finest is None else min(finest, size)
         for c in columns:
             spectrum = np.abs(np.fft.rfft(folded.values[c] - folded.values[c].mean()))
             noise = folded.noise_std[c] ** 2 * folded.grid_factor
@@ -121,12 +132,38 @@ def choose_points(model: CompiledModel, experiments: list[Experiment], outputs: 
     if own and needed <= own <= OWN_SAMPLES_FACTOR * needed:
         return own, (f"n = {own}, the records' samples per period (the highest harmonic with signal is {best}, "
                      f"in {why}: {needed} points would resolve it)")
+    if finest is not None and needed > finest:
+        return finest, (f"n = {finest}, the records' samples per period: 2 x {SIGNAL_MARGIN:g} x the highest "
+                        f"harmonic with signal ({best}, in {why}) would ask for {needed}, more points than were "
+                        f"sampled")
     return needed, (f"n = {needed}, the power of two above 2 x {SIGNAL_MARGIN:g} x the highest harmonic with signal "
                     f"({best}, in {why})")
 
 
+def excitation(model: CompiledModel, experiments: list[Experiment]) -> tuple[int, int, str]:
+    """The most excited lines of any record's inputs (:func:`excited_lines`), its highest
+    excited harmonic and its label: what says whether a record is broadband."""
+    columns = [ch.column for ch in model.declaration.inputs.values()]
+    most = (0, 0, "")
+    for exp in experiments:
+        folded, _, _ = _fold_own(exp, columns)
+        lines = excited_lines(np.array([folded.values[c] for c in columns]))
+        if lines.size and (lines.size, int(lines[-1])) > most[:2]:
+            most = (int(lines.size), int(lines[-1]), exp.label)
+    return most
+
+
+def bdf2_error(harmonic: int, n: int) -> float:
+    """Relative error of the bdf2 first derivative at a harmonic of the period on n points."""
+    z = np.exp(-2j * np.pi * harmonic / n * np.arange(BDF2_D1.size))
+    return float(abs((BDF2_D1 @ z) * n / (2j * np.pi * harmonic) - 1))
+
+
 EXCITED_FRACTION = 0.1  # a line of the input within 20 dB of its strongest is excited
 MULTISINE_LINES = 4  # a record exciting at least this many lines is broadband (a multisine), not a sine
+# Relative error of bdf2's derivative at the highest excited line above which bdf2 does
+# not resolve the record (a 1-mode fit on 800 points put a 7.3 Hz resonance at 9.4 Hz).
+BDF2_ERROR = 0.01
 
 
 def excited_lines(inputs: np.ndarray) -> np.ndarray:

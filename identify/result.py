@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from identify import notation
 from identify.files import atomic_write_bytes
 from identify.model import CompiledModel
 from identify.parameters import Parameters
@@ -81,7 +82,7 @@ class FitResult:
     start: dict[str, float] = field(default_factory=dict)
     # Residual-based σ, given where the residuals exceed the measurement noise (model error).
     std_residual: dict[str, float] | None = None
-    priors: dict[str, float | None] = field(default_factory=dict)
+    priors: dict[str, float | None] = field(default_factory=dict)  # as given (None: 50 % of the size)
     oversample: int = 1  # the model solved on n·oversample points per period
     covariance_residual: np.ndarray | None = None  # beside std_residual
     # Its independent units: what they are (experiments, frequency lines), their number, their effective number.
@@ -210,6 +211,8 @@ class FitResult:
                 params[p.name]["at_bound"] = p.at_bound()
             if p.name in self.start:
                 params[p.name]["initial"] = self.start[p.name]
+            if est and self.priors.get(p.name):  # what a restart needs to take the same steps
+                params[p.name]["prior_std"] = self.priors[p.name]
         corr = {a: {b: _finite(self.correlation[i, j]) for j, b in enumerate(self.estimated)}
                 for i, a in enumerate(self.estimated)}
         experiments = {}
@@ -280,24 +283,25 @@ class FitResult:
         for p in self.params:
             if p.name in self.estimated:
                 s = self.std[p.name]
-                rel = f"({100 * s / abs(p.value):.3g}%)" if p.value else ""
+                unit = notation.unit_text(p.unit) if p.unit != "-" else ""
                 init = self.start.get(p.name)
                 init_s = f"(init = {init:.6g})" if init is not None else ""
                 prior = self.priors.get(p.name)
-                prior_s = f"prior std {prior:.3g}" if prior else "prior std 50 %"
+                prior_s = "prior std 50 % of its size" if not prior else f"prior std {prior:.3g} {unit}".rstrip()
                 residual = ""
                 if self.std_residual is not None:
                     sr = self.std_residual[p.name]
-                    residual = f"   [+/- {sr:.3g}" + (f" ({100 * sr / abs(p.value):.3g}%)" if p.value else "") + " *]"
+                    residual = f"   [{notation.plus_minus(p.value, sr)}{_relative(p.value, sr)} *]"
                 side = p.at_bound()
                 bound = f"   [AT {side.upper()}, see warnings]" if side else ""
-                lines.append(f"    {p.name:8s} {p.alias:18s} {p.value: .8g} +/- {s:.3g} {rel} {p.unit} "
-                             f"{init_s}, {prior_s}" + residual + bound)
+                lines.append(f"    {p.name:8s} {p.alias:18s} {notation.plus_minus(p.value, s, unit)}"
+                             f"{_relative(p.value, s)} {init_s}, {prior_s}" + residual + bound)
         if self.std_residual is not None:
             E = float(len(self.experiments))
             what, units, effective = self.residual_units or ("experiments", E, E)
             draw = ("each experiment's misfit" if what == "experiments" else
-                    "the misfit at each excited frequency line of the records")
+                    "the misfit at each excited frequency line of the records" if what.startswith("excited") else
+                    "the misfit at each frequency line of the records")
             count = (f"{units:.0f} {what}" if units == effective else
                      f"{units:.0f} {what}, the misfit carried by an effective {effective:.2g} of them")
             lines.append(f"    * residual-based σ: the residuals exceed the measurement noise (see warnings), and "
@@ -337,6 +341,10 @@ class FitResult:
             lines.append("[[Warnings]]")
             lines += [f"    {w}" for w in self.warnings]
         return "\n".join(ln for ln in lines if ln != "")
+
+
+def _relative(value: float, std: float) -> str:
+    return f" ({100 * std / abs(value):.2g} %)" if value else ""
 
 
 def _calibration_line(model: str) -> str | None:

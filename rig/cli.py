@@ -7,6 +7,7 @@
 ``monitor``  live channel values and loss counters in the terminal
 ``gui``      the operator's console: live view, manual control, plans, fits, sessions
 ``qc``       quality control of production dampers (run, judge, history)
+``design``   a plan of experiments for a precision goal at the least predicted rig time
 
 Exit status (every command): 0 done; 1 identification did not converge (``run
 --identify``); 2 bad input (a file, address or argument; one line naming it, and
@@ -159,6 +160,12 @@ def cmd_monitor(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_design(args: argparse.Namespace) -> int:
+    from rig.design import run_design  # numerics only this command needs
+
+    return run_design(args)
+
+
 def cmd_gui(args: argparse.Namespace) -> int:
     from rig.gui.main_window import run_gui  # Qt is loaded for this command only
 
@@ -224,6 +231,22 @@ def build_parser() -> argparse.ArgumentParser:
     add_console_arguments(gui)
     gui.set_defaults(func=cmd_gui)
 
+    des = sub.add_parser("design", help="a plan for a precision goal at the least predicted rig time")
+    goal = des.add_mutually_exclusive_group(required=True)
+    goal.add_argument("--target", help="parameters whose σ the plan must reach, e.g. theta4,theta6,theta16")
+    goal.add_argument("--qc-spec", help="a QC spec (default or SPEC.toml): its characteristics to a quarter of "
+                                        "their tolerance half-width")
+    des.add_argument("--no-worse-than", metavar="PLAN", help="--target: every σ at most this plan's (standard or "
+                                                              "PLAN.toml)")
+    des.add_argument("--sigma", help="--target: the σ wanted, SI, one per parameter (comma-separated)")
+    des.add_argument("--compare", metavar="PLAN", help="a reference plan predicted beside the design (standard or "
+                                                       "PLAN.toml)")
+    des.add_argument("--model", default="2dof", help="--target: the model")
+    des.add_argument("--params", help="--target: prior parameter values (START.json; default: nominal)")
+    des.add_argument("--rig-config", help="limits, criteria and transducer noise TOML (default: rig-default.toml)")
+    des.add_argument("--out", required=True, help="the plan file to write")
+    des.set_defaults(func=cmd_design)
+
     add_qc_parser(sub)
     return parser
 
@@ -232,6 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     """The command line's one error boundary: known errors become one line and their
     exit status; anything else is a bug and keeps its traceback."""
     args = build_parser().parse_args(argv)
+    args.argv = list(sys.argv[1:] if argv is None else argv)
     # The drivers say in their own words when a link fails; pymodbus's log lines would
     # put a second, rawer message before the one that counts.
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from rig.criterion import DriftCriterion, SteadyStateCriteria
+from rig.daq import CHANNELS
 from rig.errors import BadInput
 from rig.registers import CONFIG_DIR
 from rig.tomlfile import read_toml
@@ -72,6 +73,8 @@ class RigConfig:
     max_hold_s: float = 0.0     # longest thermal conditioning hold before an experiment (0: none)
     min_hold_s: float = 1.0     # shortest, on a link at the rig's own pace
     hold_timing_s: float = 0.0  # how early or late a hold's end is answered, in the links' seconds
+    # the live traces' smallest axis span per channel, engineering units ([display]; none: autoscale)
+    min_span: dict[str, float] = field(default_factory=dict)
 
 
 def _seconds(table: dict, key: str, default: float, path: Path) -> float:
@@ -100,6 +103,7 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
         max_hold = _seconds(conditioning, "max_hold_s", 0.0, path)
         min_hold = _seconds(conditioning, "min_hold_s", 1.0, path)
         hold_timing = _seconds(conditioning, "hold_timing_s", 0.0, path)
+        min_span = {str(k): float(v) for k, v in doc.get("display", {}).get("min_span", {}).items()}
     except KeyError as exc:
         raise ConfigError(f"{path}: missing key {exc.args[0]!r}") from None
     except (TypeError, ValueError) as exc:
@@ -111,6 +115,10 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
     if min_hold <= 0 or (max_hold > 0 and min_hold > max_hold):
         raise ConfigError(f"{path}: [conditioning] min_hold_s = {min_hold:g}: must be positive and at most "
                           f"max_hold_s ({max_hold:g})")
+    unknown = set(min_span) - set(CHANNELS)
+    if unknown or any(not (math.isfinite(v) and v > 0) for v in min_span.values()):
+        raise ConfigError(f"{path}: [display] min_span: channels among {', '.join(CHANNELS)}, each a positive span"
+                          + (f" ({', '.join(sorted(unknown))} is not one)" if unknown else ""))
     if hold_timing < 0:
         raise ConfigError(f"{path}: [conditioning] hold_timing_s = {hold_timing:g}: must be 0 or positive")
-    return RigConfig(str(path), limits, rate, criteria, reconnect, text, max_hold, min_hold, hold_timing)
+    return RigConfig(str(path), limits, rate, criteria, reconnect, text, max_hold, min_hold, hold_timing, min_span)

@@ -53,6 +53,7 @@ from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq, DaqError, check_daq_address
 from rig.errors import RigError, RigFault
 from rig.events import EventBus, Kind, LinkNotice, Subscriber
+from rig.peer_identity import Peers
 from rig.peers import wrong_peer_or
 from rig.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
 from rig.progress import ConsoleProgress
@@ -125,6 +126,7 @@ class Links:
     identity: str
     latched_alarm: str | None                # an alarm cleared by --reset-alarm, for the record
     start_position_m: float = 0.0            # where the actuator stood when the session connected
+    peers: Peers | None = None               # who answered on both links (session.json, QC records)
 
 
 @dataclass
@@ -138,6 +140,7 @@ class RunResult:
     skipped: list[str] = field(default_factory=list)
     safe_stop_failures: list[str] = field(default_factory=list)
     error: BaseException | None = None       # a bug, re-raised by the caller after the record is written
+    decided: str | None = None               # why the session ended before its plan did (SessionRunner.decide)
 
 
 # ----- prepare: check everything, write nothing ----------------------------------------------------
@@ -209,6 +212,7 @@ def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Ca
     try:
         shaker.connect()
         links.identity = daq.open()
+        links.peers = Peers(shaker.identify(), links.identity)
         status = shaker.status()
         links.start_position_m = status.position_m
         if status.state == "ALARM":
@@ -259,6 +263,9 @@ class SessionRunner:
         # One time line for the rig: the acquisition waits on the shaker's clock (the wall
         # clock, or a simulated one when a test drives an in-process simulator).
         self.acquisition = Acquisition(links.shaker, links.daq, prep.config, bus, links.shaker.clock)
+        # Asked after each captured experiment but the last, its data written: a reason to
+        # end the session there (qc run: every characteristic is decided), or None.
+        self.decide: Callable[[RunResult], str | None] | None = None
 
     def open_session(self) -> Session:
         """The session folder, with the DAQ's journal attached (see :meth:`create_session`)."""
@@ -272,7 +279,7 @@ class SessionRunner:
         prep, opt = self.prep, self.prep.options
         if prep.stored is not None:
             session = prep.stored
-            session.reopen()
+            session.reopen(peers=self._peers())
         else:
             plan = prep.plan
             snapshot = {"rig.toml": prep.config.text, "daq-calibration.toml": prep.calibration.text,
@@ -283,10 +290,14 @@ class SessionRunner:
                                      letters=[e.letter for e in plan.experiments], periods=opt.periods,
                                      date=opt.date, snapshot=snapshot, unit={"serial": opt.unit_serial},
                                      endpoints={"shaker": prep.shaker_url, "daq": prep.daq_url},
+                                     peers=self._peers(),
                                      identify={"model": opt.model, "estimate": opt.estimate,
                                                "params": str(Path(opt.params).resolve()) if opt.params else None}
                                      if opt.identify else None)
         return session
+
+    def _peers(self) -> dict[str, Any] | None:
+        return self.links.peers.to_json() if self.links.peers is not None else None
 
     def durations(self, session: Session, start_position_m: float) -> list[ExperimentDuration]:
         """Rig time per experiment still to do, in plan order, with its conditioning hold:
@@ -334,12 +345,19 @@ class SessionRunner:
         try:
             with _interrupt_on_signals(acq.stop_requested, self.signals) as received:
                 try:
-                    for spec in todo:
+                    for k, spec in enumerate(todo):
                         # A hold is planned from the periodic state the experiment before
                         # leaves: after one skipped on an alarm, the gas is elsewhere.
                         after_skip = bool(result.skipped) and result.skipped[-1] == previous
                         self._experiment(spec, session, result, planned[spec.letter], after_skip)
                         previous = session.label(spec.letter)
+                        if self.decide is not None and k < len(todo) - 1:
+                            self._written(result)
+                            result.decided = self.decide(result)
+                            if result.decided:
+                                reason = result.decided
+                                bus.publish("log", message=f"ending the session before its plan: {reason}")
+                                break
                     self._written(result)
                 except Interrupted:
                     name = signal.Signals(received[-1]).name if received else "SIGINT"
@@ -354,7 +372,10 @@ class SessionRunner:
                     bus.publish(Kind.LOG, message=f"aborting on an internal error: {type(exc).__name__}: {exc}")
                     result.status, result.exit_code, result.error = f"aborted: {reason}", EXIT_INTERNAL, exc
                 else:
-                    if result.skipped:
+                    if result.decided:
+                        result.status = (f"ended: {len(result.captured)} of {len(todo)} experiments captured, "
+                                         f"{result.decided}")
+                    elif result.skipped:
                         result.status = (f"ended: {len(todo) - len(result.skipped)} of {len(todo)} experiments "
                                          f"captured, skipped after alarms: {', '.join(result.skipped)}")
                     else:
@@ -469,15 +490,21 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
     return EXIT_OK
 
 
-def execute(prep: Prepared, console: Console) -> RunResult:
-    """``rig run`` and ``rig qc run``: the lifecycle with the terminal's progress lines."""
+def execute(prep: Prepared, console: Console, decide: Callable[[RunResult], str | None] | None = None) -> RunResult:
+    """``rig run`` and ``rig qc run``: the lifecycle with the terminal's progress lines.
+    ``decide``: see :attr:`SessionRunner.decide`."""
     def progress(ctx: SessionContext) -> list[Subscriber]:
         if ctx.pace > 1.0:   # a simulator faster than the rig's own time
             console.print(f"the links run {ctx.pace:.3g} rig seconds per second: conditioning holds shorter "
                           f"than {prep.config.min_hold_s * ctx.pace:.0f} s are not planned (session.log has "
                           "the pace probe)", style="dim", highlight=False)
         return [ConsoleProgress(console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock)]
-    return run_lifecycle(prep, console, attach=progress)
+
+    def hand_over(runner: SessionRunner | None) -> None:
+        if runner is not None:
+            runner.decide = decide
+
+    return run_lifecycle(prep, console, attach=progress, on_runner=hand_over)
 
 
 # ----- the one lifecycle ------------------------------------------------------------------------------

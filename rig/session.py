@@ -73,7 +73,7 @@ class Session:
     @classmethod
     def create(cls, path: Path, *, plan_source: str, letters: list[str], periods: int | None, date: str | None,
                snapshot: dict[str, str], unit: dict[str, str], endpoints: dict[str, str],
-               identify: dict[str, Any] | None = None) -> Session:
+               identify: dict[str, Any] | None = None, peers: dict[str, Any] | None = None) -> Session:
         """``identify``: the fit asked for after the capture, kept so that a resume after a
         crash still does it."""
         path = Path(path)
@@ -86,11 +86,13 @@ class Session:
                                (json.dumps(_software(), indent=2) + "\n").encode())
         except OSError as exc:  # a disk that says no only when asked (read-only, full, /proc)
             raise SessionError(f"--out {path}: cannot create the session folder ({exc.strerror or exc})") from None
-        meta = {"plan": plan_source, "experiments": letters, "periods": periods,
+        meta: dict[str, Any] = {"plan": plan_source, "experiments": letters, "periods": periods,
                 "date": date or _dt.date.today().strftime("%y%m%d"), "status": "running",
                 "started": _dt.datetime.now().isoformat(timespec="seconds"), "endpoints": endpoints}
         if identify:
             meta["identify"] = identify
+        if peers:   # who answered on the links, one entry per connection (a resume adds one)
+            meta["peers"] = [peers]
         manifest = {"format": FORMAT, "name": f"shaker session {meta['date']} ({plan_source} plan)", "unit": unit,
                     "experiments": []}
         session = cls(path, meta, manifest)
@@ -118,9 +120,12 @@ class Session:
                                    "is missing")
         return cls(path, meta, manifest)
 
-    def reopen(self) -> None:
-        """Mark a loaded session as running again (the resume is on record)."""
+    def reopen(self, peers: dict[str, Any] | None = None) -> None:
+        """Mark a loaded session as running again (the resume is on record, with who
+        answered on the links this time)."""
         self.meta["status"] = "running"
+        if peers:
+            self.meta.setdefault("peers", []).append(peers)
         self.meta.setdefault("resumed", []).append(_dt.datetime.now().isoformat(timespec="seconds"))
         self._save_meta()
 

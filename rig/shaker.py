@@ -25,6 +25,7 @@ from rig.clock import WALL_CLOCK, Clock
 from rig.config import Limits
 from rig.errors import AddressError, BadInput, RigFault
 from rig.events import LinkCondition, LinkNotice
+from rig.peer_identity import OBJECT_NAMES
 from rig.registers import RegisterMap, load_register_map
 
 EXCEPTION_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
@@ -230,6 +231,24 @@ class Shaker:
                             self.map.alarms[alarm] if alarm < len(self.map.alarms) else f"alarm {alarm}",
                             raw["position"], raw["force"], int(raw["cycles"]), raw["hydraulic_pressure"])
 
+    def identify(self) -> dict[str, str]:
+        """Who the controller says it is: the Modbus device identification objects where it
+        offers them (basic and regular), and the map's firmware register."""
+        found: dict[str, str] = {}
+        try:
+            info = self._call("read_device_information", read_code=0x02, object_id=0x00,
+                              what="read device identification")
+        except ShakerLinkError:
+            raise
+        except ShakerError:
+            info = {}   # not offered (illegal function): the firmware register alone identifies it
+        for key, value in info.items():
+            text = value.decode("ascii", "replace") if isinstance(value, bytes) else str(value)
+            found[OBJECT_NAMES.get(key, f"object_{key}")] = text.strip()
+        if "firmware" in {f.name for f in self.map.table("inputs")}:
+            found["firmware"] = f"{self._read('inputs')['firmware']:.2f}"
+        return found
+
     def hydraulics(self, on: bool) -> None:
         if on:
             self._may_move("hydraulics on")
@@ -354,6 +373,8 @@ class Shaker:
                     code = int(getattr(result, "exception_code", 0) or 0)
                     raise ShakerError(f"controller refused {what or method} "
                                       f"(Modbus exception {code}: {EXCEPTION_NAMES.get(code, 'unknown')})")
+                if method == "read_device_information":
+                    return result.information
                 return result.bits if method.endswith("coils") else result.registers
 
     def _reconnect(self) -> None:

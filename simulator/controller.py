@@ -56,6 +56,12 @@ INPUTS = ("state", "alarm", "position", "force", "cycles", "hydraulic_pressure",
 SIGNED_INPUTS = {"position", "force"}
 
 FIRMWARE = 123                 # version 1.23
+# What the simulator answers to Modbus Read Device Identification (0x2B/0x0E, basic and
+# regular objects): it says it is a simulator, so that no record of a test on it can pass
+# for one made on hardware.
+DEVICE_IDENTIFICATION = {"VendorName": "damper-rig", "ProductCode": "SIMULATOR",
+                         "MajorMinorRevision": f"{FIRMWARE // 100}.{FIRMWARE % 100:02d}",
+                         "ProductName": "shaker controller simulator", "ModelName": "SIMULATOR"}
 ACTUATOR_TRAVEL_M = 0.300      # ± mechanical travel of the actuator
 MOVE_SPEED_M_S = 0.050         # peak speed of the profile for moves to a static position
 FLOW_LIMIT_M_S = 0.6           # hydraulic flow: peak velocity of a waveform

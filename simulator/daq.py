@@ -194,7 +194,8 @@ class DaqDevice:
     def __init__(self, port: Port, *, now: Callable[[], float], log: FaultLog, speed: float = 1.0,
                  seed: int = 0, serial: str = "SIM0001", firmware: str = "1.00") -> None:
         self.port, self._now, self._log, self.speed = port, now, log, speed
-        self.identity = f"DAQ4,{serial},{firmware}"
+        # The fourth field says it is a simulator (a real DAQ4 answers three fields).
+        self.identity = f"DAQ4,{serial},{firmware},SIMULATOR"
         self.rate_hz = 1000
         self.streaming = False
         self.corrupt_probability = 0.0

@@ -13,12 +13,13 @@ import logging
 import threading
 from collections.abc import Sequence
 
+from pymodbus import ModbusDeviceIdentification
 from pymodbus.constants import ExcCodes
 from pymodbus.datastore import ModbusServerContext
 from pymodbus.framer import FramerType
 from pymodbus.server import ModbusSerialServer, ModbusTcpServer
 
-from simulator.controller import AddressError, RegisterError, ShakerController
+from simulator.controller import DEVICE_IDENTIFICATION, AddressError, RegisterError, ShakerController
 
 UNIT_ID = 1
 _READ = {1: "coils", 3: "holding", 4: "inputs"}
@@ -73,6 +74,11 @@ class ControllerContext(ModbusServerContext):
         return [UNIT_ID]
 
 
+def identity() -> ModbusDeviceIdentification:
+    """The controller's answer to Read Device Identification (it names itself a simulator)."""
+    return ModbusDeviceIdentification(info_name=DEVICE_IDENTIFICATION)
+
+
 class ModbusEndpoint:
     """A pymodbus server in its own asyncio thread; can go away and come back (faults)."""
 
@@ -112,9 +118,9 @@ class ModbusEndpoint:
             return
         if self.serial_port:
             self._server = ModbusSerialServer(self.context, framer=FramerType.RTU, port=self.serial_port,
-                                              baudrate=115200)
+                                              baudrate=115200, identity=identity())
         else:
-            self._server = ModbusTcpServer(self.context, address=(self.host, self.port))
+            self._server = ModbusTcpServer(self.context, address=(self.host, self.port), identity=identity())
         await self._server.serve_forever(background=True)
         if not self.serial_port and self.port == 0:
             # pymodbus types a listener's transport as BaseTransport; a TCP one is an asyncio.Server.

@@ -257,7 +257,7 @@ def qc_station(client, tmp_path_factory) -> tuple[list[Path], Path]:
                                                                  serial=f"SN-{seed:04d}"),
                              folders, *zip(*QC_UNITS.values(), strict=True), pure=False))
     db = root / "records.sqlite"
-    Records.open(str(db)).close()   # one process creates the schema; the judges then write side by side
+    Records.open(str(db), create=True).close()   # one process creates the schema; the judges write side by side
     verdicts = client.gather(client.map(lambda folder: qc_judge(folder, "default", str(db), "qe"), folders[:2],
                                         pure=False))
     assert verdicts == [0, 1]      # PASS, FAIL (gas leak)
@@ -312,7 +312,7 @@ def test_db_re_judges_only_where_the_spec_applies_and_reports_what_it_could_not_
     other = _batch_db(client, folders[:1], tmp_path / "other", str(pristine), "theta3", "theta5", "theta6")
     assert other.returncode == 0, other.stdout + other.stderr
     assert "0 sessions re-judged, 0 re-judged before, 0 without a QC record, 1 not re-judged, 0 failed" in other.stdout
-    assert ("1 not re-judged (good-3): spec default 1.0.0 estimates theta15, theta3, theta5, theta6, theta8; "
+    assert ("1 not re-judged (good-3): spec default 1.2.0 estimates theta15, theta3, theta5, theta6, theta8; "
             "the batch theta3, theta5, theta6") in other.stdout
 
     with sqlite3.connect(pristine) as conn:               # a database that refuses every new record
@@ -365,7 +365,7 @@ def test_bad_input_is_one_line_and_exit_2(args, message, tmp_path, capsys):
 
 @pytest.mark.parametrize("db, message", [
     ("{tmp}/missing.sqlite", "--db: records database sqlite:///{tmp}/missing.sqlite does not exist"),
-    ("sqlite:///{tmp}/missing.sqlite", "does not exist (qc run and qc judge create one"),
+    ("sqlite:///{tmp}/missing.sqlite", "does not exist (qc run creates it"),
     ("{tmp}/plain.sqlite", "--db: sqlite:///{tmp}/plain.sqlite is not a QC records database (no qc_schema table)"),
     ("mysql://qe@db.plant/qc", "unsupported database 'mysql' (sqlite or postgresql)"),
     ("postgresql://qe:s3cret@127.0.0.1:{port}/qc", "records database postgresql+psycopg://qe:***@127.0.0.1"),
@@ -385,7 +385,7 @@ def test_a_database_that_is_not_there_is_one_line_and_exit_2_before_any_fit(db, 
 def test_without_the_records_sink_installed_db_is_one_line_and_exit_2(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(sinks, "GROUP", "identify.result_sinks.none")   # as if identify were installed alone
     db = tmp_path / "records.sqlite"
-    Records.open(str(db)).close()
+    Records.open(str(db), create=True).close()
     assert main(["batch", str(tmp_path / "unit"), "--estimate", "theta4", "--out", str(tmp_path / "out"),
                  "--db", str(db)]) == 2
     err = capsys.readouterr().err

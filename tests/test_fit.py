@@ -60,7 +60,8 @@ def test_predict_writes_the_model_columns_on_the_record_time_base(standard_datas
 @pytest.mark.slow
 def test_silverbox_duffing_spectral(tmp_path):
     start = tmp_path / "start.json"
-    start.write_text(json.dumps({"model": "duffing", "parameters": {"m": 1e-5, "d": 1e-3, "k": 1.0, "k3": 1.0}}))
+    start.write_text(json.dumps({"model": "duffing", "parameters": {"m": 1e-5, "d": 1e-3, "k": 1.0, "k3": 1.0,
+                                                             "k2": {"value": 0.0, "prior_std": 1.0}}}))
     result = tmp_path / "result.json"
     proc = subprocess.run([sys.executable, "-m", "identify", "fit", str(SILVERBOX), "--model", "duffing",
                            "--scheme", "spectral", "--n", "1024", "--params", str(start),

@@ -10,6 +10,7 @@ import json
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 from pymodbus.client import ModbusTcpClient
@@ -97,6 +98,15 @@ def test_plan_to_the_end_fills_the_fit_table(qtbot, tmp_path, relaxed_config):
     qtbot.waitUntil(lambda: table.rowCount() == 3, timeout=HANG_MS)
     assert [table.item(i, 0).text().split()[0] for i in range(3)] == ["theta4", "theta6", "theta16"]
     assert "converged" in window.fit_view.title.text()
+    # Numbers by their uncertainty: σ to two significant digits, the value to the same place; units in Unicode.
+    for i in range(3):
+        value, std = table.item(i, 1).text(), table.item(i, 2).text()
+        assert len(std.lstrip("0.").replace(".", "")) == 2, std
+        assert len(value.split(".")[-1]) == len(std.split(".")[-1]) if "." in std else "." not in value, (value, std)
+    assert table.item(0, 4).text() == "m²"
+    # The session folder field shows the session the fit is of, until Run asks for the next one.
+    assert window.plan.folder.text() == str(folder) and folder.name in window.fit_view.title.text()
+    assert window.plan.run_folder() != folder
     assert [row_status(window, i) for i in range(2)] == ["done", "done"]
     experiments = find(window, QtWidgets.QTableWidget, "experimentTable")
     assert [experiments.item(i, 4).text() for i in range(2)] == ["done", "done"]
@@ -145,7 +155,11 @@ def test_estop_during_settling_stops_motion_and_hydraulics_within_0_3_s(qtbot, t
         assert client.read_input_registers(2, count=1).registers[0] == position
         assert client.read_coils(0, count=1).bits[0] is False
         # Latched until the operator confirms a reset: hydraulics on is refused, nothing sent.
-        qtbot.mouseClick(find(window, QtWidgets.QPushButton, "hydraulicsOnButton"), QtCore.Qt.MouseButton.LeftButton)
+        # The console disables the control and says why; the driver's latch refuses it as well.
+        button = find(window, QtWidgets.QPushButton, "hydraulicsOnButton")
+        qtbot.waitUntil(lambda: not button.isEnabled(), timeout=HANG_MS)
+        assert "E-STOP pressed at" in button.toolTip()
+        window.manual._do(window.station.hydraulics(True, window.status))
         assert "E-STOP pressed at" in find(window, QtWidgets.QLabel, "refusalLabel").text()
         status_reads(qtbot, window, 2)
         assert client.read_coils(0, count=1).bits[0] is False
@@ -210,7 +224,12 @@ def test_browser_opens_a_session_written_by_rig_run_and_refits_it(qtbot, tmp_pat
     assert "complete" in find(window, QtWidgets.QLabel, "browserSummary").text()
     experiments = find(window, QtWidgets.QTableWidget, "browserExperiments")
     assert experiments.rowCount() == 1 and experiments.item(0, 0).text().endswith("j")
-    assert "session-start" in find(window, QtWidgets.QPlainTextEdit, "browserLog").toPlainText()
+    assert experiments.isColumnHidden(experiments.columnCount() - 1)          # no flags: no flags column
+    plots = [window.browser.plot.getItem(row, 0) for row in range(4)]
+    assert [p.getAxis("left").labelText.split(" [")[0] for p in plots] == ["stroke", "force", "gas p", "gas T"]
+    assert plots[0].listDataItems()[0].xData[0] == 0.0                         # time from the record's start
+    log = find(window, QtWidgets.QPlainTextEdit, "browserLog").toPlainText()     # session.log read as sentences
+    assert "Session started: controller at" in log and log.rstrip().endswith("Session complete."), log
     assert "[[Variables]]" in find(window, QtWidgets.QPlainTextEdit, "browserReport").toPlainText()
     assert find(window, QtWidgets.QTableWidget, "browserParameters").rowCount() == 3
     window.browser.model.setCurrentText("1dof")
@@ -252,7 +271,7 @@ def test_closing_mid_run_is_a_safe_stop_and_the_session_resumes(qtbot, tmp_path,
 
 
 def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path):
-    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--out", str(tmp_path))
+    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--unit", "worn-orifice", "--out", str(tmp_path))
     connected(qtbot, window)
     verdict = find(window, QtWidgets.QLabel, "verdictLabel")
     window.qc.serial.setText("SN-4242")
@@ -261,11 +280,19 @@ def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path
     assert window.left_tabs.currentWidget() is window.qc
     qtbot.waitUntil(lambda: window.qc.last is not None, timeout=HANG_MS)
     done = window.qc.last
-    assert done.shown in ("PASS", "FAIL", "RETEST"), (done, window.simulated.log()[-500:])
+    assert done.shown == "FAIL", (done, window.simulated.log()[-500:])       # a worn orifice: --unit reached the rig
     assert verdict.text() == done.shown
+    assert window.qc.progress.value() > 0                                    # the progress bar moved while it ran
+    # The table as the report shows it (every number with its unit), the likely cause in full.
+    table = window.qc.table
+    rows = [[table.item(i, j).text() for j in range(table.columnCount())] for i in range(table.rowCount())]
+    assert len(rows) == 5 and rows[1][0] == "Damping force at 0.3 m/s" and rows[1][4] == "FAIL"
+    assert all(cell.endswith((" bar", " N", " J", " kN", " %")) for row in rows for cell in row[1:4])
+    causes = find(window, QtWidgets.QLabel, "qcCauses").text()
+    assert "Damping force at 0.3 m/s too low: orifice wear or wrong oil" in causes and "SIMULATED" in causes
     # The record `rig qc run` writes, with the same verdict (RETEST is the INCONCLUSIVE's remedy).
     record = json.loads((done.report.parent / "qc-record.json").read_text())
-    assert {"PASS": "PASS", "FAIL": "FAIL", "RETEST": "INCONCLUSIVE"}[done.shown] == record["verdict"]
+    assert record["verdict"] == "FAIL" and record["simulated"] is True
     assert record["serial"] == "SN-4242" and record["status"] == "COMPLETE"
     assert done.report.parent.parent == (tmp_path / "qc").resolve() and done.report.is_file()
     assert done.report.resolve().as_uri() in find(window, QtWidgets.QLabel, "qcReportLink").text()
@@ -276,4 +303,146 @@ def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path
     qtbot.mouseClick(find(window, QtWidgets.QPushButton, "qcTestButton"), QtCore.Qt.MouseButton.LeftButton)
     assert verdict.text() == "REFUSED" and "format of spec" in find(window, QtWidgets.QLabel, "qcReason").text()
     assert not window.station.session_running and window.station.shaker is not None
+    closed(qtbot, window)
+
+
+MOTION_BUTTONS = ("hydraulicsOnButton", "moveButton", "sineButton", "runPlanButton", "resumeButton")
+
+
+def motion_disabled(window: MainWindow) -> dict[str, str]:
+    """The tooltip of every disabled motion control (an enabled one is left out)."""
+    buttons = {name: find(window, QtWidgets.QPushButton, name) for name in MOTION_BUTTONS}
+    return {name: b.toolTip() for name, b in buttons.items() if not b.isEnabled()}
+
+
+def test_after_estop_every_motion_control_is_disabled_until_the_reset_is_confirmed(qtbot, tmp_path, monkeypatch):
+    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--out", str(tmp_path))
+    connected(qtbot, window)
+    strip = find(window, QtWidgets.QLabel, "stateStrip")
+    qtbot.waitUntil(lambda: "HYDRAULICS OFF" in strip.text(), timeout=10_000)
+    # Hydraulics off: nothing can move, but the hydraulics may be switched on.
+    assert set(motion_disabled(window)) == {"moveButton", "sineButton"}
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "hydraulicsOnButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: "IDLE" in strip.text() and "HYDRAULICS ON" in strip.text(), timeout=10_000)
+    assert motion_disabled(window) == {}
+    window.manual.sine_amplitude.setValue(10.0)
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "sineButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: strip.text().startswith("RUNNING"), timeout=10_000)
+
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "estopButton"), QtCore.Qt.MouseButton.LeftButton)
+    assert window.station.emergency.wait(10) is not None
+    status_reads(qtbot, window, 2)          # the registers read after the E-STOP's writes
+    disabled = motion_disabled(window)
+    assert set(disabled) == set(MOTION_BUTTONS)
+    assert all(tip.startswith("Disabled: E-STOP") for tip in disabled.values()), disabled
+    assert strip.text().startswith("ALARM") and "HYDRAULICS OFF" in strip.text()
+    banner = find(window, QtWidgets.QLabel, "alarmBanner").text()
+    assert "hydraulics OFF" in banner and "holds the position" not in banner
+
+    answers = [QtWidgets.QMessageBox.StandardButton.No]
+    monkeypatch.setattr(QtWidgets.QMessageBox, "question", lambda *a, **k: answers[-1])
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "resetButton"), QtCore.Qt.MouseButton.LeftButton)
+    status_reads(qtbot, window, 2)
+    assert set(motion_disabled(window)) == set(MOTION_BUTTONS)       # not confirmed: still latched
+    assert strip.text().startswith("ALARM") and "HYDRAULICS OFF" in strip.text()
+    answers.append(QtWidgets.QMessageBox.StandardButton.Yes)
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "resetButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: strip.text().startswith("OFF"), timeout=5_000)
+    assert "HYDRAULICS OFF" in strip.text()
+    disabled = motion_disabled(window)
+    assert set(disabled) == {"moveButton", "sineButton"}
+    assert all("hydraulics OFF" in tip for tip in disabled.values()), disabled
+    closed(qtbot, window)
+
+
+def counters_in_this_frame(window: MainWindow) -> dict[str, Any]:
+    """What the operator reads of the experiment running now, all from the same frame."""
+    progress = window.plan.progress
+    assert progress is not None
+    row = progress.current
+    i = progress.rows.index(row) if row is not None else 0
+    return {"row": row, "table": window.plan.table.item(i, 4).text(),
+            "steady": find(window, QtWidgets.QLabel, "settleCycles").text(),
+            "controller": find(window, QtWidgets.QLabel, "controller_cycles").text(),
+            "capture": find(window, QtWidgets.QProgressBar, "captureProgress"),
+            "left": window.plan.table.item(i, 5).text(), "eta": find(window, QtWidgets.QLabel, "sessionEta").text()}
+
+
+def test_the_counters_agree_within_one_cycle_in_the_same_frame(qtbot, tmp_path, relaxed_config):
+    window = open_window(qtbot, "--simulate", "--speed", "20", "--experiments", "h", "--out", str(tmp_path),
+                         "--rig-config", str(relaxed_config))
+    connected(qtbot, window)
+    window.plan.identify.setChecked(False)
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "runPlanButton"), QtCore.Qt.MouseButton.LeftButton)
+    rate = window.station.config.daq_rate_hz
+    seen = {"settling": 0, "capturing": 0}
+
+    def check() -> bool:
+        shown = counters_in_this_frame(window)
+        row = shown["row"]
+        if row is None or row.status not in seen or row.samples is None:
+            return False
+        # the cycles the DAQ's stream has seen after the fade-in, as the acquisition counts them
+        counted = (row.samples - row.lead_samples) * row.spec.frequency_hz / rate
+        if row.status == "settling" and str(shown["table"]).startswith("settling "):
+            settling = int(str(shown["table"]).split()[1])
+            assert f"settling {settling} cycles" in str(shown["steady"]), shown
+            assert abs(counted - settling) <= 1, (counted, shown)
+        elif row.status == "capturing" and str(shown["table"]).startswith("capturing "):
+            percent = str(shown["table"]).split()[1]
+            bar = shown["capture"]
+            assert bar.isVisible() and f"({percent} %)" in bar.text() and f"({percent} %)" in str(shown["steady"])
+            period = int(bar.text().split("capturing period ")[1].split()[0])
+            assert abs(counted - row.settled_at - (period - 0.5)) <= 1, (counted, shown)
+        else:
+            return False
+        # the time left in the table is the one the session line gives for this experiment
+        assert f"{row.label}: wall {shown['left']} m:s" in str(shown["eta"]), shown
+        seen[row.status] += 1
+        return seen["settling"] >= 3 and seen["capturing"] >= 1
+
+    qtbot.waitUntil(check, timeout=180_000)
+    qtbot.waitUntil(lambda: not window.station.session_running, timeout=120_000)
+    closed(qtbot, window)
+
+
+def test_the_loop_plots_show_a_placeholder_when_no_excitation_runs(qtbot, tmp_path):
+    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--out", str(tmp_path))
+    connected(qtbot, window)
+    live = window.live
+    energy = find(window, QtWidgets.QLabel, "loopEnergy")
+
+    def placeholders_shown() -> bool:
+        return (all(t.isVisible() and t.toPlainText().startswith("no cycle yet") for t in live.placeholders)
+                and not live.loop_plot.getAxis("left").isVisible() and live.loop.getData()[0] is None
+                and "no cycle yet" in energy.text())
+
+    qtbot.waitUntil(lambda: live.history.n > 0, timeout=10_000)
+    assert placeholders_shown()
+    # At rest each trace spans at least its channel's minimum (rig configuration), not the noise.
+    qtbot.waitUntil(lambda: all(p.getViewBox().viewRange()[1][1] - p.getViewBox().viewRange()[1][0] >= span
+                                for p, span in zip(live.trace_plots, live.min_span, strict=True)), timeout=10_000)
+    assert live.min_span[0] == window.station.config.min_span["stroke_mm"] > 0
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "hydraulicsOnButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: window.status is not None and window.status.state == "IDLE", timeout=10_000)
+    assert placeholders_shown()             # pressure on, nothing moving: still no cycle
+    window.manual.sine_frequency.setValue(2.0)
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "sineButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: not any(t.isVisible() for t in live.placeholders), timeout=30_000)
+    assert live.loop_plot.getAxis("left").isVisible() and "J (mean of the last" in energy.text()
+    # The loop's range is the loop's: it holds the force drawn, not an old range.
+    (_, _), (y0, y1) = live.loop_plot.getViewBox().viewRange()
+    assert y0 <= live.loop.yData.min() and live.loop.yData.max() <= y1
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "stopButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(placeholders_shown, timeout=30_000)
+
+
+def test_a_rig_reached_by_address_that_says_it_is_a_simulator_gets_the_banner(qtbot, tmp_path, virtual_rig):
+    sim = virtual_rig(speed=float(SPEED))
+    window = open_window(qtbot, "--shaker", sim.modbus_url, "--daq", sim.daq_url, "--out", str(tmp_path))
+    label = find(window, QtWidgets.QLabel, "simulatedLabel")
+    assert not label.isVisible()                         # not started with --simulate: nothing known yet
+    connected(qtbot, window)
+    qtbot.waitUntil(label.isVisible, timeout=30_000)
+    assert "identifies itself as a simulator" in label.text() and "SIMULATED RIG" in window.windowTitle()
     closed(qtbot, window)

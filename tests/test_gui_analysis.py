@@ -93,7 +93,9 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     row = ExperimentRow(load_plan("standard").experiments[0], "261124a", 100.0)
     change = {"stroke_mm": 1e-4, "force_N": 0.5, "pressure_bar": 0.002, "gas_temperature_C": 0.04}
     row.settling = [(40, change | {"bias_sigma": 4 * fraction}), (50, change | {"bias_sigma": 2 * fraction})]
+    row.status, row.cycles = "settling", 50
     view.show_row(row)
+    view.show_count(row)
     assert f"up to {2 * fraction:.2f} σ; captures below {fraction:g} σ" in view.bound.text()
     assert "predicted cycles left: 10" in view.cycles.text()     # halves every 10 cycles: 10 more
     assert view.bars[3].property("colour") == "#9e9e9e"          # 13x its change threshold: no verdict
@@ -106,3 +108,25 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     assert plain.title() == "Steady state (change criterion)"
     plain.show_row(row)
     assert plain.bars[3].property("colour") == "#fb8c00"
+
+
+def test_a_new_excitation_starts_the_loops_afresh():
+    """The loops take only the samples after the mark a new excitation sets; a new stream
+    (the DAQ restarted at a session's RUN) starts with no mark."""
+    from rig.daq import RingBuffer
+    from rig.gui.live import LiveHistory
+
+    class Source:
+        ring = RingBuffer(1000)
+
+    history, daq = LiveHistory(100.0, seconds=5.0), Source()
+    daq.ring.append(np.arange(300), np.zeros((300, 4)))
+    assert history.update(daq) and history.since_mark() == 300
+    history.set_mark()
+    assert history.since_mark() == 0
+    daq.ring.append(np.arange(300, 350), np.ones((50, 4)))
+    history.update(daq)
+    assert history.since_mark() == 50
+    daq.ring.append(np.arange(20), np.ones((20, 4)))          # a new stream
+    history.update(daq)
+    assert history.n == 20 and history.since_mark() == 20

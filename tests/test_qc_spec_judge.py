@@ -11,6 +11,9 @@ import numpy as np
 import pytest
 
 from identify.model import load_model
+from identify.parameters import Parameters
+from identify.plans import ExperimentSpec
+from rig.imposed import loop_energy_j
 from rig.qc.characteristics import drop_peak_force, gas_pressure, loop_energy
 from rig.qc.judge import Outcome, decide
 from rig.qc.spec import SPECS_DIR, load_spec
@@ -58,13 +61,16 @@ def test_the_default_spec_describes_the_nominal_damper(tmp_path):
     from simulator.generate import generate
     from simulator.truth import load_truth
 
-    letter = c["dissipated_energy_J"].args["experiment"]
-    plan = [e for e in spec.plan.experiments if e.letter == letter]
+    # the designed plan does not run the energy's experiment: its conditions are in the spec
+    a = c["dissipated_energy_J"].args
+    plan = [ExperimentSpec(a["experiment"], "", a["static_mm"], a["amplitude_mm"], a["frequency_Hz"], periods=4)]
     out = generate(tmp_path / "nominal", plan, load_truth(), periods=None, noise_scale=0.0, date="261122")
     from identify.dataset import read_dataset
 
     (exp,) = read_dataset(out).experiments
     assert loop_energy(exp)[0] == pytest.approx(c["dissipated_energy_J"].nominal, rel=1e-3)
+    # and the model's value there is the measured one
+    assert loop_energy_j(Parameters(model), plan[0]) == pytest.approx(c["dissipated_energy_J"].nominal, rel=1e-3)
     # every judged characteristic carries its likely cause for a FAIL on the side the faults push it
     for name, side in (("gas_precharge_bar", "low"), ("friction_10bar_N", "high"), ("damping_force_0.3_N", "low")):
         assert spec.cause(name, side)
@@ -90,7 +96,10 @@ def spec_with(tmp_path: Path, old: str, new: str) -> str:
 BAD_SPECS = {
     "unknown key": ('tolerance_percent = 5\n', 'tolerance_percnt = 5\n', "unknown key 'tolerance_percnt'"),
     "unit of another dimension": ('unit = "bar"', 'unit = "N"', "unit 'N' is not a unit of pressure"),
-    "energy of a missing experiment": ('experiment = "v"', 'experiment = "x"', "the plan has no experiment 'x'"),
+    "energy of a missing experiment": ('experiment = "v"\nstatic_mm = 133\namplitude_mm = 30\nfrequency_Hz = 2.0',
+                                       'experiment = "x"', "the plan has no experiment 'x'"),
+    "energy's conditions in part": ('amplitude_mm = 30\nfrequency_Hz = 2.0', 'amplitude_mm = 30',
+                                    "give all of static_mm, amplitude_mm, frequency_Hz"),
     "unknown parameter": ('"theta15"]', '"theta99"]', "has no parameter 'theta99'"),
     "not TOML": ('k = 2.0', 'k = ', "not valid TOML"),
     "cause of an unknown characteristic": ('characteristic = "friction_10bar_N"\nwhen = "high"',

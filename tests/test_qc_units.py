@@ -30,7 +30,7 @@ def unit_dataset(out: Path, unit: str | None, seed: int, params: Path | None = N
 
 def judge(capsys: pytest.CaptureFixture[str], session: Path, db: Path) -> tuple[int, str]:
     capsys.readouterr()
-    code = main(["qc", "judge", str(session), "--db", str(db), "--operator", "qe"])
+    code = main(["qc", "judge", str(session), "--db", str(db), "--create-db", "--operator", "qe"])
     return code, capsys.readouterr().out
 
 
@@ -47,7 +47,7 @@ def test_a_good_unit_passes_and_a_rejudgement_refers_to_the_first(tmp_path, caps
     assert (first.rejudges, second.rejudges) == (None, first.uid)
     assert first.data_sha256 == second.data_sha256 and first.uid != second.uid
     assert [c.outcome for c in first.characteristics] == ["PASS"] * len(SPEC.characteristics)
-    assert set(first.files) == {"dataset.json", "261122l.csv", "261122v.csv", "261122s.csv"}
+    assert set(first.files) == {"dataset.json", *(f"261122{e.letter}.csv" for e in SPEC.plan.experiments)}
     reports = sorted(session.glob("qc-report-*.html"))
     assert len(reports) == 2                                   # the first report is not overwritten
     assert "PASS" in reports[0].read_text() and "data:image/png;base64," in reports[0].read_text()
@@ -68,8 +68,9 @@ def test_a_faulty_unit_fails_on_its_characteristic_and_names_the_cause(unit, tmp
     (record,) = Records.open(str(tmp_path / "records.sqlite")).find()
     failed = {c.name for c in record.characteristics if c.outcome == "FAIL"}
     assert failed & set(PHYSICAL) == {name}, record.characteristics
-    assert f"{name} too {side}: {cause}" in record.diagnosis
-    assert f"likely cause: {name} too {side}: {cause}" in out
+    title = next(c.title for c in SPEC.characteristics if c.name == name)
+    assert f"{title} too {side}: {cause}" in record.diagnosis
+    assert f"likely cause: {title} too {side}: {cause}" in out
 
 
 @pytest.mark.parametrize(("parameter", "characteristic"), [("theta5", "gas_precharge_bar"),
@@ -87,7 +88,7 @@ def test_a_unit_exactly_on_a_limit_is_not_a_pass(parameter, characteristic, tmp_
     (record,) = Records.open(str(tmp_path / "records.sqlite")).find()
     outcome = {c.name: c.outcome for c in record.characteristics}
     assert outcome[characteristic] == "INCONCLUSIVE" and record.verdict == "INCONCLUSIVE" and code == 4, out
-    assert record.remedy and "--periods 8" in record.remedy
+    assert record.remedy and f"--periods {SPEC.retest_periods()}" in record.remedy
 
 
 def test_the_unit_option_overrides_are_those_of_the_truth_file(tmp_path):

@@ -145,10 +145,10 @@ def test_swapped_addresses_are_named_in_one_line_and_the_simulator_goes_on(virtu
     assert r.returncode == 3 and "Traceback" not in r.stderr, r.stderr
     (line,) = r.stderr.strip().splitlines()
     assert line == (f"error: the two addresses look swapped: at the controller's address {shaker} a DAQ answered "
-                    f"(DAQ4,SIM0001,1.00), at the DAQ's address {daq} a Modbus controller in state OFF answered; "
-                    "nothing was moved")
+                    f"(DAQ4,SIM0001,1.00,SIMULATOR), at the DAQ's address {daq} a Modbus controller in state OFF "
+                    "answered; nothing was moved")
     assert not out.exists()
-    assert probe_daq(sim.daq_url) == "DAQ4,SIM0001,1.00"       # the DAQ took the Modbus bytes and goes on
+    assert probe_daq(sim.daq_url) == "DAQ4,SIM0001,1.00,SIMULATOR"       # the DAQ took the Modbus bytes and goes on
 
     # The console's Connect says the same in its one line.
     posted: list[object] = []
@@ -159,7 +159,7 @@ def test_swapped_addresses_are_named_in_one_line_and_the_simulator_goes_on(virtu
         station.close()
     assert [p.text for p in posted if isinstance(p, Notice) and p.level == "error"] == \
         [f"connect failed: {line.removeprefix('error: ')}"]
-    assert probe_daq(sim.daq_url) == "DAQ4,SIM0001,1.00"
+    assert probe_daq(sim.daq_url) == "DAQ4,SIM0001,1.00,SIMULATOR"
     log = sim.stop()
     assert "hydraulics on" not in log and "Traceback" not in log, log
 

@@ -36,10 +36,11 @@ from rig.registers import load_register_map
 from rig.run import Links, RunOptions, RunResult, SessionRunner, prepare, run_lifecycle
 from rig.session import Session, SessionLog
 from rig.shaker import Shaker
-from simulator.controller import ShakerController
+from simulator.controller import DEVICE_IDENTIFICATION, ShakerController
 from simulator.engine import PHYSICS_RATE_HZ, VirtualRig
 from simulator.faults import FaultLog, parse_fault
 from simulator.modbus import ControllerContext
+from simulator.physics import Damper
 from simulator.truth import load_truth
 
 # Steady-state criteria loose enough that j settles after about half a minute of simulated
@@ -147,6 +148,11 @@ class _DeviceEnd:
 
 
 # ----- the controller's Modbus link --------------------------------------------------------------------
+# Read Device Identification's object ids (Modbus application protocol 6.21)
+OBJECT_IDS = {"VendorName": 0, "ProductCode": 1, "MajorMinorRevision": 2, "VendorUrl": 3, "ProductName": 4,
+              "ModelName": 5}
+
+
 @dataclass
 class ModbusResponse:
     """The parts of a pymodbus response that rig.shaker reads."""
@@ -154,6 +160,7 @@ class ModbusResponse:
     registers: list[int] = field(default_factory=list)
     bits: list[bool] = field(default_factory=list)
     exception_code: int | None = None
+    information: dict[int, bytes] = field(default_factory=dict)
 
     def isError(self) -> bool:  # noqa: N802 — pymodbus's name
         return self.exception_code is not None
@@ -209,6 +216,13 @@ class InProcessModbusClient:
 
     def write_coil(self, address: int, value: bool, *, device_id: int = 1) -> ModbusResponse:
         return self._write(5, address, [value], device_id)
+
+    def read_device_information(self, *, read_code: int | None = None, object_id: int = 0,
+                                device_id: int = 1) -> ModbusResponse:
+        """What ``simulator serve`` answers (0x2B/0x0E): the basic and regular objects."""
+        self._check_link()
+        return ModbusResponse(information={OBJECT_IDS[name]: text.encode()
+                                           for name, text in DEVICE_IDENTIFICATION.items()})
 
     def _read(self, func_code: int, address: int, count: int, device_id: int) -> ModbusResponse:
         self._check_link()
@@ -293,12 +307,13 @@ class InProcessRig:
     heartbeat rig.shaker's thread would send (that thread waits on the wall clock), and
     the heartbeat gets through only while the Modbus link is up."""
 
-    def __init__(self, rig_config: Path, seed: int = 0) -> None:
+    def __init__(self, rig_config: Path, seed: int = 0, truth: Damper | None = None) -> None:
+        """``truth``: the simulated damper (default: the nominal one)."""
         self.rig_config = rig_config
         self.config = load_rig_config(rig_config)
         self.fault_log = FaultLog(sink=lambda line: None)
         self.line = SerialLine()
-        self.sim = VirtualRig(load_truth(), self.line.device, seed=seed, log=self.fault_log)
+        self.sim = VirtualRig(truth or load_truth(), self.line.device, seed=seed, log=self.fault_log)
         self.clock = SimClock(self.sim, self.line)
         self.sim.controller.wall_clock = self.clock.monotonic
         self.client = InProcessModbusClient(self.sim.controller, self.clock)

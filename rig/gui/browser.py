@@ -22,8 +22,10 @@ from rig.progress import log_text
 
 EXPERIMENT_COLUMNS = ("experiment", "f [Hz]", "static [mm]", "amplitude [mm]", "periods", "settle cycles",
                       "steady", "lost samples", "flags")
-PLOTTED = (("stroke_mm", "stroke [mm]", "#1f77b4"), ("force_N", "force [N]", "#d62728"),
-           ("pressure_bar", "gas pressure [bar]", "#2ca02c"))
+# (column, axis label, scale from the file's unit to the axis', colour): the live view's units and colours
+PLOTTED = (("stroke_mm", "stroke [mm]", 1.0, "#1f77b4"), ("force_N", "force [kN]", 1e-3, "#d62728"),
+           ("pressure_bar", "gas p [bar abs.]", 1.0, "#2ca02c"), ("gas_temperature_C", "gas T [°C]", 1.0, "#9467bd"))
+FLAGS_COLUMN = EXPERIMENT_COLUMNS.index("flags")
 
 
 class SessionBrowser(QtWidgets.QWidget):
@@ -35,6 +37,7 @@ class SessionBrowser(QtWidgets.QWidget):
         self.start_folder = start_folder
         self.folder: Path | None = None
         self.entries: list[dict[str, Any]] = []
+        self.resumable = False          # the folder shown is an unfinished session (the window gates the button)
 
         top = QtWidgets.QHBoxLayout()
         self.path = QtWidgets.QLineEdit()
@@ -63,7 +66,7 @@ class SessionBrowser(QtWidgets.QWidget):
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self.table.setSelectionBehavior(QtWidgets.QAbstractItemView.SelectionBehavior.SelectRows)
         self.table.horizontalHeader().setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
-        self.table.horizontalHeader().setStretchLastSection(True)
+        self.table.horizontalHeader().setStretchLastSection(True)     # the last shown: flags when there are any
         self.table.itemSelectionChanged.connect(self._plot_selected)
 
         self.plot = pg.GraphicsLayoutWidget()
@@ -150,10 +153,12 @@ class SessionBrowser(QtWidgets.QWidget):
                 f"<b>{raw.get('name', folder.name)}</b> — status <b>{status}</b>; plan {meta.get('plan')}, "
                 f"started {meta.get('started', '?')}, finished {meta.get('finished', '–')}; "
                 f"{len(manifest.experiments)} of {len(meta.get('experiments', []))} experiments captured")
-            self.resume_button.setEnabled(status != "complete")
+            self.resumable = status != "complete"
+            self.resume_button.setEnabled(self.resumable)
         else:
             self.summary.setText(f"<b>{raw.get('name', folder.name)}</b> — a dataset without session.json "
                                  f"({len(manifest.experiments)} experiments)")
+            self.resumable = False
             self.resume_button.setEnabled(False)
         self.table.setRowCount(len(self.entries))
         for i, e in enumerate(self.entries):
@@ -165,6 +170,8 @@ class SessionBrowser(QtWidgets.QWidget):
             for j, value in enumerate(cells):
                 self.table.setItem(i, j, QtWidgets.QTableWidgetItem(f"{value:g}" if isinstance(value, float)
                                                                     else str(value)))
+        # The flags column only where there are flags: empty, it took half the table's width.
+        self.table.setColumnHidden(FLAGS_COLUMN, not any(e.get("flags") for e in self.entries))
         log = folder / "session.log"
         self.log.setPlainText(log_text(log) if log.is_file() else "(no session.log)")
         self.report.setPlainText(_read_text(folder / "report.txt") or "(no report.txt: not identified yet)")
@@ -191,11 +198,16 @@ class SessionBrowser(QtWidgets.QWidget):
         except (OSError, ValueError, KeyError) as exc:
             self.plot.addLabel(f"cannot read the experiment's file: {exc}")
             return
-        t = data["time_s"].to_numpy()
+        time_s = data["time_s"].to_numpy()
+        t = time_s - time_s[0] if len(time_s) else time_s     # the record's own time, not the stream's
         first = None
-        for row, (column, label, colour) in enumerate(c for c in PLOTTED if c[0] in data.columns):
-            p = labelled(self.plot.addPlot(row=row, col=0), label, "time [s]")
-            curve = p.plot(t, np.asarray(data[column]), pen=pg.mkPen(colour, width=1), skipFiniteCheck=True)
+        plotted = [c for c in PLOTTED if c[0] in data.columns]
+        for row, (column, label, scale, colour) in enumerate(plotted):
+            p = labelled(self.plot.addPlot(row=row, col=0), label,
+                         "rig time from the record's start [s]" if row == len(plotted) - 1 else "")
+            p.getAxis("left").setWidth(62)
+            curve = p.plot(t, np.asarray(data[column]) * scale, pen=pg.mkPen(colour, width=1),
+                           skipFiniteCheck=True)
             curve.setDownsampling(auto=True, method="peak")
             if first is None:
                 first = p

@@ -20,14 +20,22 @@ class ControllerPanel(QtWidgets.QGroupBox):
     def __init__(self, watchdog_s: float, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__("Controller", parent)
         self.watchdog_s = watchdog_s
-        form = QtWidgets.QFormLayout(self)
+        # Two columns: the state strip above says the state from afar; this is the detail,
+        # and the plan table below needs the height.
+        grid = QtWidgets.QGridLayout(self)
+        grid.setVerticalSpacing(2)
         self.fields: dict[str, QtWidgets.QLabel] = {}
-        for key, title in (("state", "State"), ("alarm", "Alarm"), ("position", "Position"), ("force", "Force"),
-                           ("cycles", "Cycles"), ("supply", "Hydraulic pressure"), ("watchdog", "Watchdog")):
+        for i, (key, title) in enumerate((("state", "State"), ("position", "Position"), ("alarm", "Alarm"),
+                                          ("force", "Force"), ("supply", "Hydraulic pressure"),
+                                          ("cycles", "Cycles"), ("watchdog", "Watchdog"))):
             label = QtWidgets.QLabel("–")
             label.setObjectName(f"controller_{key}")
             self.fields[key] = label
-            form.addRow(title, label)
+            row, col = divmod(i, 2)
+            grid.addWidget(QtWidgets.QLabel(title), row, 2 * col)
+            grid.addWidget(label, row, 2 * col + 1, 1, 3 if key == "watchdog" else 1)
+        grid.setColumnStretch(1, 1)
+        grid.setColumnStretch(3, 1)
 
     def show_snapshot(self, snap: Snapshot) -> None:
         f = self.fields
@@ -42,7 +50,7 @@ class ControllerPanel(QtWidgets.QGroupBox):
         f["alarm"].setStyleSheet("color: #b00020; font-weight: bold" if st.state == "ALARM" else "")
         f["position"].setText(f"{st.position_m * 1e3:.2f} mm")
         f["force"].setText(f"{st.force_n / 1e3:.2f} kN")
-        f["cycles"].setText(str(st.cycles))
+        f["cycles"].setText(f"{st.cycles} since RUN" if st.state == "RUNNING" else str(st.cycles))
         f["supply"].setText(f"{st.hydraulic_pressure_pa / 1e5:.0f} bar")
         f["watchdog"].setText(f"{self.watchdog_s:g} s, fed by this program" if snap.heartbeat_ok
                               else "HEARTBEAT FAILING: the controller will trip")

@@ -13,6 +13,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from identify.notation import plus_minus, rounded, unit_text
 from identify.result import CORRELATION_REPORT, RELATIVE_STD_WARNING
 from rig.gui.fits import FitSummary
 from rig.gui.plotting import labelled
@@ -24,16 +25,17 @@ PARAMETER_COLUMNS = ("parameter", "value", "± std", "% std", "unit", "start")
 
 
 def fill_parameter_table(table: QtWidgets.QTableWidget, doc: dict[str, Any]) -> list[str]:
-    """The estimated parameters of a RESULT.json document; returns its warnings plus one
-    line per strongly correlated pair."""
+    """The estimated parameters of a RESULT.json document, each value to its std's decimal
+    place (σ to two significant digits, identify.notation) and its unit in Unicode;
+    returns its warnings plus one line per strongly correlated pair."""
     params = {k: p for k, p in doc.get("parameters", {}).items() if p.get("estimated")}
     table.setRowCount(len(params))
     for i, (name, p) in enumerate(params.items()):
         value, std = p["value"], p.get("std")
         rel = abs(std / value) if std is not None and value else math.nan
         title = f"{name} ({p['alias']})" if p.get("alias") else name
-        cells = (title, f"{value:.6g}", "–" if std is None else f"{std:.3g}",
-                 "–" if math.isnan(rel) else f"{100 * rel:.3g} %", p.get("unit", ""),
+        shown, sigma = rounded(value, std)
+        cells = (title, shown, sigma, "–" if math.isnan(rel) else f"{100 * rel:.2g} %", unit_text(p.get("unit", "")),
                  "" if p.get("initial") is None else f"{p['initial']:.6g}")
         for j, text in enumerate(cells):
             item = QtWidgets.QTableWidgetItem(text)
@@ -181,8 +183,8 @@ class FitView(QtWidgets.QWidget):
         self.compare_table.setRowCount(len(one.experiments))
         for i, (e1, e2) in enumerate(zip(one.experiments, two.experiments, strict=True)):
             (m1, s1), (m2, s2) = e1.stats("stroke_mm"), e2.stats("stroke_mm")
-            for j, text in enumerate((e1.label, f"{e1.frequency_hz:g}", f"{m1:+.4f} ± {2 * s1:.4f}",
-                                      f"{m2:+.4f} ± {2 * s2:.4f}")):
+            for j, text in enumerate((e1.label, f"{e1.frequency_hz:g}", plus_minus(m1, 2 * s1),
+                                      plus_minus(m2, 2 * s2))):
                 self.compare_table.setItem(i, j, QtWidgets.QTableWidgetItem(text))
         self.compare_table.setVisible(True)
         self.progress.setText("")
@@ -199,13 +201,18 @@ class FitView(QtWidgets.QWidget):
         if result is None or i < 0:
             return
         e = result.experiments[i]
+        # The legend in a row of its own above the plots: inside a plot it lay over the curves.
+        key = [("#1f77b4", "● measured (folded)"), ("#d62728", f"━ model {result.model}")]
+        if self.comparison is not None:
+            key.append(("#2ca02c", "╍ model 1dof"))
+        self.plots.addLabel("&nbsp;&nbsp;&nbsp;".join(f'<span style="color:{c}">{t}</span>' for c, t in key),
+                            row=0, col=0, colspan=len(result.outputs), size="10pt")
         for col, out in enumerate(result.outputs):
             n = len(e.measured[out])
             t = np.arange(n) / (n * e.frequency_hz)
             unit = UNITS.get(out, "")
-            p = labelled(self.plots.addPlot(row=0, col=col), f"{NAMES.get(out, out)} [{unit}]",
+            p = labelled(self.plots.addPlot(row=1, col=col), f"{NAMES.get(out, out)} [{unit}]",
                          "time in the period [s]", f"{e.label}: {NAMES.get(out, out)}")
-            p.addLegend(offset=(5, 5))
             p.plot(t, e.measured[out], pen=None, symbol="o", symbolSize=3, symbolPen=None,
                    symbolBrush=(31, 119, 180, 110), name="measured (folded)")
             model = p.plot(t, e.predicted[out], pen=pg.mkPen("#d62728", width=2), name=f"model {result.model}")
@@ -214,7 +221,7 @@ class FitView(QtWidgets.QWidget):
                 e1 = self.comparison["1dof"].experiments[i]
                 p.plot(t, e1.predicted[out], pen=pg.mkPen("#2ca02c", width=2, style=QtCore.Qt.PenStyle.DashLine),
                        name="model 1dof").setZValue(11)
-            r = labelled(self.plots.addPlot(row=1, col=col), f"residual [{unit}]", "time in the period [s]",
+            r = labelled(self.plots.addPlot(row=2, col=col), f"residual [{unit}]", "time in the period [s]",
                          "measured − model, ±2σ")
             sigma = math.sqrt(result.channel_variances[out])
             upper = r.plot(t[[0, -1]], [2 * sigma, 2 * sigma], pen=pg.mkPen("#9e9e9e", width=1))

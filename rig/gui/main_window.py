@@ -32,8 +32,9 @@ from rig.gui.fit_view import FitView
 from rig.gui.live import LiveView
 from rig.gui.options import ConsoleOptions
 from rig.gui.plan_panel import PlanPanel
-from rig.gui.qc import QcDone, QcRequest
+from rig.gui.qc import QcDone, QcProgress, QcRequest
 from rig.gui.qc_panel import QcPanel
+from rig.gui.state_strip import RigState, StateStrip, hydraulics_on
 from rig.gui.station import (
     ComparisonDone,
     FitDone,
@@ -82,6 +83,8 @@ class MainWindow(QtWidgets.QMainWindow):
         super().__init__()
         if args.simulate and (args.shaker or args.daq):
             raise BadInput("gui: either --simulate or --shaker/--daq, not both")
+        if (args.unit or args.faults) and not args.simulate:
+            raise BadInput("gui: --unit and --fault choose what the simulated rig plays: give --simulate too")
         # What the command line names is checked as `rig run` checks it: a typo is one line
         # and exit 2 before any window or simulator, not a message inside the window.
         load_plan(args.plan).select(comma_list(args.experiments))
@@ -94,7 +97,7 @@ class MainWindow(QtWidgets.QMainWindow):
         if args.simulate:
             # The simulated hardware yields the CPU to the console, as real hardware would not need it.
             self.simulated = VirtualRig(speed=args.speed, params=args.params, faults=list(args.faults),
-                                        nice=SIMULATOR_NICE)
+                                        unit=args.unit, nice=SIMULATOR_NICE)
             shaker, daq = self.simulated.modbus_url, self.simulated.daq_url
         self.queue: queue.Queue[object] = queue.Queue()
         try:
@@ -107,6 +110,8 @@ class MainWindow(QtWidgets.QMainWindow):
             raise
         self.status: ShakerStatus | None = None
         self.estop_text: str | None = None          # latched until the operator resets
+        self.alarm_latched: str | None = None       # an alarm seen, latched here until the operator resets
+        self.link_error: str | None = None
         self._closing = False
         self._last_redraw = 0.0
         self._last_table = 0.0
@@ -164,8 +169,10 @@ class MainWindow(QtWidgets.QMainWindow):
         banner_row = QtWidgets.QHBoxLayout()
         banner_row.addWidget(self.banner, 1)
         banner_row.addWidget(self.reset_button)
+        unit = f", unit {args.unit}" if args.unit else ""
         self.sim_label = QtWidgets.QLabel(
-            f"SIMULATED RIG (python -m simulator serve at {args.speed:g}x, not hardware)" if self.simulated else "")
+            f"SIMULATED RIG (python -m simulator serve at {args.speed:g}x{unit}, not hardware)" if self.simulated
+            else "")
         self.sim_label.setObjectName("simulatedLabel")
         self.sim_label.setStyleSheet("background: #fff3cd; color: #7a5200; font-weight: bold; padding: 3px")
         self.sim_label.setVisible(self.simulated is not None)
@@ -178,6 +185,7 @@ class MainWindow(QtWidgets.QMainWindow):
         header = QtWidgets.QHBoxLayout()
         header.addLayout(head, 1)
         header.addWidget(self.estop_button)
+        self.strip = StateStrip()
 
         st = self.station
         self.controller = ControllerPanel(st.config.limits.watchdog_timeout_s)
@@ -203,7 +211,7 @@ class MainWindow(QtWidgets.QMainWindow):
         left_layout.addWidget(self.controller)
         left_layout.addWidget(self.left_tabs, 1)
 
-        self.live = LiveView(st.config.daq_rate_hz)
+        self.live = LiveView(st.config.daq_rate_hz, st.config.min_span)
         self.fit_view = FitView()
         self.fit_view.compareRequested.connect(self.compare)
         self.browser = SessionBrowser(Path(args.out))
@@ -230,10 +238,15 @@ class MainWindow(QtWidgets.QMainWindow):
         central = QtWidgets.QWidget()
         layout = QtWidgets.QVBoxLayout(central)
         layout.addLayout(header)
+        layout.addWidget(self.strip)
         layout.addWidget(split, 1)
         layout.addWidget(self.log)
         self.setCentralWidget(central)
         self.resize(1600, 1000)
+        self._motion = {"hydraulics_on": self.manual.hyd_on, "move": self.manual.move_button,
+                        "sine": self.manual.sine_button, "run_plan": self.plan.run_button,
+                        "resume": self.plan.resume_button, "qc_test": self.qc.test_button}
+        self._tooltips = {name: button.toolTip() for name, button in self._motion.items()}
         self._show_banner()
 
     # ----- operator actions ------------------------------------------------------------------------
@@ -253,6 +266,30 @@ class MainWindow(QtWidgets.QMainWindow):
         self._say("E-STOP pressed", "error")
         self._show_banner()
 
+    def rig_state(self) -> RigState:
+        # The E-STOP's latch (rig.estop) holds every motion command in the drivers; the strip and
+        # the controls show it, and an alarm seen, until the operator confirms the reset.
+        latch = self.station.emergency.latch
+        trip = latch.reason if latch.latched else "E-STOP" if self.estop_text else self.alarm_latched
+        return RigState(self.status, trip, self.link_error, self.station.shaker is not None,
+                        self.station.session_running)
+
+    def _show_state(self) -> None:
+        """The strip and which motion controls are allowed, from the same state."""
+        state = self.rig_state()
+        self.strip.show_state(state)
+        blocked = state.blocked()
+        for name, button in self._motion.items():
+            reason = blocked.get(name)
+            if reason is not None:
+                button.setEnabled(False)
+                button.setToolTip(f"Disabled: {reason}")
+            elif button.toolTip() != self._tooltips[name] or not button.isEnabled():
+                button.setEnabled(True)
+                button.setToolTip(self._tooltips[name])
+        self.browser.resume_button.setEnabled(self.browser.resumable and "resume" not in blocked)
+        self.browser.resume_button.setToolTip(f"Disabled: {blocked['resume']}" if "resume" in blocked else "")
+
     def reset_alarm(self, confirm: bool = True) -> None:
         if confirm:
             what = self.estop_text or (f"alarm: {self.status.alarm}" if self.status else "alarm")
@@ -260,7 +297,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 self, "Reset the trip?", f"{what}\n\nReset only once the cause is known and the rig is safe. Reset?")
             if answer != QtWidgets.QMessageBox.StandardButton.Yes:
                 return
-        self.estop_text = None
+        self.estop_text = self.alarm_latched = None
         self.station.emergency.confirm_reset()
         if self.status is not None and self.status.state == "ALARM":
             self.manual._do(self.station.reset_alarm())
@@ -269,7 +306,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def run_plan(self) -> None:
         identify = IdentifySettings() if self.plan.identify.isChecked() else None
         opt = session_options(self.plan.plan.text().strip() or "standard", self.station.shaker_url,
-                              self.station.daq_url, Path(self.plan.folder.text().strip()), self.plan.letters(),
+                              self.station.daq_url, self.plan.run_folder(), self.plan.letters(),
                               self.station, identify)
         self._start(opt, identify)
 
@@ -322,23 +359,28 @@ class MainWindow(QtWidgets.QMainWindow):
             except queue.Empty:
                 break
             self._handle(item)
+        self._show_state()
         now = time.monotonic()
         if self.tabs.currentWidget() is self.live and now - self._last_redraw >= 0.9 / REDRAW_HZ:
-            self.live.frequency_hz = self._excitation_hz()
+            self.live.set_excitation(*self._excitation())
             if self.live.refresh(self.station.live_daq()):
                 self._last_redraw = now
         if now - self._last_table >= 0.5:
             self._last_table = now
             self.plan.refresh()
 
-    def _excitation_hz(self) -> float | None:
+    def _excitation(self) -> tuple[object, float | None]:
+        """The excitation running now, as (a key that changes when a new one starts, its
+        frequency); (None, None) when the rig is not excited (moving, at rest, tripped)."""
         progress = self.plan.progress
         current = progress.current if progress is not None and self.station.session_running else None
         if current is not None:
-            return current.spec.frequency_hz
-        if self.status is not None and self.status.state == "RUNNING":
-            return self.station.manual_frequency_hz
-        return None
+            if current.status in ("settling", "capturing"):
+                return current.label, current.spec.frequency_hz
+            return None, None
+        if self.status is not None and self.status.state == "RUNNING" and self.station.manual_frequency_hz:
+            return ("manual", self.station.manual_runs), self.station.manual_frequency_hz
+        return None, None
 
     def _handle(self, item: object) -> None:
         if isinstance(item, Event):
@@ -348,9 +390,15 @@ class MainWindow(QtWidgets.QMainWindow):
         elif isinstance(item, Snapshot):
             was = self.status
             self.status = item.status
+            self.link_error = item.error
             if item.status is not None and item.status.state == "ALARM" and (was is None or was.state != "ALARM"):
                 # A trip outside a session (a manual sine) has no acquisition event to log it.
                 self._say(f"controller tripped: {item.status.alarm}", "error")
+                self.alarm_latched = item.status.alarm
+            if self.plan.progress is not None and self.station.session_running:
+                # The stream's sample count read with the status drives every count shown, in this frame.
+                if self.plan.progress.observe(item.samples, item.time) is not None:
+                    self.plan.refresh()
             self.controller.show_snapshot(item)
             self.live.show_health(item)
             self._show_banner(item.error)
@@ -358,9 +406,15 @@ class MainWindow(QtWidgets.QMainWindow):
             self._say(item.text, item.level)
         elif isinstance(item, LinkState):
             self.link_label.setText(("connected: " if item.connected else "") + item.text)
+            if item.simulated and self.simulated is None:   # reached by address, but it says it is a simulator
+                self.sim_label.setText("SIMULATED RIG: the controller or the DAQ identifies itself as a simulator "
+                                       "(not hardware; QC records from it are marked simulated)")
+                self.sim_label.setVisible(True)
+                self.setWindowTitle("Damper rig — operator console — SIMULATED RIG")
             self.connect_button.setText("Disconnect" if item.connected else "Connect")
             if not item.connected:
                 self.status = None
+            self._show_banner()
         elif isinstance(item, SessionOpened):
             self.plan.show_progress(item.progress)
             self.plan.set_running(True)
@@ -370,7 +424,8 @@ class MainWindow(QtWidgets.QMainWindow):
         elif isinstance(item, SessionClosed):
             self.plan.set_running(False)
             self.qc.set_running(False)
-            self.plan.new_folder()
+            if item.result is not None:
+                self.plan.session_ended(item.result.session.path)
             self._say(item.text, "info" if item.result is not None and item.result.exit_code == 0 else "error")
             if item.result is None:
                 self.plan.eta.setText(item.text.splitlines()[0])
@@ -393,9 +448,14 @@ class MainWindow(QtWidgets.QMainWindow):
                 self._say(f"E-STOP done in {took} from the press: STOP and hydraulics off written ({item.line})")
             self._show_banner()
         elif isinstance(item, QcStarted):
+            # The QC run reads the controller on its own links: the console's last read is stale.
+            self.status, self.link_error = None, "QC run in progress: the controller is read by `rig qc run`"
             self.qc.show_started(item.request)
             self.left_tabs.setCurrentWidget(self.qc)
+        elif isinstance(item, QcProgress):
+            self.qc.show_progress(item)
         elif isinstance(item, QcDone):
+            self.link_error = None
             self.qc.show_done(item)
             self.plan.set_running(False)
             self._say(f"QC of unit {item.serial}: {item.shown}" + (f" ({item.reason})" if item.reason else "")
@@ -404,11 +464,17 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _show_banner(self, link_error: str | None = None) -> None:
         st = self.status
+        # What the actuator does now, from the registers: held only with pressure behind it.
+        bar = f"{st.hydraulic_pressure_pa / 1e5:.0f} bar" if st is not None else ""
+        held = (f"hydraulics OFF ({bar}): the actuator is not held" if st is not None and not hydraulics_on(st)
+                else f"the controller holds the position ({bar})" if st is not None
+                else "the controller's state is not known (no answer)")
         if self.estop_text:
-            text, colour = self.estop_text + " — Reset… when safe", "#d50000"
-        elif st is not None and st.state == "ALARM":
-            text, colour = f"ALARM: {st.alarm} — the controller holds the position; find the cause, then Reset…", \
-                "#d50000"
+            text, colour = f"{self.estop_text} — {held}. Reset… once the rig is safe", "#d50000"
+        elif st is not None and st.state == "ALARM" or self.alarm_latched:
+            which = st.alarm if st is not None and st.state == "ALARM" else \
+                f"{self.alarm_latched}, latched here (the controller reads {st.state if st else '?'})"
+            text, colour = f"ALARM: {which} — {held}; find the cause, then Reset…", "#d50000"
         elif link_error:
             text, colour = f"Controller not answering: {link_error}", "#e65100"
         else:

@@ -23,6 +23,8 @@ def add_console_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--simulate", action="store_true",
                    help="start the virtual rig (python -m simulator serve) on free loopback ports and use it")
     p.add_argument("--speed", type=float, default=1.0, help="--simulate: simulated seconds per wall second")
+    p.add_argument("--unit", choices=("good", "gas-leak", "worn-seal", "worn-orifice"),
+                   help="--simulate: the production unit the simulated rig holds (QC practice)")
     p.add_argument("--params", help="--simulate: the simulated damper's true parameters (TRUTH.json)")
     p.add_argument("--fault", action="append", default=[], metavar="KIND[@T][=V]",
                    help="--simulate: a fault to inject (repeatable; see python -m simulator serve --help)")
@@ -40,6 +42,7 @@ class ConsoleOptions:
     speed: float = 1.0                       # simulated seconds per wall second (--simulate)
     params: str | None = None                # the simulated damper's truth (--simulate)
     faults: tuple[str, ...] = ()             # injected into the simulator (--simulate)
+    unit: str | None = None                  # the production unit the simulator holds (--simulate)
     plan: str = "standard"
     experiments: str | None = None           # comma-separated letters, as typed
     out: Path = Path("sessions")
@@ -50,7 +53,8 @@ class ConsoleOptions:
     @classmethod
     def from_namespace(cls, args: argparse.Namespace) -> ConsoleOptions:
         return cls(shaker=args.shaker, daq=args.daq, simulate=args.simulate, speed=args.speed, params=args.params,
-                   faults=tuple(args.fault), plan=args.plan, experiments=args.experiments, out=Path(args.out),
+                   faults=tuple(args.fault), unit=args.unit, plan=args.plan, experiments=args.experiments,
+                   out=Path(args.out),
                    calibration=args.calibration, rig_config=args.rig_config, register_map=args.register_map)
 
     @classmethod

@@ -1,6 +1,10 @@
 """The plan runner: which plan and experiments, where the session goes, identification
 after it; the table of experiments with their state and time left; Run, Abort (a safe
-stop) and Resume; and the steady-state indicator of the experiment settling now."""
+stop) and Resume; and the steady-state indicator of the experiment settling now.
+
+One source per number: the table's state, the settling count, the capture's progress and
+the times left are drawn together, from the same rows (:class:`PlanProgress`), in the
+same frame as each event that changes them.  Every time says its clock and its unit."""
 
 from __future__ import annotations
 
@@ -12,23 +16,36 @@ from pathlib import Path
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from rig.config import RigConfig
+from rig.criterion import DAQ_LAG_S
 from rig.daq import CHANNELS
 from rig.events import Event
-from rig.gui import analysis
 from rig.gui.plan_state import ExperimentRow, PlanProgress
 from rig.plans import Plan, comma_list, load_plan
 
 STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "skipped": "#ffe0b2", "interrupted": "#ffe0b2",
                   "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb", "stopping": "#e3f2fd"}
 UNITS = {"stroke_mm": "mm", "force_N": "N", "pressure_bar": "bar", "gas_temperature_C": "°C"}
-TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "time\nleft")
+TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "left\n[wall m:s]")
 
 
 def _clock(seconds: float) -> str:
+    """m:ss, or h:mm:ss from an hour on (the unit is the caller's to say)."""
     if math.isnan(seconds):
         return "–"
     s = int(round(seconds))
     return f"{s // 3600}:{s % 3600 // 60:02d}:{s % 60:02d}" if s >= 3600 else f"{s // 60}:{s % 60:02d}"
+
+
+def clock_text(seconds: float, clock: str) -> str:
+    """A duration with its clock and unit: "rig time 3:12 m:s", "wall 0:09 m:s"."""
+    unit = "h:m:s" if not math.isnan(seconds) and round(seconds) >= 3600 else "m:s"
+    return f"{clock} {_clock(seconds)} {unit}"
+
+
+def capture_text(row: ExperimentRow) -> str:
+    """A capture's progress in periods, from the row's fraction (the acquisition's event)."""
+    periods = row.spec.periods
+    return f"capturing period {min(int(row.fraction * periods) + 1, periods)} of {periods} ({100 * row.fraction:.0f} %)"
 
 
 def _item(table: QtWidgets.QTableWidget, row: int, col: int) -> QtWidgets.QTableWidgetItem:
@@ -81,10 +98,11 @@ class SteadyStateView(QtWidgets.QGroupBox):
         layout.addWidget(self.cycles)
 
     def show_row(self, row: ExperimentRow | None) -> None:
+        """The changes against their thresholds at the row's last settling report."""
         if row is None or not row.settling:
             return
         ss = self.config.steady_state
-        cycles, change = row.settling[-1]
+        change = row.settling[-1][1]
         for i, c in enumerate(CHANNELS):
             x, limit = change.get(c, math.nan), ss.thresholds[c]
             _item(self.table, i, 0).setText(f"{x:.3g} {UNITS[c]}")
@@ -96,17 +114,28 @@ class SteadyStateView(QtWidgets.QGroupBox):
             if bar.property("colour") != colour:     # a style sheet is costly to apply: only on a change
                 bar.setProperty("colour", colour)
                 bar.setStyleSheet(f"QProgressBar::chunk {{ background: {colour}; }}")
-        deciding = ss.thresholds
         if self.drift:
-            deciding = {"bias_sigma": self.drift.fraction}
             bound = change.get("bias_sigma")
             self.bound.setText("drift criterion: " + (
                 f"the transient left could bias the fit by up to {bound:.2f} σ; captures below "
                 f"{self.drift.fraction:g} σ" if bound is not None else "waiting for the first blocks"))
             self.bound.setStyleSheet("color: #2e7d32;" if bound is not None and bound < self.drift.fraction
                                      else "color: #e65100;")
-        left = analysis.predicted_cycles_left(row.settling, deciding, ss.min_cycles, ss.max_cycles)
-        self.cycles.setText(f"{row.label}: {cycles} settling cycles so far (min {ss.min_cycles}, max {ss.max_cycles}); "
+
+    def show_count(self, row: ExperimentRow | None) -> None:
+        """The settling count and what follows it, from the same row as the plan table."""
+        ss = self.config.steady_state
+        if row is None or row.status not in ("settling", "capturing") or not row.cycles:
+            self.cycles.setText("Settling: –" if row is None else f"{row.label}: {row.status_text()}")
+            return
+        if row.status == "capturing":
+            self.cycles.setText(f"{row.label}: settled after {row.cycles} cycles; {capture_text(row)}")
+            return
+        deciding = {"bias_sigma": self.drift.fraction} if self.drift else ss.thresholds
+        left = row.cycles_left(deciding, ss.min_cycles, ss.max_cycles)
+        after_run = ss.ramp_time_s + DAQ_LAG_S
+        self.cycles.setText(f"{row.label}: settling {row.cycles} cycles, counted from {after_run:g} s after RUN "
+                            f"(min {ss.min_cycles}, max {ss.max_cycles}); "
                             f"predicted cycles left: {'?' if left is None else left}")
 
 
@@ -143,7 +172,9 @@ class PlanPanel(QtWidgets.QWidget):
         form.addRow("Experiments", self.experiments)
         self.folder = QtWidgets.QLineEdit()
         self.folder.setObjectName("sessionFolderEdit")
-        form.addRow("Session folder", self.folder)
+        self.folder_label = QtWidgets.QLabel("Session folder")
+        self.finished: str | None = None          # the finished session's folder the field still shows
+        form.addRow(self.folder_label, self.folder)
         self.identify = QtWidgets.QCheckBox("Identify after the capture (2-dof: θ4, θ6, θ16)")
         self.identify.setObjectName("identifyBox")
         self.identify.setChecked(True)
@@ -172,8 +203,16 @@ class PlanPanel(QtWidgets.QWidget):
         header = self.table.horizontalHeader()
         header.setSectionResizeMode(QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
         header.setSectionResizeMode(4, QtWidgets.QHeaderView.ResizeMode.Stretch)
+        self.table.setMinimumHeight(120)         # the header and three experiments at least
         self.eta = QtWidgets.QLabel("")
         self.eta.setObjectName("sessionEta")
+        self.eta.setWordWrap(True)
+        self.capture = QtWidgets.QProgressBar()
+        self.capture.setObjectName("captureProgress")
+        self.capture.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
+        self.capture.setVisible(False)
+        self.capture.setStyleSheet("QProgressBar { font-weight: bold; min-height: 24px } "
+                                   "QProgressBar::chunk { background: #64b5f6; }")
         self.steady = SteadyStateView(config)
 
         layout = QtWidgets.QVBoxLayout(self)
@@ -182,6 +221,7 @@ class PlanPanel(QtWidgets.QWidget):
         layout.addLayout(buttons)
         layout.addWidget(self.table, 1)
         layout.addWidget(self.eta)
+        layout.addWidget(self.capture)
         layout.addWidget(self.steady)
         self.new_folder()
         self.preview()
@@ -193,6 +233,22 @@ class PlanPanel(QtWidgets.QWidget):
     def new_folder(self) -> None:
         stamp = _dt.datetime.now().strftime("%y%m%d-%H%M%S")
         self.folder.setText(str(self.out / f"session-{stamp}"))
+        self.finished = None
+        self.folder_label.setText("Session folder")
+
+    def session_ended(self, folder: Path) -> None:
+        """The field goes on showing the session that ended (the fit shown is of it), until
+        Run asks for the next one (:meth:`run_folder`)."""
+        self.folder.setText(str(folder))
+        self.finished = str(folder)
+        self.folder_label.setText("Last session")
+        self.folder.setToolTip("the session that ended; Run starts the next one in a new folder")
+
+    def run_folder(self) -> Path:
+        """Where Run writes: a new folder unless the operator typed one."""
+        if self.finished is not None and self.folder.text().strip() == self.finished:
+            self.new_folder()
+        return Path(self.folder.text().strip())
 
     def _browse_plan(self) -> None:
         path, _ = QtWidgets.QFileDialog.getOpenFileName(self, "Plan", "", "Plan (*.toml)")
@@ -234,8 +290,9 @@ class PlanPanel(QtWidgets.QWidget):
             return          # a later edit, or a session started meanwhile
         self.show_progress(progress)
         self.progress = None
+        self._time_column("rig")            # nothing runs yet: the plan's own time
         self.eta.setText(f"{len(plan.experiments)} experiments, about "
-                         f"{_clock(sum(r.estimate_s for r in self._rows))} of rig time")
+                         f"{clock_text(sum(r.estimate_s for r in self._rows), 'rig time')}")
 
     # ----- running ---------------------------------------------------------------------------------
     def set_running(self, running: bool) -> None:
@@ -245,8 +302,12 @@ class PlanPanel(QtWidgets.QWidget):
         for w in (self.plan, self.experiments, self.folder, self.identify):
             w.setEnabled(not running)
 
+    def _time_column(self, clock: str) -> None:
+        self.table.setHorizontalHeaderItem(5, QtWidgets.QTableWidgetItem(f"left\n[{clock} m:s]"))
+
     def show_progress(self, progress: PlanProgress) -> None:
         self.progress = progress
+        self._time_column("wall")
         self._rows = progress.rows
         self.table.setRowCount(len(progress.rows))
         for i, r in enumerate(progress.rows):
@@ -267,6 +328,8 @@ class PlanPanel(QtWidgets.QWidget):
         row = self.progress.apply(event)
         if row is not None and event.kind == "progress" and event.data.get("phase") == "settling":
             self.steady.show_row(row)
+        if row is not None or event.kind == "session-end":
+            self.refresh()
 
     def refresh(self) -> None:
         """Statuses and times left (called on the window's timer)."""
@@ -278,9 +341,18 @@ class PlanPanel(QtWidgets.QWidget):
             status.setText(r.status_text())
             status.setBackground(QtGui.QColor(STATUS_COLOURS.get(r.status, "#ffffff")))
             _item(self.table, i, 5).setText(_clock(progress.left_s(r)) if r.status != "done" else "")
+        current = progress.current
+        self.steady.show_count(current)
+        capturing = current is not None and current.status == "capturing"
+        self.capture.setVisible(capturing)
+        if current is not None and capturing:
+            self.capture.setValue(int(round(100 * current.fraction)))
+            self.capture.setFormat(f"{current.label}: {capture_text(current)}")
         if progress.ended is not None:
             self.eta.setText(f"Session {progress.ended}")
         else:
-            current = progress.current
-            self.eta.setText(f"Session: about {_clock(progress.session_left_s())} left"
-                             + (f"; {current.label}: {_clock(progress.left_s(current))}" if current else ""))
+            wall = progress.session_left_s()
+            self.eta.setText(f"Session: about {clock_text(wall, 'wall')} left "
+                             f"({clock_text(wall / progress.wall_per_rig_s(), 'rig time')})"
+                             + (f"; {current.label}: {clock_text(progress.left_s(current), 'wall')}"
+                                if current else ""))

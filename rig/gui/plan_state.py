@@ -17,6 +17,7 @@ from dataclasses import dataclass, field, replace
 from identify.exit_codes import EXIT_INTERRUPTED
 from identify.plans import ExperimentSpec
 from rig.config import RigConfig
+from rig.criterion import first_block_sample
 from rig.events import Event
 from rig.gui.analysis import predicted_cycles_left
 from rig.plans import Plan, estimate_duration_s
@@ -36,6 +37,33 @@ class ExperimentRow:
     started: float | None = None           # wall clock (monotonic)
     finished: float | None = None
     settling: list[tuple[int, dict[str, float]]] = field(default_factory=list)  # cycles, change (+ bias_sigma)
+    samples: int | None = None             # the DAQ stream's newest sample as last read (settling, capturing)
+    lead_samples: int = 0                  # samples after RUN before settling is counted (fade-in and lag)
+    settled_at: int | None = None          # settling cycles when the capture began
+    running_since: float | None = None     # when settling began (clock): older reads are of the last RUN
+
+    def observe(self, samples: int, read_at: float, rate_hz: float) -> None:
+        """The DAQ stream's newest sample (it restarts at RUN), read with the controller's
+        status at ``read_at``: the settling count and the capture's progress follow from
+        it as the acquisition counts them, so every number shown moves together."""
+        if (self.status not in ("settling", "capturing") or self.running_since is None
+                or read_at < self.running_since or samples < 0):
+            return
+        self.samples = samples
+        spp = rate_hz / self.spec.frequency_hz
+        counted = samples - self.lead_samples
+        if self.status == "settling":
+            self.cycles = max(int(counted // spp), 0)
+        elif self.settled_at is not None:
+            captured = counted - round(self.settled_at * spp)
+            self.fraction = min(max(captured / math.ceil(self.spec.periods * spp), 0.0), 1.0)
+
+    def cycles_left(self, thresholds: dict[str, float], min_cycles: int, max_cycles: int) -> int | None:
+        """Settling cycles still to go from the count shown, by the last reports' decay."""
+        left = predicted_cycles_left(self.settling, thresholds, min_cycles, max_cycles)
+        if left is None or not self.settling:
+            return left
+        return max(left - max(self.cycles - self.settling[-1][0], 0), 0)
 
     def status_text(self) -> str:
         if self.status == "settling":
@@ -51,7 +79,8 @@ class PlanProgress:
         self.clock, self.speed, self.config = clock, speed, config
         self.rows = [ExperimentRow(e, f"{date}{e.letter}",
                                    estimate_duration_s(replace(plan, experiments=(e,)), config,
-                                                       e.static_position_mm * 1e-3))
+                                                       e.static_position_mm * 1e-3),
+                                   lead_samples=first_block_sample(config.steady_state, config.daq_rate_hz))
                      for e in plan.experiments]
         for row in self.rows:
             if row.spec.letter in done:
@@ -62,6 +91,13 @@ class PlanProgress:
     @property
     def current(self) -> ExperimentRow | None:
         return next((r for r in self.rows if r.status in ACTIVE), None)
+
+    def observe(self, samples: int, read_at: float) -> ExperimentRow | None:
+        """The DAQ's newest sample for the experiment running now (see ExperimentRow.observe)."""
+        row = self.current
+        if row is not None:
+            row.observe(samples, read_at, self.config.daq_rate_hz)
+        return row
 
     def apply(self, e: Event) -> ExperimentRow | None:
         """Take one event; returns the row it changed."""
@@ -81,13 +117,25 @@ class PlanProgress:
                 if row.started is None:
                     row.started = self.clock()
                 row.status = phase
+                if phase == "settling":
+                    row.running_since = self.clock()
+                if phase == "capturing":
+                    # the acquisition's count at its decision: the log's, the record's
+                    row.settled_at = row.cycles = int(e.data.get("cycles", row.cycles))
+                    row.fraction = 0.0
         elif e.kind == "progress" and e.data.get("phase") == "settling":
-            row.status, row.cycles = "settling", int(e.data["cycles"])
+            # Once the stream is read (observe) the count shown comes from it alone; the
+            # report's own count dates its changes, for the prediction of the cycles left.
+            row.status = "settling"
+            if row.samples is None:
+                row.cycles = int(e.data["cycles"])
             # the drift criterion's bound beside the changes: what decides the capture there
             bound = {"bias_sigma": float(e.data["bias_sigma"])} if "bias_sigma" in e.data else {}
-            row.settling.append((row.cycles, dict(e.data["change"]) | bound))
+            row.settling.append((int(e.data["cycles"]), dict(e.data["change"]) | bound))
         elif e.kind == "progress" and e.data.get("phase") == "capturing":
-            row.status, row.fraction = "capturing", float(e.data["fraction"])
+            row.status = "capturing"
+            if row.samples is None:
+                row.fraction = float(e.data["fraction"])
         elif e.kind == "experiment-done":
             row.status, row.finished = "done", self.clock()
             if e.data.get("flags"):
@@ -126,7 +174,7 @@ class PlanProgress:
         if row.status == "capturing":
             return (1 - row.fraction) * periods / f + ss.ramp_time_s
         if row.status == "settling" and row.settling:
-            left = predicted_cycles_left(row.settling, ss.thresholds, ss.min_cycles, ss.max_cycles)
+            left = row.cycles_left(ss.thresholds, ss.min_cycles, ss.max_cycles)
             return None if left is None else (left + periods) / f + ss.ramp_time_s
         return None
 

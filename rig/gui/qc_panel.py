@@ -1,19 +1,23 @@
 """QC mode: the unit's serial number, Test unit, and the verdict in letters large enough
-to read from the rig — PASS, FAIL or RETEST — which stays until the next unit is tested,
-with the characteristics, the likely causes and a link to the report."""
+to read from the rig — PASS, FAIL or RETEST — which stays until the next unit is tested.
+While it is tested, a progress bar with the rig time left; after, the characteristics as a
+table (value ± kσ, limits, acceptance limits, outcome, each number with its unit, as
+rig.qc.present formats them), the likely causes in full and a link to the report."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
-from rig.gui.qc import QcDone, QcRequest
+from rig.gui.qc import QcDone, QcProgress, QcRequest
 
 # (background, text) per verdict; no verdict (ABORTED, REFUSED, ERROR) is grey, never green.
 COLOURS = {"PASS": ("#2e7d32", "white"), "FAIL": ("#c62828", "white"), "RETEST": ("#f9a825", "black"),
            "testing": ("#e3f2fd", "#0d47a1")}
 NO_VERDICT = ("#9e9e9e", "white")
+OUTCOME_COLOURS = {"PASS": "#1a7f37", "FAIL": "#c62828", "INCONCLUSIVE": "#b26a00"}
+COLUMNS = ("Characteristic", "Value ± kσ", "Limits (spec)", "Acceptance limits", "Outcome")
 
 
 class QcPanel(QtWidgets.QWidget):
@@ -65,7 +69,7 @@ class QcPanel(QtWidgets.QWidget):
         self.verdict = QtWidgets.QLabel("—")
         self.verdict.setObjectName("verdictLabel")
         self.verdict.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
-        self.verdict.setMinimumHeight(130)
+        self.verdict.setMinimumHeight(90)
         self.reason = QtWidgets.QLabel("No unit tested yet.")
         self.reason.setObjectName("qcReason")
         self.reason.setWordWrap(True)
@@ -73,14 +77,30 @@ class QcPanel(QtWidgets.QWidget):
         self.report.setObjectName("qcReportLink")
         self.report.setOpenExternalLinks(True)
         self.report.setTextInteractionFlags(QtCore.Qt.TextInteractionFlag.TextBrowserInteraction)
-        self.summary = QtWidgets.QPlainTextEdit()
-        self.summary.setObjectName("qcSummary")
-        self.summary.setReadOnly(True)
-        self.summary.setLineWrapMode(QtWidgets.QPlainTextEdit.LineWrapMode.NoWrap)
-        font = self.summary.font()
-        font.setFamily("monospace")
-        font.setStyleHint(font.StyleHint.Monospace)
-        self.summary.setFont(font)
+        self.progress = QtWidgets.QProgressBar()
+        self.progress.setObjectName("qcProgress")
+        self.progress.setRange(0, 1000)
+        self.progress.setTextVisible(True)
+        self.progress.setFormat("%p %")
+        self.progress.setVisible(False)
+        self.step = QtWidgets.QLabel("")
+        self.step.setObjectName("qcStep")
+        self.step.setWordWrap(True)
+        self.causes = QtWidgets.QLabel("")
+        self.causes.setObjectName("qcCauses")
+        self.causes.setWordWrap(True)           # the likely cause in full, never clipped
+        self.causes.setStyleSheet("font-weight: bold; color: #c62828")
+        self.table = QtWidgets.QTableWidget(0, len(COLUMNS))
+        self.table.setObjectName("qcTable")
+        self.table.setHorizontalHeaderLabels(COLUMNS)
+        self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
+        self.table.setWordWrap(True)
+        self.table.verticalHeader().setVisible(False)
+        header = self.table.horizontalHeader()
+        header.setSectionResizeMode(0, QtWidgets.QHeaderView.ResizeMode.Stretch)
+        for i in range(1, len(COLUMNS)):
+            header.setSectionResizeMode(i, QtWidgets.QHeaderView.ResizeMode.ResizeToContents)
+        self.table.setVerticalScrollMode(QtWidgets.QAbstractItemView.ScrollMode.ScrollPerPixel)
 
         layout = QtWidgets.QVBoxLayout(self)
         layout.addLayout(form)
@@ -88,8 +108,11 @@ class QcPanel(QtWidgets.QWidget):
         layout.addWidget(self.unit)
         layout.addWidget(self.verdict)
         layout.addWidget(self.reason)
+        layout.addWidget(self.step)
+        layout.addWidget(self.progress)
+        layout.addWidget(self.causes)
         layout.addWidget(self.report)
-        layout.addWidget(self.summary, 1)
+        layout.addWidget(self.table, 1)
         self._paint("—", NO_VERDICT)
 
     def _request(self, periods: int | None = None) -> QcRequest:
@@ -119,13 +142,24 @@ class QcPanel(QtWidgets.QWidget):
         self._paint("TESTING…", COLOURS["testing"], size_pt=36)
         self.reason.setText("The spec's plan runs, then identification and judging (python -m rig qc run).")
         self.report.setText("")
-        self.summary.setPlainText("")
+        self.causes.setText("")
+        self.table.setRowCount(0)
+        self.progress.setValue(0)
+        self.step.setText("starting: the spec's checks, then the links")
+        self.step.setVisible(True)
+        self.progress.setVisible(True)
         self.set_running(True)
+
+    def show_progress(self, progress: QcProgress) -> None:
+        self.progress.setValue(round(1000 * progress.fraction))
+        left = "" if progress.rig_left_s is None else \
+            f" — about {int(progress.rig_left_s // 60)}:{int(progress.rig_left_s % 60):02d} min:s of rig time left"
+        self.step.setText(f"{progress.text}{left}")
 
     def show_done(self, done: QcDone) -> None:
         self.last = done
         self.unit.setText(f"Unit {done.serial}")
-        self._paint(done.shown, COLOURS.get(done.shown, NO_VERDICT))
+        self._paint(done.shown, COLOURS.get(done.shown, NO_VERDICT), size_pt=48)
         reason = {"PASS": "Every characteristic within its limits, uncertainty included.",
                   "FAIL": "At least one characteristic outside its limits, uncertainty included.",
                   "RETEST": "Inconclusive: a characteristic's uncertainty straddles a limit. Test again with "
@@ -135,8 +169,43 @@ class QcPanel(QtWidgets.QWidget):
             self.report.setText(f'<a href="{done.report.resolve().as_uri()}">Open the report</a> — {done.report}')
         else:
             self.report.setText("")
-        self.summary.setPlainText("\n".join(done.summary))
+        self.progress.setVisible(False)
+        self.step.setText("")
+        self.step.setVisible(False)
+        lines = [f"Likely cause: {c}" for c in done.causes] + ([f"Remedy: {done.remedy}"] if done.remedy else [])
+        if done.simulated:
+            lines.append("SIMULATED: measured on a simulator, not a production record")
+        self.causes.setText("\n".join(lines))
+        self._fill(done)
         self.set_running(False)
+
+    def _fill(self, done: QcDone) -> None:
+        self.table.setRowCount(len(done.rows))
+        for i, row in enumerate(done.rows):
+            for j, text in enumerate((row.title, row.value, row.limits, row.acceptance, row.outcome)):
+                item = QtWidgets.QTableWidgetItem(text)
+                if j:
+                    item.setTextAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
+                if j == 4:
+                    font = item.font()
+                    font.setBold(True)
+                    item.setFont(font)
+                    item.setForeground(QtGui.QColor(OUTCOME_COLOURS.get(text, "#555555")))
+                if j == 1 and row.sigma:
+                    item.setToolTip(f"σ {row.sigma}")
+                self.table.setItem(i, j, item)
+        QtCore.QTimer.singleShot(0, self._fit_rows)
+
+    def _fit_rows(self) -> None:
+        """Every row whole: wrapped to the columns' widths, the table as tall as its rows."""
+        self.table.resizeRowsToContents()
+        rows = sum(self.table.rowHeight(i) for i in range(self.table.rowCount()))
+        self.table.setMinimumHeight(rows + self.table.horizontalHeader().height() + 2 * self.table.frameWidth() + 2)
+
+    def resizeEvent(self, event: QtGui.QResizeEvent) -> None:  # noqa: N802 — Qt's name
+        super().resizeEvent(event)
+        if self.table.rowCount():
+            QtCore.QTimer.singleShot(0, self._fit_rows)
 
     def _paint(self, text: str, colours: tuple[str, str], size_pt: int = 64) -> None:
         background, colour = colours

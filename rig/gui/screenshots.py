@@ -1,8 +1,10 @@
 """``make screenshots``: the console's main views as PNG files, from a real session on the
-simulated rig (offscreen): settling, capturing, the fit view with the 1-dof/2-dof
-comparison, an alarm (an e-stop trip during a manual sine), the session browser, and a QC verdict.
+simulated rig (offscreen): idle (connected, at rest), settling, a capture in progress, the
+fit view with the 1-dof/2-dof comparison, the session browser, an alarm (an e-stop trip
+during a manual sine), the console's E-STOP during a manual sine, and QC mode at 1280 px
+(a worn-orifice unit under test, then its FAIL).
 
-    python -m rig.gui.screenshots [--out out/screenshots] [--speed 20] [--readme docs/gui.png]
+    python -m rig.gui.screenshots [--out out/screenshots] [--speed 20] [--readme docs/gui.png] [--only-qc]
 """
 
 from __future__ import annotations
@@ -49,21 +51,74 @@ def status_of(window: MainWindow, row: int) -> str:
     return progress.rows[row].status if progress is not None else ""
 
 
+def capturing(window: MainWindow, row: int) -> bool:
+    """A capture under way, and the table saying so (what the screenshot must show): g's
+    three periods at 0.2 Hz take 15 s of rig time, several of the console's status reads."""
+    progress = window.plan.progress
+    if progress is None or progress.rows[row].status != "capturing":
+        return False
+    item = window.plan.table.item(row, 4)
+    return 0 < progress.rows[row].fraction < 1 and item is not None and item.text().startswith("capturing")
+
+
+def manual_sine(window: MainWindow) -> None:
+    """Hydraulics on, then a 20 mm sine at 1 Hz around 133 mm, from the Manual tab."""
+    window.left_tabs.setCurrentIndex(1)
+    wait("the connection", lambda: window.status is not None)
+    window.manual.hyd_on.click()
+    wait("hydraulics on", lambda: window.status is not None and window.status.state == "IDLE")
+    window.manual.sine_static.setValue(133.0)
+    window.manual.sine_amplitude.setValue(20.0)
+    window.manual.sine_frequency.setValue(1.0)
+    window.manual.sine_button.click()
+
+
+def closed(window: MainWindow) -> None:
+    window.close()
+    wait("the window to close", lambda: not window.isVisible(), 60)
+
+
+def qc_view(speed: float, out: Path, sessions: Path) -> None:
+    """QC mode at 1280 × 1024 px: a unit with a worn orifice through python -m rig qc run, the
+    progress bar while it runs, then its FAIL with the table and the likely cause."""
+    qc = MainWindow.from_args(["--simulate", "--speed", f"{speed:g}", "--unit", "worn-orifice", "--out",
+                               str(sessions)])
+    qc.resize(1280, 1024)
+    qc.show()
+    wait("the connection", lambda: qc.status is not None)
+    qc.qc.serial.setText("SN-0042")
+    qc.qc.test_button.click()
+    wait("the QC run's progress", lambda: qc.qc.progress.value() > 0, 600)
+    settle_view(0.5)
+    shoot(qc, out / "qc-testing.png")
+    wait("the QC verdict", lambda: qc.qc.last is not None, 900)
+    wait("the console's links back", lambda: qc.station.shaker is not None and qc.status is not None, 60)
+    settle_view(1.0)
+    shoot(qc, out / "qc-verdict.png")
+    closed(qc)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--out", default="out/screenshots")
     parser.add_argument("--speed", type=float, default=20.0)
     parser.add_argument("--readme", help="also write a 1200-px-wide copy of the settling view here")
+    parser.add_argument("--only-qc", action="store_true", help="only the QC views (qc-testing.png, qc-verdict.png)")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     sessions = Path(tempfile.mkdtemp(prefix="gui-screenshots-"))
+    if args.only_qc:
+        qc_view(args.speed, out, sessions)
+        return 0
     application()
 
-    window = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--experiments", "j,h",
+    window = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--experiments", "j,g",
                                    "--out", str(sessions)])
     window.show()
     wait("the connection", lambda: window.status is not None)
+    settle_view(1.5)
+    shoot(window, out / "idle.png")
     folder = Path(window.plan.folder.text())
     window.run_plan()
     wait("settling", lambda: window.plan.progress is not None and window.plan.progress.rows[0].cycles >= 40)
@@ -72,8 +127,7 @@ def main() -> int:
     if args.readme:
         window.grab().scaledToWidth(1200, QtCore.Qt.TransformationMode.SmoothTransformation).save(args.readme)
         print(f"wrote {args.readme}")
-    wait("capturing", lambda: status_of(window, 1) == "capturing")
-    settle_view(0.1)
+    wait("a capture in progress", lambda: capturing(window, 1))
     shoot(window, out / "capturing.png")
     wait("the fit", lambda: window.fit_view.result is not None, 300)
     window.compare()
@@ -84,39 +138,32 @@ def main() -> int:
     window.browser.open_folder(folder)
     settle_view(0.5)
     shoot(window, out / "browser.png")
-    window.close()
-    wait("the window to close", lambda: not window.isVisible(), 60)
+    closed(window)
 
     # An alarm: the e-stop trips 10 s (simulated) into a manual sine.
     alarm = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--fault", "estop@run+10",
                                   "--out", str(sessions)])
     alarm.show()
-    alarm.left_tabs.setCurrentIndex(1)
-    wait("the connection", lambda: alarm.status is not None)
-    alarm.manual.hyd_on.click()
-    wait("hydraulics on", lambda: alarm.status is not None and alarm.status.state == "IDLE")
-    alarm.manual.sine_static.setValue(133.0)
-    alarm.manual.sine_amplitude.setValue(20.0)
-    alarm.manual.sine_frequency.setValue(1.0)
-    alarm.manual.sine_button.click()
+    manual_sine(alarm)
     wait("the trip", lambda: alarm.status is not None and alarm.status.state == "ALARM", 60)
     settle_view(1.0)
     shoot(alarm, out / "alarm.png")
-    alarm.close()
-    wait("the window to close", lambda: not alarm.isVisible(), 60)
+    closed(alarm)
 
-    # QC mode: one unit through python -m rig qc run, its verdict on screen.
-    qc = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--out", str(sessions)])
-    qc.show()
-    wait("the connection", lambda: qc.status is not None)
-    qc.qc.serial.setText("SN-0042")
-    qc.qc.test_button.click()
-    wait("the QC verdict", lambda: qc.qc.last is not None, 600)
-    wait("the console's links back", lambda: qc.station.shaker is not None and qc.status is not None, 60)
+    # The console's E-STOP pressed during a manual sine: STOP and hydraulics off, latched.
+    estop = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--out", str(sessions)])
+    estop.show()
+    manual_sine(estop)
+    wait("the sine", lambda: estop.status is not None and estop.status.state == "RUNNING" and
+         estop.status.cycles >= 3, 60)
+    estop.estop()
+    wait("the E-STOP's writes", lambda: estop.station.emergency.wait(0) is not None, 30)
+    wait("the controller off", lambda: estop.status is not None and estop.status.state == "OFF", 30)
     settle_view(1.0)
-    shoot(qc, out / "qc-verdict.png")
-    qc.close()
-    wait("the window to close", lambda: not qc.isVisible(), 60)
+    shoot(estop, out / "alarm-after-estop.png")
+    closed(estop)
+
+    qc_view(args.speed, out, sessions)
     print(f"sessions of this run: {sessions}; first view {settling}")
     return 0
 

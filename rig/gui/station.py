@@ -49,7 +49,8 @@ from rig.events import Event, Kind, LinkCondition, LinkNotice, Subscriber
 from rig.gui import fits
 from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
-from rig.gui.qc import QcDone, QcRequest, outcome, qc_command
+from rig.gui.qc import ProgressReader, QcDone, QcRequest, outcome, qc_command
+from rig.peer_identity import Peers
 from rig.peers import wrong_peer_or
 from rig.registers import RegisterMap, load_register_map
 from rig.run import (
@@ -82,6 +83,7 @@ class Snapshot:
     over_range: int = 0
     overflow_flags: int = 0
     heartbeat_ok: bool = True
+    samples: int = -1                       # the DAQ stream's samples since START, read with the status (-1: none)
     time: float = field(default_factory=time.monotonic)
 
 
@@ -95,6 +97,7 @@ class Notice:
 class LinkState:
     connected: bool
     text: str
+    simulated: bool = False     # a peer named itself a simulator (rig.peer_identity)
 
 
 @dataclass(frozen=True)
@@ -155,6 +158,7 @@ class Station:
         self.daq: Daq | None = None
         self.runner: SessionRunner | None = None    # the session's, while one runs
         self.manual_frequency_hz: float | None = None
+        self.manual_runs = 0                         # manual sines sent: each new one is a new excitation
         self.heartbeat_ok = True
         self.closing = False                         # the window is closing: no links taken back
         self._was_connected = False
@@ -206,6 +210,7 @@ class Station:
             self._open_estop_line(self.shaker_url)
             shaker.connect()        # limits written, watchdog on and fed: if this program dies, the rig holds
             identity = daq.open()
+            peers = Peers(shaker.identify(), identity)
             daq.start()             # the live view streams whenever no session does
         except (ShakerLinkError, DaqError) as exc:
             close_links(Links(shaker, daq, "", None))
@@ -214,7 +219,7 @@ class Station:
             close_links(Links(shaker, daq, "", None))
             raise
         self.shaker, self.daq = shaker, daq
-        self.post(LinkState(True, f"controller {self.shaker_url}, DAQ {self.daq_url} ({identity})"))
+        self.post(LinkState(True, f"controller {self.shaker_url}, DAQ {self.daq_url} ({identity})", peers.simulated))
 
     def _release(self) -> None:
         shaker, daq = self.shaker, self.daq
@@ -293,6 +298,7 @@ class Station:
         def run(s: Shaker) -> None:
             s.run(static_m, amplitude_m, frequency_hz, "sine", ramp)
             self.manual_frequency_hz = frequency_hz
+            self.manual_runs += 1
         return self._manual(f"sine {amplitude_m * 1e3:.2f} mm at {frequency_hz:g} Hz around {static_m * 1e3:.2f} mm",
                             problems, run)
 
@@ -396,11 +402,14 @@ class Station:
             reader = threading.Thread(target=lambda: stdout.extend(proc.stdout or ()), name="qc-stdout", daemon=True)
             reader.start()
             tail: deque[str] = deque(maxlen=20)
+            progress = ProgressReader()
             for line in proc.stderr or ():
                 line = line.rstrip()
                 tail.append(line)
                 if line:
                     self.post(Notice(f"QC {request.serial}: {line}"))
+                if (step := progress.feed(line)) is not None:
+                    self.post(step)
             proc.wait()
             reader.join()
             done = outcome(request, proc.returncode, "".join(stdout), list(tail))
@@ -516,8 +525,10 @@ class Station:
             kw = {}
             if daq is not None:
                 c = daq.counters
+                # the parser's index restarts at START itself; the ring holds the last stream's samples
+                # until the first frames of the new one arrive
                 kw = dict(received=daq.parser.received, lost=c.lost_samples, crc_errors=c.crc_errors,
-                          over_range=c.over_range, overflow_flags=c.overflow_flags)
+                          over_range=c.over_range, overflow_flags=c.overflow_flags, samples=daq.parser.next_index)
             self.post(Snapshot(status, error, heartbeat_ok=self.heartbeat_ok, **kw))
 
     def close(self, timeout_s: float = 60.0) -> None:

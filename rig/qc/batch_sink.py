@@ -92,7 +92,8 @@ class Rejudgements:
         earlier = next((r for r in history if r.uid == uid), None)
         if earlier is not None:
             return self._count(outcome, Delivery("present", _verdict(earlier)))
-        identity = {"serial": first.serial, "operator": first.operator, "rig": first.rig}
+        identity = {"serial": first.serial, "operator": first.operator, "rig": first.rig,
+                    "simulated": first.simulated}
         return Task(judge_result, (spec, trace, result, first.uid, uid, identity))
 
     def finish(self, outcome: SessionOutcome, task: Task, value: Any) -> Delivery:
@@ -152,7 +153,7 @@ class Rejudgements:
 
 
 def judge_result(spec: Spec, trace: SessionTrace, result: dict[str, Any], rejudges: str, uid: str,
-                 identity: dict[str, str]) -> QcRecord:
+                 identity: dict[str, Any]) -> QcRecord:
     """The re-judgement record of one session's batch result under ``spec`` (a Dask task:
     reads the session's data for the measured characteristics, writes nothing)."""
     model = check_model(spec)
@@ -191,7 +192,8 @@ def identified_from_result(model: CompiledModel, result: dict[str, Any]) -> Iden
     estimated = tuple(cov["estimated"])
     if covariance.shape != (len(estimated), len(estimated)):
         raise IdentifyError(f"batch result: covariance of shape {covariance.shape} for {len(estimated)} parameters")
-    return Identified(params.vector(), estimated, covariance)
+    return Identified(params.vector(), estimated, covariance,
+                      "residual" if cov.get("residual") is not None else "noise")
 
 
 def _verdict(record: QcRecord) -> str:

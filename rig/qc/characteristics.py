@@ -20,6 +20,8 @@ import numpy as np
 
 from identify.dataset import Experiment
 from identify.model import CompiledModel, ModelError, load_model
+from identify.parameters import Parameters
+from identify.plans import ExperimentSpec
 from identify.result import FitResult
 from identify.transient import drop_test
 from rig.qc.spec import Characteristic, Spec, SpecError
@@ -27,6 +29,7 @@ from rig.qc.spec import Characteristic, Spec, SpecError
 CELSIUS = 273.15
 DROP_WINDOW_S = 1.0        # the first compression, where the peak force lies, is over by about 0.5 s
 DROP_STEP_S = 2.5e-4
+MODEL_ERROR_NOTE = "what the measurement noise explains"   # identify.estimator's words for model error
 RELATIVE_STEP = 1e-5       # of |θ| for the finite differences (1e-3 for the integrated drop test)
 
 
@@ -42,6 +45,7 @@ class Measured:
     std_fit: float | None    # from the fit's covariance, or from the scatter of the periods
     u_cal: float
     note: str = ""
+    basis: str | None = None  # which σ: "noise" or "residual" (the fit's), "scatter" (of the periods)
 
 
 @dataclass(frozen=True)
@@ -54,6 +58,8 @@ class Identified:
     theta: np.ndarray
     estimated: tuple[str, ...]
     covariance: np.ndarray
+    basis: str = "noise"      # "residual" where the residuals exceeded the noise (model error), "noise-misfit"
+                              # where they did but too few experiments gave no residual-based covariance
 
     @classmethod
     def from_fit(cls, fit: FitResult | None) -> Identified | None:
@@ -62,7 +68,9 @@ class Identified:
             return None
         # The residual-based covariance where the fit found model error: a guard band of the
         # noise-only σ would pass units on a precision the model does not have.
-        return cls(fit.params.vector(), tuple(fit.estimated), fit.honest_covariance())
+        misfit = any(MODEL_ERROR_NOTE in w for w in fit.warnings)
+        basis = "residual" if fit.covariance_residual is not None else "noise-misfit" if misfit else "noise"
+        return cls(fit.params.vector(), tuple(fit.estimated), fit.honest_covariance(), basis)
 
 
 def check_model(spec: Spec) -> CompiledModel:
@@ -89,21 +97,25 @@ def measure(spec: Spec, model: CompiledModel, identified: Identified | None,
             experiments: list[Experiment]) -> list[Measured]:
     """Every characteristic of the spec; model-based ones need a converged identification."""
     out = []
+    run = {e.letter for e in spec.plan.experiments}
     for c in spec.characteristics:
-        if c.kind == "loop_energy":
+        if c.kind == "loop_energy" and c.args["experiment"] in run:
             exp = next((e for e in experiments if e.label.endswith(c.args["experiment"])), None)
             if exp is None:
                 out.append(_missing(c, f"no experiment {c.args['experiment']!r} in the session"))
                 continue
             value, std = loop_energy(exp)
+            basis = "scatter"
         elif identified is None:
             out.append(_missing(c, "the identification did not converge"))
             continue
         else:
             value, std = _propagate(model, identified, _model_function(model, c), c.kind == "drop_peak_force")
+            basis = identified.basis
         scale = c.si_factor
         std_fit = std / scale
-        out.append(Measured(c.name, c.unit, value / scale, math.hypot(std_fit, c.u_cal), std_fit, c.u_cal))
+        out.append(Measured(c.name, c.unit, value / scale, math.hypot(std_fit, c.u_cal), std_fit, c.u_cal,
+                            basis=basis))
     return out
 
 
@@ -124,6 +136,17 @@ def _model_function(model: CompiledModel, c: Characteristic) -> Callable[[np.nda
         return lambda theta: float(theta[i8] + theta[i9] * p)
     if c.kind == "drop_peak_force":
         return lambda theta: drop_peak_force(model, theta, a["mass_kg"], a["velocity_m_s"])
+    if c.kind == "loop_energy":     # an experiment the plan does not run (spec: its conditions given)
+        from rig.imposed import loop_energy_j
+
+        run = ExperimentSpec(a["experiment"], "", a["static_mm"], a["amplitude_mm"], a["frequency_Hz"])
+        params = Parameters(model)
+
+        def energy(theta: np.ndarray) -> float:
+            params.set_vector(theta)
+            return loop_energy_j(params, run)
+
+        return energy
     raise AssertionError(f"no model function for kind {c.kind!r}")  # spec.KINDS lists the kinds handled here
 
 

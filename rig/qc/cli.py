@@ -9,7 +9,8 @@
 
 Exit status: 0 PASS, 1 FAIL, 4 INCONCLUSIVE (retest with more periods), 2 bad input,
 3 aborted after the safe stop (no verdict), 130 interrupted after the safe stop,
-70 an internal error.  ``history``: 0, or 2 for bad input.
+70 an internal error.  ``history``: 0, or 2 for bad input.  ``history`` and ``judge``
+open an existing records database only (2 when there is none); ``run`` creates its own.
 """
 
 from __future__ import annotations
@@ -47,7 +48,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_judge(args: argparse.Namespace) -> int:
     from rig.qc.run import qc_judge
 
-    return qc_judge(Path(args.session), args.spec, args.db, args.operator)
+    return qc_judge(Path(args.session), args.spec, args.db, args.operator, args.create_db)
 
 
 def _since(text: str | None) -> str | None:
@@ -63,44 +64,68 @@ def _since(text: str | None) -> str | None:
     return (t if t.tzinfo else t.astimezone()).astimezone(_dt.UTC).isoformat(timespec="seconds")
 
 
+def latest_only(records: list, superseded: dict[str, str]) -> list:
+    """Each test's latest judgement (a record no later one of the same data supersedes)."""
+    return [r for r in records if r.uid not in superseded]
+
+
 def cmd_history(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from rig.qc.history import capability, control_charts, fmt
-    from rig.qc.records import Records
+    from rig.qc.history import MIN_CAPABILITY_N, capability, control_charts, index, stat
+    from rig.qc.present import limits_text
+    from rig.qc.records import Records, superseded
 
     since = _since(args.since)
-    records = Records.open(args.db)
+    records = Records.open(args.db)      # never created here: a mistyped path is refused
     try:
-        found = records.find(serial=args.serial, since=since)
+        everything = records.find(serial=args.serial, since=since)
     finally:
         records.close()
+    later = superseded(everything)
+    found = everything if args.all else latest_only(everything, later)
     if args.json:
-        print(json.dumps([r.to_json() for r in found], indent=2))
+        print(json.dumps([r.to_json(later.get(r.uid)) for r in found], indent=2))
     else:
         console = Console(soft_wrap=True)
         if not console.is_terminal:
             console = Console(soft_wrap=True, width=200)   # a pipe or a file: whole rows, not 80 columns
-        table = Table(title=f"QC records in {records.name} ({len(found)})")
-        for col in ("serial", "measured (UTC)", "verdict", "status", "spec", "failed", "operator", "rig"):
+        which = "every record" if args.all else "each test's latest judgement; --all: every record"
+        table = Table(title=f"QC records in {records.name} ({len(found)}: {which})")
+        for col in ("serial", "measured (UTC)", "verdict", "status", "spec", "failed", "operator", "rig", "record"):
             table.add_column(col)
         for r in found:
-            failed = ", ".join(c.name for c in r.characteristics if c.outcome == "FAIL")
-            table.add_row(r.serial, (r.started or "—")[:19], r.verdict or "—", r.status,
-                          f"{r.spec_name} {r.spec_version}" + (" (re-judged)" if r.rejudges else ""), failed,
-                          r.operator, r.rig)
+            failed = ", ".join(c.title or c.name for c in r.characteristics if c.outcome == "FAIL")
+            verdict = (r.verdict or "—") + (" SIMULATED" if r.simulated else "")
+            spec = f"{r.spec_name} {r.spec_version}" + (" (re-judged)" if r.rejudges else "")
+            if r.uid in later:
+                spec += f" (superseded by {later[r.uid][:8]})"
+            table.add_row(r.serial, (r.started or "—")[:19], verdict, r.status + (f": {r.reason}" if r.reason else ""),
+                          spec, failed, r.operator, r.rig, r.uid[:8])
         console.print(table)
-        caps = Table(title="Capability (latest judgement of each complete run; Cp, Cpk with σ = MR̄/1.128)")
-        for col in ("characteristic", "unit", "n", "mean", "std", "Cp", "Cpk", "limits", "pass", "fail",
-                    "inconclusive"):
-            caps.add_column(col, justify="left" if col in ("characteristic", "unit", "limits") else "right")
-        for c in capability(found):
-            caps.add_row(c.name, c.unit, str(c.n), fmt(c.mean), fmt(c.std, 3), fmt(c.cp, 3), fmt(c.cpk, 3),
-                         f"{fmt(c.low)} … {fmt(c.high)}", str(c.passed), str(c.failed), str(c.inconclusive))
+        counted = "simulated included" if args.include_simulated else "simulated left out (--include-simulated)"
+        caps = Table(title=f"Capability: the latest judgement of each complete run, {counted}; I-MR limits "
+                           f"from {'the first ' + str(args.baseline) + ' units' if args.baseline else 'every unit'},"
+                           " points beyond them left out; σ within = MR̄/1.128")
+        for col in ("characteristic", "n", "mean", "σ within", "control limits", "Cp", "Cpk", "spec limits",
+                    "pass", "fail", "inconclusive"):
+            caps.add_column(col, justify="left" if col in ("characteristic", "control limits", "spec limits")
+                            else "right")
+        caps_found = capability(everything, args.include_simulated, args.baseline)
+        for c in caps_found:
+            limits = "—" if c.lcl is None else f"{stat(c.lcl, c)} … {stat(c.ucl, c)}"
+            if c.n < c.n_units:
+                limits += f" ({c.n_units - c.n} left out)"
+            caps.add_row(c.title, str(c.n), stat(c.mean, c), stat(c.sigma_within, c), limits, index(c.cp, c),
+                         index(c.cpk, c), limits_text(c.nominal, c.low, c.high, c.unit), str(c.passed),
+                         str(c.failed), str(c.inconclusive))
         console.print(caps)
+        if any(not c.meaningful for c in caps_found):
+            console.print(f"(Cp), (Cpk): not meaningful, fewer than {MIN_CAPABILITY_N} units (AIAG SPC manual)",
+                          highlight=False)
     if args.chart:
-        for path in control_charts(found, Path(args.chart)):
+        for path in control_charts(everything, Path(args.chart), args.include_simulated, args.baseline):
             print(f"chart {path}", file=sys.stderr if args.json else sys.stdout)   # stdout stays JSON
     return 0
 
@@ -133,6 +158,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     judge.add_argument("--spec", default="default", help="default or QC.toml")
     judge.add_argument("--db", help="records database URL (default: qc-records.sqlite beside the session folder)")
     judge.add_argument("--operator", help="for data without an earlier record (default: the login name)")
+    judge.add_argument("--create-db", action="store_true",
+                       help="create the records database where none exists (otherwise a missing one is refused)")
     judge.set_defaults(func=cmd_judge)
 
     history = qsub.add_parser("history", help="records, capability per characteristic, control charts")
@@ -140,5 +167,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     history.add_argument("--serial", help="one unit only")
     history.add_argument("--since", help="measured on or after this ISO date or time")
     history.add_argument("--json", action="store_true", help="print the records as a JSON list")
+    history.add_argument("--all", action="store_true",
+                         help="every record, re-judged ones too (default: each test's latest judgement)")
+    history.add_argument("--include-simulated", action="store_true",
+                         help="count records measured on a simulator in the statistics (left out by default)")
+    history.add_argument("--baseline", type=_positive_int, metavar="N",
+                         help="control limits from the first N units (default: every unit)")
     history.add_argument("--chart", metavar="DIR", help="write an individuals control chart (PNG) per characteristic")
     history.set_defaults(func=cmd_history)

@@ -42,12 +42,24 @@ def evaluate(spec: Spec, session: Path) -> Evaluation:
     fit: FitResult | None = None
     try:
         fit = fit_experiments(model, experiments, params, list(spec.estimate), n=spec.grid_points)
-        notes += fit.warnings
+        notes += [_for_the_verdict(w, fit) for w in fit.warnings]
         if not fit.converged:
             notes.append(f"identification did not converge: {fit.message}")
     except IdentifyError as exc:
         notes.append(f"identification failed: {exc}")
     return _judge(spec, model, experiments, fit, Identified.from_fit(fit), notes, t0)
+
+
+def _for_the_verdict(warning: str, fit: FitResult) -> str:
+    """A fit's warning as the QC report states it: the fit report says which σ it lists
+    first, the verdict uses the residual-based one where there is one (the σ notes say so
+    per characteristic), so the report must not say the σ covers the noise only."""
+    head, sep, _ = warning.partition("; the standard deviations cover the noise only")
+    if not sep:
+        return warning
+    if fit.covariance_residual is not None:
+        return f"{head}; the verdict propagates the residual-based covariance, which includes it"
+    return f"{head}; too few experiments for a residual-based covariance: the verdict's σ is noise-only"
 
 
 def evaluate_identified(spec: Spec, session: Path, identified: Identified, notes: list[str]) -> Evaluation:

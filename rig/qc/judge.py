@@ -32,6 +32,7 @@ class Judged:
     outcome: Outcome
     direction: str | None     # "low" or "high" for a value outside or near a limit
     cause: str | None         # for a FAIL: the spec's likely cause
+    title: str = ""           # the spec's readable name
 
     @property
     def name(self) -> str:
@@ -47,7 +48,7 @@ class Judgement:
     @property
     def diagnosis(self) -> list[str]:
         """One line per failed characteristic: what, which way, the likely cause."""
-        return [f"{j.name} too {j.direction}: {j.cause or 'no cause listed in the spec'}"
+        return [f"{j.title or j.name} too {j.direction}: {j.cause or 'no cause listed in the spec'}"
                 for j in self.characteristics if j.outcome is Outcome.FAIL]
 
 
@@ -74,7 +75,7 @@ def judge(spec: Spec, measured: list[Measured]) -> Judgement:
         m = by_name[c.name]
         outcome, direction = decide(m.value, m.std, c.low, c.high, spec.k)
         cause = spec.cause(c.name, direction) if outcome is Outcome.FAIL and direction else None
-        judged.append(Judged(m, c.low, c.high, c.nominal, outcome, direction, cause))
+        judged.append(Judged(m, c.low, c.high, c.nominal, outcome, direction, cause, c.title))
     outcomes = {j.outcome for j in judged}
     verdict = (Outcome.FAIL if Outcome.FAIL in outcomes else
                Outcome.INCONCLUSIVE if Outcome.INCONCLUSIVE in outcomes else Outcome.PASS)

@@ -10,6 +10,15 @@ and wait for it; PostgreSQL serialises the schema's creation with an advisory lo
 Credentials never leak: a database is only ever named by :func:`safe_url`, and every
 message from the driver is stripped of the password given in the URL, in PGPASSWORD or
 in the .pgpass file before anyone sees it.
+
+Readers never create: ``qc history`` and ``qc judge`` open an existing database only.
+``qc run`` creates its database, but only when it has a record to write (a run that
+never started leaves no empty file behind).
+
+A record says where it was measured: the controller's device identification and the
+DAQ's ``*IDN?``, and ``simulated`` when either named itself a simulator; that flag is part
+of the immutable row.  ``details`` holds further facts about the run as a JSON object
+(experiments used, rig time, why it stopped …), so that later fields need no new schema.
 """
 
 from __future__ import annotations
@@ -18,12 +27,13 @@ import json
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote, quote_plus
 
 from sqlalchemy import (
+    Boolean,
     Column,
     Connection,
     Engine,
@@ -36,6 +46,7 @@ from sqlalchemy import (
     Text,
     create_engine,
     event,
+    false,
     inspect,
     select,
     text,
@@ -45,7 +56,7 @@ from sqlalchemy.exc import ArgumentError, SQLAlchemyError
 
 from rig.errors import BadInput
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2            # 2: where measured (simulated, controller, daq), reason, k, details; titles
 DEFAULT_FILE = "qc-records.sqlite"
 SQLITE_WAIT_S = 60.0          # a writer waits this long for another one's transaction
 PG_SCHEMA_LOCK = 0x5143_5245  # advisory lock key ("QCRE") held while the schema is created
@@ -77,6 +88,12 @@ record_table = Table(
     Column("remedy", Text),
     Column("notes", Text, nullable=False),        # JSON list of lines
     Column("rejudges", String(36)),               # uid of the first record of the same data
+    Column("simulated", Boolean, nullable=False, server_default=false()),
+    Column("controller", Text),                   # JSON {object: text}: device identification, firmware
+    Column("daq", String(256)),                   # the DAQ's *IDN? answer
+    Column("reason", Text),                       # why there is no verdict (ABORTED, ERROR)
+    Column("k", Float(precision=53)),             # the guard band's coverage factor of the verdict
+    Column("details", Text),                      # JSON object: further facts about the run
 )
 characteristic_table = Table(
     "qc_characteristic", metadata,
@@ -92,7 +109,12 @@ characteristic_table = Table(
     Column("high", Float(precision=53)),
     Column("nominal", Float(precision=53), nullable=False),
     Column("outcome", String(16), nullable=False),
+    Column("title", String(256)),                 # the spec's readable name of the characteristic
+    Column("sigma_basis", String(16)),            # noise, residual or scatter: which σ the verdict used
 )
+# Columns schema version 2 added to version 1's tables (a version 1 database is upgraded on open).
+ADDED_IN_2 = {"qc_record": ("simulated", "controller", "daq", "reason", "k", "details"),
+              "qc_characteristic": ("title", "sigma_basis")}
 IMMUTABLE = ("qc_record", "qc_characteristic", "qc_schema")
 
 
@@ -112,6 +134,8 @@ class CharacteristicRecord:
     high: float | None
     nominal: float
     outcome: str
+    title: str | None = None          # the spec's readable name; ``name`` is the identifier
+    sigma_basis: str | None = None    # noise, residual or scatter (rig.qc.characteristics)
 
 
 @dataclass(frozen=True)
@@ -142,16 +166,36 @@ class QcRecord:
     remedy: str | None = None
     notes: tuple[str, ...] = ()
     rejudges: str | None = None
+    simulated: bool = False           # a peer named itself a simulator: never a production record
+    controller: dict[str, str] | None = None   # device identification and firmware; None: not known
+    daq: str | None = None            # *IDN?; None: not known (data from elsewhere)
+    reason: str | None = None         # why there is no verdict
+    k: float | None = None            # the guard band's coverage factor
+    details: dict[str, Any] = field(default_factory=dict)   # further facts about the run
 
-    def to_json(self) -> dict[str, Any]:
-        """The form ``qc history --json`` prints."""
+    def acceptance(self, c: CharacteristicRecord) -> tuple[float | None, float | None]:
+        """The acceptance limits of ISO 14253-1: the spec's limits moved in by k·σ."""
+        if c.std is None or self.k is None:
+            return None, None
+        u = self.k * c.std
+        return (None if c.low is None else c.low + u), (None if c.high is None else c.high - u)
+
+    def to_json(self, superseded_by: str | None = None) -> dict[str, Any]:
+        """The form ``qc history --json`` prints: ``superseded_by`` is the uid of the next
+        judgement of the same data (the database knows it; the record is never changed)."""
         return {
-            "serial": self.serial, "verdict": self.verdict, "status": self.status,
+            "uid": self.uid, "serial": self.serial, "verdict": self.verdict, "status": self.status,
+            "reason": self.reason, "simulated": self.simulated,
+            "judged_at": self.judged, "rejudges": self.rejudges, "superseded_by": superseded_by,
             "spec": {"name": self.spec_name, "version": self.spec_version, "sha256": self.spec_sha256},
-            "characteristics": {c.name: {"value": c.value, "std": c.std, "low": c.low, "high": c.high,
-                                         "unit": c.unit, "outcome": c.outcome} for c in self.characteristics},
+            "k": self.k,
+            "characteristics": {c.name: {"title": c.title, "value": c.value, "std": c.std,
+                                         "sigma_basis": c.sigma_basis, "low": c.low, "high": c.high,
+                                         "acceptance": list(self.acceptance(c)), "unit": c.unit,
+                                         "outcome": c.outcome} for c in self.characteristics},
             "started": self.started, "finished": self.finished, "operator": self.operator, "rig": self.rig,
-            "session": self.session,
+            "measured_on": {"controller": self.controller, "daq": self.daq},
+            "details": self.details, "session": self.session, "data_sha256": self.data_sha256,
         }
 
 
@@ -239,30 +283,45 @@ class Records:
         self.engine, self.url = engine, url
         self.name = safe_url(url)
         self._secrets = secrets_for(url)
+        self._pending = False    # an SQLite file to be made with the first record
 
     @classmethod
-    def open(cls, url: str, create: bool = True) -> Records:
-        """The database at ``url``, made with its schema when new; with ``create`` false
-        only an existing records database is opened (``identify batch --db`` adds to the
-        records of a station, and a mistyped path must not start an empty one)."""
+    def open(cls, url: str, create: bool = False, defer: bool = False) -> Records:
+        """The records database at ``url``.  Without ``create`` only an existing one is
+        opened (readers, ``identify batch --db``: a mistyped path must not start an empty
+        one); with it a new one is made, and with ``defer`` too a new SQLite file is made
+        only when the first record is added (a run that never started leaves nothing)."""
         parsed = parse_url(url)
+        pending = False
         if parsed.get_backend_name() == "sqlite":
-            if not create and not Path(str(parsed.database)).is_file():
-                raise RecordsError(f"records database {safe_url(parsed)} does not exist (qc run and qc judge "
-                                   f"create one; give the URL of an existing one)")
-            Path(str(parsed.database)).parent.mkdir(parents=True, exist_ok=True)
+            path = Path(str(parsed.database))
+            if path.is_dir():
+                raise RecordsError(f"--db {safe_url(parsed)}: a folder, not a database file (the station's "
+                                   f"database is {path / DEFAULT_FILE})")
+            if not path.is_file():
+                if not create:
+                    raise RecordsError(f"records database {safe_url(parsed)} does not exist (qc run creates it; "
+                                       "give the URL or file of an existing one)")
+                existing = next(p for p in path.absolute().parents if p.exists())
+                if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+                    raise RecordsError(f"--db {safe_url(parsed)}: {existing} is not a writable folder")
+                pending = defer
+                if not defer:
+                    path.parent.mkdir(parents=True, exist_ok=True)
             engine = create_engine(parsed, connect_args={"timeout": SQLITE_WAIT_S})
             event.listen(engine, "connect", _sqlite_connect)
             event.listen(engine, "begin", lambda conn: conn.exec_driver_sql("BEGIN IMMEDIATE"))
         else:
             engine = create_engine(parsed, pool_pre_ping=True)
         records = cls(engine, parsed)
-        try:
-            with records._errors("cannot be opened"):
-                records._ensure_schema(create)
-        except RecordsError:
-            records.close()
-            raise
+        records._pending = pending
+        if not pending:
+            try:
+                with records._errors("cannot be opened"):
+                    records._ensure_schema(create)
+            except RecordsError:
+                records.close()
+                raise
         return records
 
     def close(self) -> None:
@@ -289,16 +348,26 @@ class Records:
                 conn.execute(schema_table.insert().values(version=SCHEMA_VERSION))
                 return
             versions = conn.execute(select(schema_table.c.version)).scalars().all()
-        if versions != [SCHEMA_VERSION]:
+            if versions == [1]:
+                _upgrade_from_1(conn)
+                return
+        if set(versions) not in ({SCHEMA_VERSION}, {1, SCHEMA_VERSION}):   # {1, 2}: upgraded from 1
             raise RecordsError(f"records database {self.name} has schema version "
                                f"{', '.join(map(str, versions)) or 'none'}; this program reads and writes "
                                f"version {SCHEMA_VERSION}")
 
     def add(self, record: QcRecord) -> None:
         """The record and its characteristics, in one transaction."""
+        if self._pending:
+            with self._errors("cannot be created"):
+                Path(str(self.url.database)).parent.mkdir(parents=True, exist_ok=True)
+                self._ensure_schema(create=True)
+            self._pending = False
         with self._errors("refused the record"), self.engine.begin() as conn:
             row = {k: v for k, v in record.__dict__.items() if k != "characteristics"}
             row["files"] = json.dumps(record.files, sort_keys=True)
+            row["controller"] = None if record.controller is None else json.dumps(record.controller, sort_keys=True)
+            row["details"] = json.dumps(record.details, sort_keys=True)
             row["diagnosis"] = json.dumps(list(record.diagnosis))
             row["notes"] = json.dumps(list(record.notes))
             key = conn.execute(record_table.insert().values(**row)).inserted_primary_key
@@ -312,6 +381,8 @@ class Records:
     def find(self, serial: str | None = None, since: str | None = None) -> list[QcRecord]:
         """Records in the order they were written, optionally of one serial number and
         measured on or after ``since`` (an ISO date or time, UTC)."""
+        if self._pending:
+            return []     # no file yet: no records
         query = select(record_table).order_by(record_table.c.id)
         if serial is not None:
             query = query.where(record_table.c.serial == serial)
@@ -331,6 +402,8 @@ class Records:
         return [_record(r, tuple(chars.get(r["id"], []))) for r in rows]
 
     def first_for_data(self, data_sha256: str) -> QcRecord | None:
+        if self._pending:
+            return None
         query = select(record_table).where(record_table.c.data_sha256 == data_sha256).order_by(record_table.c.id)
         with self._errors("cannot be read"), self.engine.connect() as conn:
             row = conn.execute(query.limit(1)).mappings().first()
@@ -339,6 +412,8 @@ class Records:
     def for_data(self, data_sha256: str) -> list[QcRecord]:
         """Every record of the same measured data, first written first, without their
         characteristics: the first (which re-judgements refer to) and the latest."""
+        if self._pending:
+            return []
         query = select(record_table).where(record_table.c.data_sha256 == data_sha256).order_by(record_table.c.id)
         with self._errors("cannot be read"), self.engine.connect() as conn:
             return [_record(row, ()) for row in conn.execute(query).mappings()]
@@ -349,7 +424,34 @@ def _record(row: Any, characteristics: tuple[CharacteristicRecord, ...]) -> QcRe
     fields["files"] = json.loads(row["files"])
     fields["diagnosis"] = tuple(json.loads(row["diagnosis"]))
     fields["notes"] = tuple(json.loads(row["notes"]))
+    fields["controller"] = json.loads(row["controller"]) if row["controller"] else None
+    fields["details"] = json.loads(row["details"]) if row["details"] else {}
+    fields["simulated"] = bool(row["simulated"])
     return QcRecord(characteristics=characteristics, **{k: v for k, v in fields.items() if k != "characteristics"})
+
+
+def superseded(records: list[QcRecord]) -> dict[str, str]:
+    """uid → the uid of the next judgement of the same measured data (records in the
+    order written): what made a record's verdict no longer the latest."""
+    out: dict[str, str] = {}
+    last: dict[str, str] = {}
+    for r in records:
+        if r.data_sha256 in last:
+            out[last[r.data_sha256]] = r.uid
+        last[r.data_sha256] = r.uid
+    return out
+
+
+def _upgrade_from_1(conn: Connection) -> None:
+    """Version 1 → 2: new nullable columns (records judged before say nothing of where they
+    were measured), no row changed; the version goes in as a second row (rows are immutable)."""
+    for table, columns in ADDED_IN_2.items():
+        for name in columns:
+            column = metadata.tables[table].c[name]
+            default = " DEFAULT FALSE NOT NULL" if name == "simulated" else ""
+            conn.exec_driver_sql(f"ALTER TABLE {table} ADD COLUMN {name} "
+                                 f"{column.type.compile(dialect=conn.dialect)}{default}")
+    conn.execute(schema_table.insert().values(version=SCHEMA_VERSION))
 
 
 def _sqlite_connect(dbapi_connection: Any, _record: Any) -> None:

@@ -1,9 +1,12 @@
 """The unit's QC report: one self-contained HTML page (figures as PNG data URIs), for the
 operator at the station and for the quality engineer later.
 
-Top to bottom: the verdict, large; the likely causes or the remedy; every characteristic
-on its tolerance band with value ± k·σ; the work loops measured against the identified
-model; the traceability data of the record.
+Top to bottom: the verdict, large; the likely causes or the remedy; the characteristics
+as rig.qc.present shows them (value ± k·σ, σ and which one, the limits as the spec states
+them, the acceptance limits), with one note per characteristic on its σ; each on its
+tolerance band; the work loops measured against the identified model; where it was
+measured and the rest of the record's traceability.  A record measured on a simulator
+carries a SIMULATED watermark on every page.
 """
 
 from __future__ import annotations
@@ -11,7 +14,6 @@ from __future__ import annotations
 import base64
 import html
 import io
-import math
 
 import matplotlib
 
@@ -20,7 +22,9 @@ import matplotlib.pyplot as plt  # noqa: E402 — after the backend is chosen
 import numpy as np  # noqa: E402
 
 from identify.folding import fold  # noqa: E402
+from identify.notation import unit_text  # noqa: E402
 from rig.qc.evaluate import Evaluation  # noqa: E402
+from rig.qc.present import shown, sigma_note  # noqa: E402
 from rig.qc.records import QcRecord  # noqa: E402
 from rig.qc.spec import Spec  # noqa: E402
 
@@ -49,7 +53,8 @@ def band_figure(record: QcRecord, spec: Spec) -> str:
         left, right = min(values) - 0.15 * span, max(values) + 0.15 * span
         ax.axvspan(low, high, color=TOLERANCE_ZONE, label="tolerance")
         if c.std is not None and high - low > 2 * k * c.std:
-            ax.axvspan(low + k * c.std, high - k * c.std, color=CONFORMANCE_ZONE, label=f"PASS zone (±{k:g}σ in)")
+            ax.axvspan(low + k * c.std, high - k * c.std, color=CONFORMANCE_ZONE,
+                       label=f"acceptance zone (limits ∓ {k:g}σ)")
         ax.axvline(c.nominal, color="#444444", lw=1, ls="--", label="nominal")
         if c.value is not None and c.std is not None:
             ax.errorbar([c.value], [0.0], xerr=[[k * c.std], [k * c.std]], fmt="o", ms=7, capsize=6, lw=2,
@@ -57,8 +62,9 @@ def band_figure(record: QcRecord, spec: Spec) -> str:
         ax.set_xlim(left, right)
         ax.set_ylim(-1, 1)
         ax.set_yticks([])
-        ax.set_title(f"{c.name}: {c.outcome}", loc="left", fontsize=10, color=COLOURS.get(c.outcome, "#555555"))
-        ax.set_xlabel(f"[{c.unit}]", fontsize=9, labelpad=1)
+        ax.set_title(f"{c.title or c.name}: {c.outcome}", loc="left", fontsize=10,
+                     color=COLOURS.get(c.outcome, "#555555"))
+        ax.set_xlabel(f"{c.title or c.name} [{unit_text(c.unit)}]", fontsize=9, labelpad=1)
         ax.tick_params(axis="x", labelsize=9)
     handles, labels = axes[0, 0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="upper right", fontsize=8, ncol=3, frameon=False)
@@ -96,10 +102,6 @@ def loops_figure(evaluation: Evaluation) -> str | None:
     return _png(fig)
 
 
-def _fmt(x: float | None, digits: int = 5) -> str:
-    return "—" if x is None or (isinstance(x, float) and math.isnan(x)) else f"{x:.{digits}g}"
-
-
 def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -> str:
     e = html.escape
     verdict = record.verdict or f"no verdict ({record.status})"
@@ -107,14 +109,17 @@ def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -
     descriptions = {c.name: c.description for c in spec.characteristics}
     rows = []
     for c in record.characteristics:
-        value = "—" if c.value is None else f"{_fmt(c.value)} ± {_fmt(spec.k * c.std if c.std else None, 2)}"
-        limits = f"{_fmt(c.low)} … {_fmt(c.high)}"
+        s = shown(record, c, spec.k)
         rows.append(
-            f"<tr><td><b>{e(c.name)}</b><br><small>{e(descriptions.get(c.name, ''))}</small></td>"
-            f"<td class=num>{value} {e(c.unit)}</td><td class=num>{_fmt(c.std_fit, 2)} / {_fmt(c.u_cal, 2)}</td>"
-            f"<td class=num>{limits} {e(c.unit)}</td>"
+            f"<tr><td><b>{e(s.title)}</b><br><small>{e(descriptions.get(c.name, ''))}<br>"
+            f"<code>{e(s.name)}</code></small></td>"
+            f"<td class=num>{e(s.value)}</td><td class=num>{e(s.sigma)}<br><small>{e(s.basis)}</small></td>"
+            f"<td class=num>{e(s.limits)}</td><td class=num>{e(s.acceptance)}</td>"
             f"<td style='color:{COLOURS.get(c.outcome, '#555')};font-weight:bold'>{e(c.outcome)}</td></tr>")
+    sigma_notes = "".join(f"<li>{e(sigma_note(c))}</li>" for c in record.characteristics)
     findings = ""
+    if record.reason:
+        findings += f"<div class=box><h2>Why there is no verdict</h2><p>{e(record.reason)}</p></div>"
     if record.diagnosis:
         findings += "<div class=box><h2>Likely cause</h2><ul>" + "".join(
             f"<li>{e(d)}</li>" for d in record.diagnosis) + "</ul></div>"
@@ -127,7 +132,11 @@ def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -
     loops = loops_figure(evaluation) if evaluation is not None else None
     if loops:
         figures += f"<h2>Work loops: measured and identified model</h2><img alt='work loops' src='{loops}'>"
+    controller = ", ".join(f"{k} {v}" for k, v in (record.controller or {}).items()) or "not identified"
     trace = [("serial", record.serial), ("operator", record.operator), ("rig", record.rig),
+             ("measured on", "a SIMULATOR, not hardware" if record.simulated else "hardware (no peer named "
+                                                                                   "itself a simulator)"),
+             ("controller", controller), ("DAQ *IDN?", record.daq or "not identified"),
              ("measured", f"{record.started or '—'} … {record.finished or '—'}"), ("judged", record.judged),
              ("status", record.status), ("software", record.software),
              ("spec", f"{record.spec_name} {record.spec_version}"), ("spec sha256", record.spec_sha256),
@@ -135,10 +144,12 @@ def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -
              ("register map sha256", record.register_map_sha256 or "—"),
              ("session", record.session), ("record", record.uid), ("re-judges record", record.rejudges or "—")]
     trace += [(f"sha256 {name}", digest) for name, digest in sorted(record.files.items())]
-    notes = "".join(f"<li>{e(n)}</li>" for n in record.notes)
+    notes = "".join(f"<li>{e(n)}</li>" for n in record.notes if n != record.reason)
+    watermark = ("<div class=watermark aria-hidden=true>SIMULATED</div><div class=simbanner>SIMULATED: measured on "
+                 "a simulator, not on hardware. Not a production record.</div>") if record.simulated else ""
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
-<title>QC {e(record.serial)}: {e(verdict)}</title>
+<title>QC {e(record.serial)}: {e(verdict)}{' (SIMULATED)' if record.simulated else ''}</title>
 <style>
 body {{ font-family: "DejaVu Sans", Arial, sans-serif; margin: 24px auto; max-width: 1000px; color: #222; }}
 .verdict {{ font-size: 56px; font-weight: bold; color: #fff; background: {colour}; padding: 10px 24px;
@@ -148,17 +159,25 @@ table {{ border-collapse: collapse; width: 100%; font-size: 13px; }}
 td, th {{ border-bottom: 1px solid #ddd; padding: 5px 8px; text-align: left; vertical-align: top; }}
 td.num {{ text-align: right; white-space: nowrap; font-variant-numeric: tabular-nums; }}
 .box {{ border-left: 5px solid {colour}; background: #f7f7f7; padding: 4px 14px; margin: 14px 0; }}
-img {{ max-width: 100%; }} .trace td {{ font-family: "DejaVu Sans Mono", monospace; font-size: 11px;
+img {{ max-width: 100%; }}
+.watermark {{ position: fixed; top: 40%; left: 0; right: 0; text-align: center; font-size: 150px; font-weight: bold;
+  color: rgba(198, 40, 40, 0.13); transform: rotate(-30deg); pointer-events: none; z-index: 10; }}
+.simbanner {{ background: #c62828; color: #fff; font-weight: bold; padding: 6px 12px; margin-bottom: 10px; }}
+.trace td {{ font-family: "DejaVu Sans Mono", monospace; font-size: 11px;
   word-break: break-all; }}
 </style></head><body>
+{watermark}
 <h1>QC report — unit {e(record.serial)}</h1>
 <div class="verdict">{e(verdict)}</div>
 <p>Spec <b>{e(record.spec_name)} {e(record.spec_version)}</b> ({e(spec.title)}); guard band k = {spec.k:g}:
-PASS when value ± kσ lies inside the limits, FAIL when value ∓ kσ lies outside (ISO 14253-1).</p>
+PASS when value ± kσ lies inside the limits, that is the value inside the acceptance limits (the limits moved
+in by kσ); FAIL when value ∓ kσ lies outside (ISO 14253-1).</p>
 {findings}
 <h2>Characteristics</h2>
-<table><tr><th>characteristic</th><th>value ± kσ</th><th>σ fit / cal</th><th>limits</th><th>outcome</th></tr>
-{''.join(rows) or '<tr><td colspan=5>none: the run ended without a verdict</td></tr>'}</table>
+<table><tr><th>characteristic</th><th>value ± {spec.k:g}σ</th><th>σ (which)</th><th>limits (spec)</th>
+<th>acceptance limits</th><th>outcome</th></tr>
+{''.join(rows) or '<tr><td colspan=6>none: the run ended without a verdict</td></tr>'}</table>
+{'<h2>Which σ the verdict used</h2><ul>' + sigma_notes + '</ul>' if sigma_notes else ''}
 {figures}
 {'<h2>Notes</h2><ul>' + notes + '</ul>' if notes else ''}
 <h2>Traceability</h2>

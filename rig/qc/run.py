@@ -20,21 +20,25 @@ import json
 import shlex
 import socket
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
 
 from identify.files import atomic_write_bytes
 from rig.errors import BadInput
+from rig.plans import estimate_experiment_durations
 from rig.qc.characteristics import check_model
 from rig.qc.evaluate import Evaluation, evaluate
 from rig.qc.judge import Outcome
+from rig.qc.present import shown
 from rig.qc.records import CharacteristicRecord, QcRecord, Records, default_url
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
 from rig.qc.trace import SessionTrace, now_utc, software_version, trace_session
-from rig.run import EXIT_INTERRUPTED, EXIT_OK, RunOptions, execute, prepare
+from rig.run import EXIT_INTERRUPTED, EXIT_OK, Prepared, RunOptions, RunResult, execute, prepare
 
 EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
 
@@ -69,46 +73,97 @@ def qc_run(opt: QcOptions, console: Console) -> int:
     prep = prepare(run_options)
     config = replace(prep.config, steady_state=spec.steady_state)
     prep = replace(prep, config=config, plan=prep.plan.ordered(config))   # the order the spec's criterion favours
-    records = Records.open(opt.db or default_url(opt.out))
+    # Opened before the rig moves (a bad URL or password costs no rig time); a new SQLite
+    # file is made only with the first record: a run that never starts leaves none.
+    records = Records.open(opt.db or default_url(opt.out), create=True, defer=True)
     try:
         console.print(f"QC {spec.name} {spec.version} on unit {opt.serial}: records in {records.name}", highlight=False)
         started = now_utc()
-        result = execute(prep, console)
+        identity: dict[str, Any] = dict(serial=opt.serial, operator=operator, rig=rig_id, started=started)
+        try:
+            result = execute(prep, console, decide=decider(spec, prep, console))
+        except BaseException as exc:
+            # A session that started (its folder exists) is on record as ABORTED; one that
+            # never started (no link, refused) has nothing to record.
+            if (run_options.out / "session.json").is_file():
+                reason = "interrupted by the operator" if isinstance(exc, KeyboardInterrupt) else str(exc)
+                _store(records, _unjudged(spec, run_options.out, "ABORTED", reason, finished=now_utc(), **identity),
+                       spec)
+            raise
         finished = now_utc()
         session = result.session.path
-        identity = dict(serial=opt.serial, operator=operator, rig=rig_id, started=started, finished=finished)
         if result.error is not None:
-            _store(records, _unjudged(spec, session, "ERROR", [f"internal error: {result.error!r}"], **identity), spec)
+            _store(records, _unjudged(spec, session, "ERROR", f"internal error: {result.error!r}", finished=finished,
+                                      **identity), spec)
             raise result.error
         if result.exit_code != EXIT_OK:
-            _store(records, _unjudged(spec, session, "ABORTED", [f"session {result.status}"], **identity), spec)
+            _store(records, _unjudged(spec, session, "ABORTED", f"session {result.status}", finished=finished,
+                                      **identity), spec)
             console.print(f"[red]QC run ABORTED: session {result.status}; no verdict[/red]", highlight=False)
             return result.exit_code
         try:
             evaluation = evaluate(spec, session)
         except BaseException as exc:
             status = "ABORTED" if isinstance(exc, KeyboardInterrupt) else "ERROR"
-            _store(records, _unjudged(spec, session, status, [f"judging ended: {exc!r}"], **identity), spec)
+            _store(records, _unjudged(spec, session, status, f"judging ended: {exc!r}", finished=finished,
+                                      **identity), spec)
             if isinstance(exc, KeyboardInterrupt):
                 return EXIT_INTERRUPTED
             raise
         retest = shlex.join(["python", "-m", "rig", "qc", "run", "--spec", opt.spec, "--serial", opt.serial,
                              "--shaker", opt.shaker, "--daq", opt.daq, "--out", str(opt.out),
                              "--periods", str(spec.retest_periods())])
-        record = judged_record(spec, trace_session(session), evaluation, retest, rejudges=None, **identity)
+        evaluation.notes.append(stopping_note(result, prep))
+        record = judged_record(spec, trace_session(session), evaluation, retest, rejudges=None, finished=finished,
+                               **identity)
         return _conclude(records, record, spec, evaluation, session / "qc-report.html", session / "qc-record.json")
     finally:
         records.close()
 
 
-def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str | None) -> int:
-    """Judge stored data again (a new spec, a new model): a new record that refers to the first."""
+def decider(spec: Spec, prep: Prepared, console: Console) -> Callable[[RunResult], str | None]:
+    """After each captured experiment but the last: fit and judge what there is, and end
+    the session as soon as every characteristic is decided under the guard band (PASS,
+    or FAIL at k·σ); otherwise say how much longer the rest of the plan will take,
+    predicted again from the parameters identified so far (a faulty unit heats and
+    settles otherwise than the nominal one the first estimate assumed)."""
+    def decide(result: RunResult) -> str | None:
+        evaluation = evaluate(spec, result.session.path)
+        labels = ", ".join(e.label for e in result.captured)
+        open_ = [j.name for j in evaluation.judgement.characteristics if j.outcome is Outcome.INCONCLUSIVE]
+        if not open_:
+            return f"every characteristic decided after {labels} ({evaluation.judgement.verdict.value})"
+        done = {e.label for e in result.captured}
+        rest = tuple(e for e in prep.plan.experiments if result.session.label(e.letter) not in done)
+        if evaluation.fit is not None and evaluation.fit.converged and rest:
+            last = prep.plan.experiments[len(prep.plan.experiments) - len(rest) - 1]
+            eta = sum(d.total_s for d in estimate_experiment_durations(
+                replace(prep.plan, experiments=rest), prep.config, last.static_position_mm * 1e-3,
+                evaluation.fit.params))
+            console.print(f"after {labels}: {', '.join(open_)} not yet decided; the rest of the plan, predicted "
+                          f"from the parameters identified so far: {eta:.0f} s", highlight=False)
+        return None
+
+    return decide
+
+
+def stopping_note(result: RunResult, prep: Prepared) -> str:
+    """The record's line on how much of the plan was run, and why it ended there."""
+    used = [e.label for e in result.captured]
+    return (f"experiments used: {', '.join(used)} ({len(used)} of {len(prep.plan.experiments)}); "
+            f"stopped: {result.decided or 'end of the plan'}")
+
+
+def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str | None,
+             create_db: bool = False) -> int:
+    """Judge stored data again (a new spec, a new model): a new record that refers to the
+    first, in an existing database (``create_db``: a new one where none is)."""
     spec = load_spec(spec_source)
     check_model(spec)
     session = Path(session_dir).resolve()
     if not (session / "dataset.json").is_file():
         raise BadInput(f"{session_dir}: not a session or dataset folder (no dataset.json)")
-    records = Records.open(db or default_url(session.parent))
+    records = Records.open(db or default_url(session.parent), create=create_db)
     try:
         trace = trace_session(session)
         first = records.first_for_data(trace.data_sha256)
@@ -118,7 +173,8 @@ def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str 
         evaluation = evaluate(spec, session)
         retest = rejudge_remedy(spec)
         record = judged_record(spec, trace, evaluation, retest, rejudges=first.uid if first else None,
-                               serial=serial, operator=first.operator if first else operator or getpass.getuser(),
+                               simulated=bool(first and first.simulated), serial=serial,
+                               operator=first.operator if first else operator or getpass.getuser(),
                                rig=rig, started=trace.started, finished=trace.finished)
         tag = f"{record.judged.replace(':', '').replace('-', '')[:15]}-{record.uid[:8]}"
         return _conclude(records, record, spec, evaluation, session / f"qc-report-{tag}.html",
@@ -142,10 +198,9 @@ def _conclude(records: Records, record: QcRecord, spec: Spec, evaluation: Evalua
 
 def _document(record: QcRecord) -> dict:
     doc = record.to_json()
-    doc.update(uid=record.uid, judged=record.judged, software=record.software, files=record.files,
-               calibration_sha256=record.calibration_sha256, register_map_sha256=record.register_map_sha256,
-               diagnosis=list(record.diagnosis), remedy=record.remedy, notes=list(record.notes),
-               rejudges=record.rejudges)
+    doc.update(software=record.software, files=record.files, calibration_sha256=record.calibration_sha256,
+               register_map_sha256=record.register_map_sha256, diagnosis=list(record.diagnosis),
+               remedy=record.remedy, notes=list(record.notes))
     return doc
 
 
@@ -162,38 +217,54 @@ def rejudge_remedy(spec: Spec) -> str:
     return f"retest the unit with more periods (qc run … --periods {spec.retest_periods()})"
 
 
-def _base(spec: Spec, trace: SessionTrace, uid: str | None = None, **identity: str | None) -> dict:
+def _base(spec: Spec, trace: SessionTrace, uid: str | None = None, *, simulated: bool = False,
+          **identity: Any) -> dict:
+    """What every record says: who, when, with what, on what.  ``simulated``: the record
+    this one re-judges was (a flag that no later record can drop)."""
+    peers = trace.peers[0] if trace.peers else {}
+    details: dict[str, Any] = {"connections": list(trace.peers)} if len(trace.peers) > 1 else {}
+    if trace.generated:
+        details["generated"] = "the data were generated by the simulator, not measured"
     return dict(uid=uid or str(uuid.uuid4()), judged=now_utc(), software=software_version(), spec_name=spec.name,
                 spec_version=spec.version, spec_sha256=spec.sha256, calibration_sha256=trace.calibration_sha256,
                 register_map_sha256=trace.register_map_sha256, session=trace.path, data_sha256=trace.data_sha256,
-                files=trace.files, **identity)
+                files=trace.files, simulated=simulated or trace.simulated, controller=peers.get("controller"),
+                daq=peers.get("daq"), k=spec.k, details=details, **identity)
 
 
-def _unjudged(spec: Spec, session: Path, status: str, notes: list[str], **identity: str | None) -> QcRecord:
+def _unjudged(spec: Spec, session: Path, status: str, reason: str, **identity: Any) -> QcRecord:
+    """A run without a verdict (ABORTED, ERROR): status, reason, no characteristics."""
     return QcRecord(**_base(spec, trace_session(session), **identity), verdict=None, status=status,
-                    characteristics=(), notes=tuple(notes))
+                    characteristics=(), reason=reason, notes=(reason,))
 
 
 def judged_record(spec: Spec, trace: SessionTrace, evaluation: Evaluation, retest: str, rejudges: str | None,
-                  uid: str | None = None, **identity: str | None) -> QcRecord:
+                  uid: str | None = None, *, simulated: bool = False, **identity: Any) -> QcRecord:
     """The record of a verdict (``uid``: a new random one unless the caller keys it)."""
     j = evaluation.judgement
+    titles = {c.name: c.title for c in spec.characteristics}
     characteristics = tuple(
         CharacteristicRecord(c.name, c.measured.unit, c.measured.value, c.measured.std, c.measured.std_fit,
-                             c.measured.u_cal, c.low, c.high, c.nominal, c.outcome.value)
+                             c.measured.u_cal, c.low, c.high, c.nominal, c.outcome.value, titles.get(c.name) or None,
+                             c.measured.basis)
         for c in j.characteristics)
-    return QcRecord(**_base(spec, trace, uid, **identity), verdict=j.verdict.value, status="COMPLETE",
-                    characteristics=characteristics, diagnosis=tuple(j.diagnosis),
+    return QcRecord(**_base(spec, trace, uid, simulated=simulated, **identity), verdict=j.verdict.value,
+                    status="COMPLETE", characteristics=characteristics, diagnosis=tuple(j.diagnosis),
                     remedy=retest if j.verdict is Outcome.INCONCLUSIVE else None, notes=tuple(evaluation.notes),
                     rejudges=rejudges)
 
 
 def _print_summary(record: QcRecord, k: float, report: Path, database: str) -> None:
-    print(f"{record.serial}: {record.verdict}  (spec {record.spec_name} {record.spec_version}; value ± {k:g}σ)")
-    for c in record.characteristics:
-        value = "—" if c.value is None or c.std is None else f"{c.value:.5g} ± {k * c.std:.2g}"
-        limits = f"[{'-∞' if c.low is None else f'{c.low:g}'} … {'∞' if c.high is None else f'{c.high:g}'}]"
-        print(f"  {c.outcome:<12} {c.name:<24} {value} {c.unit}  limits {limits}")
+    """The terminal summary: the console's QC panel reads it (rig.gui.qc), so its lines
+    are the panel's rows — one per characteristic, fields separated by ' | '."""
+    simulated = "  SIMULATED (not a production record)" if record.simulated else ""
+    print(f"{record.serial}: {record.verdict}  (spec {record.spec_name} {record.spec_version}; "
+          f"value ± {k:g}σ){simulated}")
+    rows = [shown(record, c, k) for c in record.characteristics]
+    width = max((len(s.title) for s in rows), default=0)
+    for s in rows:
+        print(f"  {s.outcome:<12} | {s.title:<{width}} | {s.value} | limits {s.limits} | accept {s.acceptance} | "
+              f"σ {s.sigma} {s.basis}".rstrip())
     for line in record.diagnosis:
         print(f"  likely cause: {line}")
     if record.remedy:

@@ -37,7 +37,12 @@ KINDS: dict[str, tuple[str, tuple[str, ...]]] = {
     "loop_energy": ("energy", ("experiment",)),                       # ∮F dq of a measured experiment
     "drop_peak_force": ("force", ("mass_kg", "velocity_m_s")),        # models.md drop test, identified model
 }
-COMMON_KEYS = ("name", "kind", "unit", "nominal", "low", "high", "tolerance_percent", "u_cal", "description")
+# Keys a kind may take besides: a loop energy's experiment conditions, from which the
+# identified model computes it where the plan does not run the experiment.
+OPTIONAL: dict[str, tuple[str, ...]] = {
+    "loop_energy": ("static_mm", "amplitude_mm", "frequency_Hz"),
+}
+COMMON_KEYS = ("name", "kind", "unit", "nominal", "low", "high", "tolerance_percent", "u_cal", "description", "title")
 TOP_KEYS = ("name", "version", "title", "serial_pattern", "k", "periods", "identification", "steady_state",
             "experiment", "characteristic", "diagnosis")
 DIRECTIONS = ("low", "high")
@@ -62,6 +67,11 @@ class Characteristic:
     u_cal: float
     args: dict[str, Any]
     description: str = ""
+    title: str = ""           # the readable name reports and screens show (``name`` is the identifier)
+
+    @property
+    def shown(self) -> str:
+        return self.title or self.name
 
     @property
     def si_factor(self) -> float:
@@ -180,7 +190,8 @@ def _characteristic(c: Any, i: int, where: str, plan: Plan) -> Characteristic:
     if kind not in KINDS:
         raise SpecError(f"{at}: unknown kind {kind!r} (kinds: {', '.join(KINDS)})")
     dimension, extra = KINDS[kind]
-    _no_unknown(c, COMMON_KEYS + extra, at)
+    optional = OPTIONAL.get(kind, ())
+    _no_unknown(c, COMMON_KEYS + extra + optional, at)
     unit = _str(c, "unit", at)
     if unit not in UNITS or UNITS[unit][0] != dimension:
         options = ", ".join(u for u, (d, _) in UNITS.items() if d == dimension)
@@ -205,19 +216,30 @@ def _characteristic(c: Any, i: int, where: str, plan: Plan) -> Characteristic:
     if u_cal < 0:
         raise SpecError(f"{at}: u_cal must not be negative")
     args: dict[str, Any] = {}
+    given = [key for key in optional if key in c]
+    if given and len(given) != len(optional):
+        raise SpecError(f"{at}: give all of {', '.join(optional)} (the conditions the model computes it at), "
+                        f"or none")
+    for key in given:
+        args[key] = _number(c, key, at)
     for key in extra:
         if key == "experiment":
             letter = _str(c, key, at)
             spec = next((e for e in plan.experiments if e.letter == letter), None)
+            if spec is None and given:
+                args[key] = letter      # not run: computed from the model at the conditions given
+                continue
             if spec is None:
-                raise SpecError(f"{at}: the plan has no experiment {letter!r}")
+                raise SpecError(f"{at}: the plan has no experiment {letter!r} (and no static_mm, amplitude_mm, "
+                                f"frequency_Hz to compute it from the model at)")
             if spec.periods < 2:
                 raise SpecError(f"{at}: experiment {letter!r} captures {spec.periods} period; the energy's "
                                 "scatter needs at least 2")
             args[key] = letter
         else:
             args[key] = _number(c, key, at)
-    return Characteristic(name, kind, unit, nominal, low, high, u_cal, args, str(c.get("description", "")))
+    return Characteristic(name, kind, unit, nominal, low, high, u_cal, args, str(c.get("description", "")),
+                          str(c.get("title", "")))
 
 
 def _no_unknown(table: dict[str, Any], known: tuple[str, ...], where: str) -> None:

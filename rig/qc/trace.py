@@ -67,6 +67,12 @@ class SessionTrace:
     register_map_sha256: str | None
     started: str | None
     finished: str | None
+    peers: tuple[dict, ...] = ()          # session.json's: who answered on the links, per connection
+    generated: bool = False               # dataset.json says the simulator generated the data
+
+    @property
+    def simulated(self) -> bool:
+        return self.generated or any(p.get("simulated") for p in self.peers)
 
 
 def trace_session(session: Path) -> SessionTrace:
@@ -80,5 +86,8 @@ def trace_session(session: Path) -> SessionTrace:
         files[JOURNAL] = journal
     meta_path = session / "session.json"
     meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
+    peers = tuple(p for p in meta.get("peers", []) if isinstance(p, dict))
+    generator = str(manifest.get("source", {}).get("generator", ""))
     return SessionTrace(str(session), files, fingerprint, sha256(session / CALIBRATION), sha256(session / REGISTER_MAP),
-                        as_utc(meta.get("started")), as_utc(meta.get("finished")))
+                        as_utc(meta.get("started")), as_utc(meta.get("finished")), peers,
+                        generated=generator.startswith("simulator"))

@@ -1,0 +1,362 @@
+"""``python -m rig design``: a plan of experiments chosen for the precision asked for at
+the least predicted rig time (identify.design's numerics, this rig's limits and times).
+
+Candidates: sine experiments on a grid of static positions, amplitudes and frequencies
+(the standard set's own values and a few beyond), each within the rig configuration's
+stroke, velocity, frequency and force limits.  For each, the force the damper needs to
+follow the commanded stroke is predicted from the model at the prior parameters (the
+gas temperature's periodic state under the imposed stroke, then the force balance), and
+with it the information one captured period gives the estimator, under the
+transducers' noise of the rig configuration (``drift_noise``).
+
+Cost: the predicted rig seconds of the whole sequence as ``rig run`` will spend them
+(rig.plans' estimate: moves, conditioning holds, ramps, settling under the criterion
+from where the previous experiment left actuator and gas, captures, fades).
+
+Goals: ``--target theta4,theta6,theta16 --no-worse-than standard`` (every σ at most the
+reference plan's), ``--target … --sigma 1e-5,0.01,0.02`` (absolute σ), or ``--qc-spec
+default`` (every model-based characteristic's combined σ at most a quarter of its
+tolerance half-width, the experiment a measured characteristic needs kept).
+
+Exit status: 0 plan written (also when the goal could not be met: the plan's comments
+and the terminal say so, and the status is 1); 2 bad input (one line).
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import math
+import shlex
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from identify.design import (
+    Candidate,
+    Choice,
+    Design,
+    DesignError,
+    Information,
+    Noise,
+    Quantities,
+    covariance,
+    derived_quantities,
+    experiment_information,
+    optimise,
+    parameter_quantities,
+    sigmas,
+)
+from identify.errors import ComputationError
+from identify.files import atomic_write_bytes
+from identify.model import CompiledModel, load_model
+from identify.parameters import Parameters
+from identify.plans import ExperimentSpec
+from rig.config import RigConfig, load_rig_config
+from rig.errors import BadInput
+from rig.imposed import imposed_stroke
+from rig.plans import Plan, check_plan, estimate_experiment_durations, load_plan
+from rig.shaker import check_waveform
+
+# The candidate grid: the standard set's static positions, amplitudes and frequencies.
+STATIC_MM = (14.0, 40.0, 79.0, 133.0, 179.0, 219.0, 249.0)
+AMPLITUDE_MM = (10.0, 20.0, 35.0, 60.0, 80.0, 127.0)
+FREQUENCY_HZ = (0.04, 0.1, 0.2, 0.5, 1.0, 2.0, 4.0)
+PERIODS = (2, 3, 4, 6, 8, 12)
+GRID_POINTS = 800
+QC_SIGMA_FRACTION = 0.25    # of a characteristic's tolerance half-width (combined with u_cal)
+FORCE_MARGIN = 0.8          # of the force limit: the prediction is at the prior, the unit may be stiffer
+LABELS = "abcdefghijkmnopqrstuwxyz"   # no l: it reads as 1 beside a number
+EXIT_GOAL_NOT_MET = 1
+
+
+@dataclass(frozen=True)
+class Goal:
+    """What a design is asked for: the model, its estimated parameters at their prior
+    values, the quantities judged and their σ targets (SI), experiments to keep."""
+
+    model: CompiledModel
+    params: Parameters
+    estimate: tuple[str, ...]
+    quantities: Quantities
+    targets: np.ndarray
+    units: tuple[str, ...]           # of each quantity, for the comments
+    scales: tuple[float, ...]        # SI per display unit
+    required: tuple[ExperimentSpec, ...] = ()
+    outputs: tuple[str, ...] = ("stroke_mm", "pressure_bar")
+
+
+@dataclass(frozen=True)
+class Designed:
+    plan: Plan
+    sigma: np.ndarray                # of the quantities, SI, without the prior
+    rig_s: float
+    met: bool
+    reference: tuple[str, np.ndarray, float] | None   # name, σ, rig time
+    candidates: tuple[ExperimentSpec, ...]
+    design_s: float
+
+
+def candidate_specs(config: RigConfig) -> list[ExperimentSpec]:
+    """Every grid point within the stroke, velocity and frequency limits."""
+    out: list[ExperimentSpec] = []
+    for s in STATIC_MM:
+        for a in AMPLITUDE_MM:
+            for f in FREQUENCY_HZ:
+                if not check_waveform(config.limits, s * 1e-3, a * 1e-3, f):
+                    out.append(ExperimentSpec(f"c{len(out)}", "designed", s, a, f))
+    return out
+
+
+def transducer_noise(model: CompiledModel, config: RigConfig, outputs: Sequence[str]) -> Noise:
+    """Per-sample noise (SI) of the fitted outputs and the inputs: the rig configuration's
+    transducer figures (``drift_noise``)."""
+    drift = config.steady_state.drift
+    table = drift.noise if drift is not None else {}
+    d = model.declaration
+    channels = [d.outputs[o] for o in outputs] + list(d.inputs.values())
+    missing = [c.column for c in channels if c.column not in table]
+    if missing:
+        raise BadInput(f"{config.source}: [steady_state] drift_noise names no noise for {', '.join(missing)}: "
+                       f"the design needs every fitted channel's")
+    sd = [table[c.column] * c.scale for c in channels]
+    return Noise(np.array(sd[:len(outputs)]), np.array(sd[len(outputs):]))
+
+
+def informations(goal: Goal, specs: Sequence[ExperimentSpec], config: RigConfig,
+                 n: int = GRID_POINTS) -> tuple[list[ExperimentSpec], list[Information]]:
+    """The information per period of each spec that stays within the force limit and has
+    a periodic solution (the others are dropped)."""
+    inputs, states = imposed_stroke(goal.params, specs, n)
+    theta = goal.params.vector()
+    noise = transducer_noise(goal.model, config, goal.outputs)
+    kept, info = [], []
+    for spec, u, x in zip(specs, inputs, states, strict=True):
+        if np.max(np.abs(u)) > FORCE_MARGIN * config.limits.force_limit_n:
+            continue
+        candidate = Candidate(spec.letter, spec.frequency_hz, u, float(config.daq_rate_hz), states=x)
+        try:
+            info.append(experiment_information(goal.model, candidate, theta, goal.estimate, goal.outputs, noise, n))
+        except ComputationError:
+            continue
+        kept.append(spec)
+    return kept, info
+
+
+def rig_seconds(plan: Plan, config: RigConfig, params: Parameters) -> float:
+    """Predicted rig time of a plan run in its order (rig.plans, as the session's ETA)."""
+    return sum(d.total_s for d in estimate_experiment_durations(plan.ordered(config), config, 0.0, params))
+
+
+def standalone_seconds(specs: Sequence[ExperimentSpec], config: RigConfig, params: Parameters) -> np.ndarray:
+    """Each experiment's predicted rig time from rest at the start, less its capture: the
+    optimiser's quick estimate to shortlist by.  One prediction for all: each experiment
+    follows a barely moving one at the start position, whose periodic state is the
+    damper at rest there (a plan's rows each start from the row before)."""
+    rest = ExperimentSpec("r", "", 0.0, 0.01, 2.0)
+    sequence = tuple(x for k, e in enumerate(specs)
+                     for x in (replace(rest, letter=f"r{k}"), replace(e, letter=f"c{k}")))
+    durations = estimate_experiment_durations(Plan("alone", sequence), config, 0.0, params, noise_draws=0)
+    return np.array([d.total_s - d.capture_s for d in durations[1::2]])
+
+
+def _plan(name: str, specs: Sequence[ExperimentSpec], choices: Sequence[Choice], required: int) -> Plan:
+    """The chosen experiments as a plan, labelled a, b, … (required ones keep theirs)."""
+    taken = {specs[c.candidate].letter for c in choices[:required]}
+    letters = iter(x for x in LABELS if x not in taken)
+    out = []
+    for k, c in enumerate(choices):
+        e = specs[c.candidate]
+        out.append(replace(e, periods=c.periods) if k < required else
+                   replace(e, letter=next(letters), periods=c.periods))
+    return Plan(name, tuple(out), "", "fixed")
+
+
+def design(goal: Goal, config: RigConfig, reference: Plan | None, name: str,
+           no_worse_than: bool = False) -> Designed:
+    """The least-rig-time plan from the candidates that meets the goal's targets (or,
+    ``no_worse_than``, the reference plan's σ)."""
+    t0 = time.perf_counter()
+    specs = list(goal.required) + candidate_specs(config)
+    specs, info = informations(goal, specs, config)
+    if len(specs) < len(goal.required) or any(s.letter != r.letter for s, r in zip(specs, goal.required,
+                                                                                      strict=False)):
+        raise BadInput("an experiment the goal needs is beyond the rig's force limit or has no periodic solution")
+    reference_figures = None
+    targets = goal.targets
+    if reference is not None:
+        ref_specs, ref_info = informations(goal, list(reference.experiments), config)
+        if len(ref_specs) < len(reference.experiments):
+            raise BadInput(f"reference plan {reference.name!r}: an experiment beyond the force limit or without "
+                           f"a periodic solution at the prior parameters")
+        ref_sigma = sigmas(covariance([(i, e.periods) for i, e in zip(ref_info, ref_specs, strict=True)]),
+                           goal.quantities)
+        reference_figures = (reference.name, ref_sigma, rig_seconds(reference, config, goal.params))
+        if no_worse_than:
+            targets = ref_sigma
+    prior = _prior_precision(goal)
+    required = [Choice(k, r.periods) for k, r in enumerate(goal.required)]
+
+    def cost(seq: Sequence[Choice]) -> float:
+        plan = Plan("trial", tuple(replace(specs[c.candidate], letter=f"x{k}", periods=c.periods)
+                                   for k, c in enumerate(seq)), "", "fixed")
+        return sum(d.total_s for d in estimate_experiment_durations(plan, config, 0.0, goal.params, noise_draws=3))
+
+    alone = standalone_seconds(specs, config, goal.params)
+
+    def estimate(seq: Sequence[Choice]) -> float:
+        return sum(alone[c.candidate] + c.periods / specs[c.candidate].frequency_hz for c in seq)
+
+    try:
+        found: Design = optimise(info, goal.quantities, cost, criterion="sigma", targets=targets, periods=PERIODS,
+                                 required=required, prior_precision=prior, estimate=estimate)
+    except DesignError as exc:
+        raise BadInput(f"design: {exc}") from None
+    plan = _plan(name, specs, found.choices, len(required))
+    problems = check_plan(plan, config)
+    assert not problems, problems   # every candidate passed check_waveform
+    sigma = sigmas(covariance([(info[c.candidate], c.periods) for c in found.choices]), goal.quantities)
+    met = bool(np.all(sigma <= targets * (1 + 1e-9)))
+    return Designed(plan, sigma, rig_seconds(plan, config, goal.params), met, reference_figures, tuple(specs),
+                    time.perf_counter() - t0)
+
+
+def _prior_precision(goal: Goal) -> np.ndarray:
+    """The estimator's default prior (half the parameter's size, or the START file's):
+    keeps a plan that does not yet see a parameter finite while the optimiser builds it."""
+    theta = goal.params.vector()
+    std = []
+    for name in goal.estimate:
+        p = goal.params[name]
+        std.append(p.prior_std if p.prior_std else 0.5 * (abs(theta[goal.params.index(name)]) or 1.0))
+    return np.diag(1.0 / np.square(std))
+
+
+def parameter_goal(model_name: str, params_file: str | None, targets: list[str],
+                   sigma: list[float] | None) -> Goal:
+    model = load_model(model_name)
+    params = Parameters.from_file(model, params_file) if params_file else Parameters(model)
+    estimate = tuple(params[t].name for t in targets)
+    quantities = parameter_quantities(estimate, estimate)
+    units = tuple(params[t].unit for t in estimate)
+    if sigma is not None and len(sigma) != len(estimate):
+        raise BadInput(f"--sigma gives {len(sigma)} values for {len(estimate)} targets")
+    return Goal(model, params, estimate, quantities, np.array(sigma if sigma else [math.inf] * len(estimate)),
+                units, (1.0,) * len(estimate))
+
+
+def qc_goal(spec_source: str) -> Goal:
+    """The spec's model-based characteristics, each to a quarter of its tolerance
+    half-width (combined with u_cal); a loop energy the spec gives the conditions of is
+    one of them (computed from the model there), otherwise its experiment is kept."""
+    from rig.qc.characteristics import _model_function, check_model
+    from rig.qc.spec import load_spec
+
+    spec = load_spec(spec_source)
+    model = check_model(spec)
+    params = Parameters.from_file(model, spec.start) if spec.start else Parameters(model)
+    estimate = tuple(params[p].name for p in spec.estimate)
+    functions, targets, units, scales = {}, [], [], []
+    measured = {c.args["experiment"] for c in spec.characteristics
+                if c.kind == "loop_energy" and "static_mm" not in c.args}
+    for c in spec.characteristics:
+        if c.kind == "loop_energy" and c.args["experiment"] in measured:
+            continue
+        limits = [x for x in (c.low, c.high) if x is not None]
+        half = (abs(limits[1] - limits[0]) / 2 if len(limits) == 2 else abs(limits[0] - c.nominal)) * c.si_factor
+        wanted = QC_SIGMA_FRACTION * half
+        u_cal = c.u_cal * c.si_factor
+        if wanted <= u_cal:
+            raise BadInput(f"spec {spec.source}: characteristic {c.name!r}: u_cal alone is above "
+                           f"{QC_SIGMA_FRACTION:g} of the tolerance half-width; no plan can meet it")
+        functions[c.name] = _model_function(model, c)
+        targets.append(math.sqrt(wanted**2 - u_cal**2))
+        units.append(c.unit)
+        scales.append(c.si_factor)
+    theta = params.vector()
+    quantities = derived_quantities(functions, theta, [params.index(p) for p in estimate])
+    required = tuple(e for e in spec.plan.experiments if e.letter in measured)
+    return Goal(model, params, estimate, quantities, np.array(targets), tuple(units), tuple(scales), required)
+
+
+def plan_text(designed: Designed, goal: Goal, command: str) -> str:
+    """The plan file: today's plan format, with the prediction in comments."""
+    lines = [f"# Designed by: {command}",
+             f"# on {_dt.date.today().isoformat()}: the least predicted rig time whose predicted σ meet the goal "
+             f"({'met' if designed.met else 'NOT met'}); {len(designed.candidates)} candidates, "
+             f"designed in {designed.design_s:.0f} s.",
+             f"# Predicted at the prior parameters with the transducers' noise of the rig configuration; "
+             f"estimated: {', '.join(goal.estimate)}.",
+             "#",
+             _row("quantity", "target σ", "designed σ", designed.reference[0] + " σ" if designed.reference else "")]
+    for k, name in enumerate(goal.quantities.names):
+        scale = goal.scales[k]
+        ref = f"{designed.reference[1][k] / scale:.3g}" if designed.reference else ""
+        target = goal.targets[k] / scale if np.isfinite(goal.targets[k]) else math.nan
+        unit = goal.units[k]
+        lines.append(_row(name, f"{target:.3g} {unit}" if np.isfinite(target) else "(reference)",
+                          f"{designed.sigma[k] / scale:.3g} {unit}", f"{ref} {unit}" if ref else ""))
+    ref_time = f"{designed.reference[2]:.0f} s" if designed.reference else ""
+    lines.append(_row("rig time (predicted)", "", f"{designed.rig_s:.0f} s", ref_time))
+    lines += ["#", f'name = "{designed.plan.name}"',
+              '# as listed: the order the rig time was predicted for (each experiment starts where the one',
+              '# before left the actuator and the gas)',
+              'order = "fixed"', ""]
+    for e in designed.plan.experiments:
+        lines += ["[[experiment]]", f'label = "{e.letter}"', f'group = "{e.group}"',
+                  f"static_mm = {e.static_position_mm:g}", f"amplitude_mm = {e.amplitude_mm:g}",
+                  f"frequency_Hz = {e.frequency_hz:g}", f"periods = {e.periods}", ""]
+    return "\n".join(lines)
+
+
+def _row(*cells: str) -> str:
+    return "# " + f"{cells[0]:<24}" + "".join(f"{c:>16}" for c in cells[1:])
+
+
+def run_design(args: object) -> int:
+    """The ``rig design`` command (arguments as rig.cli parses them)."""
+    a = vars(args)
+    config = load_rig_config(a["rig_config"])
+    if bool(a["target"]) == bool(a["qc_spec"]):
+        raise BadInput("design: give either --target PARAMETERS or --qc-spec SPEC")
+    reference = load_plan(a["compare"]) if a["compare"] else None
+    if a["no_worse_than"]:
+        reference = load_plan(a["no_worse_than"])
+    if a["target"]:
+        names = [x.strip() for x in a["target"].split(",") if x.strip()]
+        sigma = None
+        if a["sigma"]:
+            try:
+                sigma = [float(x) for x in a["sigma"].split(",")]
+            except ValueError:
+                raise BadInput(f"--sigma {a['sigma']!r}: not a comma-separated list of numbers") from None
+            if not all(s > 0 and math.isfinite(s) for s in sigma):
+                raise BadInput(f"--sigma {a['sigma']!r}: every σ must be a positive number")
+        if sigma is None and not a["no_worse_than"]:
+            raise BadInput("design --target: say how precise: --no-worse-than PLAN or --sigma S1,S2,…")
+        goal = parameter_goal(a["model"], a["params"], names, sigma)
+        name = "designed-" + "-".join(goal.estimate)
+    else:
+        goal = qc_goal(a["qc_spec"])
+        name = f"designed-qc-{Path(a['qc_spec']).stem}"
+    for problem in check_plan(reference, config) if reference else []:
+        raise BadInput(f"reference plan: {problem}")
+    out = Path(a["out"])
+    if not out.parent.is_dir():
+        raise BadInput(f"--out {out}: folder {out.parent} does not exist")
+    designed = design(goal, config, reference, name, no_worse_than=bool(a["no_worse_than"]))
+    command = shlex.join(["python", "-m", "rig", *a["argv"]])
+    atomic_write_bytes(out, plan_text(designed, goal, command).encode())
+    print(f"{out}: {len(designed.plan.experiments)} experiments, {designed.rig_s:.0f} s of rig time predicted"
+          + (f" ({designed.reference[0]}: {designed.reference[2]:.0f} s)" if designed.reference else "")
+          + f"; designed in {designed.design_s:.0f} s")
+    for k, nm in enumerate(goal.quantities.names):
+        ref = f"  ({designed.reference[0]} {designed.reference[1][k] / goal.scales[k]:.3g})" \
+            if designed.reference else ""
+        print(f"  σ {nm:<22} {designed.sigma[k] / goal.scales[k]:.3g} {goal.units[k]}{ref}")
+    if not designed.met:
+        print("goal NOT met: the plan written is the best found (see its comments)")
+        return EXIT_GOAL_NOT_MET
+    return 0

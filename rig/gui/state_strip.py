@@ -1,0 +1,108 @@
+"""The rig's state as an operator reads it from across the room: one strip in large type
+and colour with the controller's state word, HYDRAULICS ON or OFF and the alarm; and
+which motion controls that state allows, with the reason for each one it does not.
+
+Both are driven by the controller's registers (state, alarm, supply pressure) and by
+the console's own trip latch: an E-STOP or an alarm stays latched here until the
+operator confirms the reset, even after the controller itself has gone quiet (the
+console's E-STOP leaves the controller OFF, with no alarm register set).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from PySide6 import QtCore, QtWidgets
+
+from rig.shaker import ShakerStatus
+
+# Supply pressure from which the hydraulics count as on: the register is the one
+# reading that tells, whatever the coil was last written (a lost supply reads 0 bar).
+HYDRAULICS_ON_PA = 10e5
+MOTION = ("hydraulics_on", "move", "sine", "run_plan", "resume", "qc_test")
+NEED_HYDRAULICS = ("move", "sine")
+MANUAL = ("hydraulics_on", "move", "sine")
+COLOURS = {"ALARM": "#c62828", "RUNNING": "#2e7d32", "MOVING": "#ef6c00", "AT_STATIC": "#1565c0",
+           "IDLE": "#1565c0", "OFF": "#616161"}
+NO_LINK_COLOUR = "#ef6c00"
+
+
+def hydraulics_on(status: ShakerStatus) -> bool:
+    return status.hydraulic_pressure_pa >= HYDRAULICS_ON_PA
+
+
+@dataclass(frozen=True)
+class RigState:
+    """What the strip and the controls are decided from (no Qt)."""
+
+    status: ShakerStatus | None          # None: no answer from the controller
+    trip: str | None = None              # the console's latch: E-STOP or an alarm not yet reset
+    link_error: str | None = None
+    connected: bool = False
+    session_running: bool = False
+
+    @property
+    def word(self) -> str:
+        if self.trip is not None or (self.status is not None and self.status.state == "ALARM"):
+            return "ALARM"
+        if self.status is None:
+            return "NOT READ" if self.link_error else "NOT CONNECTED"
+        return self.status.state
+
+    def strip_text(self) -> str:
+        parts = [self.word]
+        st = self.status
+        if self.trip is not None:
+            parts.append(self.trip)
+        elif st is not None and st.state == "ALARM":
+            parts.append(st.alarm)
+        if st is None:
+            parts.append("HYDRAULICS ?" + (f" ({self.link_error})" if self.link_error else ""))
+        else:
+            parts.append(f"HYDRAULICS {'ON' if hydraulics_on(st) else 'OFF'}  {st.hydraulic_pressure_pa / 1e5:.0f} bar")
+            if self.trip is not None and st.state != "ALARM":
+                parts.append(f"controller {st.state}")
+        return "   ·   ".join(parts)
+
+    def colour(self) -> str:
+        return COLOURS["ALARM"] if self.word == "ALARM" else COLOURS.get(self.word, NO_LINK_COLOUR)
+
+    def blocked(self) -> dict[str, str]:
+        """Each motion control that is not allowed now, with the reason its tooltip gives."""
+        why: dict[str, str] = {}
+        st = self.status
+        if self.trip is not None:
+            reason = f"{self.trip}: latched until Reset… is confirmed"
+            return dict.fromkeys(MOTION, reason)
+        if st is not None and st.state == "ALARM":
+            return dict.fromkeys(MOTION, f"controller in ALARM ({st.alarm}): find the cause, then Reset…")
+        if self.session_running:
+            why.update(dict.fromkeys(MOTION, "a session is running: it commands the rig until it ends (Abort)"))
+        elif not self.connected or st is None:
+            why.update(dict.fromkeys(MANUAL, self.link_error or "not connected to the controller"))
+        elif not hydraulics_on(st):
+            why.update(dict.fromkeys(NEED_HYDRAULICS, "hydraulics OFF: switch them on first"))
+        return why
+
+
+class StateStrip(QtWidgets.QLabel):
+    """The strip itself: 26 pt bold, white on the state's colour, the whole window wide."""
+
+    def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
+        super().__init__(parent)
+        self.setObjectName("stateStrip")
+        self.setAlignment(QtCore.Qt.AlignmentFlag.AlignCenter)
+        self.setMinimumHeight(56)
+        self.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Fixed)
+        self._shown: tuple[str, str] | None = None
+        self.show_state(RigState(None))
+
+    def show_state(self, state: RigState) -> None:
+        text, colour = state.strip_text(), state.colour()
+        if (text, colour) == self._shown:       # a style sheet is costly to apply: only on a change
+            return
+        self._shown = (text, colour)
+        self.setText(text)
+        self.setToolTip(text)
+        self.setStyleSheet(f"background: {colour}; color: white; font-size: 26pt; font-weight: bold; "
+                           "padding: 4px 12px; border-radius: 6px")
