@@ -86,7 +86,7 @@ def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tu
             rig.when("settling", 0.0, partial(rig.inject, fault))
         letters = ["a"] if hold_cycles else None
         prep = prepare(RunOptions(plan=plan, shaker=SHAKER_URL, daq=DAQ_URL, out=out / "session",
-                                  experiments=letters, rig_config=str(config), date="261122", order=order))
+                                  experiments=letters, rig_config=str(config), date="261122", order=order)).ordered()
         runner = SessionRunner(prep, Links(rig.shaker, rig.daq, rig.identity, None), rig.bus,
                                Console(file=io.StringIO()))
         session = runner.open_session()

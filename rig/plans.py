@@ -56,7 +56,8 @@ class Plan:
 
     def ordered(self, config: RigConfig, start_position_m: float = 0.0) -> Plan:
         """The plan in the order it runs: as listed when ``order = "fixed"``, else the
-        order of least predicted rig time from rest at ``start_position_m``."""
+        order of least predicted rig time from rest at ``start_position_m`` (seconds of CPU
+        for the standard plan). The result is fixed: ordering it again costs nothing."""
         if self.order == "fixed" or len(self.experiments) < 2:
             return self
 
@@ -65,7 +66,7 @@ class Plan:
             # noise floor each experiment settles to is its own whatever comes before it.
             return [d.total_s for d in estimate_experiment_durations(Plan("order", tuple(sequence)), config,
                                                                      start_position_m, noise_draws=0)]
-        return replace(self, experiments=thermal_order(self.experiments, durations))
+        return replace(self, experiments=thermal_order(self.experiments, durations), order="fixed")
 
     def with_periods(self, periods: int | None) -> Plan:
         if periods is None:

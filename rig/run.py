@@ -115,8 +115,14 @@ class Prepared:
     config: RigConfig
     calibration: Calibration
     register_map: RegisterMap
-    plan: Plan
+    plan: Plan                              # as listed until ordered()
     stored: Session | None                  # the session to resume, as read
+
+    def ordered(self) -> Prepared:
+        """With the plan in the order it runs. The lifecycle orders once the links have
+        answered, so that a wrong or swapped address is named within seconds, not after
+        the standard plan's seconds of ordering."""
+        return replace(self, plan=self.plan.ordered(self.config))
 
 
 @dataclass
@@ -177,7 +183,7 @@ def prepare(opt: RunOptions) -> Prepared:
         # the order of least predicted rig time (a resumed session keeps the order it began
         # with; a list of experiments the operator typed runs as typed unless --order thermal).
         order = opt.order or ("fixed" if opt.experiments else plan.order)
-        plan = replace(plan, order=order).ordered(config)
+        plan = replace(plan, order=order)
     if opt.identify:
         _check_identification(opt)
     return Prepared(opt, shaker_url, daq_url, config, calibration, register_map, plan, stored)
@@ -561,6 +567,7 @@ def run_lifecycle(prep: Prepared, console: Console, *, links: Links | None = Non
         else:
             # Links held across sessions (a script's rig): the actuator may have moved since they connected.
             links.start_position_m = links.shaker.status().position_m
+        prep = prep.ordered()
         runner = SessionRunner(prep, links, bus, console)
         if on_runner is not None:
             on_runner(runner)

@@ -380,7 +380,7 @@ class InProcessRig:
         """``rig run`` from ``prepare`` on, with these links: the runner and its session
         folder, whose log records the bus; ``runner.run(session)`` does the rest."""
         prep = prepare(RunOptions(plan="standard", shaker=SHAKER_URL, daq=DAQ_URL, out=out, experiments=letters,
-                                  on_alarm=on_alarm, rig_config=str(self.rig_config), date="261122"))
+                                  on_alarm=on_alarm, rig_config=str(self.rig_config), date="261122")).ordered()
         runner = SessionRunner(prep, Links(self.shaker, self.daq, self.identity, None), self.bus,
                                Console(file=io.StringIO()))
         session = runner.open_session()

@@ -462,7 +462,7 @@ class Station:
                 runner.acquisition.stop_requested.set()
 
         def opened(ctx: SessionContext) -> list[Subscriber]:
-            progress = PlanProgress(prep.plan, prep.config, ctx.session.meta["date"], self.speed,
+            progress = PlanProgress(ctx.runner.prep.plan, prep.config, ctx.session.meta["date"], self.speed,
                                     ctx.session.completed())
             self.post(SessionOpened(ctx.session.path, progress, opt))
             return []

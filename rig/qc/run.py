@@ -72,7 +72,7 @@ def qc_run(opt: QcOptions, console: Console) -> int:
                              register_map=opt.register_map, unit_serial=opt.serial)
     prep = prepare(run_options)
     config = replace(prep.config, steady_state=spec.steady_state)
-    prep = replace(prep, config=config, plan=prep.plan.ordered(config))   # the order the spec's criterion favours
+    prep = replace(prep, config=config).ordered()   # the order the spec's criterion favours
     # Opened before the rig moves (a bad URL or password costs no rig time); a new SQLite
     # file is made only with the first record: a run that never starts leaves none.
     records = Records.open(opt.db or default_url(opt.out), create=True, defer=True)
