@@ -220,7 +220,9 @@ class LiveView(QtWidgets.QWidget):
         for p in (self.loop_plot, self.fv_plot):
             p.enableAutoRange(enable=False)
             text = pg.TextItem(NO_CYCLE, color="#616161", anchor=(0.5, 0.5))
-            text.setFont(QtGui.QFont("", 16))
+            font = QtGui.QFont()             # the window's own face: "" fell back to a serif one
+            font.setPointSize(12)            # 16 pt was cut at both sides in a 1280-px window
+            text.setFont(font)
             p.addItem(text, ignoreBounds=True)
             self.placeholders.append(text)
         self.placeholder_reason = ""

@@ -112,7 +112,7 @@ class SteadyStateView(QtWidgets.QGroupBox):
             ratio = x / limit
             bar = self.bars[i]
             bar.setValue(int(min(ratio, 3.0) * 100))
-            bar.setFormat(f"{ratio:.2f}")
+            bar.setFormat(significant(ratio))
             colour = "#9e9e9e" if self.drift else "#43a047" if ratio < 1 else "#fb8c00"
             if bar.property("colour") != colour:     # a style sheet is costly to apply: only on a change
                 bar.setProperty("colour", colour)
