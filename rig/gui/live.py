@@ -38,6 +38,7 @@ TRACE_BUCKETS = 1000                # a trace: min and max of at most this many 
 RANGE_PAD = 0.08                    # of the span, above and below the data
 RANGE_KEEP = 0.5                    # a range is kept while the data fill at least this share of it
 NO_CYCLE = "no cycle yet"
+PLACEHOLDER_WIDTH_PX = 220          # narrower than a loop plot in a 1280-px window
 
 
 class LiveHistory:
@@ -223,6 +224,7 @@ class LiveView(QtWidgets.QWidget):
             font = QtGui.QFont()             # the window's own face: "" fell back to a serif one
             font.setPointSize(12)            # 16 pt was cut at both sides in a 1280-px window
             text.setFont(font)
+            text.textItem.setTextWidth(PLACEHOLDER_WIDTH_PX)    # a long reason wraps, never cut
             p.addItem(text, ignoreBounds=True)
             self.placeholders.append(text)
         self.placeholder_reason = ""
