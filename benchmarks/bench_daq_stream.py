@@ -33,8 +33,9 @@ def cpu_seconds(pid: int) -> float:
 
 
 def start_simulator(speed: float) -> tuple[subprocess.Popen, str]:
-    proc = subprocess.Popen([sys.executable, "-m", "simulator", "serve", "--modbus", "127.0.0.1:0", "--daq", "pty",
-                             "--speed", str(speed)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-m", "simulator", "serve", "--modbus", "tcp://127.0.0.1:0",
+                             "--daq", "pty", "--speed", str(speed)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stdout is not None  # a pipe: stdout=PIPE
     urls = {}
     for _ in range(2):

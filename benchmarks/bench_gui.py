@@ -149,6 +149,7 @@ def run_queue_s() -> float:
 
 def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.ndarray, float, float]:
     from identify.plans import STANDARD_SET
+    from rig.events import Message
     from rig.gui.station import FitDone, IdentifySettings
     from simulator.generate import generate
     from simulator.truth import load_truth
@@ -165,7 +166,7 @@ def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.n
     fits = {"done": 0}
     original = window._handle
 
-    def handle(item: object) -> None:
+    def handle(item: Message) -> None:
         if isinstance(item, FitDone) and item.folder == dataset:
             # The load is the fit running, one after the other; showing each result (once, at
             # the end of a real fit) is not part of it.

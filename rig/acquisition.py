@@ -46,7 +46,12 @@ HOLD_TEMPERATURE_FIT_S = 0.25
 HOLD_CAP_FACTOR = 2.0
 HOLD_CAP_MARGIN_S = 5.0
 PACE_PROBE_S = 0.2             # of this clock, streaming, to measure the links' pace
-PACE_PROBE_READS = 3           # status reads timed by the probe (the median: one Modbus transaction)
+# Probes of PACE_PROBE_S each, and the median of their paces and timings: on a busy host
+# one probe caught a simulator stalled or catching up (6.95 and 11.5 rig s/s at 10x).
+PACE_PROBES = 5
+PACE_PROBE_READS = 3           # status reads timed per probe (the median: one Modbus transaction)
+# Streamed in the session, this much of this clock takes over from the probe's pace.
+PACE_FROM_STREAMS_S = 2.0
 # Between a hold's end and RUN the controller gets these beside the DAQ's stop and start:
 # the status read that finds it AT_STATIC, and RUN's setpoints and mode.
 HOLD_END_MODBUS_TRANSACTIONS = 3
@@ -209,6 +214,8 @@ class Acquisition:
         self.stop_requested = threading.Event()
         self.answer_s = 0.0    # seconds of this clock the commands between a hold's end and RUN take (measure_pace)
         self.overhead_s = 0.0  # and an experiment's polls and commands beyond the rig's own motion
+        self.probed_pace = 1.0  # rig seconds per second of this clock, by the probe (measure_pace)
+        self._streamed_samples, self._streamed_s = 0, 0.0   # the session's streams so far (current_pace)
         self._recorder: Recorder | None = None
         daq.subscribe(self._on_samples)
 
@@ -262,6 +269,7 @@ class Acquisition:
 
         self._enter(Phase.SETTLING, label)
         self._recorder = recorder = Recorder()
+        streaming = self.clock.monotonic()
         self.daq.start()
         self.shaker.run(static, amp, spec.frequency_hz, spec.waveform, ss.ramp_time_s)
         try:
@@ -269,6 +277,7 @@ class Acquisition:
         finally:
             issued = self.daq.stop()
             self._recorder = None
+            self._count_stream(issued, streaming)
         record.stream_lost = self.daq.counters.lost_samples - lost0
         self.bus.publish(Kind.LOG, label, message=f"DAQ: {issued} samples taken, {record.stream_lost} lost in the "
                                                f"stream, {record.lost_samples} in the captured window")
@@ -307,6 +316,7 @@ class Acquisition:
         tail, step = round(HOLD_TEMPERATURE_FIT_S * rate), max(1, round(POLL_S * rate))
         gas = CHANNELS.index("gas_temperature_C")
         self._recorder = rec = Recorder()
+        streaming = self.clock.monotonic()
         self.daq.start()
         t0 = self.clock.monotonic()
         try:
@@ -337,7 +347,7 @@ class Acquisition:
             left = rec.end
             values, present, _ = rec.window(max(left - tail, rec.base, arrived), left)
         finally:
-            self.daq.stop()
+            self._count_stream(self.daq.stop(), streaming)
             self._recorder = None
         left_c = _line_at_end(values[:, gas], present)[1] if np.count_nonzero(present) > 1 else math.nan
         self.bus.publish(Kind.LOG, label, message=f"conditioning: the gas was at {left_c:.2f} °C (wanted "
@@ -365,8 +375,8 @@ class Acquisition:
 
     def measure_pace(self) -> float:
         """Rig seconds per second of this clock: 1 on a rig, the speed of a simulator
-        that runs faster than its time (from a short stream of the DAQ's samples; its
-        count, and what the line lost of it, are logged).
+        that runs faster than its time (from PACE_PROBES short streams of the DAQ's
+        samples, the median; their counts, and what the line lost of them, are logged).
 
         Also :attr:`answer_s`: what the commands between a hold's end and RUN take of
         this clock (the DAQ's stop and start, timed here, and the status read and the
@@ -376,35 +386,56 @@ class Acquisition:
         own motion: the capture's end is seen half a poll late on average and the
         stream runs on while the DAQ stops; the two waits for AT_STATIC end half a
         status poll late; the DAQ's start and the controller's writes.  Milliseconds
-        on a rig; at 50x, seconds of the rig's time per experiment."""
+        on a rig; at 50x, seconds of the rig's time per experiment.  Each timing is the
+        median over the probes: a busy host's stall in one of them moves none."""
         lost0 = self.daq.counters.lost_samples
-        t0 = self.clock.monotonic()
-        self.daq.start()
-        t1 = self.clock.monotonic()
-        self.clock.sleep(PACE_PROBE_S)
-        t2 = self.clock.monotonic()
-        issued = self.daq.stop()
-        t3 = self.clock.monotonic()
-        elapsed = t2 - t1
-        reads = []
-        for _ in range(PACE_PROBE_READS):
-            t = self.clock.monotonic()
-            self.shaker.status()
-            reads.append(self.clock.monotonic() - t)
-        pace = max(1.0, issued / self.daq.rate_hz / max(elapsed, 1e-9))
-        modbus_s = float(np.median(reads))
-        daq_s = (t1 - t0) + (t3 - t2)  # the DAQ's start and stop
+        samples, paces, starts, stops, reads = [], [], [], [], []
+        for _ in range(PACE_PROBES):
+            t0 = self.clock.monotonic()
+            self.daq.start()
+            t1 = self.clock.monotonic()
+            self.clock.sleep(PACE_PROBE_S)
+            t2 = self.clock.monotonic()
+            issued = self.daq.stop()
+            t3 = self.clock.monotonic()
+            samples.append(issued)
+            paces.append(issued / self.daq.rate_hz / max(t2 - t1, 1e-9))
+            starts.append(t1 - t0)
+            stops.append(t3 - t2)
+            for _ in range(PACE_PROBE_READS):
+                t = self.clock.monotonic()
+                self.shaker.status()
+                reads.append(self.clock.monotonic() - t)
+        pace = self.probed_pace = max(1.0, float(np.median(paces)))
+        modbus_s, start_s, stop_s = (float(np.median(x)) for x in (reads, starts, stops))
+        daq_s = start_s + stop_s
         self.answer_s = daq_s + HOLD_END_MODBUS_TRANSACTIONS * modbus_s
         self.overhead_s = POLL_S / 2 + STATUS_POLL_S + daq_s + EXPERIMENT_MODBUS_TRANSACTIONS * modbus_s
-        self.bus.publish(Kind.LOG, None, message=f"pace probe: {issued} samples taken, "
-                                              f"{self.daq.counters.lost_samples - lost0} lost in the stream; "
-                                              f"the links run {pace:.3g} rig seconds per second; DAQ start "
-                                              f"{(t1 - t0) * 1e3:.1f} ms, stop {(t3 - t2) * 1e3:.1f} ms, a status "
+        self.bus.publish(Kind.LOG, None, message=f"pace probe: {sum(samples)} samples taken, "
+                                              f"{self.daq.counters.lost_samples - lost0} lost in the stream ("
+                                              f"{len(paces)} probes of {PACE_PROBE_S * 1e3:.0f} ms, paces "
+                                              f"{min(paces):.3g}…{max(paces):.3g}); the links run {pace:.3g} rig "
+                                              f"seconds per second (the median); "
+                                              f"DAQ start {start_s * 1e3:.1f} ms, stop {stop_s * 1e3:.1f} ms, a status "
                                               f"read {modbus_s * 1e3:.1f} ms: from a hold's end to RUN "
                                               f"{self.answer_s * 1e3:.1f} ms, {self.answer_s * pace:.2f} s of "
                                               f"the rig's time; an experiment's polls and commands "
                                               f"{self.overhead_s * 1e3:.1f} ms, {self.overhead_s * pace:.2f} s")
         return pace
+
+    def _count_stream(self, issued: int, since: float) -> None:
+        self._streamed_samples += issued
+        self._streamed_s += self.clock.monotonic() - since
+
+    def current_pace(self) -> float:
+        """The links' rig seconds per second as the session shows it: the probe's, until
+        the session's own streams (seconds, not the probe's fifth) have taken
+        PACE_FROM_STREAMS_S of this clock; then theirs (the samples the DAQ took against
+        the time it was streaming), which a host busy for a while moves no more than
+        the simulator's own average."""
+        if self._streamed_s < PACE_FROM_STREAMS_S:
+            return self.probed_pace
+        return max(1.0, self._streamed_samples / self.daq.rate_hz / self._streamed_s)
 
     def _wait_state(self, states: set[str], timeout_s: float) -> None:
         """Wait for a controller state in short slices, so that Ctrl-C is honoured."""

@@ -27,6 +27,7 @@ from typing import Any
 
 from rig.clock import WALL_CLOCK, Clock
 from rig.config import Limits
+from rig.events import Message
 from rig.registers import RegisterMap
 from rig.shaker import Shaker, ShakerError
 
@@ -41,7 +42,7 @@ class EStopLatched(ShakerError):
 
 
 @dataclass(frozen=True)
-class EstopDone:
+class EstopDone(Message):
     """One press, handled: what failed (empty: both writes answered), the time from the
     press to the last answer, and which link(s) carried the writes."""
 
@@ -55,7 +56,7 @@ class EstopDone:
 
 
 @dataclass(frozen=True)
-class LatchChanged:
+class LatchChanged(Message):
     """The latch was tripped (``reason`` says by what) or reset by the operator."""
 
     latched: bool

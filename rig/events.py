@@ -71,6 +71,15 @@ class LinkCondition(StrEnum):
     WARNING = "warning"                      # anything else a link has to say (a STOP not answered)
 
 
+class Message:
+    """A record that one thread hands to another's queue: the bus's :class:`Event` and the
+    console's own records (rig.gui.station, rig.gui.qc, rig.estop).  Each is a frozen
+    dataclass with named fields; a receiver dispatches on its type and reads the fields,
+    never a sentence."""
+
+    __slots__ = ()
+
+
 @dataclass(frozen=True)
 class LinkNotice:
     """What a driver (rig.shaker, rig.daq) says of its link, for whoever listens (``on_event``)."""
@@ -84,7 +93,7 @@ class LinkNotice:
 
 
 @dataclass(frozen=True)
-class Event:
+class Event(Message):
     """One event of a session: its :class:`Kind`, the experiment's label (None: the
     session's), the kind's fields (:data:`FIELDS`) and the wall-clock time."""
 

@@ -498,7 +498,7 @@ def execute(prep: Prepared, console: Console, decide: Callable[[RunResult], str 
             console.print(f"the links run {ctx.pace:.3g} rig seconds per second: conditioning holds shorter "
                           f"than {prep.config.min_hold_s * ctx.pace:.0f} s are not planned (session.log has "
                           "the pace probe)", style="dim", highlight=False)
-        return [ConsoleProgress(console, ctx.estimates_s, ctx.pace, ctx.rig_clock)]
+        return [ConsoleProgress(console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock)]
 
     def hand_over(runner: SessionRunner | None) -> None:
         if runner is not None:
@@ -520,6 +520,11 @@ class SessionContext:
     @property
     def rig_clock(self) -> Callable[[], float]:
         return self.runner.acquisition.clock.monotonic
+
+    @property
+    def current_pace(self) -> Callable[[], float]:
+        """The pace as the session corrects it from its own streams (for the time left)."""
+        return self.runner.acquisition.current_pace
 
 
 def run_lifecycle(prep: Prepared, console: Console, *, links: Links | None = None, bus: EventBus | None = None,

@@ -38,8 +38,8 @@ class VirtualRig:
             truth.write_text(json.dumps({"parameters": params}))
             params = truth
         cmd = [sys.executable, "-m", "simulator", "serve",
-               "--modbus", "127.0.0.1:0" if modbus == "tcp" else "rtu:pty",
-               "--daq", "tcp://127.0.0.1:0" if daq == "tcp" else "pty",
+               "--modbus", "tcp://127.0.0.1:0" if modbus == "tcp" else "rtu:pty",
+               "--daq", "socket://127.0.0.1:0" if daq == "tcp" else "pty",
                "--speed", str(speed), "--seed", str(seed), "--rig", rig]
         cmd += ["--params", str(params)] if params is not None else []
         cmd += ["--unit", unit] if unit is not None else []             # a production unit (QC)

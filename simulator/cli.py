@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 import tomllib
+from dataclasses import dataclass
 from pathlib import Path
 
 from identify.errors import InputError
@@ -63,11 +64,77 @@ def run_generate(args: argparse.Namespace) -> int:
     return 0
 
 
-def _host_port(text: str, option: str) -> tuple[str, int]:
+@dataclass(frozen=True)
+class Endpoint:
+    """Where the simulator serves one link: TCP (host, port) or a pseudo-terminal,
+    optionally linked at ``link`` (a path the operator chose, given to ``rig`` as is)."""
+
+    tcp: tuple[str, int] | None = None
+    link: Path | None = None
+
+
+MODBUS_FORMS = "tcp://HOST:PORT, HOST:PORT, rtu:pty or rtu:///PATH (a pseudo-terminal linked at PATH)"
+DAQ_FORMS = "socket://HOST:PORT, tcp://HOST:PORT, pty or a PATH (a pseudo-terminal linked there)"
+
+
+def _host_port(text: str, option: str, whole: str, forms: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
-    if not sep or not port.isdigit() or int(port) > 65535:
-        raise UsageError(f"{option} {text!r}: expected HOST:PORT with a port 0…65535")
-    return host or "127.0.0.1", int(port)
+    if not sep or "/" in host or not port.isdigit() or int(port) > 65535:
+        raise UsageError(f"{option} {whole!r}: expected {forms}, with a port 0…65535")
+    return host.strip("[]") or "127.0.0.1", int(port)
+
+
+def _link(path: str, option: str) -> Path:
+    link = Path(path).absolute()
+    if link.exists() or link.is_symlink():
+        raise UsageError(f"{option} {path}: the path exists; the simulator links its pseudo-terminal at a new path "
+                         "and replaces nothing")
+    if not link.parent.is_dir():
+        raise UsageError(f"{option} {path}: no folder {link.parent} to link the pseudo-terminal in")
+    return link
+
+
+def parse_modbus(text: str) -> Endpoint:
+    """``--modbus``: the forms ``rig --shaker`` takes (``tcp://HOST:PORT``,
+    ``rtu:///PATH``), the bare ``HOST:PORT`` of earlier versions, and ``rtu:pty``."""
+    if text in ("rtu:pty", "rtu://pty"):
+        return Endpoint()
+    if text.startswith("rtu://"):
+        path = text[len("rtu://"):]
+        if not path.startswith("/"):
+            raise UsageError(f"--modbus {text!r}: expected {MODBUS_FORMS}")
+        return Endpoint(link=_link(path, "--modbus"))
+    if text.startswith("tcp://"):
+        return Endpoint(tcp=_host_port(text[len("tcp://"):], "--modbus", text, MODBUS_FORMS))
+    if "://" in text:
+        raise UsageError(f"--modbus {text!r}: expected {MODBUS_FORMS}")
+    return Endpoint(tcp=_host_port(text, "--modbus", text, MODBUS_FORMS))
+
+
+def parse_daq(text: str) -> Endpoint:
+    """``--daq``: the forms ``rig --daq`` takes (``socket://HOST:PORT``, a device path:
+    here a pseudo-terminal linked at that path), ``tcp://HOST:PORT`` of earlier
+    versions, and ``pty`` (a pseudo-terminal of the system's choosing)."""
+    if text == "pty":
+        return Endpoint()
+    for scheme in ("socket://", "tcp://"):
+        if text.startswith(scheme):
+            return Endpoint(tcp=_host_port(text[len(scheme):], "--daq", text, DAQ_FORMS))
+    if "://" in text or not text:
+        raise UsageError(f"--daq {text!r}: expected {DAQ_FORMS}")
+    return Endpoint(link=_link(text, "--daq"))
+
+
+def _linked(device: str, link: Path | None, made: list[Path]) -> str:
+    """The pseudo-terminal's device, or ``link`` made to point at it (removed on exit)."""
+    if link is None:
+        return device
+    try:
+        link.symlink_to(device)
+    except OSError as exc:
+        raise UsageError(f"cannot link the pseudo-terminal at {link}: {exc.strerror or exc}") from None
+    made.append(link)
+    return str(link)
 
 
 def run_serve(args: argparse.Namespace) -> int:
@@ -78,26 +145,25 @@ def run_serve(args: argparse.Namespace) -> int:
         raise UsageError(f"--speed {args.speed}: must be positive")
     damper = load_truth(args.params, args.model, args.unit, args.unit_seed)  # refused before any endpoint opens
     faults = [parse_fault(f) for f in args.fault]
+    modbus, daq = parse_modbus(args.modbus), parse_daq(args.daq)
+    if daq.tcp is None and any(f.kind == "disconnect" for f in faults):
+        raise UsageError("--fault disconnect needs the TCP DAQ (a pseudo-terminal cannot be unplugged)")
     bridge = None
-    if args.modbus == "rtu:pty":
+    if modbus.tcp is None:
         from simulator.daq import PtyBridge
 
         bridge = PtyBridge()
-        host, port = "", 0
-    else:
-        host, port = _host_port(args.modbus, "--modbus")
+    host, port = modbus.tcp or ("", 0)
     daq_port: Port
-    if args.daq == "pty":
+    if daq.tcp is None:
         daq_port = PtyPort()
-        if any(f.kind == "disconnect" for f in faults):
-            raise UsageError("--fault disconnect needs the TCP DAQ (a pseudo-terminal cannot be unplugged)")
-    elif args.daq.startswith("tcp://"):
-        try:
-            daq_port = TcpPort(*_host_port(args.daq[len("tcp://"):], "--daq"))
-        except OSError as exc:
-            raise UsageError(f"cannot open the DAQ endpoint {args.daq}: {exc.strerror or exc}") from None
     else:
-        raise UsageError(f"--daq {args.daq!r}: expected pty or tcp://HOST:PORT")
+        try:
+            daq_port = TcpPort(*daq.tcp)
+        except OSError as exc:
+            if bridge:
+                bridge.close()
+            raise UsageError(f"cannot open the DAQ endpoint {args.daq}: {exc.strerror or exc}") from None
     rig = VirtualRig(damper, daq_port, speed=args.speed, seed=args.seed,
                      faults=faults, modbus_host=host, modbus_port=port,
                      modbus_serial=bridge.server_path if bridge else None, rig_type=args.rig,
@@ -105,23 +171,32 @@ def run_serve(args: argparse.Namespace) -> int:
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
+    links: list[Path] = []
     try:
-        rig.start()
-    except (OSError, RuntimeError) as exc:   # pymodbus says a busy port with a RuntimeError
-        daq_port.close()
-        raise UsageError(f"cannot open the Modbus endpoint {host}:{port}: {getattr(exc, 'strerror', None) or exc} "
-                         "(is another simulator using it?)") from None
-    print(f"modbus {f'rtu://{bridge.client_path}' if bridge else rig.modbus.url}", flush=True)
-    print(f"daq {daq_port.url}", flush=True)
-    try:
-        while not stop.wait(0.2):
-            pass
+        try:
+            rig.start()
+        except (OSError, RuntimeError) as exc:   # pymodbus says a busy port with a RuntimeError
+            daq_port.close()
+            raise UsageError(f"cannot open the Modbus endpoint {host}:{port}: "
+                             f"{getattr(exc, 'strerror', None) or exc} (is another simulator using it?)") from None
+        try:
+            # What rig takes, verbatim: a pseudo-terminal by the path asked for, where one was.
+            modbus_url = f"rtu://{_linked(bridge.client_path, modbus.link, links)}" if bridge else rig.modbus.url
+            daq_url = _linked(daq_port.url, daq.link, links) if daq.tcp is None else daq_port.url
+            print(f"modbus {modbus_url}", flush=True)
+            print(f"daq {daq_url}", flush=True)
+            print(f"rig options: --shaker {modbus_url} --daq {daq_url}", flush=True)
+            while not stop.wait(0.2):
+                pass
+        finally:
+            rig.close()
+            print(f"simulator stopped at simulated t = {rig.t:.1f} s; DAQ frames lost by faults: "
+                  f"{rig.daq.lost_frames} {rig.daq.lost}", file=sys.stderr, flush=True)
     finally:
-        rig.close()
         if bridge:
             bridge.close()
-        print(f"simulator stopped at simulated t = {rig.t:.1f} s; DAQ frames lost by faults: "
-              f"{rig.daq.lost_frames} {rig.daq.lost}", file=sys.stderr, flush=True)
+        for link in links:
+            link.unlink(missing_ok=True)
     return 0
 
 
@@ -152,11 +227,14 @@ def build_parser() -> argparse.ArgumentParser:
 
     serve = sub.add_parser("serve", help="run the rig behind its Modbus controller and serial DAQ",
                            description="Run the virtual rig until SIGINT/SIGTERM. Once ready it prints one line "
-                                       "per endpoint: 'modbus tcp://HOST:PORT' and 'daq socket://HOST:PORT' or "
-                                       "'daq /dev/pts/N'. Port 0 picks a free port.")
-    serve.add_argument("--modbus", default="127.0.0.1:5020",
-                       help="HOST:PORT of the Modbus TCP server, or rtu:pty for Modbus RTU on a pseudo-terminal")
-    serve.add_argument("--daq", default="pty", help="pty (a pseudo-terminal) or tcp://HOST:PORT")
+                                       "per endpoint, the address as rig takes it ('modbus tcp://HOST:PORT', "
+                                       "'daq socket://HOST:PORT' or 'daq /dev/pts/N'), then the line 'rig options: "
+                                       "--shaker … --daq …'. Port 0 picks a free port.")
+    serve.add_argument("--modbus", default="tcp://127.0.0.1:5020",
+                       help="tcp://HOST:PORT (or HOST:PORT) of the Modbus TCP server; rtu:pty for Modbus RTU on a "
+                            "pseudo-terminal, rtu:///PATH for one linked at PATH")
+    serve.add_argument("--daq", default="pty", help="socket://HOST:PORT (or tcp://HOST:PORT) of the DAQ's TCP "
+                                                    "line; pty for a pseudo-terminal, or a PATH to link one at")
     serve.add_argument("--speed", type=float, default=1.0, help="simulated seconds per wall second")
     serve.add_argument("--params", help="true parameters (START.json format; default: nominal)")
     serve.add_argument("--model", choices=("2dof", "1dof"), default="2dof")

@@ -86,6 +86,77 @@ def test_the_pace_probe_times_the_commands_a_hold_and_an_experiment_add(vrig):
                      r"commands 45\.0 ms", "\n".join(vrig.messages()))
 
 
+class _BusyHostLinks:
+    """A simulator at 10x seen from a busy host, on an injected clock: each probe's
+    stream and DAQ start take what the host lets them (one probe caught the simulator
+    stalled, one caught it catching up, one DAQ start waited 300 ms for the CPU)."""
+
+    rate_hz = 2000.0
+    PACES = [10.0, 10.0, 6.95, 10.0, 11.5]
+    STARTS_S = [0.004, 0.3, 0.004, 0.004, 0.004]
+
+    def __init__(self) -> None:
+        self.now, self.probe = 0.0, 0
+        self.counters = type("Counters", (), {"lost_samples": 0})()
+
+    # the clock
+    def monotonic(self) -> float:
+        return self.now
+
+    def sleep(self, seconds: float) -> None:
+        self.now += seconds
+
+    # the DAQ
+    def subscribe(self, _callback) -> None:
+        pass
+
+    def start(self) -> None:
+        self.now += self.STARTS_S[self.probe]
+        self.started = self.now
+
+    def stop(self) -> int:
+        issued = round(self.PACES[self.probe] * self.rate_hz * (self.now - self.started))
+        self.now += 0.004
+        self.probe += 1
+        return issued
+
+    # the controller
+    def status(self) -> None:
+        self.now += 0.001
+
+
+def test_the_pace_is_the_median_of_several_probes_which_one_stalled_probe_does_not_move():
+    from rig.events import EventBus
+
+    links = _BusyHostLinks()
+    acq = Acquisition(links, links, load_rig_config(), EventBus(), links)
+    assert acq.measure_pace() == pytest.approx(10.0)
+    assert acq.current_pace() == pytest.approx(10.0)
+    # the median DAQ start (4 ms), not the 300 ms one: a hold's end to RUN is its
+    # start and stop and three status reads
+    assert acq.answer_s == pytest.approx(0.004 + 0.004 + 3 * 0.001)
+
+
+def test_the_session_corrects_the_probed_pace_from_its_own_streams():
+    """Once the session has streamed PACE_FROM_STREAMS_S, the pace shown (the rig time
+    a session says it took) is the samples its DAQ took against the time it streamed."""
+    from rig.acquisition import PACE_FROM_STREAMS_S
+    from rig.events import EventBus
+
+    links = _BusyHostLinks()
+    links.PACES = [6.95] * 5       # every probe on a starved simulator
+    acq = Acquisition(links, links, load_rig_config(), EventBus(), links)
+    assert acq.measure_pace() == pytest.approx(6.95)
+    since = links.now
+    links.now += PACE_FROM_STREAMS_S / 2
+    acq._count_stream(round(10.0 * links.rate_hz * PACE_FROM_STREAMS_S / 2), since)
+    assert acq.current_pace() == pytest.approx(6.95)      # too short a stream to say
+    since = links.now
+    links.now += PACE_FROM_STREAMS_S
+    acq._count_stream(round(10.0 * links.rate_hz * PACE_FROM_STREAMS_S), since)
+    assert acq.current_pace() == pytest.approx(10.0)
+
+
 def test_settles_then_captures_the_planned_whole_periods(vrig):
     record = acquisition(vrig).run_experiment(J, "261122j")
 

@@ -20,9 +20,11 @@ pytest.importorskip("pytestqt")
 from PySide6 import QtCore, QtWidgets  # noqa: E402
 
 from rig.config import DEFAULT_RIG_CONFIG  # noqa: E402
+from rig.estop import EstopDone, LatchChanged  # noqa: E402
+from rig.events import Event, Kind, Message  # noqa: E402
 from rig.gui import MainWindow  # noqa: E402
 from rig.gui.live import LiveView  # noqa: E402
-from rig.gui.station import Snapshot  # noqa: E402
+from rig.gui.station import LinkState, SessionClosed, SessionOpened, Snapshot  # noqa: E402
 from tests.conftest import HANG_S  # noqa: E402
 
 STATE_OFF, STATE_MOVING, STATE_RUNNING = 0, 2, 4
@@ -125,6 +127,39 @@ def test_plan_to_the_end_fills_the_fit_table(qtbot, tmp_path, relaxed_config):
     assert json.loads((folder / "RESULT.json").read_text())["converged"]
     closed(qtbot, window)
     assert not window.simulated.running
+
+
+def subclasses(base: type) -> set[type]:
+    found: set[type] = set(base.__subclasses__())
+    return found.union(*(subclasses(c) for c in found))
+
+
+def test_the_window_queue_carries_only_typed_messages_each_with_its_handler(qtbot, tmp_path, relaxed_config):
+    # Every record declared for a queue has a handler in the window (the console's modules are imported by now).
+    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--experiments", "j", "--out", str(tmp_path),
+                         "--rig-config", str(relaxed_config))
+    assert subclasses(Message) <= set(window._handlers)
+    received: list[object] = []
+    handle = window._handle
+
+    def spy(item: Message) -> None:
+        received.append(item)
+        handle(item)
+    window._handle = spy
+    connected(qtbot, window)
+    window.plan.identify.setChecked(False)
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "runPlanButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: any(isinstance(r, SessionClosed) for r in received), timeout=HANG_MS)
+    window.estop()                                     # at rest: the E-STOP's outcome and its latch, then the reset
+    qtbot.waitUntil(lambda: any(isinstance(r, EstopDone) for r in received), timeout=HANG_MS)
+    window.reset_alarm(confirm=False)
+    qtbot.waitUntil(lambda: [r.latched for r in received if isinstance(r, LatchChanged)] == [True, False],
+                    timeout=HANG_MS)
+    assert all(isinstance(r, Message) for r in received), {type(r) for r in received if not isinstance(r, Message)}
+    kinds = {r.kind for r in received if isinstance(r, Event)}
+    assert {Kind.SESSION_START, Kind.PHASE, Kind.PROGRESS, Kind.EXPERIMENT_DONE, Kind.SESSION_END} <= kinds
+    assert {Event, Snapshot, LinkState, SessionOpened, SessionClosed} <= {type(r) for r in received}
+    closed(qtbot, window)
 
 
 def test_estop_during_settling_stops_motion_and_hydraulics_within_0_3_s(qtbot, tmp_path, relaxed_config):

@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 
+from identify.exit_codes import EXIT_INTERRUPTED
 from rig.config import load_rig_config
 from rig.events import Event
 from rig.gui import analysis
@@ -61,7 +62,7 @@ def test_plan_rows_follow_the_events_and_the_eta_scales_with_what_was_measured()
     assert j.status_text() == "done"
     assert math.isclose(progress.left_s(n), n.estimate_s / 10)
     progress.apply(Event("phase", "261122n", {"phase": "settling"}))
-    progress.apply(Event("session-end", None, {"message": "interrupted (SIGINT)"}))
+    progress.apply(Event("session-end", None, {"message": "interrupted (SIGINT)", "exit_code": EXIT_INTERRUPTED}))
     assert n.status == "interrupted" and progress.session_left_s() == 0.0
 
 

@@ -285,8 +285,11 @@ def test_gui_unit_and_fault_go_to_the_simulated_rig_only(capsys):
 
 # ----- the README's worked example ---------------------------------------------------------------------
 def test_the_readme_has_a_short_worked_qc_example_that_parses():
-    section = README.read_text().split("### rig qc")[1]
-    example = section.split("paste it as it is):\n\n")[1].split("\n\n")[0].splitlines()
+    """The README's QC quick start is the worked example (tests/test_docs.py runs it as
+    pasted); here: short, every rig command one the parser takes, and the text says which
+    report judge writes and which runs are recorded as ABORTED and which write nothing."""
+    section = README.read_text().split("## Quick start: quality control")[1].split("\n## ")[0]
+    example = section.split("```sh\n")[1].split("```")[0].splitlines()
     assert 4 <= len(example) <= 10
     parser = build_parser()
     for line in example:
@@ -294,6 +297,7 @@ def test_the_readme_has_a_short_worked_qc_example_that_parses():
         if words[:3] == ["python", "-m", "rig"]:
             parser.parse_args([w for w in words[3:] if w != "&"])
     assert "qc-report-<time>-<uid>.html" in section and "recorded as ABORTED" in section
+    assert "writes nothing" in section
 
 
 def test_records_refuse_any_change_to_where_they_were_measured(tmp_path):

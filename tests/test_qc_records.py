@@ -169,8 +169,10 @@ def test_history_prints_capability_and_writes_control_charts(tmp_path, capsys):
     assert code == 0
     row = next(line for line in out.splitlines() if line.startswith("│ gas_precharge_bar"))
     cells = [c.strip() for c in row.strip("│").split("│")]
-    # n, mean, std; Cp = 0.6 / (6·MR̄/1.128) with MR̄ = (0.10 + 0.05 + 0.02 + 0.04) / 4
-    assert cells[2:5] == ["5", "6", "0.0381"] and cells[5] == f"{0.6 / (6 * 0.0525 / 1.128):.3g}"
+    # n, mean, σ within = MR̄/1.128 with MR̄ = (0.10 + 0.05 + 0.02 + 0.04) / 4, in the unit and to the σ's
+    # two digits; Cp = 0.6 / (6·σ within), in parentheses: not meaningful for fewer than 25 units
+    assert cells[1:4] == ["5", "6.000 bar", "0.047 bar"] and cells[5] == f"({0.6 / (6 * 0.0525 / 1.128):.3g})"
+    assert "(Cp), (Cpk): not meaningful, fewer than 25 units" in out
     assert cells[-3:] == ["5", "0", "0"]
     (chart,) = (tmp_path / "charts").iterdir()
     assert chart.name == "gas_precharge_bar.png" and chart.read_bytes().startswith(b"\x89PNG")

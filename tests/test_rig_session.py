@@ -258,3 +258,43 @@ def test_the_console_gives_the_rig_time_taken_and_announced_in_minutes_and_secon
     text = out.getvalue()
     assert "session: 1 experiment, about 1:11 min:s of rig time" in text, text
     assert "session took 1:24 min:s of rig time; announced 1:11" in text, text
+
+
+def test_the_console_says_the_rig_time_taken_at_the_pace_the_session_measured_last():
+    """The probe said 6.95 rig s/s on a busy host; the session's streams said 10: the
+    rig time taken is the wall time at the session's pace, read when it ends."""
+    import io
+
+    from rich.console import Console
+
+    from rig.events import Event
+    from rig.progress import ConsoleProgress
+
+    now, pace = [100.0], [6.95]
+    out = io.StringIO()
+    progress = ConsoleProgress(Console(file=out, width=200), {"261126l": 110.0}, lambda: pace[0], lambda: now[0])
+    now[0] += 11.0
+    pace[0] = 10.0
+    progress(Event("session-end"))
+    assert "session took 0:11 min:s of wall clock at 10 rig seconds per second, about 1:50 min:s of rig time; " \
+           "announced 1:50" in out.getvalue(), out.getvalue()
+
+
+def test_the_eta_trusts_the_experiments_done_as_far_as_they_are_the_session():
+    """Two experiments of 100 s announced; the first took 120 s of rig time (12 s of wall
+    clock at 10x): the second is expected to take 110 s, not 120 s (one experiment's
+    settling is tens of per cent off either way), 11 s of wall clock at the pace."""
+    import io
+
+    from rich.console import Console
+
+    from rig.events import Event
+    from rig.progress import ConsoleProgress
+
+    now = [0.0]
+    out = io.StringIO()
+    progress = ConsoleProgress(Console(file=out, width=200), {"261126a": 100.0, "261126b": 100.0}, 10.0,
+                               lambda: now[0])
+    now[0] = 12.0
+    progress(Event("experiment-done", "261126a", {"file": "261126a.csv", "samples": 6000, "lost": 0, "flags": []}))
+    assert "About 0:11 left (m:s of wall clock)." in out.getvalue(), out.getvalue()

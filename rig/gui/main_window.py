@@ -16,16 +16,17 @@ import queue
 import signal
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from identify.exit_codes import EXIT_BAD_INPUT
 from rig.daq import check_daq_address
 from rig.errors import BadInput
-from rig.estop import EstopDone
-from rig.events import Event, Kind
+from rig.estop import EstopDone, LatchChanged
+from rig.events import Event, Kind, Message
 from rig.gui.browser import SessionBrowser
 from rig.gui.controls import ControllerPanel, ManualPanel
 from rig.gui.fit_view import FitView
@@ -99,7 +100,15 @@ class MainWindow(QtWidgets.QMainWindow):
             self.simulated = VirtualRig(speed=args.speed, params=args.params, faults=list(args.faults),
                                         unit=args.unit, nice=SIMULATOR_NICE)
             shaker, daq = self.simulated.modbus_url, self.simulated.daq_url
-        self.queue: queue.Queue[object] = queue.Queue()
+        # Everything the rig side says, one typed record each (rig.events.Message), handled by type.
+        self.queue: queue.Queue[Message] = queue.Queue()
+        self._handlers: dict[type[Message], Callable[[Any], None]] = {
+            Event: self._on_event, Snapshot: self._on_snapshot, Notice: self._on_notice,
+            LinkState: self._on_link_state, SessionOpened: self._on_session_opened,
+            SessionClosed: self._on_session_closed, FitProgress: self._on_fit_progress, FitDone: self._on_fit_done,
+            ComparisonDone: self._on_comparison_done, EstopDone: self._on_estop_done,
+            LatchChanged: self._on_latch_changed, QcStarted: self._on_qc_started, QcProgress: self._on_qc_progress,
+            QcDone: self._on_qc_done}
         try:
             self.station = Station(shaker, daq, self.queue.put, rig_config=args.rig_config,
                                    calibration=args.calibration, register_map=args.register_map,
@@ -383,85 +392,103 @@ class MainWindow(QtWidgets.QMainWindow):
             return ("manual", self.station.manual_runs), self.station.manual_frequency_hz
         return None, None
 
-    def _handle(self, item: object) -> None:
-        if isinstance(item, Event):
-            self.plan.apply(item)
-            if item.kind in LOGGED_EVENTS:
-                self._log_event(item)
-        elif isinstance(item, Snapshot):
-            was = self.status
-            self.status = item.status
-            self.link_error = item.error
-            if item.status is not None and item.status.state == "ALARM" and (was is None or was.state != "ALARM"):
-                # A trip outside a session (a manual sine) has no acquisition event to log it.
-                self._say(f"controller tripped: {item.status.alarm}", "error")
-                self.alarm_latched = item.status.alarm
-            if self.plan.progress is not None and self.station.session_running:
-                # The stream's sample count read with the status drives every count shown, in this frame.
-                if self.plan.progress.observe(item.samples, item.time) is not None:
-                    self.plan.refresh()
-            self.controller.show_snapshot(item)
-            self.live.show_health(item)
-            self._show_banner(item.error)
-        elif isinstance(item, Notice):
-            self._say(item.text, item.level)
-        elif isinstance(item, LinkState):
-            self.link_label.setText(("connected: " if item.connected else "") + item.text)
-            if item.simulated and self.simulated is None:   # reached by address, but it says it is a simulator
-                self.sim_label.setText("SIMULATED RIG: the controller or the DAQ identifies itself as a simulator "
-                                       "(not hardware; QC records from it are marked simulated)")
-                self.sim_label.setVisible(True)
-                self.setWindowTitle("Damper rig — operator console — SIMULATED RIG")
-            self.connect_button.setText("Disconnect" if item.connected else "Connect")
-            if not item.connected:
-                self.status = None
-            self._show_banner()
-        elif isinstance(item, SessionOpened):
-            self.plan.show_progress(item.progress)
-            self.plan.set_running(True)
-            self.qc.test_button.setEnabled(False)
-            self.tabs.setCurrentWidget(self.live)
-            self._say(f"session folder {item.path}")
-        elif isinstance(item, SessionClosed):
-            self.plan.set_running(False)
-            self.qc.set_running(False)
-            if item.result is not None:
-                self.plan.session_ended(item.result.session.path)
-            self._say(item.text, "info" if item.result is not None and item.result.exit_code == 0 else "error")
-            if item.result is None:
-                self.plan.eta.setText(item.text.splitlines()[0])
-            if self._closing:
-                QtCore.QTimer.singleShot(0, self.close)
-        elif isinstance(item, FitProgress):
-            self.fit_view.show_progress(item.title, item.iteration, item.objective)
-        elif isinstance(item, FitDone):
-            self.fit_view.show_result(item.title, item.result, item.folder)
-            self.tabs.setCurrentWidget(self.fit_view)
-            self._say(f"{item.title}: {'converged' if item.result.converged else 'NOT converged'}")
-        elif isinstance(item, ComparisonDone):
-            self.fit_view.show_comparison(item.results)
-        elif isinstance(item, EstopDone):
-            took = f"{item.elapsed_s * 1e3:.0f} ms"
-            if item.failures:
-                self.estop_text = f"E-STOP INCOMPLETE ({took}): {'; '.join(item.failures)}"
-                self._say(self.estop_text, "error")
-            else:
-                self._say(f"E-STOP done in {took} from the press: STOP and hydraulics off written ({item.line})")
-            self._show_banner()
-        elif isinstance(item, QcStarted):
-            # The QC run reads the controller on its own links: the console's last read is stale.
-            self.status, self.link_error = None, "QC run in progress: the controller is read by `rig qc run`"
-            self.qc.show_started(item.request)
-            self.left_tabs.setCurrentWidget(self.qc)
-        elif isinstance(item, QcProgress):
-            self.qc.show_progress(item)
-        elif isinstance(item, QcDone):
-            self.link_error = None
-            self.qc.show_done(item)
-            self.plan.set_running(False)
-            self._say(f"QC of unit {item.serial}: {item.shown}" + (f" ({item.reason})" if item.reason else "")
-                      + (f"; report {item.report}" if item.report else ""),
-                      "info" if item.shown in ("PASS", "FAIL", "RETEST") else "error")
+    def _handle(self, item: Message) -> None:
+        # One dispatch on the record's type: a type without a handler is a bug, raised here.
+        self._handlers[type(item)](item)
+
+    def _on_event(self, item: Event) -> None:
+        self.plan.apply(item)
+        if item.kind in LOGGED_EVENTS:
+            self._log_event(item)
+
+    def _on_snapshot(self, item: Snapshot) -> None:
+        was = self.status
+        self.status = item.status
+        self.link_error = item.error
+        if item.status is not None and item.status.state == "ALARM" and (was is None or was.state != "ALARM"):
+            # A trip outside a session (a manual sine) has no acquisition event to log it.
+            self._say(f"controller tripped: {item.status.alarm}", "error")
+            self.alarm_latched = item.status.alarm
+        if self.plan.progress is not None and self.station.session_running:
+            # The stream's sample count read with the status drives every count shown, in this frame.
+            if self.plan.progress.observe(item.samples, item.time) is not None:
+                self.plan.refresh()
+        self.controller.show_snapshot(item)
+        self.live.show_health(item)
+        self._show_banner(item.error)
+
+    def _on_notice(self, item: Notice) -> None:
+        self._say(item.text, item.level)
+
+    def _on_link_state(self, item: LinkState) -> None:
+        self.link_label.setText(("connected: " if item.connected else "") + item.text)
+        if item.simulated and self.simulated is None:   # reached by address, but it says it is a simulator
+            self.sim_label.setText("SIMULATED RIG: the controller or the DAQ identifies itself as a simulator "
+                                   "(not hardware; QC records from it are marked simulated)")
+            self.sim_label.setVisible(True)
+            self.setWindowTitle("Damper rig — operator console — SIMULATED RIG")
+        self.connect_button.setText("Disconnect" if item.connected else "Connect")
+        if not item.connected:
+            self.status = None
+        self._show_banner()
+
+    def _on_session_opened(self, item: SessionOpened) -> None:
+        self.plan.show_progress(item.progress)
+        self.plan.set_running(True)
+        self.qc.test_button.setEnabled(False)
+        self.tabs.setCurrentWidget(self.live)
+        self._say(f"session folder {item.path}")
+
+    def _on_session_closed(self, item: SessionClosed) -> None:
+        self.plan.set_running(False)
+        self.qc.set_running(False)
+        if item.result is not None:
+            self.plan.session_ended(item.result.session.path)
+        self._say(item.text, "info" if item.result is not None and item.result.exit_code == 0 else "error")
+        if item.result is None:
+            self.plan.eta.setText(item.text.splitlines()[0])
+        if self._closing:
+            QtCore.QTimer.singleShot(0, self.close)
+
+    def _on_fit_progress(self, item: FitProgress) -> None:
+        self.fit_view.show_progress(item.title, item.iteration, item.objective)
+
+    def _on_fit_done(self, item: FitDone) -> None:
+        self.fit_view.show_result(item.title, item.result, item.folder)
+        self.tabs.setCurrentWidget(self.fit_view)
+        self._say(f"{item.title}: {'converged' if item.result.converged else 'NOT converged'}")
+
+    def _on_comparison_done(self, item: ComparisonDone) -> None:
+        self.fit_view.show_comparison(item.results)
+
+    def _on_estop_done(self, item: EstopDone) -> None:
+        took = f"{item.elapsed_s * 1e3:.0f} ms"
+        if item.failures:
+            self.estop_text = f"E-STOP INCOMPLETE ({took}): {'; '.join(item.failures)}"
+            self._say(self.estop_text, "error")
+        else:
+            self._say(f"E-STOP done in {took} from the press: STOP and hydraulics off written ({item.line})")
+        self._show_banner()
+
+    def _on_latch_changed(self, item: LatchChanged) -> None:
+        self._show_state()      # the strip and the motion controls follow the latch
+
+    def _on_qc_started(self, item: QcStarted) -> None:
+        # The QC run reads the controller on its own links: the console's last read is stale.
+        self.status, self.link_error = None, "QC run in progress: the controller is read by `rig qc run`"
+        self.qc.show_started(item.request)
+        self.left_tabs.setCurrentWidget(self.qc)
+
+    def _on_qc_progress(self, item: QcProgress) -> None:
+        self.qc.show_progress(item)
+
+    def _on_qc_done(self, item: QcDone) -> None:
+        self.link_error = None
+        self.qc.show_done(item)
+        self.plan.set_running(False)
+        self._say(f"QC of unit {item.serial}: {item.shown}" + (f" ({item.reason})" if item.reason else "")
+                  + (f"; report {item.report}" if item.report else ""),
+                  "info" if item.shown in ("PASS", "FAIL", "RETEST") else "error")
 
     def _show_banner(self, link_error: str | None = None) -> None:
         st = self.status

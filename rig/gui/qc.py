@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERRUPTED
-from rig.events import Phase
+from rig.events import Message, Phase
 from rig.qc.judge import Outcome
 from rig.qc.run import EXIT_BY_VERDICT
 
@@ -54,7 +54,7 @@ class QcRow:
 
 
 @dataclass(frozen=True)
-class QcProgress:
+class QcProgress(Message):
     """How far a unit's test is: the fraction of the plan's rig time done and what is left."""
 
     fraction: float
@@ -107,7 +107,7 @@ class ProgressReader:
 
 
 @dataclass(frozen=True)
-class QcDone:
+class QcDone(Message):
     """How one unit's test ended, as the QC panel shows it."""
 
     serial: str

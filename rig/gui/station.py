@@ -1,7 +1,8 @@
 """The rig side of the operator's console (no Qt here): the links, the manual commands,
 the session runner, the fits and the E-STOP, each on its own thread.  Whatever happens
-is *posted* as a small record into a queue that the window drains on its own timer, so
-that the GUI thread never talks to the rig, and the rig never waits on the GUI.
+is *posted* as a small typed record (a :class:`rig.events.Message`, as the session's
+events are) into a queue that the window drains on its own timer, so that the GUI
+thread never talks to the rig, and the rig never waits on the GUI.
 
 Threads:
 
@@ -45,7 +46,7 @@ from rig.config import RigConfig, load_rig_config
 from rig.daq import Calibration, Daq, DaqError
 from rig.errors import BadInput, RigError
 from rig.estop import EStop
-from rig.events import Event, Kind, LinkCondition, LinkNotice, Subscriber
+from rig.events import Event, Kind, LinkCondition, LinkNotice, Message, Subscriber
 from rig.gui import fits
 from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
@@ -70,9 +71,9 @@ STATUS_PERIOD_S = 0.25
 CONSOLE_RECONNECT_S = 2.0
 
 
-# ----- what is posted to the window ---------------------------------------------------------------------
+# ----- what is posted to the window: each a rig.events.Message, as the session's events are --------------
 @dataclass(frozen=True)
-class Snapshot:
+class Snapshot(Message):
     """The controller and the DAQ as last read (status None: not connected or unreadable)."""
 
     status: ShakerStatus | None
@@ -88,53 +89,53 @@ class Snapshot:
 
 
 @dataclass(frozen=True)
-class Notice:
+class Notice(Message):
     text: str
     level: str = "info"                    # info, refused, error
 
 
 @dataclass(frozen=True)
-class LinkState:
+class LinkState(Message):
     connected: bool
     text: str
     simulated: bool = False     # a peer named itself a simulator (rig.peer_identity)
 
 
 @dataclass(frozen=True)
-class SessionOpened:
+class SessionOpened(Message):
     path: Path
     progress: PlanProgress
     options: RunOptions
 
 
 @dataclass(frozen=True)
-class SessionClosed:
+class SessionClosed(Message):
     result: RunResult | None               # None: refused or failed before the session folder existed
     text: str
 
 
 @dataclass(frozen=True)
-class FitProgress:
+class FitProgress(Message):
     title: str
     iteration: int
     objective: float
 
 
 @dataclass(frozen=True)
-class FitDone:
+class FitDone(Message):
     title: str
     result: FitSummary
     folder: Path
 
 
 @dataclass(frozen=True)
-class ComparisonDone:
+class ComparisonDone(Message):
     results: dict[str, FitSummary]
     folder: Path
 
 
 @dataclass(frozen=True)
-class QcStarted:
+class QcStarted(Message):
     request: QcRequest
 
 
@@ -146,7 +147,7 @@ class IdentifySettings:
 
 
 class Station:
-    def __init__(self, shaker_url: str | None, daq_url: str | None, post: Callable[[object], None], *,
+    def __init__(self, shaker_url: str | None, daq_url: str | None, post: Callable[[Message], None], *,
                  rig_config: str | None = None, calibration: str | None = None, register_map: str | None = None,
                  speed: float = 1.0) -> None:
         self.shaker_url, self.daq_url, self.post, self.speed = shaker_url, daq_url, post, speed
