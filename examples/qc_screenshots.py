@@ -15,19 +15,38 @@ import sys
 import tempfile
 from pathlib import Path
 
+from matplotlib import image
+
 CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--no-first-run", "--disable-background-networking",
                   "--disable-component-update", "--disable-sync", "--hide-scrollbars"]
+
+TALL_PX = 12000           # taller than any report
+DARK = 0.78               # brightness below which a pixel is content (text, plots), not the pale watermark
+BOTTOM_MARGIN_PX = 32
 
 
 def run(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, *args], capture_output=True, text=True, timeout=600)
 
 
-def screenshot(chromium: str, page: Path, png: Path, size: str, profile: Path) -> None:
+def screenshot(chromium: str, page: Path, png: Path, width: int, height: int, profile: Path) -> None:
     r = subprocess.run([chromium, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", f"--screenshot={png}",
-                        f"--window-size={size}", page.as_uri()], capture_output=True, text=True, timeout=180)
+                        f"--window-size={width},{height}", page.as_uri()], capture_output=True, text=True, timeout=180)
     if r.returncode != 0 or not png.is_file():
         raise SystemExit(f"chromium failed on {page} (exit {r.returncode}): {r.stderr[-2000:]}")
+
+
+def full_page(chromium: str, page: Path, png: Path, width: int, profile: Path) -> None:
+    """The whole page, however long: headless Chromium's --screenshot takes the window only,
+    so a first shot in a window taller than any report finds where the content ends (the
+    last row with dark pixels; the pale watermark is not content), and the second is taken
+    at that height so the fixed watermark sits where a reader's window would put it."""
+    screenshot(chromium, page, png, width, TALL_PX, profile)
+    rgb = image.imread(png)[:, :, :3]          # matplotlib reads PNG natively (a project dependency)
+    rows = (rgb.max(axis=2) < DARK).any(axis=1).nonzero()[0]
+    if rows.size == 0 or rows[-1] >= TALL_PX - 1:
+        raise SystemExit(f"{page}: the page is empty or longer than {TALL_PX} px")
+    screenshot(chromium, page, png, width, int(rows[-1]) + BOTTOM_MARGIN_PX, profile)
 
 
 def main() -> int:
@@ -63,7 +82,7 @@ def main() -> int:
             raise SystemExit(r.stderr)
         shutil.copy(tmp / "charts" / "damping_force_0.3_N.png", out / "qc-chart-damping.png")
         for verdict, page in reports.items():
-            screenshot(chromium, page, out / f"qc-report-{verdict}.png", "1100,2450", tmp / "chromium")
+            full_page(chromium, page, out / f"qc-report-{verdict}.png", 1100, tmp / "chromium")
     for name in ("qc-report-pass.png", "qc-report-fail.png", "qc-chart-damping.png"):
         print(out / name)
     return 0

@@ -67,6 +67,14 @@ def at_place(x: float, place: int) -> str:
     return f"{round(x / 10.0**place) * 10.0**place:.0f}"
 
 
+def significant(x: float, digits: int = DIGITS) -> str:
+    """A number that has no uncertainty beside it (a residual's std, a bound) to ``digits``
+    significant digits, written out without an exponent: 568.08 → 570, 0.000321 → 0.00032."""
+    if not math.isfinite(x) or x == 0:
+        return f"{x:g}"
+    return at_place(x, math.floor(math.log10(abs(x))) - (digits - 1))
+
+
 def unit_text(unit: str) -> str:
     """A declared unit as people write it: m^2 → m², s^-1 → s⁻¹, N*s/m → N·s/m."""
     out, i = [], 0

@@ -301,8 +301,16 @@ class Acquisition:
         in the DAQ's samples (the rig's own time at any link speed), should the damper
         not follow the model; the steady-state criterion decides the rest either way."""
         target_c = hold.end_temperature_k - 273.15
-        self.bus.publish(Kind.LOG, label, message=f"conditioning: holding at {hold.position_m * 1e3:.1f} mm until the "
-                                               f"gas is at {target_c:.2f} °C (model: {hold.duration_s:.1f} s)")
+        # Said as what it is: the gas held compressed (or expanded) is far hotter (colder) than
+        # during the experiment, and an operator who sees 15-25 °C on the trace afterwards must
+        # not read the hold's target as a unit or sensor fault.
+        squeeze, after = ("compressed", "drops") if hold.position_m > then_m else ("expanded", "rises")
+        self.bus.publish(Kind.LOG, label, message=f"conditioning: holding at {hold.position_m * 1e3:.1f} mm (gas "
+                                               f"{squeeze} beyond the experiment's {then_m * 1e3:.1f} mm) until the "
+                                               f"measured gas temperature reaches {target_c:.2f} °C, the model's "
+                                               f"temperature from which the move on lands the gas in its "
+                                               f"periodic state (about {hold.duration_s:.0f} s); it {after} when the "
+                                               "move is made")
         rate = self.daq.rate_hz
         side = math.copysign(1.0, hold.arrival_temperature_k - hold.end_temperature_k)
         tail, step = round(HOLD_TEMPERATURE_FIT_S * rate), max(1, round(POLL_S * rate))

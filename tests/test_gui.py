@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -22,6 +23,7 @@ from rig.config import DEFAULT_RIG_CONFIG  # noqa: E402
 from rig.estop import EstopDone, LatchChanged  # noqa: E402
 from rig.events import Event, Kind, Message  # noqa: E402
 from rig.gui import MainWindow  # noqa: E402
+from rig.gui.live import LiveView  # noqa: E402
 from rig.gui.station import LinkState, SessionClosed, SessionOpened, Snapshot  # noqa: E402
 from tests.conftest import HANG_S  # noqa: E402
 
@@ -317,7 +319,7 @@ def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path
     qtbot.waitUntil(lambda: window.qc.last is not None, timeout=HANG_MS)
     done = window.qc.last
     assert done.shown == "FAIL", (done, window.simulated.log()[-500:])       # a worn orifice: --unit reached the rig
-    assert verdict.text() == done.shown
+    assert verdict.text().startswith(done.shown) and "SIMULATED" in verdict.text()     # the big box says it too
     assert window.qc.progress.value() > 0                                    # the progress bar moved while it ran
     # The table as the report shows it (every number with its unit), the likely cause in full.
     table = window.qc.table
@@ -372,6 +374,9 @@ def test_after_estop_every_motion_control_is_disabled_until_the_reset_is_confirm
     assert set(disabled) == set(MOTION_BUTTONS)
     assert all(tip.startswith("Disabled: E-STOP") for tip in disabled.values()), disabled
     assert strip.text().startswith("ALARM") and "HYDRAULICS OFF" in strip.text()
+    # The panel under the strip agrees with it: the latch, not the controller's quiet OFF.
+    assert find(window, QtWidgets.QLabel, "controller_state").text().startswith("ALARM")
+    assert "E-STOP" in find(window, QtWidgets.QLabel, "controller_alarm").text()
     banner = find(window, QtWidgets.QLabel, "alarmBanner").text()
     assert "hydraulics OFF" in banner and "holds the position" not in banner
 
@@ -385,6 +390,7 @@ def test_after_estop_every_motion_control_is_disabled_until_the_reset_is_confirm
     qtbot.mouseClick(find(window, QtWidgets.QPushButton, "resetButton"), QtCore.Qt.MouseButton.LeftButton)
     qtbot.waitUntil(lambda: strip.text().startswith("OFF"), timeout=5_000)
     assert "HYDRAULICS OFF" in strip.text()
+    qtbot.waitUntil(lambda: find(window, QtWidgets.QLabel, "controller_state").text() == "OFF", timeout=5_000)
     disabled = motion_disabled(window)
     assert set(disabled) == {"moveButton", "sineButton"}
     assert all("hydraulics OFF" in tip for tip in disabled.values()), disabled
@@ -482,3 +488,20 @@ def test_a_rig_reached_by_address_that_says_it_is_a_simulator_gets_the_banner(qt
     qtbot.waitUntil(label.isVisible, timeout=30_000)
     assert "identifies itself as a simulator" in label.text() and "SIMULATED RIG" in window.windowTitle()
     closed(qtbot, window)
+
+
+def test_the_daq_line_gives_the_rig_rate_and_a_steady_pace(qtbot):
+    """Frames arriving in bursts from a 20x simulator: the line says the rig's 2000 samples/s
+    and a pace near 20x, not a frames-per-wall-second figure jumping with each burst."""
+    view = LiveView(2000.0)
+    qtbot.addWidget(view)
+    paces = []
+    for i in range(40):                    # every 0.25 s, 10 000 frames ± a 3 000-frame burst
+        view.show_health(Snapshot(None, None, received=i * 10_000 + (3_000 if i % 2 else 0), time=100 + i / 4))
+        text = view.health.text()
+        if i >= 9:
+            assert "2000 samples/s (rig time)" in text, text
+            paces.append(float(re.search(r"at ([\d.]+)× real time", text).group(1)))
+    assert min(paces) >= 19 and max(paces) <= 21, paces
+    view.show_health(Snapshot(None, None, received=5, time=111))      # a new stream: measured afresh
+    assert "measuring" in view.health.text()

@@ -2,7 +2,7 @@
 
 import pytest
 
-from identify.notation import at_place, concise, decimal_place, plus_minus, rounded, unit_text
+from identify.notation import at_place, concise, decimal_place, plus_minus, rounded, significant, unit_text
 
 
 @pytest.mark.parametrize("value, std, text", [
@@ -36,3 +36,9 @@ def test_concise_matches_plus_minus():
 @pytest.mark.parametrize("declared, shown", [("m^2", "m²"), ("s^-1", "s⁻¹"), ("N*s/m", "N·s/m"), ("K", "K")])
 def test_units_are_shown_as_people_write_them(declared, shown):
     assert unit_text(declared) == shown
+
+
+@pytest.mark.parametrize(("value", "text"), [(568.08, "570"), (0.000321, "0.00032"), (1.0874, "1.1"),
+                                             (13.98, "14"), (-0.0456, "-0.046"), (0.0, "0")])
+def test_a_number_without_uncertainty_keeps_two_significant_digits_and_no_exponent(value, text):
+    assert significant(value) == text

@@ -56,6 +56,21 @@ class ControllerPanel(QtWidgets.QGroupBox):
                               else "HEARTBEAT FAILING: the controller will trip")
         f["watchdog"].setStyleSheet("" if snap.heartbeat_ok else "color: #b00020; font-weight: bold")
 
+    def show_trip(self, trip: str | None, status: ShakerStatus | None) -> None:
+        """The console's latch (E-STOP, an alarm not yet reset) over the registers: after an
+        E-STOP the controller reads OFF with no alarm, and a panel saying "State OFF, Alarm
+        none" under a red strip would contradict it until the reset is confirmed."""
+        if trip is None or status is None:
+            return
+        f = self.fields
+        state = f"ALARM (latched; controller reads {status.state})"
+        if f["state"].text() == state:          # a style sheet is costly: this runs on every tick
+            return
+        f["state"].setText(state)
+        f["state"].setStyleSheet(f"color: {STATE_COLOURS['ALARM']}; font-weight: bold")
+        f["alarm"].setText(f"{trip}, until Reset… is confirmed")
+        f["alarm"].setStyleSheet(f"color: {STATE_COLOURS['ALARM']}; font-weight: bold")
+
 
 def _spin(low: float, high: float, value: float, suffix: str, decimals: int = 2) -> QtWidgets.QDoubleSpinBox:
     box = QtWidgets.QDoubleSpinBox()

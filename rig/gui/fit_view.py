@@ -13,7 +13,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from identify.notation import plus_minus, rounded, unit_text
+from identify.notation import plus_minus, rounded, significant, unit_text
 from identify.result import CORRELATION_REPORT, RELATIVE_STD_WARNING
 from rig.gui.fits import FitSummary
 from rig.gui.plotting import labelled
@@ -190,8 +190,8 @@ class FitView(QtWidgets.QWidget):
         self.progress.setText("")
         self.compare_label.setText(
             f"1-dof (θ5, θ6, θ7) against 2-dof, both fitted to the stroke: residual mean ± 2σ per experiment; "
-            f"residual std 1-dof {math.sqrt(one.channel_variances['stroke_mm']):.4f} mm, "
-            f"2-dof {math.sqrt(two.channel_variances['stroke_mm']):.4f} mm")
+            f"residual std 1-dof {significant(math.sqrt(one.channel_variances['stroke_mm']))} mm, "
+            f"2-dof {significant(math.sqrt(two.channel_variances['stroke_mm']))} mm")
         self._draw()
 
     def _draw(self) -> None:

@@ -287,6 +287,7 @@ class MainWindow(QtWidgets.QMainWindow):
         """The strip and which motion controls are allowed, from the same state."""
         state = self.rig_state()
         self.strip.show_state(state)
+        self.controller.show_trip(state.trip, state.status)
         blocked = state.blocked()
         for name, button in self._motion.items():
             reason = blocked.get(name)

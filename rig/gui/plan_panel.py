@@ -15,6 +15,7 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from identify.notation import at_place, significant
 from rig.config import RigConfig
 from rig.criterion import DAQ_LAG_S
 from rig.daq import CHANNELS
@@ -105,11 +106,13 @@ class SteadyStateView(QtWidgets.QGroupBox):
         change = row.settling[-1][1]
         for i, c in enumerate(CHANNELS):
             x, limit = change.get(c, math.nan), ss.thresholds[c]
-            _item(self.table, i, 0).setText(f"{x:.3g} {UNITS[c]}")
+            # A tenth of the threshold is the last digit that means anything to the criterion.
+            shown = at_place(x, math.floor(math.log10(limit)) - 1) if math.isfinite(x) else "–"
+            _item(self.table, i, 0).setText(f"{shown} {UNITS[c]}")
             ratio = x / limit
             bar = self.bars[i]
             bar.setValue(int(min(ratio, 3.0) * 100))
-            bar.setFormat(f"{ratio:.2f}")
+            bar.setFormat(significant(ratio))
             colour = "#9e9e9e" if self.drift else "#43a047" if ratio < 1 else "#fb8c00"
             if bar.property("colour") != colour:     # a style sheet is costly to apply: only on a change
                 bar.setProperty("colour", colour)
@@ -117,7 +120,7 @@ class SteadyStateView(QtWidgets.QGroupBox):
         if self.drift:
             bound = change.get("bias_sigma")
             self.bound.setText("drift criterion: " + (
-                f"the transient left could bias the fit by up to {bound:.2f} σ; captures below "
+                f"the transient left could bias the fit by up to {significant(bound)} σ; captures below "
                 f"{self.drift.fraction:g} σ" if bound is not None else "waiting for the first blocks"))
             self.bound.setStyleSheet("color: #2e7d32;" if bound is not None and bound < self.drift.fraction
                                      else "color: #e65100;")

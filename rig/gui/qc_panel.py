@@ -159,7 +159,10 @@ class QcPanel(QtWidgets.QWidget):
     def show_done(self, done: QcDone) -> None:
         self.last = done
         self.unit.setText(f"Unit {done.serial}")
-        self._paint(done.shown, COLOURS.get(done.shown, NO_VERDICT), size_pt=48)
+        # The verdict itself says SIMULATED: the line below it is easily missed across the room.
+        shown = (f"{done.shown}<div style='font-size: 16pt'>SIMULATED — not a production verdict</div>"
+                 if done.simulated else done.shown)
+        self._paint(shown, COLOURS.get(done.shown, NO_VERDICT), size_pt=48)
         reason = {"PASS": "Every characteristic within its limits, uncertainty included.",
                   "FAIL": "At least one characteristic outside its limits, uncertainty included.",
                   "RETEST": "Inconclusive: a characteristic's uncertainty straddles a limit. Test again with "

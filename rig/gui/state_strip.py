@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from PySide6 import QtCore, QtWidgets
+from PySide6 import QtCore, QtGui, QtWidgets
 
 from rig.shaker import ShakerStatus
 
@@ -86,7 +86,9 @@ class RigState:
 
 
 class StateStrip(QtWidgets.QLabel):
-    """The strip itself: 26 pt bold, white on the state's colour, the whole window wide."""
+    """The strip itself: up to 26 pt bold, white on the state's colour, the whole window wide.
+    A long text (an E-STOP's time and the controller's word beside the alarm) takes a
+    smaller size rather than being cut at both ends."""
 
     def __init__(self, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
@@ -95,6 +97,7 @@ class StateStrip(QtWidgets.QLabel):
         self.setMinimumHeight(56)
         self.setSizePolicy(QtWidgets.QSizePolicy.Policy.Ignored, QtWidgets.QSizePolicy.Policy.Fixed)
         self._shown: tuple[str, str] | None = None
+        self._styled: tuple[tuple[str, str], int] | None = None
         self.show_state(RigState(None))
 
     def show_state(self, state: RigState) -> None:
@@ -104,5 +107,27 @@ class StateStrip(QtWidgets.QLabel):
         self._shown = (text, colour)
         self.setText(text)
         self.setToolTip(text)
-        self.setStyleSheet(f"background: {colour}; color: white; font-size: 26pt; font-weight: bold; "
+        self._restyle()
+
+    def resizeEvent(self, event: QtGui.QResizeEvent) -> None:  # noqa: N802 (Qt's name)
+        super().resizeEvent(event)
+        self._restyle()
+
+    def _fitting_pt(self) -> int:
+        font = QtGui.QFont(self.font())
+        font.setBold(True)
+        for pt in range(26, 11, -2):
+            font.setPointSize(pt)
+            if QtGui.QFontMetrics(font).horizontalAdvance(self.text()) <= self.width() - 40:
+                return pt
+        return 12
+
+    def _restyle(self) -> None:
+        if self._shown is None:
+            return
+        pt = self._fitting_pt()
+        if (self._shown, pt) == self._styled:
+            return
+        self._styled = (self._shown, pt)
+        self.setStyleSheet(f"background: {self._shown[1]}; color: white; font-size: {pt}pt; font-weight: bold; "
                            "padding: 4px 12px; border-radius: 6px")

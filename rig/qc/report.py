@@ -163,6 +163,11 @@ img {{ max-width: 100%; }}
 .watermark {{ position: fixed; top: 40%; left: 0; right: 0; text-align: center; font-size: 150px; font-weight: bold;
   color: rgba(198, 40, 40, 0.13); transform: rotate(-30deg); pointer-events: none; z-index: 10; }}
 .simbanner {{ background: #c62828; color: #fff; font-weight: bold; padding: 6px 12px; margin-bottom: 10px; }}
+/* Printed, the colours are the message (white PASS on green, the white SIMULATED banner on
+   red): without this a browser drops the backgrounds and the words vanish.  The fixed
+   watermark repeats on every printed page. */
+* {{ -webkit-print-color-adjust: exact; print-color-adjust: exact; }}
+h2 {{ break-after: avoid; }} img, tr {{ break-inside: avoid; }}
 .trace td {{ font-family: "DejaVu Sans Mono", monospace; font-size: 11px;
   word-break: break-all; }}
 </style></head><body>
