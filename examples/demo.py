@@ -76,8 +76,9 @@ def main() -> int:
     took_s = sim.rig_time_s()
     announced_s = json.loads((out / "session.json").read_text())["estimated_rig_time_s"]
     print(f"rig time on the simulator's clock (hydraulics on to off): announced {announced_s / 60:.1f} min, took "
-          f"{took_s / 60:.1f} min, {100 * (announced_s / took_s - 1):+.0f} % (the console's 'about' figure is its "
-          f"wall clock times the measured pace)")
+          f"{took_s / 60:.1f} min: the announcement {abs(100 * (announced_s / took_s - 1)):.0f} % "
+          f"{'short' if announced_s < took_s else 'long'} (the console's 'about' figure is its wall clock times the "
+          f"measured pace)")
     return 0
 
 
