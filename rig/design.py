@@ -349,7 +349,8 @@ def run_design(args: object) -> int:
     designed = design(goal, config, reference, name, no_worse_than=bool(a["no_worse_than"]))
     command = shlex.join(["python", "-m", "rig", *a["argv"]])
     atomic_write_bytes(out, plan_text(designed, goal, command).encode())
-    print(f"{out}: {len(designed.plan.experiments)} experiments, {designed.rig_s:.0f} s of rig time predicted"
+    print(f"{out}: {len(designed.plan.experiments)} experiment{'s' if len(designed.plan.experiments) != 1 else ''}, "
+          f"{designed.rig_s:.0f} s of rig time predicted"
           + (f" ({designed.reference[0]}: {designed.reference[2]:.0f} s)" if designed.reference else "")
           + f"; designed in {designed.design_s:.0f} s")
     for k, nm in enumerate(goal.quantities.names):
