@@ -81,6 +81,7 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     """Under the drift criterion the bias bound is the deciding line and the cycles left
     come from its decay; the changes stay, grey, for information (they were coloured as
     failing thresholds that did not apply).  Under the change criterion, as before."""
+    from identify.notation import significant
     from rig.config import DEFAULT_RIG_CONFIG
     from rig.gui.plan_panel import SteadyStateView
     from rig.gui.plan_state import ExperimentRow
@@ -97,7 +98,7 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     row.status, row.cycles = "settling", 50
     view.show_row(row)
     view.show_count(row)
-    assert f"up to {2 * fraction:.2f} σ; captures below {fraction:g} σ" in view.bound.text()
+    assert f"up to {significant(2 * fraction)} σ; captures below {fraction:g} σ" in view.bound.text()
     assert "predicted cycles left: 10" in view.cycles.text()     # halves every 10 cycles: 10 more
     assert view.bars[3].property("colour") == "#9e9e9e"          # 13x its change threshold: no verdict
 
