@@ -21,13 +21,16 @@ from rich.markup import escape
 
 from identify.notation import at_place, decimal_place
 from rig.events import Event, Kind, Phase
+from rig.session.acquisition import PaceReading
 from rig.session.storage import read_log
 
 # How the settling change of each channel is said: its word, unit and decimals (the
 # block means' resolution: a block averages thousands of samples of the transducer's noise).
 CHANGE_WORDS = {"stroke_mm": ("stroke", "mm", 3), "force_N": ("force", "N", 1), "pressure_bar": ("pressure", "bar", 4),
                 "gas_temperature_C": ("gas temperature", "°C", 3)}
-PHASE_SENTENCES = {Phase.SETTLING: "Excitation running, settling.", Phase.IDLE: "At rest."}
+PHASE_SENTENCES = {Phase.SETTLING: "Excitation running, settling."}
+# The controller's states read after a stop in which nothing moves (OFF: hydraulics off too).
+AT_REST_STATES = ("OFF", "IDLE")
 
 
 def describe(e: Event) -> str:
@@ -46,6 +49,8 @@ def describe(e: Event) -> str:
             return f"Stopping: {d['reason']}." if d.get("reason") else "Fading out and stopping."
         if phase is Phase.ALARM:
             return f"ALARM: {d['message']}."
+        if phase is Phase.IDLE:
+            return at_rest_sentence(d)
         return PHASE_SENTENCES[phase]
     if e.kind == Kind.PROGRESS and d["phase"] == Phase.CAPTURING:
         return f"Captured {100 * d['fraction']:.0f} % of the window."
@@ -65,6 +70,22 @@ def describe(e: Event) -> str:
     if e.kind == Kind.SESSION_END:
         return f"Session {d['message']}."
     return _sentence(str(d.get("message", "")))
+
+
+def at_rest_sentence(d: dict) -> str:
+    """What the controller said after a stop: "At rest" only when it was read at rest."""
+    if "controller" not in d:   # a session.log written before the state was read
+        return "Stopped (the controller's state after the stop is not on record)."
+    state = d["controller"]
+    if state in AT_REST_STATES:
+        return f"At rest: the controller reads {state}{', hydraulics off' if state == 'OFF' else ''}."
+    if state == "ALARM":
+        return f"Stopped by the controller's alarm ({d.get('alarm', 'unknown')}); it stays latched until reset."
+    if state is not None:
+        return f"Not at rest: the controller reads {state} after the stop."
+    why = f" ({d['unread']})" if d.get("unread") else ""
+    return ("Not known to be at rest: the controller could not be read after the stop" + why
+            + "; its watchdog stops the shaker once this program no longer feeds it.")
 
 
 def _fixed(x: float | None, decimals: int) -> str:
@@ -99,12 +120,15 @@ class ConsoleProgress:
     clock, from the rig-time estimate corrected by what is done)."""
 
     def __init__(self, console: Console, estimates_s: dict[str, float], pace: float | Callable[[], float] = 1.0,
-                 rig_clock: Callable[[], float] = time.monotonic) -> None:
+                 rig_clock: Callable[[], float] = time.monotonic,
+                 pace_reading: Callable[[], PaceReading] | None = None) -> None:
         # pace: the links' rig seconds per second, or where to read it as the session
         # corrects it from its streams (Acquisition.current_pace); rig_clock: the
-        # acquisition's (a test's in-process simulator runs on its own)
+        # acquisition's (a test's in-process simulator runs on its own); pace_reading:
+        # the pace with what measured it (Acquisition.pace_reading), for the last line
         self.console, self.estimates, self.rig_clock = console, estimates_s, rig_clock
         self._pace = pace if callable(pace) else lambda: pace
+        self._pace_reading = pace_reading or (lambda: PaceReading(self._pace(), "the pace given"))
         self.rig_started = rig_clock()
         self.total, self.done, self.done_s = len(estimates_s), 0, 0.0
         self.number = {label: i + 1 for i, label in enumerate(estimates_s)}
@@ -154,10 +178,11 @@ class ConsoleProgress:
         elif e.kind == Kind.EXPERIMENT_DONE:
             say(f"[green]{describe(e)}[/green]{self._eta()}")
         elif e.kind == Kind.SESSION_END:
-            took, announced, pace = self.rig_clock() - self.rig_started, sum(self.estimates.values()), self._pace()
-            if pace > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
-                self.console.print(f"session took {_min_s(took)} min:s of wall clock at {pace:.3g} rig seconds "
-                                   f"per second, about {_min_s(took * pace)} min:s of rig time; announced "
+            took, announced, pace = self.rig_clock() - self.rig_started, sum(self.estimates.values()), \
+                self._pace_reading()
+            if pace.rig_s_per_s > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
+                self.console.print(f"session took {_min_s(took)} min:s of this computer's clock; at {pace}, about "
+                                   f"{_min_s(took * pace.rig_s_per_s)} min:s of rig time; announced "
                                    f"{_min_s(announced)}", highlight=False)
             else:
                 self.console.print(f"session took {_min_s(took)} min:s of rig time; announced {_min_s(announced)}",

@@ -28,6 +28,7 @@ import logging
 import shlex
 import signal
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
@@ -55,16 +56,17 @@ from rig.drivers.peers import wrong_peer_or
 from rig.drivers.registers import RegisterMap, load_register_map
 from rig.drivers.shaker import AlarmError, Shaker, ShakerAddress, ShakerError, ShakerLinkError
 from rig.errors import RigError, RigFault
-from rig.events import EventBus, Kind, LinkNotice, Subscriber
+from rig.events import Event, EventBus, Kind, LinkNotice, Subscriber
 from rig.planning.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
 from rig.session.acquisition import Acquisition, ExperimentRecord, Interrupted
-from rig.session.progress import ConsoleProgress
+from rig.session.progress import ConsoleProgress, describe
 from rig.session.storage import Session, SessionError, SessionLog
 
 if TYPE_CHECKING:  # the numerics are imported when a fit runs, not with the command line
     from identify.result import FitResult
 
 INTERRUPTING_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+ORDERING_PROGRESS_S = 1.5    # at most this long between two lines while the plan is ordered
 
 
 @dataclass
@@ -118,11 +120,11 @@ class Prepared:
     plan: Plan                              # as listed until ordered()
     stored: Session | None                  # the session to resume, as read
 
-    def ordered(self) -> Prepared:
+    def ordered(self, progress: Callable[[int, int], object] | None = None) -> Prepared:
         """With the plan in the order it runs. The lifecycle orders once the links have
         answered, so that a wrong or swapped address is named within seconds, not after
-        the standard plan's seconds of ordering."""
-        return replace(self, plan=self.plan.ordered(self.config))
+        the standard plan's seconds of ordering (told to ``progress``)."""
+        return replace(self, plan=self.plan.ordered(self.config, progress=progress))
 
 
 @dataclass
@@ -497,20 +499,42 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
 
 
 def execute(prep: Prepared, console: Console, decide: Callable[[RunResult], str | None] | None = None) -> RunResult:
-    """``rig run`` and ``rig qc run``: the lifecycle with the terminal's progress lines.
-    ``decide``: see :attr:`SessionRunner.decide`."""
+    """``rig run`` and ``rig qc run``: the lifecycle with the terminal's progress lines,
+    the first of them at once (nothing else is said before the links answer, the plan
+    is ordered and the pace is probed: seconds).  ``decide``: see :attr:`SessionRunner.decide`."""
+    plan, n = prep.plan, len(prep.plan.experiments)
+    order = "in the order of least predicted rig time" if plan.order == "thermal" and n > 1 else "as listed"
+    console.print(f"plan {plan.name}: {n} experiment{'s' if n != 1 else ''} {'to do ' if prep.stored else ''}"
+                  f"{order}; connecting to the controller at {prep.shaker_url} and the DAQ at {prep.daq_url}",
+                  highlight=False)
+    early = _EarlyLines(console)
+
     def progress(ctx: SessionContext) -> list[Subscriber]:
+        early.until = time.time()
         if ctx.pace > 1.0:   # a simulator faster than the rig's own time
-            console.print(f"the links run {ctx.pace:.3g} rig seconds per second: conditioning holds shorter "
+            console.print(f"the links run {ctx.runner.acquisition.pace_reading()}: conditioning holds shorter "
                           f"than {prep.config.min_hold_s * ctx.pace:.0f} s are not planned (session.log has "
                           "the pace probe)", style="dim", highlight=False)
-        return [ConsoleProgress(console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock)]
+        return [ConsoleProgress(console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock,
+                                ctx.runner.acquisition.pace_reading)]
 
     def hand_over(runner: SessionRunner | None) -> None:
         if runner is not None:
             runner.decide = decide
 
-    return run_lifecycle(prep, console, attach=progress, on_runner=hand_over)
+    return run_lifecycle(prep, console, subscribers=[early], attach=progress, on_runner=hand_over)
+
+
+class _EarlyLines:
+    """The terminal's lines before its :class:`ConsoleProgress` exists (ordering, pace
+    probe): the session's log lines published until ``until`` (wall clock)."""
+
+    def __init__(self, console: Console) -> None:
+        self.console, self.until = console, float("inf")
+
+    def __call__(self, e: Event) -> None:
+        if e.kind == Kind.LOG and e.experiment is None and e.time < self.until:
+            self.console.print(f"{'[session]':<8} {describe(e)}", style="dim", highlight=False, markup=False)
 
 
 # ----- the one lifecycle ------------------------------------------------------------------------------
@@ -567,7 +591,7 @@ def run_lifecycle(prep: Prepared, console: Console, *, links: Links | None = Non
         else:
             # Links held across sessions (a script's rig): the actuator may have moved since they connected.
             links.start_position_m = links.shaker.status().position_m
-        prep = prep.ordered()
+        prep = _ordered(prep, bus)
         runner = SessionRunner(prep, links, bus, console)
         if on_runner is not None:
             on_runner(runner)
@@ -590,6 +614,31 @@ def run_lifecycle(prep: Prepared, console: Console, *, links: Links | None = Non
         if on_runner is not None:
             on_runner(None)
         _teardown(runner, links, own_links, bus if own_bus else None, log, disarm=not moved)
+
+
+def _ordered(prep: Prepared, bus: EventBus) -> Prepared:
+    """The plan in the order it runs, its progress said on the bus: the standard plan's
+    thermal ordering takes seconds of CPU (15 to 25 on a busy host), which no terminal
+    or console may spend in silence."""
+    n = len(prep.plan.experiments)
+    if prep.plan.order != "thermal" or n < 2:
+        return prep.ordered()
+    bus.publish(Kind.LOG, message=f"ordering the {n} experiments for the least predicted rig time: the damper "
+                                  "model predicts each one's settling after every other one")
+    started = last = time.monotonic()
+
+    def told(done: int, total: int) -> None:
+        nonlocal last
+        now = time.monotonic()
+        if now - last >= ORDERING_PROGRESS_S and done < total:
+            last = now
+            bus.publish(Kind.LOG, message=f"ordering: {done} of {total} experiments' successors predicted "
+                                          f"({now - started:.0f} s)")
+
+    prep = prep.ordered(told)
+    bus.publish(Kind.LOG, message=f"ordered in {time.monotonic() - started:.1f} s: "
+                                  f"{', '.join(e.letter for e in prep.plan.experiments)}")
+    return prep
 
 
 def _ended_before_motion(runner: SessionRunner, session: Session, exc: BaseException) -> RunResult:
