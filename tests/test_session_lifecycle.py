@@ -142,7 +142,7 @@ def test_a_bug_in_the_durations_is_an_internal_error_on_record(vrig, tmp_path, m
     def broken(*args, **kwargs):
         raise ZeroDivisionError("injected bug")
 
-    monkeypatch.setattr("rig.session.run.estimate_experiment_durations", broken)
+    monkeypatch.setattr("rig.session.run.predict", broken)
     result, meta = run(vrig, tmp_path / "s")
     assert (result.exit_code, type(result.error)) == (EXIT_INTERNAL, ZeroDivisionError)
     assert meta["status"] == "aborted: internal error: ZeroDivisionError: injected bug (before anything moved)"
@@ -197,3 +197,27 @@ def test_a_teardown_that_fails_keeps_the_record(vrig, tmp_path, monkeypatch, cap
     assert (result.status, result.exit_code, meta["status"]) == ("complete", EXIT_OK, "complete")
     assert "closing the session writer failed: [Errno 5] Input/output error" in caplog.text
     assert (tmp_path / "s" / "session.log").read_text().count("session-end") == 1
+
+
+def test_the_last_experiment_is_written_with_the_rig_at_rest_and_a_failed_write_aborts(vrig, tmp_path, monkeypatch):
+    """The rig is brought to rest before the session waits for its last data (at 10x the
+    seconds a CSV takes were tens of seconds of rig time with the hydraulics on); a
+    last write that fails still makes the session aborted, not complete."""
+    at_rest = threading.Event()
+    seen: list[bool] = []
+
+    def rest(e: Event) -> None:
+        if e.kind == Kind.PHASE and e.data["phase"] == "idle" and e.experiment is None:
+            at_rest.set()
+
+    def write_after_rest(self, record):
+        seen.append(at_rest.wait(30.0))   # a guard: the safe stop comes at once, or never (before the fix)
+        raise SessionWriteError(f"{self.path}: experiment {record.label} was captured but could not be written "
+                                "(No space left on device)")
+
+    vrig.bus.subscribe(rest, inline=True)
+    monkeypatch.setattr(Session, "write_experiment", write_after_rest)
+    result, meta = run(vrig, tmp_path / "s", ["j"])
+    assert seen == [True] and not vrig.sim.controller.hydraulics_on
+    assert result.exit_code == EXIT_ABORTED and meta["status"] == result.status
+    assert meta["status"].startswith("aborted: ") and "261122j was captured but could not be written" in meta["status"]

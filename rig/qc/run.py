@@ -29,7 +29,8 @@ from rich.console import Console
 
 from identify.files import atomic_write_bytes
 from rig.errors import BadInput
-from rig.planning.plans import estimate_experiment_durations
+from rig.events import Kind
+from rig.planning.prediction import predict_s
 from rig.qc.characteristics import check_model
 from rig.qc.evaluate import Evaluation, evaluate
 from rig.qc.judge import Outcome
@@ -38,7 +39,16 @@ from rig.qc.records import CharacteristicRecord, QcRecord, Records, default_url
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
 from rig.qc.trace import SessionTrace, now_utc, software_version, trace_session
-from rig.session.run import EXIT_INTERRUPTED, EXIT_OK, Prepared, RunOptions, RunResult, execute, prepare
+from rig.session.run import (
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    Prepared,
+    RunOptions,
+    RunResult,
+    SessionRunner,
+    execute,
+    prepare,
+)
 
 EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
 
@@ -121,13 +131,14 @@ def qc_run(opt: QcOptions, console: Console) -> int:
         records.close()
 
 
-def decider(spec: Spec, prep: Prepared, console: Console) -> Callable[[RunResult], str | None]:
+def decider(spec: Spec, prep: Prepared, console: Console) -> Callable[[RunResult, SessionRunner], str | None]:
     """After each captured experiment but the last: fit and judge what there is, and end
     the session as soon as every characteristic is decided under the guard band (PASS,
-    or FAIL at k·σ); otherwise say how much longer the rest of the plan will take,
-    predicted again from the parameters identified so far (a faulty unit heats and
-    settles otherwise than the nominal one the first estimate assumed)."""
-    def decide(result: RunResult) -> str | None:
+    or FAIL at k·σ); otherwise predict the rest of the plan again from the parameters
+    identified so far (a faulty unit heats and settles otherwise than the nominal one
+    the first estimate assumed), at the links' measured timing, and publish it
+    (``prediction``: every progress display takes it over)."""
+    def decide(result: RunResult, runner: SessionRunner) -> str | None:
         evaluation = evaluate(spec, result.session.path)
         labels = ", ".join(e.label for e in result.captured)
         open_ = [j.name for j in evaluation.judgement.characteristics if j.outcome is Outcome.INCONCLUSIVE]
@@ -137,11 +148,13 @@ def decider(spec: Spec, prep: Prepared, console: Console) -> Callable[[RunResult
         rest = tuple(e for e in prep.plan.experiments if result.session.label(e.letter) not in done)
         if evaluation.fit is not None and evaluation.fit.converged and rest:
             last = prep.plan.experiments[len(prep.plan.experiments) - len(rest) - 1]
-            eta = sum(d.total_s for d in estimate_experiment_durations(
-                replace(prep.plan, experiments=rest), prep.config, last.static_position_mm * 1e-3,
-                evaluation.fit.params))
-            console.print(f"after {labels}: {', '.join(open_)} not yet decided; the rest of the plan, predicted "
-                          f"from the parameters identified so far: {eta:.0f} s", highlight=False)
+            left = predict_s(replace(prep.plan, experiments=rest), prep.config, runner.timing(),
+                             last.static_position_mm * 1e-3, evaluation.fit.params)
+            basis = f"the parameters identified from {labels}"
+            runner.bus.publish(Kind.PREDICTION, rig_time_left_s=round(left, 1), basis=basis,
+                               message=f"{', '.join(open_)} not yet decided after {labels}: the rest of the plan "
+                                       f"({len(rest)} experiment{'s' if len(rest) != 1 else ''}) predicted again "
+                                       f"from {basis}: {left:.0f} s of rig time")
         return None
 
     return decide

@@ -177,6 +177,9 @@ class ConsoleProgress:
                 say(describe(e), "dim")
         elif e.kind == Kind.EXPERIMENT_DONE:
             say(f"[green]{describe(e)}[/green]{self._eta()}")
+        elif e.kind == Kind.PREDICTION:   # the rest predicted again (qc run: from the unit's own parameters)
+            left = e.data["rig_time_left_s"] / self._pace()
+            say(f"{escape(describe(e))} About {_min_s(left)} left (m:s of wall clock).")
         elif e.kind == Kind.SESSION_END:
             took, announced, pace = self.rig_clock() - self.rig_started, sum(self.estimates.values()), \
                 self._pace_reading()
@@ -208,6 +211,9 @@ class ProgressBar:
             self.bar.set_description(f"{e.experiment} {e.data['phase']}{extra}")
         elif e.kind in ("experiment-done", "experiment-failed"):
             self.bar.update(round(self.estimates.get(e.experiment or "", 0.0)))
+        elif e.kind == "prediction":    # the rest predicted again: the bar's end moves with it
+            self.bar.total = self.bar.n + round(e.data["rig_time_left_s"])
+            self.bar.refresh()
         elif e.kind == "session-end":
             self.bar.set_description(str(e.data.get("message", "ended")))
             if e.data.get("message") == "complete":

@@ -57,7 +57,8 @@ from rig.drivers.registers import RegisterMap, load_register_map
 from rig.drivers.shaker import AlarmError, Shaker, ShakerAddress, ShakerError, ShakerLinkError
 from rig.errors import RigError, RigFault
 from rig.events import Event, EventBus, Kind, LinkNotice, Subscriber
-from rig.planning.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
+from rig.planning.plans import ExperimentDuration, Plan, PlanError, check_plan, load_plan
+from rig.planning.prediction import LinkTiming, measured, predict, remember
 from rig.session.acquisition import Acquisition, ExperimentRecord, Interrupted
 from rig.session.progress import ConsoleProgress, describe
 from rig.session.storage import Session, SessionError, SessionLog
@@ -243,6 +244,24 @@ def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Ca
     return links
 
 
+def probe_timing(shaker_url: str, daq_url: str, config: RigConfig) -> LinkTiming:
+    """The links' pace and latencies measured now (the session's pace probe: the DAQ
+    streams, the controller's state is read; nothing moves), for a prediction made
+    before a session (``rig design --shaker … --daq …``); kept as the last measured."""
+    bus = EventBus()
+    links = open_links(shaker_url, daq_url, config, Calibration.from_file(), load_register_map(), reset_alarm=False,
+                       on_event=bus.publish_link)
+    try:
+        acq = Acquisition(links.shaker, links.daq, config, bus, links.shaker.clock)
+        pace = acq.measure_pace()
+    finally:
+        close_links(links, disarm=True)
+        bus.close()
+    timing = measured(pace, acq.answer_s, acq.overhead_s, f"{shaker_url} and {daq_url}", "a pace probe just now")
+    remember(timing)
+    return timing
+
+
 def close_links(links: Links, *, disarm: bool = False) -> None:
     """Close both links; with ``disarm``, first hand the controller back with its watchdog
     off, as the manual commands leave it: a session that ends before it ran took nothing
@@ -265,6 +284,7 @@ class SessionRunner:
         self.state = "connected"
         self.pace: float | None = None     # rig seconds per second of the links (probe_pace)
         self._durations: list[ExperimentDuration] | None = None   # the plan's prediction (durations)
+        self._timing: LinkTiming | None = None                     # the links', measured (timing)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="session-writer")
         self._writing: tuple[str, Future[None]] | None = None
         self.signals: list[int] = []       # SIGINT, SIGTERM, SIGHUP received while the session ran
@@ -272,8 +292,9 @@ class SessionRunner:
         # clock, or a simulated one when a test drives an in-process simulator).
         self.acquisition = Acquisition(links.shaker, links.daq, prep.config, bus, links.shaker.clock)
         # Asked after each captured experiment but the last, its data written: a reason to
-        # end the session there (qc run: every characteristic is decided), or None.
-        self.decide: Callable[[RunResult], str | None] | None = None
+        # end the session there (qc run: every characteristic is decided), or None; it
+        # may publish a re-prediction of the rest (Kind.PREDICTION) on the runner's bus.
+        self.decide: Callable[[RunResult, SessionRunner], str | None] | None = None
 
     def open_session(self) -> Session:
         """The session folder, with the DAQ's journal attached (see :meth:`create_session`)."""
@@ -316,12 +337,19 @@ class SessionRunner:
         and the holds run are the same prediction."""
         if self._durations is None:
             todo = tuple(e for e in self.prep.plan.experiments if e.letter not in session.completed())
-            self._durations = estimate_experiment_durations(replace(self.prep.plan, experiments=todo),
-                                                            self.prep.config, start_position_m,
-                                                            pace=self.probe_pace(),
-                                                            answer_s=self.acquisition.answer_s,
-                                                            overhead_s=self.acquisition.overhead_s)
+            self._durations = predict(replace(self.prep.plan, experiments=todo), self.prep.config, self.timing(),
+                                      start_position_m)
         return self._durations
+
+    def timing(self) -> LinkTiming:
+        """The links' pace and latencies as this session's probe measured them (probed
+        once; kept for the predictions made before the next session, ``rig design``'s)."""
+        if self._timing is None:
+            acq = self.acquisition
+            self._timing = measured(self.probe_pace(), acq.answer_s, acq.overhead_s,
+                                    f"{self.prep.shaker_url} and {self.prep.daq_url}", "this session's pace probe")
+            remember(self._timing)
+        return self._timing
 
     def estimates_s(self, session: Session, start_position_m: float) -> dict[str, float]:
         """Rig time per experiment still to do, by label (see :meth:`durations`)."""
@@ -361,12 +389,15 @@ class SessionRunner:
                         previous = session.label(spec.letter)
                         if self.decide is not None and k < len(todo) - 1:
                             self._written(result)
-                            result.decided = self.decide(result)
+                            result.decided = self.decide(result, self)
                             if result.decided:
                                 reason = result.decided
                                 bus.publish("log", message=f"ending the session before its plan: {reason}")
                                 break
-                    self._written(result)
+                    # The last experiment's data are waited for after the safe stop: the rig
+                    # is at rest, hydraulics off, while they are written (at 10x, the
+                    # seconds a CSV takes were tens of seconds of the rig's time, with the
+                    # hydraulics on and not in any prediction).
                 except Interrupted:
                     name = signal.Signals(received[-1]).name if received else "SIGINT"
                     reason = f"interrupted by the operator ({name})"
@@ -391,10 +422,18 @@ class SessionRunner:
                 self.state = "stopping"
                 result.safe_stop_failures = acq.safe_stop(reason)
                 if self._writing is not None:     # an experiment captured before the session ended
+                    label = self._writing[0]
                     try:
                         self._written(result)
                     except Exception as exc:  # noqa: BLE001 — the status says what was lost
-                        result.status += f"; {self._writing[0]} was captured but could not be written ({exc})"
+                        if result.exit_code == EXIT_OK and isinstance(exc, RigError):   # not on disk
+                            bus.publish(Kind.LOG, message=f"aborting: {exc}")
+                            result.status, result.exit_code = f"aborted: {exc}", EXIT_ABORTED
+                        elif result.exit_code == EXIT_OK:   # a bug in the writer: shown by the caller
+                            reason = f"internal error: {type(exc).__name__}: {exc}"
+                            result.status, result.exit_code, result.error = f"aborted: {reason}", EXIT_INTERNAL, exc
+                        else:
+                            result.status += f"; {label} was captured but could not be written ({exc})"
         finally:
             if result.status == "running":  # only a failure inside the safe stop itself gets here
                 result.status, result.exit_code = "aborted: the safe stop failed", EXIT_INTERNAL
@@ -498,7 +537,8 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
     return EXIT_OK
 
 
-def execute(prep: Prepared, console: Console, decide: Callable[[RunResult], str | None] | None = None) -> RunResult:
+def execute(prep: Prepared, console: Console,
+            decide: Callable[[RunResult, SessionRunner], str | None] | None = None) -> RunResult:
     """``rig run`` and ``rig qc run``: the lifecycle with the terminal's progress lines,
     the first of them at once (nothing else is said before the links answer, the plan
     is ordered and the pace is probed: seconds).  ``decide``: see :attr:`SessionRunner.decide`."""
