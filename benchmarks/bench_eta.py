@@ -71,13 +71,14 @@ def busy_cores(n: int) -> list[subprocess.Popen]:
     return [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(n)]
 
 
-def run_once(plan: str, experiments: str | None, speed: float, busy: int, seed: int, nice: int) -> dict:
+def run_once(plan: str, experiments: str | None, speed: float, busy: int, seed: int, nice: int,
+             unit: str | None = None) -> dict:
     from rig.virtual import VirtualRig
 
     load = busy_cores(busy)
     try:
         with (tempfile.TemporaryDirectory(prefix="bench-eta-") as tmp,
-              VirtualRig(speed=speed, seed=seed, nice=nice) as sim):
+              VirtualRig(speed=speed, seed=seed, nice=nice, unit=unit, unit_seed=seed if unit else None) as sim):
             links = ["--shaker", sim.modbus_url, "--daq", sim.daq_url]
             if plan == "qc":      # what the console's QC tab runs: qc run, the default spec
                 cmd = [sys.executable, "-m", "rig", "qc", "run", "--spec", "default", "--serial", "SN-0001",
@@ -149,6 +150,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--nice", type=int, default=5,
                     help="the simulator's niceness (default 5, as rig gui --simulate starts it)")
     ap.add_argument("--runs", type=int, default=1, help="runs per case")
+    ap.add_argument("--unit", help="--plan qc: a production unit of the simulator (good, gas-leak, worn-seal, "
+                                   "worn-orifice)")
     ap.add_argument("--three-figures", choices=("standard", "designed"),
                     help="rig design's prediction, rig run's announcement and the real rig time of this plan")
     args = ap.parse_args(argv)
@@ -161,14 +164,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{f['design_s']:>11.0f}s {f['announced_s']:>11.0f}s {f['real_s']:>7.1f}s   "
               f"{f['design_s'] / f['real_s'] - 1:>+11.1%} {f['announced_s'] / f['real_s'] - 1:>+9.1%}")
         return 0
-    print(f"plan {args.plan}{' ' + args.experiments if args.experiments else ''} on "
+    print(f"plan {args.plan}{' ' + args.experiments if args.experiments else ''}"
+          f"{' unit ' + args.unit if args.unit else ''} on "
           f"simulator serve at {args.speed:g}x (nice {args.nice}); target: announced within ±{TARGET:.0%} of taken")
     print(f"{'busy':>4} {'run':>3} {'pace':>6} {'announced':>9} {'taken':>7} {'error':>7} {'rig said':>8} "
           f"{'after 1st':>9}")
     worst = 0.0
     for busy in (int(b) for b in args.busy.split(",")):
         for run in range(args.runs):
-            f = run_once(args.plan, args.experiments, args.speed, busy, seed=run + 1, nice=args.nice)
+            f = run_once(args.plan, args.experiments, args.speed, busy, seed=run + 1, nice=args.nice, unit=args.unit)
             error = f["announced_s"] / f["taken_s"] - 1
             worst = max(worst, abs(error))
             print(f"{busy:>4} {run + 1:>3} {f['pace']:>6.3g} {f['announced_s']:>8.0f}s {f['taken_s']:>6.0f}s "
