@@ -184,16 +184,28 @@ def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str 
         serial = first.serial if first else str(manifest.get("unit", {}).get("serial", "unknown"))
         rig = first.rig if first else str(manifest.get("source", {}).get("generator", "unknown"))
         evaluation = evaluate(spec, session)
+        if first is not None:   # said in the record itself, not only in its link to the first
+            evaluation.notes.insert(0, rejudgement_note(first))
         retest = rejudge_remedy(spec)
+        # The measurement is the first record's: its times, not the session files' (which
+        # said 14:19:09 where the first record said 14:19:08 for the same measurement).
         record = judged_record(spec, trace, evaluation, retest, rejudges=first.uid if first else None,
                                simulated=bool(first and first.simulated), serial=serial,
                                operator=first.operator if first else operator or getpass.getuser(),
-                               rig=rig, started=trace.started, finished=trace.finished)
+                               rig=rig, started=first.started if first else trace.started,
+                               finished=first.finished if first else trace.finished)
         tag = f"{record.judged.replace(':', '').replace('-', '')[:15]}-{record.uid[:8]}"
         return _conclude(records, record, spec, evaluation, session / f"qc-report-{tag}.html",
                          session / f"qc-record-{tag}.json")
     finally:
         records.close()
+
+
+def rejudgement_note(first: QcRecord) -> str:
+    """What a re-judgement's record and report say of the record it judges again."""
+    return (f"re-judgement of record {first.uid} (spec {first.spec_name} {first.spec_version}, verdict "
+            f"{first.verdict or first.status}, judged {first.judged}): the same measurement judged again; that "
+            "record and its report are kept unchanged")
 
 
 def _conclude(records: Records, record: QcRecord, spec: Spec, evaluation: Evaluation, report: Path,
@@ -271,8 +283,9 @@ def _print_summary(record: QcRecord, k: float, report: Path, database: str) -> N
     """The terminal summary: the console's QC panel reads it (rig.gui.qc), so its lines
     are the panel's rows — one per characteristic, fields separated by ' | '."""
     simulated = "  SIMULATED (not a production record)" if record.simulated else ""
+    again = f"  RE-JUDGEMENT of record {record.rejudges}" if record.rejudges else ""
     print(f"{record.serial}: {record.verdict}  (spec {record.spec_name} {record.spec_version}; "
-          f"value ± {k:g}σ){simulated}")
+          f"value ± {k:g}σ){simulated}{again}")
     rows = [shown(record, c, k) for c in record.characteristics]
     width = max((len(s.title) for s in rows), default=0)
     for s in rows:
