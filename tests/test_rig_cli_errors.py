@@ -48,7 +48,11 @@ CASES = {
     "daq scheme": (dict(daq="sokcet://127.0.0.1:5021"), [], 2, "unknown scheme 'sokcet'"),
     "daq without port": (dict(daq="socket://127.0.0.1"), [], 2, "expected socket://HOST:PORT"),
     "daq slashes": (dict(daq="socket:/127.0.0.1:5021"), [], 2, "'socket:/127.0.0.1:5021': not a device path nor a URL"),
-    "missing plan": ({}, ["--plan", "no/such/plan.toml"], 2, "plan no/such/plan.toml: cannot be read"),
+    "missing plan": ({}, ["--plan", "no/such/plan.toml"], 2, "plan 'no/such/plan.toml': no such plan and no such "
+                                                              "file; the plans: standard (built in), or the path"),
+    "misspelt plan": ({}, ["--plan", "standrad"], 2, "plan 'standrad': no such plan and no such file (did you mean "
+                                                     "'standard'?); the plans: standard (built in), or the path of a "
+                                                     "plan TOML file"),
     "unknown letter": ({}, ["--experiments", "a,z"], 2, "has no experiment z"),
     "zero periods": ({}, ["--periods", "0"], 2, "--periods: 0: must be at least 1"),
     "negative periods": ({}, ["--periods", "-2"], 2, "--periods: -2: must be at least 1"),

@@ -157,3 +157,35 @@ def test_the_pace_in_the_last_line_says_what_measured_it():
 def test_an_old_log_without_a_reading_does_not_say_at_rest():
     assert describe(Event(Kind.PHASE, None, {"phase": "idle"})) == \
         "Stopped (the controller's state after the stop is not on record)."
+
+
+def test_settling_says_the_cycles_left_not_a_bias_of_hundreds_of_sigma():
+    """'could bias the fit by up to 560 σ' every 5 cycles: alarming and not actionable.
+    The criterion is said once per experiment, each line then counts the cycles left."""
+    from rig.config import load_rig_config
+    from rig.session.acquisition import drift_cycles_left
+
+    ss = load_rig_config(None).steady_state
+    assert ss.drift is not None
+    limit = ss.drift.fraction
+    # 560 σ decaying ×0.8 per cycle reaches the limit in log(limit/560)/log(0.8) cycles
+    import math
+    expected = math.ceil(math.log(limit / 560.0) / math.log(0.8))
+    assert drift_cycles_left(ss, ss.min_cycles + 10, 560.0, 0.8) == expected
+    assert drift_cycles_left(ss, ss.min_cycles + 10, 560.0, 1.02) is None           # not decaying
+    assert drift_cycles_left(ss, 1, limit / 2, 0.8) == ss.min_cycles - 1             # the minimum still to wait
+
+    out = io.StringIO()
+    progress = ConsoleProgress(Console(file=out, width=300), {"261126c": 600.0})
+    for cycles, left in ((10, 40), (15, 35)):
+        progress(Event(Kind.PROGRESS, "261126c", {"phase": "settling", "cycles": cycles, "ratio": 0.9,
+                                                  "bias_sigma": 560.0, "bias_limit_sigma": limit,
+                                                  "cycles_left": left, "change": {"force_N": 0.4}}))
+    lines = out.getvalue().splitlines()[1:]
+    assert len(lines) == 3 and "σ" not in out.getvalue()
+    assert lines[0] == (f"[1/1] 261126c  Settling: the capture waits until the transient left by the move could shift "
+                        f"the fitted parameters by less than {limit:g} of their standard deviation; the lines below "
+                        "count the cycles left until then.")
+    assert lines[1] == ("[1/1] 261126c  Cycle 10: the block means moved by force 0.4 N; about 40 more cycles to settle "
+                        "(it decays ×0.900 per cycle).")
+    assert lines[2].startswith("[1/1] 261126c  Cycle 15:") and "about 35 more cycles" in lines[2]

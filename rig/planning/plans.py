@@ -32,6 +32,7 @@ class PlanError(BadInput):
 
 
 ORDERS = ("thermal", "fixed")
+BUILT_IN = ("standard",)    # plans known by name (load_plan); any other is a file
 
 
 @dataclass(frozen=True)
@@ -91,6 +92,11 @@ def load_plan(source: str) -> Plan:
         # 116 mm compression whose heat c has to lose where the gas's wall area is least.
         return Plan("standard", STANDARD_SET, "standard", "thermal")
     path = Path(source)
+    if not path.exists():   # a misspelt name reads as a missing file: say what plans there are
+        meant = difflib.get_close_matches(source, BUILT_IN, n=1)
+        raise PlanError(f"plan {source!r}: no such plan and no such file"
+                        + (f" (did you mean {meant[0]!r}?)" if meant else "")
+                        + f"; the plans: {', '.join(BUILT_IN)} (built in), or the path of a plan TOML file")
     text, doc = read_toml(path, PlanError, "plan ")
     for key in sorted(set(doc) - PLAN_KEYS):
         meant = difflib.get_close_matches(key, PLAN_KEYS, n=1)

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from identify.plans import ExperimentSpec
-from rig.config import CHANNELS, RigConfig
+from rig.config import CHANNELS, RigConfig, SteadyStateCriteria
 from rig.drivers.clock import WALL_CLOCK, Clock
 from rig.drivers.daq import Daq, Samples
 from rig.drivers.shaker import AlarmError, Shaker, ShakerTimeout
@@ -218,6 +218,20 @@ def _response_delay(rec: Recorder, commanded: int, arrived: int, from_m: float, 
         return 0.0
     crossed = max(commanded, rec.base) + int(past[0])
     return max(0.0, (crossed - commanded) / rate_hz - move_duration_s(to_m - from_m) / 2)
+
+
+def drift_cycles_left(ss: SteadyStateCriteria, cycles: int, bias_sigma: float, ratio: float) -> int | None:
+    """Cycles until the drift criterion passes, the transient's bias decaying by ``ratio``
+    per cycle (None: not seen to decay): what the operator waits for, said instead of a
+    bias of hundreds of σ that means nothing at the rig."""
+    assert ss.drift is not None
+    floor = max(ss.min_cycles - cycles, 0)
+    if bias_sigma < ss.drift.fraction:
+        return floor
+    if not 0.0 < ratio < 1.0 or not math.isfinite(bias_sigma):
+        return None
+    left = math.ceil(math.log(ss.drift.fraction / bias_sigma) / math.log(ratio))
+    return int(min(max(left, floor), max(ss.max_cycles - cycles, 0)))
 
 
 def _line_at_end(values: np.ndarray, present: np.ndarray) -> tuple[float, float]:
@@ -522,7 +536,8 @@ class Acquisition:
                     change = np.abs(means - prev_means) if prev_means is not None else np.full(len(CHANNELS), np.nan)
                     self.bus.publish(Kind.PROGRESS, label, phase=Phase.SETTLING.value, cycles=cycles,
                                      change={c: float(x) for c, x in zip(CHANNELS, change, strict=True)},
-                                     bias_sigma=fit.bias_sigma, ratio=fit.ratio,
+                                     bias_sigma=fit.bias_sigma, ratio=fit.ratio, bias_limit_sigma=drift.fraction,
+                                     cycles_left=drift_cycles_left(ss, cycles, fit.bias_sigma, fit.ratio),
                                      drift={c: float(x) for c, x in zip(drift.noise, fit.drift, strict=True)})
                     if drift_passes(ss, cycles, fit):
                         settled = True

@@ -19,7 +19,6 @@ from pathlib import Path
 from rich.console import Console
 from rich.markup import escape
 
-from identify.notation import at_place, decimal_place
 from rig.events import Event, Kind, Phase
 from rig.session.acquisition import PaceReading
 from rig.session.storage import read_log
@@ -58,10 +57,13 @@ def describe(e: Event) -> str:
         moved = ", ".join(f"{word} {_fixed(d['change'].get(channel), decimals)} {unit}"
                           for channel, (word, unit, decimals) in CHANGE_WORDS.items() if channel in d["change"])
         text = f"Cycle {d['cycles']}: the block means moved by {moved}"
-        if "bias_sigma" in d:
-            bias = d["bias_sigma"]
-            text += (f"; the transient decays ×{d['ratio']:.3f} per cycle and could bias the fit by up to "
-                     f"{at_place(bias, decimal_place(bias)) if bias > 0 else '0'} σ")
+        if "cycles_left" in d:     # the drift criterion, in what the operator waits for
+            left = d["cycles_left"]
+            text += ("; the transient is not yet seen to decay" if left is None else
+                     f"; about {left} more cycle{'s' if left != 1 else ''} to settle" if left else "; settled")
+            text += f" (it decays ×{d['ratio']:.3f} per cycle)" if left != 0 and 0 < d["ratio"] < 1 else ""
+        elif "bias_sigma" in d:    # a session.log from before cycles_left
+            text += f"; the transient decays ×{d['ratio']:.3f} per cycle"
         return text + "."
     if e.kind == Kind.EXPERIMENT_DONE:
         lost = "none lost in the window" if not d["lost"] else f"{d['lost']} lost in the window"
@@ -133,6 +135,7 @@ class ConsoleProgress:
         self.total, self.done, self.done_s = len(estimates_s), 0, 0.0
         self.number = {label: i + 1 for i, label in enumerate(estimates_s)}
         self._captured = 0.0
+        self._criterion_said: set[str | None] = set()
         plural = "s" if self.total != 1 else ""
         console.print(f"session: {self.total} experiment{plural}, about {_min_s(sum(estimates_s.values()))} min:s of "
                       "rig time", highlight=False)
@@ -170,6 +173,12 @@ class ConsoleProgress:
             if e.data["phase"] != Phase.ALARM:          # the alarm event that follows says it, in red
                 say(describe(e))
         elif e.kind == Kind.PROGRESS and e.data.get("phase") == Phase.SETTLING:
+            if "bias_limit_sigma" in e.data and e.experiment not in self._criterion_said:
+                self._criterion_said.add(e.experiment)   # once per experiment: what settling waits for
+                limit = e.data["bias_limit_sigma"]
+                say(f"Settling: the capture waits until the transient left by the move could shift the fitted "
+                    f"parameters by less than {limit:g} of their standard deviation; the lines below count the "
+                    "cycles left until then.", "dim")
             say(describe(e), "dim")
         elif e.kind == Kind.PROGRESS and e.data.get("phase") == Phase.CAPTURING:
             if e.data["fraction"] >= self._captured + 0.25:
