@@ -100,7 +100,7 @@ def test_spec_limit_labels_lie_inside_the_plot(tmp_path, monkeypatch):
 
     def savefig(fig, *args, **kwargs):
         fig.canvas.draw()
-        renderer = fig.canvas.get_renderer()   # type: ignore[attr-defined]
+        renderer = fig.canvas.get_renderer()
         for ax in fig.axes:
             box = ax.get_window_extent(renderer)
             for child in ax.get_children():
