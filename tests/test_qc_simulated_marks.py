@@ -113,3 +113,17 @@ def test_spec_limit_labels_lie_inside_the_plot(tmp_path, monkeypatch):
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", savefig)
     control_charts(found, tmp_path / "charts")
     assert sorted(checked) == ["LSL 5.7 bar", "USL 6.05 bar"]
+
+
+def test_a_session_measured_on_a_simulator_says_so_in_its_dataset_file(tmp_path):
+    from rig.session.storage import Session
+
+    def create(name: str, peers: dict | None) -> dict:
+        Session.create(tmp_path / name, plan_source="standard", letters=["j"], periods=None, date="261126",
+                       snapshot={}, unit={"serial": "SN-1"}, endpoints={}, peers=peers)
+        return json.loads((tmp_path / name / "dataset.json").read_text())
+
+    simulated = create("sim", {"controller": {}, "daq": "DAQ4,SIM0001,1.00,SIMULATOR", "simulated": True})
+    assert simulated["simulated"] is True and "SIMULATED" in simulated["name"]
+    measured = create("rig", {"controller": {}, "daq": "DAQ4,A123,1.00", "simulated": False})
+    assert "simulated" not in measured and "SIMULATED" not in measured["name"]
