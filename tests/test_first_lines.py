@@ -37,14 +37,16 @@ def test_the_first_line_comes_before_the_links_are_tried(tmp_path, monkeypatch):
 def test_ordering_says_it_begins_how_far_it_is_and_what_it_found(tmp_path, monkeypatch):
     monkeypatch.setattr(run_module, "ORDERING_PROGRESS_S", 0.0)     # every step said
     prep = prepare(options(tmp_path, experiments=["j", "n", "l"], order="thermal"))
-    bus, said = EventBus(), []
+    bus, said, events = EventBus(), [], []
 
     def keep(e: Event) -> None:
         said.append(e.data["message"])
+        events.append(e)
 
     bus.subscribe(keep, inline=True)
     ordered = _ordered(prep, bus)
     letters = ", ".join(e.letter for e in ordered.plan.experiments)
+    assert all(e.data["ordering"] for e in events)
     assert said[0].startswith("ordering the 3 experiments for the least predicted rig time")
     assert [s.split(" (")[0] for s in said[1:-1]] == ["ordering: 1 of 3 experiments' successors predicted",
                                                     "ordering: 2 of 3 experiments' successors predicted"]
@@ -62,7 +64,9 @@ def test_a_plan_run_as_listed_is_not_ordered_and_says_nothing_of_it(tmp_path):
 def test_early_lines_print_the_sessions_log_lines_until_the_progress_takes_over():
     out = io.StringIO()
     early = run_module._EarlyLines(Console(file=out, width=300))
-    early(Event(Kind.LOG, None, {"message": "ordering: 3 of 14 experiments' successors predicted (4 s)"}, time=1.0))
+    early(Event(Kind.LOG, None, {"message": "ordering: 3 of 14 experiments' successors predicted (4 s)",
+                                 "ordering": True}, time=1.0))
+    early(Event(Kind.LOG, None, {"message": "session aborted: … (before anything moved)"}, time=1.5))   # said last
     early.until = 2.0
-    early(Event(Kind.LOG, None, {"message": "too late"}, time=3.0))
+    early(Event(Kind.LOG, None, {"message": "too late", "ordering": True}, time=3.0))
     assert out.getvalue().splitlines() == ["[session] Ordering: 3 of 14 experiments' successors predicted (4 s)"]

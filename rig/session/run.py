@@ -566,14 +566,15 @@ def execute(prep: Prepared, console: Console,
 
 
 class _EarlyLines:
-    """The terminal's lines before its :class:`ConsoleProgress` exists (ordering, pace
-    probe): the session's log lines published until ``until`` (wall clock)."""
+    """The terminal's lines before its :class:`ConsoleProgress` exists: the ordering's
+    (log events marked ``ordering``) published until ``until`` (wall clock).  How a
+    session ended before it began is the caller's last line, not said twice."""
 
     def __init__(self, console: Console) -> None:
         self.console, self.until = console, float("inf")
 
     def __call__(self, e: Event) -> None:
-        if e.kind == Kind.LOG and e.experiment is None and e.time < self.until:
+        if e.kind == Kind.LOG and e.data.get("ordering") and e.time < self.until:
             self.console.print(f"{'[session]':<8} {describe(e)}", style="dim", highlight=False, markup=False)
 
 
@@ -664,7 +665,7 @@ def _ordered(prep: Prepared, bus: EventBus) -> Prepared:
     if prep.plan.order != "thermal" or n < 2:
         return prep.ordered()
     bus.publish(Kind.LOG, message=f"ordering the {n} experiments for the least predicted rig time: the damper "
-                                  "model predicts each one's settling after every other one")
+                                  "model predicts each one's settling after every other one", ordering=True)
     started = last = time.monotonic()
 
     def told(done: int, total: int) -> None:
@@ -673,11 +674,11 @@ def _ordered(prep: Prepared, bus: EventBus) -> Prepared:
         if now - last >= ORDERING_PROGRESS_S and done < total:
             last = now
             bus.publish(Kind.LOG, message=f"ordering: {done} of {total} experiments' successors predicted "
-                                          f"({now - started:.0f} s)")
+                                          f"({now - started:.0f} s)", ordering=True)
 
     prep = prep.ordered(told)
     bus.publish(Kind.LOG, message=f"ordered in {time.monotonic() - started:.1f} s: "
-                                  f"{', '.join(e.letter for e in prep.plan.experiments)}")
+                                  f"{', '.join(e.letter for e in prep.plan.experiments)}", ordering=True)
     return prep
 
 
