@@ -544,9 +544,9 @@ def execute(prep: Prepared, console: Console,
     is ordered and the pace is probed: seconds).  ``decide``: see :attr:`SessionRunner.decide`."""
     plan, n = prep.plan, len(prep.plan.experiments)
     order = "in the order of least predicted rig time" if plan.order == "thermal" and n > 1 else "as listed"
-    console.print(f"plan {plan.name}: {n} experiment{'s' if n != 1 else ''} {'to do ' if prep.stored else ''}"
-                  f"{order}; connecting to the controller at {prep.shaker_url} and the DAQ at {prep.daq_url}",
-                  highlight=False)
+    kept = f" ({len(prep.stored.completed())} captured before, kept)" if prep.stored else ""
+    console.print(f"plan {plan.name}: {n} experiment{'s' if n != 1 else ''}{kept} {order}; connecting to the "
+                  f"controller at {prep.shaker_url} and the DAQ at {prep.daq_url}", highlight=False)
     early = _EarlyLines(console)
 
     def progress(ctx: SessionContext) -> list[Subscriber]:
