@@ -53,6 +53,7 @@ from identify.notation import plus_minus, significant
 from identify.parameters import Parameters
 from identify.plans import STANDARD_SET
 from identify.preparation import model_columns
+from identify.result import FitResult
 from simulator.generate import generate
 from simulator.plant import load_plant
 from simulator.sensors import DATASHEET_CHANNELS
@@ -84,8 +85,8 @@ class World:
     singles1: dict[str, Single]
     singles2: dict[str, Single]
     singles1_both: dict[str, Single]   # the 1-dof on stroke and pressure (large amplitudes)
-    joint1: object
-    joint2: object
+    joint1: FitResult
+    joint2: FitResult
     loop_area_j: float
     loop_noise_j: float
 
@@ -95,7 +96,7 @@ def cpu_s() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def fit(model_name: str, experiments, estimate, params, outputs=None) -> object:
+def fit(model_name: str, experiments, estimate, params, outputs=None) -> FitResult:
     return fit_experiments(load_model(model_name), experiments, params, estimate, max_iterations=60,
                            outputs=outputs)
 
@@ -158,7 +159,7 @@ def spread(singles: dict[str, Single], name: str) -> tuple[float, float, float, 
     return float(vals.min()), float(vals.max()), float(np.ptp(vals) / abs(med)), float(np.median(stds / np.abs(vals)))
 
 
-def group_means(joint, output: str) -> dict[str, tuple[float, float]]:
+def group_means(joint: FitResult, output: str) -> dict[str, tuple[float, float]]:
     """Residual mean per group and the mean's noise-only standard error."""
     out = {}
     groups = {s.letter: s.group for s in STANDARD_SET}
