@@ -125,3 +125,25 @@ def test_the_drop_rig_releases_the_mass_in_the_plant_tier():
     rig.daq.port.close()
     stroke = frames["counts"][:, 0].astype(float) * DATASHEET_CHANNELS[0].gain + DATASHEET_CHANNELS[0].offset
     assert stroke[:900].max() < 0.1 and stroke.max() > 20
+
+
+@pytest.mark.slow
+def test_a_session_runs_against_the_served_plant(tmp_path):
+    """``simulator serve --physics plant`` behind its real interfaces: a scripted session
+    captures experiment n and the fit sees model error the model world does not have."""
+    import rig
+    from rig.testing import VirtualRig as ServedRig
+
+    with ServedRig(speed=10, seed=2, extra_args=["--physics", "plant"]) as sim:
+        with rig.open(shaker=sim.modbus_url, daq=sim.daq_url) as r:
+            session = r.run_plan("standard", experiments=["n"], out=tmp_path / "s", progress=False)
+    assert session.status == "complete"
+    result = session.identify(model="2dof", estimate=["theta4", "theta6"])
+    variance = result.channel_variances["pressure_bar"]
+    assert variance ** 0.5 > 3 * DATASHEET_CHANNELS[2].noise_std   # the plant is not the model
+
+
+def test_serve_refuses_a_theta_file_for_the_plant_before_any_endpoint_opens(capsys):
+    assert main(["serve", "--physics", "plant", "--params", "examples/start-2dof.json",
+                 "--modbus", "tcp://127.0.0.1:0", "--daq", "socket://127.0.0.1:0"]) == 2
+    assert capsys.readouterr().err.startswith("error: --params")
