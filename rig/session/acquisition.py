@@ -327,7 +327,8 @@ class Acquisition:
         self.shaker.fade_out()
         self._wait_state({"AT_STATIC"}, 30.0 + 2 * ss.ramp_time_s)
         self.shaker.stop()
-        self._enter(Phase.IDLE, label, controller=self.shaker.status().state)
+        st = self.shaker.status()   # "At rest" is said from this reading, not from the STOP sent
+        self._enter(Phase.IDLE, label, controller=st.state, alarm=st.alarm)
         return record
 
     def _hold(self, hold: Hold, label: str, from_m: float, then_m: float) -> None:
