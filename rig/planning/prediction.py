@@ -1,6 +1,6 @@
 """The one prediction of a plan's rig time: ``rig design``, ``rig run``'s announcement,
 ``rig qc run`` (its first announcement and its re-prediction after each experiment)
-and the console all call :func:`predict`.
+and the console's sessions (the same lifecycle) call :func:`predict`.
 
 Rig time depends on the links as well as on the damper: at 10x a host's millisecond is
 ten of the rig's, the acquisition's polls and commands add seconds per experiment, and
