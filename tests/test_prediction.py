@@ -115,3 +115,21 @@ def test_the_terminal_takes_the_re_prediction_over():
                                                       "plan (1 experiment) predicted again from the parameters "
                                                       "identified from 261126a: 55 s of rig time"}))
     assert out.getvalue().splitlines()[-1].endswith("55 s of rig time. About 0:05 left (m:s of wall clock).")
+
+
+def test_design_measures_the_links_it_is_given_and_nothing_moves(virtual_rig, state):
+    from rig.session.run import probe_timing
+
+    sim = virtual_rig(speed=50)
+    timing = probe_timing(sim.modbus_url, sim.daq_url, CONFIG)
+    assert timing.is_measured and 25 < timing.pace < 75 and timing.links == f"{sim.modbus_url} and {sim.daq_url}"
+    assert last_measured().pace == pytest.approx(timing.pace)
+    assert "hydraulics on" not in sim.log()
+
+
+def test_design_needs_both_links_or_neither(capsys, tmp_path):
+    from rig.cli import main
+
+    code = main(["design", "--target", "theta4", "--sigma", "1e-8", "--shaker", "tcp://127.0.0.1:9",
+                 "--out", str(tmp_path / "p.toml")])
+    assert code == 2 and "--shaker and --daq go together" in capsys.readouterr().err

@@ -27,6 +27,7 @@ from __future__ import annotations
 import logging
 import shlex
 import signal
+import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -252,8 +253,15 @@ def probe_timing(shaker_url: str, daq_url: str, config: RigConfig) -> LinkTiming
     links = open_links(shaker_url, daq_url, config, Calibration.from_file(), load_register_map(), reset_alarm=False,
                        on_event=bus.publish_link)
     try:
-        acq = Acquisition(links.shaker, links.daq, config, bus, links.shaker.clock)
-        pace = acq.measure_pace()
+        # As in a session: the DAQ's bytes journalled to disk as they come (the DAQ's stop,
+        # part of every latency measured, waits for that journal's flush).
+        with tempfile.TemporaryDirectory(prefix="rig-pace-probe-") as scratch:
+            links.daq.attach_journal(Path(scratch) / "daq-raw.bin")
+            try:
+                acq = Acquisition(links.shaker, links.daq, config, bus, links.shaker.clock)
+                pace = acq.measure_pace()
+            finally:
+                links.daq.detach_journal()
     finally:
         close_links(links, disarm=True)
         bus.close()
