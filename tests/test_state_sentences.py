@@ -189,3 +189,25 @@ def test_settling_says_the_cycles_left_not_a_bias_of_hundreds_of_sigma():
     assert lines[1] == ("[1/1] 261126c  Cycle 10: the block means moved by force 0.4 N; about 40 more cycles to settle "
                         "(it decays ×0.900 per cycle).")
     assert lines[2].startswith("[1/1] 261126c  Cycle 15:") and "about 35 more cycles" in lines[2]
+
+
+def test_no_rig_time_is_said_for_a_session_whose_link_was_lost():
+    """The killed simulator's session said 'about 2:39 min:s of rig time': the wall time
+    at a pace measured before, through the seconds the link was being waited for."""
+    out = io.StringIO()
+    clock = iter([0.0, 16.0])
+    progress = ConsoleProgress(Console(file=out, width=400), {"261126j": 105.0}, 9.91, lambda: next(clock),
+                               lambda: PaceReading(9.91, "5 s of this session's streams that ended as planned"))
+    progress(Event(Kind.LINK, None, {"link": "controller", "state": "lost", "message": "Modbus link lost"}))
+    progress(Event(Kind.SESSION_END, None, {"message": "aborted: …", "exit_code": 3}))
+    last = out.getvalue().splitlines()[-1]
+    assert last.startswith("session took 0:16 min:s of this computer's clock; its rig time is not known: the "
+                           "controller link was lost") and "about" not in last
+    # a link lost and back again measures on
+    out, clock = io.StringIO(), iter([0.0, 16.0])
+    progress = ConsoleProgress(Console(file=out, width=400), {"261126j": 105.0}, 9.91, lambda: next(clock),
+                               lambda: PaceReading(9.91, "5 s of this session's streams that ended as planned"))
+    for state in ("lost", "back"):
+        progress(Event(Kind.LINK, None, {"link": "controller", "state": state, "message": state}))
+    progress(Event(Kind.SESSION_END, None, {"message": "complete", "exit_code": 0}))
+    assert "about 2:38 min:s of rig time" in out.getvalue().splitlines()[-1]

@@ -19,7 +19,7 @@ from pathlib import Path
 from rich.console import Console
 from rich.markup import escape
 
-from rig.events import Event, Kind, Phase
+from rig.events import Event, Kind, LinkCondition, Phase
 from rig.session.acquisition import PaceReading
 from rig.session.storage import read_log
 
@@ -136,6 +136,7 @@ class ConsoleProgress:
         self.number = {label: i + 1 for i, label in enumerate(estimates_s)}
         self._captured = 0.0
         self._criterion_said: set[str | None] = set()
+        self._gone: dict[str, None] = {}   # links lost and not back ("controller", "DAQ"): no rig time after
         plural = "s" if self.total != 1 else ""
         console.print(f"session: {self.total} experiment{plural}, about {_min_s(sum(estimates_s.values()))} min:s of "
                       "rig time", highlight=False)
@@ -165,6 +166,10 @@ class ConsoleProgress:
         def say(text: str, style: str = "") -> None:
             self.console.print(f"{self._head(e.experiment)} {text}", style=style, highlight=False)
 
+        if e.kind == Kind.LINK and e.data.get("state") in (LinkCondition.LOST, LinkCondition.GONE):
+            self._gone[e.data["link"]] = None
+        elif e.kind == Kind.LINK and e.data.get("state") == LinkCondition.BACK:
+            self._gone.pop(e.data["link"], None)
         if e.kind in (Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED):
             self.done += 1
             self.done_s += self.estimates.get(e.experiment or "", 0.0)
@@ -192,7 +197,12 @@ class ConsoleProgress:
         elif e.kind == Kind.SESSION_END:
             took, announced, pace = self.rig_clock() - self.rig_started, sum(self.estimates.values()), \
                 self._pace_reading()
-            if pace.rig_s_per_s > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
+            if pace.rig_s_per_s > 1.0 and self._gone:   # no reading of the rig's time after the link went
+                self.console.print(f"session took {_min_s(took)} min:s of this computer's clock; its rig time is not "
+                                   f"known: the {' and the '.join(self._gone)} link was lost, and the pace measured "
+                                   f"before ({pace}) says nothing of the time after; announced {_min_s(announced)}",
+                                   highlight=False)
+            elif pace.rig_s_per_s > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
                 self.console.print(f"session took {_min_s(took)} min:s of this computer's clock; at {pace}, about "
                                    f"{_min_s(took * pace.rig_s_per_s)} min:s of rig time; announced "
                                    f"{_min_s(announced)}", highlight=False)
