@@ -12,11 +12,13 @@ import numpy as np
 from identify.dataset import FORMAT, csv_bytes, write_manifest
 from identify.files import atomic_write_bytes
 from identify.plans import ExperimentSpec
-from simulator.physics import Actuator, Damper, SteadyState, drop_test, periodic_steady_state
+from simulator.physics import Actuator, Damper, SteadyState, drop_test, periodic_steady_state, run_from_rest
 from simulator.sensors import SensorSet
 from simulator.truth import truth_document
 
 SETTLE_S = 60.0  # simulated time from RUN to the first captured sample (ramp + settling)
+CAPTURES = ("steady", "transient")
+RAMP_S = 2.0  # the controller's default ramp time (ramp_time 20 x 0.1 s), for records captured from RUN
 DROP_MASS_KG = 350.0
 DROP_DURATION_S = 40.0
 
@@ -36,13 +38,18 @@ def _record(state: SteadyState, sensors: SensorSet, with_temperature: bool) -> t
 def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper, *, periods: int | None = 3,
              rate_hz: float = 2000.0, seed: int = 0, drop: bool = False, date: str | None = None,
              actuator: Actuator | None = None, noise_scale: float = 1.0, name: str | None = None,
-             serial: str = "SIM-0001") -> Path:
+             serial: str = "SIM-0001", capture: str = "steady", ramp_s: float = RAMP_S) -> Path:
     """Write the dataset folder ``out`` and return its path.
 
     Labels are ``date + letter`` as in the paper; ``truth.json`` beside the manifest
     holds the simulated parameters for round-trip checks.  ``periods`` None captures
-    each experiment's own number of periods.
+    each experiment's own number of periods.  ``capture`` "transient" records each
+    experiment from RUN on, started at rest with the gas at ambient temperature and the
+    amplitude ramped over ``ramp_s`` (dataset key ``capture``: "transient"); "steady"
+    records its periodic steady state.
     """
+    if capture not in CAPTURES:
+        raise ValueError(f"unknown capture {capture!r} (steady or transient)")
     out = Path(out)
     actuator = actuator or Actuator()
     date = date or _dt.date.today().strftime("%y%m%d")
@@ -51,13 +58,17 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper, *, per
         sensors = SensorSet(seed=seed * 1000 + i, noise_scale=noise_scale)
         k_periods = spec.periods if periods is None else periods
         k = int(np.ceil(k_periods * rate_hz / spec.frequency_hz))
-        t = SETTLE_S + np.arange(k) / rate_hz
-        state = periodic_steady_state(damper, actuator, spec, t)
+        if capture == "transient":
+            state = run_from_rest(damper, actuator, spec, np.arange(k) / rate_hz, ramp_s)
+        else:
+            state = periodic_steady_state(damper, actuator, spec, SETTLE_S + np.arange(k) / rate_hz)
         cols, over = _record(state, sensors, True)
         label = f"{date}{spec.letter}"
         atomic_write_bytes(out / f"{label}.csv", csv_bytes(cols))
         entry = {"label": label, "file": f"{label}.csv", **spec.metadata(), "sample_rate_Hz": rate_hz,
                  "periods": k_periods}
+        if capture == "transient":
+            entry.update(capture="transient", ramp_s=ramp_s)
         if over:
             entry["over_range_samples"] = over
         entries.append(entry)
