@@ -46,13 +46,21 @@ from identify.start import Measured, rest_state
 
 NEWTON_ITERATIONS = 40
 TOLERANCE = 1e-9  # Newton's step, relative to each state's scale
+STAGNATION = 1e-6  # a step this small (relative) that no longer lowers the residual is rounding: converged
 INITIAL_ITERATIONS = 8  # Gauss-Newton steps on the initial state per solve
 # A step of the initial state that would lower χ² by less than this changes nothing the data can tell.
 INITIAL_CHI2 = 1e-6
-WINDOW = 512  # model points per window of the marching start
+WINDOW = 64  # model points of the marching start's first window
+MIN_WINDOW, MAX_WINDOW = 8, 1 << 14  # ... and the range it adapts in
+FAST_NEWTON = 5  # a window solved in this many Newton iterations or fewer: the next one is twice as long
 INITIAL_SAMPLES = 16  # first samples whose mapped states give the initial state's start (a quadratic fit)
+# The initial velocities get a normal prior: the quadratic's estimate from those samples
+# with this many of its standard errors.  Without it, a start far from the optimum sent
+# the fitted initial velocity to −23 m/s (the orifice damping stops such a jolt within a
+# few samples, where it shifted the stroke like an offset) and the fit stalled there.
+VELOCITY_PRIOR_WIDTH = 10.0
 DIFFERENCE_ORDERS = (1, 2, 3)  # differences whose robust scatter estimates a channel's white noise
-MAD_TO_STD = 1.4826  # σ = 1.4826·MAD for normal noise
+TRIM = 0.05  # fraction of the largest differences left out of a noise estimate
 
 
 # --------------------------------------------------------------------------------------
@@ -78,21 +86,28 @@ class Unfolded:
 
 
 def white_noise_std(values: np.ndarray) -> float:
-    """Per-sample standard deviation of a channel's white noise, from the robust scatter
-    (median absolute deviation) of its k-th differences, the smallest over k = 1…3.
+    """Per-sample standard deviation of a channel's white noise, from the trimmed scatter
+    of its k-th differences, the smallest over k = 1…3.
 
     Differences cancel a smooth signal and keep white noise with variance C(2k, k)·σ²;
-    the median ignores the few samples where a jump (the friction force at a velocity
-    reversal) passes through the difference, which a variance would not.  A signal that
-    is not smooth on the sample step (broadband up to the Nyquist line) shows up as
-    noise: that estimate is an upper bound."""
+    the largest TRIM of them are left out (the samples where a jump, the friction force
+    at a velocity reversal, passes through a difference) and the rest's RMS is corrected
+    for the normal distribution's trimmed tails.  A median (MAD) would do the same but
+    reads the 16-bit steps of a quantised channel: it put the stroke noise 10 % low.  A
+    signal that is not smooth on the sample step (broadband up to the Nyquist line) shows
+    up as noise: that estimate is an upper bound."""
+    from scipy.stats import norm
+
+    z = norm.ppf(0.5 + (1 - TRIM) / 2)
+    kept_variance = 1 - 2 * z * norm.pdf(z) / (1 - TRIM)  # of a unit normal within ±z
     best = np.inf
     for k in DIFFERENCE_ORDERS:
         d = np.diff(values, n=k)
-        if d.size < 8:
+        if d.size < 20:
             continue
-        mad = float(np.median(np.abs(d - np.median(d))))
-        best = min(best, MAD_TO_STD * mad / np.sqrt(comb(2 * k, k)))
+        d = np.abs(d - np.median(d))
+        kept = np.sort(d)[:int(np.ceil((1 - TRIM) * d.size))]
+        best = min(best, float(np.sqrt(np.mean(kept**2) / kept_variance / comb(2 * k, k))))
     return best if np.isfinite(best) else float("nan")
 
 
@@ -241,18 +256,21 @@ class Stencils:
         k = np.array([3.0, 2.0, 1.0]).reshape((1, 3) + (1,) * (x0.ndim - 1))
         return x0[:, None] - k * hv[:, None] + k * k * bend[:, None]
 
-    def _apply(self, X: np.ndarray, V0: np.ndarray, points: int) -> tuple[np.ndarray, np.ndarray]:
-        p = np.concatenate([self._ghosts(X, V0), X], axis=1)
+    def _apply(self, X: np.ndarray, V0: np.ndarray, points: int,
+               history: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        p = np.concatenate([self._ghosts(X, V0) if history is None else history, X], axis=1)
         c1, c2 = self.c1, self.c2
         n = points
         d1 = c1[0] * p[:, 3:3 + n] + c1[1] * p[:, 2:2 + n] + c1[2] * p[:, 1:1 + n]
         d2 = c2[0] * p[:, 3:3 + n] + c2[1] * p[:, 2:2 + n] + c2[2] * p[:, 1:1 + n] + c2[3] * p[:, 0:n]
         return d1, d2
 
-    def derivatives(self, X: np.ndarray, V0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def derivatives(self, X: np.ndarray, V0: np.ndarray,
+                    history: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """ẋ and ẍ of X (ns, points, …) with initial velocities V0 (ns, …) (used for the
-        second-order states only)."""
-        return self._apply(X, V0, X.shape[1])
+        second-order states only); or, given the ``history`` (ns, 3: x_{−3}, x_{−2},
+        x_{−1}) of a window that continues a solved one, the plain stencils over it."""
+        return self._apply(X, V0, X.shape[1], history)
 
     def derivatives_transposed(self, w1: np.ndarray, w2: np.ndarray) -> np.ndarray:
         """D1ᵀ·w1 + D2ᵀ·w2 with respect to X (the v0 part is not needed: it is no unknown
@@ -323,6 +341,7 @@ class TrajectorySolver:
         # The last fitted initial state, the θ it was fitted at and dz0*/dθ there: the
         # next solve's prediction.
         self._last: tuple[np.ndarray, np.ndarray, list[int], np.ndarray] | None = None
+        self._prior: tuple[np.ndarray, np.ndarray] | None = None  # initial state: mean, precision (nz, nz)
 
     # ----------------------------------------------------------------------------------
     def _refine(self, u: np.ndarray) -> np.ndarray:
@@ -356,8 +375,10 @@ class TrajectorySolver:
         return z0[:ns], v0
 
     # ----------------------------------------------------------------------------------
-    def _factorize(self, gx: np.ndarray, gdx: np.ndarray, gddx: np.ndarray) -> Factorization:
-        """Banded LU of the record's Newton matrix (first point: the initial-state rows)."""
+    def _factorize(self, gx: np.ndarray, gdx: np.ndarray, gddx: np.ndarray,
+                   continued: bool = False) -> Factorization:
+        """Banded LU of the record's Newton matrix (first point: the initial-state rows;
+        ``continued``: a window with a fixed history, the model's equations everywhere)."""
         st = self.stencils
         neq, ns, m = gx.shape
         kl, ku = 4 * ns - 1, ns - 1
@@ -366,8 +387,9 @@ class TrajectorySolver:
         c1 = np.broadcast_to(st.c1[None, :, None], (ns, 4, m)).copy()
         c2 = np.broadcast_to(st.c2[None, :, None], (ns, 4, m)).copy()
         head = min(4, m)
-        c1[:, :, :head] = st.head1[:, :, :head]
-        c2[:, :, :head] = st.head2[:, :, :head]
+        if not continued:
+            c1[:, :, :head] = st.head1[:, :, :head]
+            c2[:, :, :head] = st.head2[:, :, :head]
         abT = np.zeros((m, ns, rows))  # column (ν, j), band row kl + ku + r − c
         for k in range(4):
             if k >= m:
@@ -378,9 +400,11 @@ class TrajectorySolver:
                     if k == 0:
                         coef = coef + gx[i, j]
                     coef = coef[k:].copy()  # rows μ = k…m−1, columns ν = μ − k
-                    coef[:max(0, 1 - k)] = 0.0  # row μ = 0 holds the initial-state equation instead
+                    if not continued:
+                        coef[:max(0, 1 - k)] = 0.0  # row μ = 0 holds the initial-state equation instead
                     abT[:m - k, j, kl + ku + k * ns + i - j] = coef
-        abT[0, np.arange(ns), kl + ku] = 1.0  # x(t_0) − x0 = 0
+        if not continued:
+            abT[0, np.arange(ns), kl + ku] = 1.0  # x(t_0) − x0 = 0
         lu, piv, info = lapack.dgbtrf(abT.reshape(N, rows).T, kl, ku, overwrite_ab=1)
         if info != 0:
             raise np.linalg.LinAlgError(f"singular record Jacobian (banded LU pivot {info})")
@@ -394,28 +418,34 @@ class TrajectorySolver:
         return Factorization(solver(0), solver(1))
 
     def _residual(self, X: np.ndarray, DX: np.ndarray, DDX: np.ndarray, U: np.ndarray, theta: np.ndarray,
-                  x0: np.ndarray) -> np.ndarray:
+                  x0: np.ndarray | None) -> np.ndarray:
         G = self.model.residual(X, DX, DDX, U, theta)
-        G[:, 0] = X[:, 0] - x0
+        if x0 is not None:
+            G[:, 0] = X[:, 0] - x0
         return G
 
-    def _newton(self, U: np.ndarray, theta: np.ndarray, z0: np.ndarray, X: np.ndarray,
-                label: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, Factorization]:
-        """The trajectory from z0 (states at every model point of U), Newton from X."""
+    def _newton(self, U: np.ndarray, theta: np.ndarray, z0: np.ndarray, X: np.ndarray, label: str,
+                history: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, Factorization]:
+        """The trajectory from z0 (states at every model point of U), Newton from X; or,
+        given the ``history`` of the three points before U, the continuation of it."""
         m, st = self.model, self.stencils
         ns = m.n_states
-        x0, v0 = self._split(z0)
+        first, v0 = self._split(z0)
         X = X.copy()
-        X[:, 0] = x0
+        x0: np.ndarray | None = None  # the initial-state equation's x(t_0), where there is one
+        if history is None:
+            X[:, 0] = x0 = first
+        still = None if history is None else np.zeros_like(history)  # a step leaves the history alone
         tol = TOLERANCE * m.state_scales[:, None]
-        DX, DDX = st.derivatives(X, v0)
+        DX, DDX = st.derivatives(X, v0, history)
         G = self._residual(X, DX, DDX, U, theta, x0)
         jac = m.residual_jacobian(X, DX, DDX, U, theta)
         gx, gdx, gddx = jac
         size = (np.abs(gx).mean(-1) + np.abs(gdx).mean(-1) / self.h + np.abs(gddx).mean(-1) / self.h**2) \
             @ m.state_scales
         weights = (1.0 / np.maximum(size, 1e-300))[:, None] * np.ones((1, X.shape[1]))
-        weights[:, 0] = 1.0 / m.state_scales
+        if history is None:
+            weights[:, 0] = 1.0 / m.state_scales
         merit = float(np.sum((weights * G) ** 2))
         for it in range(NEWTON_ITERATIONS + 1):
             if it:
@@ -423,13 +453,13 @@ class TrajectorySolver:
             if not np.isfinite(merit):
                 break
             try:
-                fac = self._factorize(*jac)
+                fac = self._factorize(*jac, continued=history is not None)
             except np.linalg.LinAlgError:
                 break
             dX = -fac.solve(np.ascontiguousarray(G.T).ravel()).reshape(-1, ns).T
             if not np.all(np.isfinite(dX)):
                 break
-            d1, d2 = st.derivatives(dX, np.zeros(ns))
+            d1, d2 = st.derivatives(dX, np.zeros(ns), still)
             if float(np.max(np.abs(dX) / tol)) <= 1.0:
                 return X + dX, DX + d1, DDX + d2, it + 1, fac
             if it == NEWTON_ITERATIONS:
@@ -444,29 +474,48 @@ class TrajectorySolver:
                 lam /= 2
             if not np.isfinite(trial):
                 break
+            if lam < 1.0 / 1024 and float(np.max(np.abs(dX) / m.state_scales[:, None])) <= STAGNATION:
+                # Rounding: over a long record the residual's last digits no longer fall;
+                # the step left is far below what any output resolves.
+                return X, DX, DDX, it + 1, fac
             X, DX, DDX, G, merit = Xt, D1, D2, Gt, trial
         rms = float(np.sqrt(merit / G.size)) if np.isfinite(merit) else float("nan")
         raise ConvergenceError(f"{label or 'record'}: the trajectory over the record did not converge in {it} Newton "
                                f"iterations (scaled residual {rms:.3g}, {X.shape[1]} points)", label, it, rms)
 
     def _march(self, U: np.ndarray, theta: np.ndarray, z0: np.ndarray, label: str) -> np.ndarray:
-        """A start for the whole record: windows of WINDOW points solved in turn, each
-        from the end of the last (a loop over windows, not over time points)."""
+        """A start for the whole record: windows solved in turn, each continuing the last
+        one's stencils exactly (its last three points as history), so that together they
+        are the whole record's solution.  Windows double while Newton converges in a few
+        iterations from a constant guess and halve where it does not (a loop over
+        windows, not over time points: tens of them for 10⁵ points)."""
         m = self.model
         ns = m.n_states
         total = U.shape[1]
         X = np.empty((ns, total))
-        z = z0.copy()
-        begin = 0
+        begin, size = 0, WINDOW
         while begin < total:
-            end = min(total, begin + WINDOW)
+            end = min(total, begin + size)
             if total - end < 4:  # a tail too short for the stencils joins this window
                 end = total
-            guess = np.repeat(z[:ns, None], end - begin, axis=1)
-            Xw, DXw, _, _, _ = self._newton(U[:, begin:end], theta, z, guess, label)
+            if begin == 0:
+                guess = np.repeat(z0[:ns, None], end, axis=1)
+            else:  # the last point moved on along the last step
+                slope = X[:, begin - 1] - X[:, begin - 2]
+                guess = X[:, begin - 1, None] + slope[:, None] * np.arange(1, end - begin + 1)
+            try:
+                if begin == 0:
+                    Xw, _, _, its, _ = self._newton(U[:, :end], theta, z0, guess, label)
+                else:
+                    Xw, _, _, its, _ = self._newton(U[:, begin:end], theta, z0, guess, label, X[:, begin - 3:begin])
+            except ConvergenceError:
+                if size <= MIN_WINDOW:
+                    raise
+                size //= 2
+                continue
             X[:, begin:end] = Xw
-            z = np.concatenate([Xw[:, -1], DXw[self.second, -1]])
             begin = end
+            size = min(2 * size, MAX_WINDOW) if its <= FAST_NEWTON else size
         return X
 
     # ----------------------------------------------------------------------------------
@@ -501,9 +550,21 @@ class TrajectorySolver:
             if np.all(np.abs(dz) <= 1e-6):
                 break
         t = np.arange(k) * self.data.step_s
-        fit = np.polynomial.polynomial.polyfit(t, X.T, min(2, k - 1))  # (deg + 1, ns)
+        degree = min(2, k - 1)
+        fit, extra = np.polynomial.polynomial.polyfit(t, X.T, degree, full=True)  # (deg + 1, ns)
         x0 = fit[0]
         v0 = fit[1] if fit.shape[0] > 1 else np.zeros(ns)
+        if self._prior is None and degree == 2 and k > 3:
+            # The initial velocities' prior: their standard error from these samples, widened.
+            scatter = np.sqrt(np.asarray(extra[0], dtype=float).reshape(-1)[:ns] / (k - 3)) if len(extra[0]) else \
+                np.zeros(ns)
+            V = np.vander(t, 3, increasing=True)
+            se = scatter * np.sqrt(np.linalg.inv(V.T @ V)[1, 1]) * VELOCITY_PRIOR_WIDTH
+            precision = np.zeros(self.nz)
+            for c, j in enumerate(self.second):
+                if se[j] > 0:
+                    precision[ns + c] = 1.0 / se[j] ** 2
+            self._prior = (np.concatenate([x0, v0[self.second]]), np.diag(precision))
         return np.concatenate([x0, v0[self.second]])
 
     def _initial_sensitivities(self, sol_states: tuple[np.ndarray, np.ndarray, np.ndarray], theta: np.ndarray,
@@ -574,8 +635,9 @@ class TrajectorySolver:
                 break
             y = self._sample(self.model.output(X, DX, DDX, U, theta)[self.output_idx])
             r = measured.values - y
-            A = np.einsum("onk,o,onl->kl", Sz, w, Sz)
-            g = np.einsum("onk,o,on->k", Sz, w, r)
+            prior_mean, precision = self._prior_terms()
+            A = np.einsum("onk,o,onl->kl", Sz, w, Sz) + precision
+            g = np.einsum("onk,o,on->k", Sz, w, r) - precision @ (z0 - prior_mean)
             dz = _scaled_solve(A, g)
             if float(dz @ g) <= INITIAL_CHI2:
                 break
@@ -590,6 +652,11 @@ class TrajectorySolver:
         if self._last is None:
             self._last = (z0, theta.copy(), [], np.zeros((self.nz, 0)))
         return sol
+
+    def _prior_terms(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._prior is None:
+            return np.zeros(self.nz), np.zeros((self.nz, self.nz))
+        return self._prior
 
     # ----------------------------------------------------------------------------------
     def outputs(self, sol: TrajectorySolution, theta: np.ndarray, outputs: list[int]) -> np.ndarray:
@@ -613,7 +680,7 @@ class TrajectorySolver:
         dY = self._output_response(sol.states, sol.dstates, sol.ddstates, theta, dX, np.zeros((ns, len(indices))))
         dY = dY + self._sample(np.transpose(hth, (0, 2, 1)))
         Sz, w = sol.initial_outputs, self.weights
-        A = np.einsum("onk,o,onl->kl", Sz, w, Sz)
+        A = np.einsum("onk,o,onl->kl", Sz, w, Sz) + self._prior_terms()[1]
         B = np.einsum("onk,o,onl->kl", Sz, w, dY)
         dz = -_scaled_solve(A, B)  # dz0*/dθ (nz, k)
         self._last = (sol.initial, theta.copy(), list(indices), dz)
