@@ -58,7 +58,8 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper, *, per
         sensors = SensorSet(seed=seed * 1000 + i, noise_scale=noise_scale)
         k_periods = spec.periods if periods is None else periods
         k = int(np.ceil(k_periods * rate_hz / spec.frequency_hz))
-        if capture == "transient":
+        transient = capture == "transient" or spec.capture == "transient"
+        if transient:
             state = run_from_rest(damper, actuator, spec, np.arange(k) / rate_hz, ramp_s)
         else:
             state = periodic_steady_state(damper, actuator, spec, SETTLE_S + np.arange(k) / rate_hz)
@@ -67,7 +68,7 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper, *, per
         atomic_write_bytes(out / f"{label}.csv", csv_bytes(cols))
         entry = {"label": label, "file": f"{label}.csv", **spec.metadata(), "sample_rate_Hz": rate_hz,
                  "periods": k_periods}
-        if capture == "transient":
+        if transient:
             entry.update(capture="transient", ramp_s=ramp_s)
         if over:
             entry["over_range_samples"] = over

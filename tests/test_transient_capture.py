@@ -47,3 +47,22 @@ def test_a_transient_plan_captures_from_run_without_settling_and_is_fitted_as_tr
     p = result["parameters"]
     assert abs(p["theta4"]["value"] / 5.0e-3 - 1) < 0.01 and abs(p["theta6"]["value"] / -3.0 - 1) < 0.01
     assert p["theta16"]["std"] is not None
+
+
+def _qc(sim, station, serial: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "rig", "qc", "run", "--spec", "transient", "--serial", serial,
+                           "--shaker", sim.modbus_url, "--daq", sim.daq_url, "--out", str(station)],
+                          capture_output=True, text=True, timeout=HANG_S)
+
+
+def test_the_transient_qc_spec_passes_a_good_unit_and_fails_a_leaking_one_from_records_taken_at_run(
+        virtual_rig, tmp_path):
+    good = _qc(virtual_rig(unit="good", unit_seed=4, seed=3), tmp_path / "station", "SN-0042")
+    assert good.returncode == 0, good.stderr[-3000:]
+    assert good.stdout.startswith("SN-0042: PASS")
+    (session,) = [p for p in (tmp_path / "station").iterdir() if p.name.startswith("SN-0042-")]
+    (entry,) = json.loads((session / "dataset.json").read_text())["experiments"]
+    assert entry["capture"] == "transient" and entry["settle_cycles"] == 0
+    leak = _qc(virtual_rig(unit="gas-leak", unit_seed=1, seed=5), tmp_path / "station", "SN-0043")
+    assert leak.returncode == 1, leak.stdout + leak.stderr[-3000:]
+    assert leak.stdout.startswith("SN-0043: FAIL")
