@@ -83,6 +83,7 @@ def loops_figure(evaluation: Evaluation) -> str | None:
     n = evaluation.fit.n_grid if evaluation.fit else 800
     for ax, e in zip(axes[0], exps, strict=True):
         fit = fits.get(e.label)
+        model: np.ndarray | None
         if fit is not None and fit.capture == "transient":
             # A record from RUN on is not folded: its loops as they grew, sample by sample.
             force_kn, stroke = e.column("force_N") / 1e3, e.column("stroke_mm")
