@@ -48,6 +48,7 @@ NEWTON_ITERATIONS = 40
 TOLERANCE = 1e-9  # Newton's step, relative to each state's scale
 STAGNATION = 1e-6  # a step this small (relative) that no longer lowers the residual is rounding: converged
 INITIAL_ITERATIONS = 8  # Gauss-Newton steps on the initial state per solve
+MOVE_ATTEMPTS = 3  # halvings of an initial-state step whose trajectory Newton does not reach
 # A step of the initial state that would lower χ² by less than this changes nothing the data can tell.
 INITIAL_CHI2 = 1e-6
 WINDOW = 64  # model points of the marching start's first window
@@ -628,12 +629,11 @@ class TrajectorySolver:
                 raise ConvergenceError(f"{label}: marching start failed ({exc})", label) from exc
             how = "march"
         w = self.weights
-        for i in range(INITIAL_ITERATIONS + 1):
-            X, DX, DDX, its, fac = self._newton(U, theta, z0, X, label)
-            dXz, Sz = self._initial_sensitivities((X, DX, DDX), theta, fac)
-            if measured is None or i == INITIAL_ITERATIONS:
-                break
+        X, DX, DDX, its, fac = self._newton(U, theta, z0, X, label)
+        dXz, Sz = self._initial_sensitivities((X, DX, DDX), theta, fac)
+        for _ in range(INITIAL_ITERATIONS if measured is not None else 0):
             y = self._sample(self.model.output(X, DX, DDX, U, theta)[self.output_idx])
+            assert measured is not None
             r = measured.values - y
             prior_mean, precision = self._prior_terms()
             A = np.einsum("onk,o,onl->kl", Sz, w, Sz) + precision
@@ -641,8 +641,8 @@ class TrajectorySolver:
             dz = _scaled_solve(A, g)
             if float(dz @ g) <= INITIAL_CHI2:
                 break
-            z0 = z0 + dz
-            X = X + dXz @ dz
+            X, DX, DDX, its, fac, z0 = self._moved(U, theta, z0, dz, X, dXz, label)
+            dXz, Sz = self._initial_sensitivities((X, DX, DDX), theta, fac)
         G = self._residual(X, DX, DDX, U, theta, self._split(z0)[0])
         sol = TrajectorySolution(label, frequency_hz, U, X, DX, DDX, z0, its,
                                  float(np.sqrt(np.mean((G / self.model.state_scales[:, None]) ** 2))), fac,
@@ -652,6 +652,24 @@ class TrajectorySolver:
         if self._last is None:
             self._last = (z0, theta.copy(), [], np.zeros((self.nz, 0)))
         return sol
+
+    def _moved(self, U: np.ndarray, theta: np.ndarray, z0: np.ndarray, dz: np.ndarray, X: np.ndarray, dXz: np.ndarray,
+               label: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, Factorization, np.ndarray]:
+        """The trajectory from the initial state moved by dz: Newton from the first-order
+        prediction, else from a new march; a step neither reaches is halved (a far
+        initial state's transient is where Newton from the old trajectory stalls)."""
+        for attempt in range(MOVE_ATTEMPTS):
+            trial = z0 + dz
+            try:
+                return (*self._newton(U, theta, trial, X + dXz @ dz, label), trial)
+            except ConvergenceError:
+                try:
+                    return (*self._newton(U, theta, trial, self._march(U, theta, trial, label), label), trial)
+                except ConvergenceError:
+                    if attempt == MOVE_ATTEMPTS - 1:
+                        raise
+            dz = dz / 2
+        raise AssertionError("unreachable")
 
     def _prior_terms(self) -> tuple[np.ndarray, np.ndarray]:
         if self._prior is None:
