@@ -138,6 +138,52 @@ def _scaling_child(samples: int) -> None:
                       "peak_mib": peak / 1024, "before_mib": before / 1024}))
 
 
+def _kernel_child(samples: int) -> None:
+    """In a child process: one Newton step of the record's system (the model's Jacobian
+    at every point, the banded LU, a solve) and the sensitivities' solve for three
+    parameters, on ``samples`` points of a 2 Hz record; prints JSON."""
+    from identify.trajectory import TrajectorySolver, TransientData, Unfolded
+
+    model = load_model("2dof")
+    theta = Parameters(model).vector()
+    t = np.arange(samples) / RATE_HZ
+    force = 4500.0 + 300.0 * np.sin(2 * np.pi * 2.0 * t)
+    data = TransientData("k", 2.0, 1 / RATE_HZ, force[None], np.zeros((2, samples)), np.ones(2), np.ones(1),
+                         Unfolded(samples))
+    solver = TrajectorySolver(model, data, [model.output_index(o) for o in resolve_outputs(model, None)])
+    X = np.vstack([np.full(samples, 0.133), np.full(samples, 293.15)])
+    z0 = np.array([0.133, 293.15, 0.0])
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    t0 = time.perf_counter()
+    DX, DDX = solver.stencils.derivatives(X, np.zeros(2))
+    jac = model.residual_jacobian(X, DX, DDX, data.inputs, theta)
+    fac = solver._factorize(*jac)
+    G = solver._residual(X, DX, DDX, data.inputs, theta, z0[:2])
+    fac.solve(np.ascontiguousarray(G.T).ravel())
+    step_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    gth = model.residual_dtheta(X, DX, DDX, data.inputs, theta)[:, [3, 5, 15], :]
+    fac.solve(np.transpose(gth, (2, 0, 1)).reshape(-1, 3))
+    sens_s = time.perf_counter() - t0
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    print(json.dumps({"samples": samples, "step_s": step_s, "sens_s": sens_s, "grown_mib": (peak - before) / 1024}))
+
+
+def kernel(sizes: list[int]) -> None:
+    print("kernel: one Newton step over the whole record (the model's Jacobian at every point, the banded LU, "
+          "a solve) and the sensitivities' solve (3 parameters), each size in its own process")
+    print(f"    {'samples':>9s} {'Newton step':>12s} {'µs/sample':>10s} {'sensitivities':>14s} {'memory':>9s} "
+          f"{'bytes/sample':>13s}")
+    for n in sizes:
+        proc = subprocess.run([sys.executable, __file__, "--kernel-child", str(n)], capture_output=True, text=True)
+        if proc.returncode != 0:
+            print(f"    {n:9d}  failed: {proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else '?'}")
+            continue
+        r = json.loads(proc.stdout.strip().splitlines()[-1])
+        print(f"    {n:9d} {r['step_s']:11.3f}s {1e6 * r['step_s'] / n:10.2f} {r['sens_s']:13.3f}s "
+              f"{r['grown_mib']:6.0f} MiB {r['grown_mib'] * 2**20 / n:13.0f}")
+
+
 def scaling(sizes: list[int]) -> None:
     print(f"scaling: one transient fit of experiment j from RUN (2 Hz at {RATE_HZ:g} samples/s), θ4 θ6 θ16 from "
           f"2 % off, each size in its own process (peak RSS includes Python, numpy and the generated record)")
@@ -160,15 +206,23 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=24)
     ap.add_argument("--workers", type=int, default=2, choices=(1, 2))
     ap.add_argument("--sizes", default="1e4,1e5,1e6", help="record lengths of the scaling run (samples)")
+    ap.add_argument("--fit-sizes", default=None, help="record lengths of the whole-fit scaling run (default: --sizes)")
     ap.add_argument("--child", type=int, help=argparse.SUPPRESS)
+    ap.add_argument("--kernel-child", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.child:
         _scaling_child(args.child)
         return 0
+    if args.kernel_child:
+        _kernel_child(args.kernel_child)
+        return 0
     ok = monte_carlo(args.seeds, args.workers) if args.seeds > 0 else True
     sizes = [int(float(s)) for s in args.sizes.split(",") if s.strip()]
     if sizes:
-        scaling(sizes)
+        kernel(sizes)
+    fit_sizes = sizes if args.fit_sizes is None else [int(float(s)) for s in args.fit_sizes.split(",") if s.strip()]
+    if fit_sizes:
+        scaling(fit_sizes)
     return 0 if ok else 1
 
 
