@@ -46,9 +46,10 @@ from identify.errors import ComputationError, InputError
 from identify.folding import FoldedRecord
 from identify.model import CompiledModel
 from identify.parameters import Parameters
-from identify.periodic import ConvergenceError, PeriodicSolution, PeriodicSolver
+from identify.periodic import ConvergenceError, PeriodicSolver
 from identify.preparation import MULTISINE_LINES, PeriodicData, excited_lines
 from identify.result import ExperimentFit, FitResult
+from identify.solution import PeriodicSolution
 from identify.start import MEASURED_NEWTON, Measured, measured_start
 
 DEFAULT_PRIOR_FRACTION = 0.5  # prior std as a fraction of |θ| where none is given

@@ -11,7 +11,6 @@ the cost of back-substitutions only.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import LinAlgWarning
@@ -19,6 +18,7 @@ from scipy.linalg import LinAlgWarning
 from identify.differentiation import BDF2_D1, BDF2_D2, Factorization, Grid
 from identify.errors import ComputationError, InputError
 from identify.model import CompiledModel
+from identify.solution import PeriodicSolution
 from identify.start import STARTS, Measured, StartError, rest_state, solve_from_rest
 
 CHORD_SIZE = 1e4  # a full Newton step at most this many tolerances long is confirmed by a chord step
@@ -33,22 +33,6 @@ class ConvergenceError(ComputationError):
         self.label = label
         self.iterations = iterations
         self.residual = residual
-
-
-@dataclass
-class PeriodicSolution:
-    """A converged periodic solution on the grid (SI units, time derivatives)."""
-
-    label: str
-    frequency_hz: float
-    inputs: np.ndarray  # (n_inputs, n)
-    states: np.ndarray  # (n_states, n)
-    dstates: np.ndarray
-    ddstates: np.ndarray
-    iterations: int
-    residual_norm: float  # scaled RMS of the residual equations at the solution
-    factorization: Factorization = field(repr=False)
-    start: str = "given"  # where Newton started: a name of identify.start.STARTS, or "given" (warm start)
 
 
 class PeriodicSolver:
