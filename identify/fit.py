@@ -20,6 +20,7 @@ from identify.preparation import (
     bdf2_error,
     choose_points,
     excitation,
+    fewest_samples,
     prepare_periodic,
     resolve_outputs,
 )
@@ -72,7 +73,16 @@ def choose_grid(model: CompiledModel, experiments: list[Experiment], outputs: li
             n, why = choose_points(model, experiments, outputs)
             notes.append(why)
         else:
-            n = DEFAULT_POINTS
+            # Never more points than a record has samples per period (unless asked): finer
+            # grid points fold fewer than one sample each, and an input's derivative taken
+            # there is mostly folding noise (800 points on 83-119 samples per period put
+            # a Dahl damper's force 5 sigma off).
+            fewest, label = fewest_samples(experiments)
+            n = min(DEFAULT_POINTS, int(np.floor(fewest + 1e-6 * fewest)))
+            if n < DEFAULT_POINTS:
+                notes.append(f"n = {n}, the fewest samples per period of the records ({fewest:.1f}, in {label}): "
+                             f"bdf2's default {DEFAULT_POINTS} points would be finer than the records "
+                             f"(--n N to insist)")
     if oversample is None:
         oversample = NONSMOOTH_OVERSAMPLE if scheme == "spectral" and model.nonsmooth else 1
         if oversample > 1:
@@ -125,5 +135,5 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
     result.units = {ch.column: ch.unit for ch in [*channels, *(model.declaration.outputs[o] for o in outputs)]}
     for e, d in zip(result.experiments, data, strict=True):
         e.start = estimator.solver.starts_used.get(e.label, "")
-        e.inputs = {ch.column: ch.from_si(u) for ch, u in zip(channels, d.inputs, strict=True)}
+        e.inputs = {ch.column: ch.from_si(u) for ch, u in zip(channels, d.inputs[:len(channels)], strict=True)}
     return result

@@ -242,9 +242,9 @@ class PeriodicSolver:
                        du: np.ndarray) -> np.ndarray:
         """Output perturbations (len(outputs), n, k) caused by input perturbations du
         (n_inputs, n, k), data grid: dŷ/du applied to k vectors (how input noise reaches
-        the outputs)."""
+        the outputs).  An input's derivatives that the model uses move with it."""
         m, grid = self.model, self.grid
-        du = grid.refine(du, axis=1)
+        du = grid.refine(m.expand_inputs(du, sol.frequency_hz, axis=1), axis=1)
         args = (sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         gu = m.residual_dinput(*args)  # (neq, nin, n): each input sample enters its own equations
         rhs = np.einsum("ijn,jnk->ink", gu, du)
@@ -272,7 +272,7 @@ class PeriodicSolver:
         gu = m.residual_dinput(*args)
         hu = m.output_dinput(*args)[outputs]
         adjoint = -np.einsum("ijn,ink->jnk", gu, mu) + np.einsum("ojn,onk->jnk", hu, w)
-        return self.grid.refine_transposed(adjoint, axis=1)
+        return m.collapse_inputs(self.grid.refine_transposed(adjoint, axis=1), f, axis=1)
 
     def _output_response(self, sol: PeriodicSolution, theta: np.ndarray, dX: np.ndarray,
                          outputs: list[int]) -> np.ndarray:

@@ -192,6 +192,7 @@ def measured_start(model: CompiledModel, grid: Grid, inputs: np.ndarray, theta: 
     m, n = model, grid.points
     spectrum = np.fft.rfft(grid.refine(measured.values), axis=1)
     keep = max(MEASURED_HARMONICS, int(excited_lines(inputs).max(initial=0)))
+    inputs = grid.refine(inputs)  # data grid -> model grid, where the states are (an oversampled grid)
     spectrum[:, keep + 1:] = 0.0
     target = np.fft.irfft(spectrum, n=n, axis=1)
     # Outputs in their own sizes (m beside Pa) and states in theirs: the rank test and the

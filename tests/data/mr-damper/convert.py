@@ -44,7 +44,8 @@ def main(source: Path, target: Path) -> None:
         t, x, force = t[keep] - t[keep][0], x[keep], force[keep]
         f = frequency(t, x)
         label = f"e{k:02d}"
-        lines = ["time_s,displacement_mm,force_N"] + [f"{a:.2f},{b:.6g},{c:.6g}" for a, b, c in zip(t, x, force)]
+        rows = zip(t, x, force, strict=True)
+        lines = ["time_s,displacement_mm,force_N"] + [f"{a:.2f},{b:.6g},{c:.6g}" for a, b, c in rows]
         (target / f"{label}.csv").write_text("\n".join(lines) + "\n")
         experiments.append({"label": label, "kind": "periodic", "file": f"{label}.csv", "frequency_Hz": round(f, 6),
                             "sample_rate_Hz": 100.0, "source": f"data/ensaio{k}.1.mat",
