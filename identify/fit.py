@@ -13,10 +13,12 @@ from identify.differentiation import Grid
 from identify.errors import InputError
 from identify.estimator import Estimator
 from identify.model import CompiledModel
+from identify.notation import significant
 from identify.parameters import Parameters
 from identify.preparation import (
     BDF2_ERROR,
     MULTISINE_LINES,
+    PeriodicData,
     bdf2_error,
     choose_points,
     excitation,
@@ -91,6 +93,20 @@ def choose_grid(model: CompiledModel, experiments: list[Experiment], outputs: li
     return GridChoice(scheme, n, oversample, notes, warnings)
 
 
+def drift_warnings(model: CompiledModel, data: list[PeriodicData]) -> list[str]:
+    """One line per column whose mean drifted in some record (removed before folding,
+    identify.folding): how much, where."""
+    units = {ch.column: ch.unit for ch in [*model.declaration.inputs.values(), *model.declaration.outputs.values()]}
+    out = []
+    for column in dict.fromkeys(c for d in data for c in d.folded.drift):
+        where = [f"{d.label} {significant(d.folded.drift[column])}" for d in data if d.folded.drift.get(column)]
+        if where:
+            out.append(f"the mean of {column} drifts within records (by {', '.join(where)} {units.get(column, '')}); "
+                       f"the drift was removed before folding (a one-period moving mean fitted by a cubic in time), "
+                       f"since folded as it was it would read as signal and as input noise")
+    return out
+
+
 def fit_experiments(model: CompiledModel, experiments: list[Experiment], params: Parameters, estimate: list[str], *,
                     n: int | None = DEFAULT_POINTS, scheme: str | None = "bdf2", outputs: list[str] | None = None,
                     max_iterations: int = 40,
@@ -130,7 +146,7 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
     result.start = {k: start[k] for k in result.estimated}
     result.priors = {k: params[k].prior_std for k in result.estimated}
     result.oversample = oversample
-    result.warnings += grid.warnings
+    result.warnings += grid.warnings + drift_warnings(model, data)
     channels = list(model.declaration.inputs.values())
     result.units = {ch.column: ch.unit for ch in [*channels, *(model.declaration.outputs[o] for o in outputs)]}
     for e, d in zip(result.experiments, data, strict=True):
