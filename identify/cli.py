@@ -180,7 +180,7 @@ def run_fit(args: argparse.Namespace) -> int:
             atomic_write_bytes(Path(args.report), "".join(f"=== experiment {label} ===\n{r.fit_report()}\n"
                                                           for label, r in results).encode())
         for label, r in results if args.figures else []:  # a folder per experiment: the same file names in each
-            _write_figures(r, Path(args.figures) / label, console)
+            _write_figures(r, Path(args.figures) / label, console, bool(model.input_derivatives))
         for label, r in results:
             for w in r.warnings:
                 print(f"warning ({label}): {w}")
@@ -195,14 +195,14 @@ def run_fit(args: argparse.Namespace) -> int:
     if args.report:
         atomic_write_bytes(Path(args.report), (report + "\n").encode())
     if args.figures:
-        _write_figures(result, Path(args.figures), console)
+        _write_figures(result, Path(args.figures), console, bool(model.input_derivatives))
     return EXIT_INTERRUPTED if interrupted else EXIT_OK if result.converged else EXIT_NOT_CONVERGED
 
 
-def _write_figures(result: FitResult, folder: Path, console: Console) -> None:
+def _write_figures(result: FitResult, folder: Path, console: Console, loops: bool) -> None:
     from identify.figures import write_figures
 
-    for path in write_figures(result, folder):
+    for path in write_figures(result, folder, loops):
         console.print(f"figure {path}", highlight=False, soft_wrap=True)  # a path whole, to copy
 
 

@@ -266,6 +266,9 @@ def generate_source(decl: ModelDeclaration) -> str:
     import sympy as sp
     from sympy.printing.numpy import NumPyPrinter
 
+    if not decl.states:
+        raise ModelError(f"model {decl.name!r} declares no state: identify solves periodic equations for states; "
+                         f"a force that is a function of the imposed motion alone is a regression, not such a model")
     s, xs, dxs, ddxs, us, dus, ps = _symbols(decl)
     g = [sp.sympify(e) for e in decl.residuals(s)]
     if len(g) != len(xs):

@@ -105,7 +105,7 @@ def test_a_displacement_driven_dahl_fit_with_all_defaults_agrees_with_a_time_dom
     proc, doc = fits["joint"]
     assert proc.returncode == 0, proc.stderr + proc.stdout
     assert doc["converged"] and doc["scheme"] == "bdf2" and doc["n"] == 83
-    assert "n = 83, the fewest samples per period of the records (83.1, in e10)" in " ".join(proc.stdout.split())
+    assert "n = 83, the fewest samples per period of the records (83.1, in e10)" in " ".join(proc.stderr.split())
     ref = reference(records())
     for name in LINEAR:
         p = doc["parameters"][name]
