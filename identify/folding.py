@@ -28,7 +28,9 @@ record) is not periodic, and folding it would lie: where the samples per period 
 nearly whole (87.0, 95.0), each bin collects samples of a few neighbouring periods only,
 different bins different ones, and the folded curve zig-zags by the drift (read as
 signal up to harmonic 62 and as input noise the size of the signal's derivative).
-Such a drift is removed before folding: the one-period moving mean of the column (a
+Where a period holds a whole number of samples, every bin sees every period alike and
+a drift only raises the scatter: such records are folded as measured.  Otherwise a
+drift is removed before folding: the one-period moving mean of the column (a
 sliding average over exactly one period, fractional ends interpolated, which cancels
 the periodic part whatever it is) is fitted by a cubic in time over the record, and its
 departure from the record's mean subtracted.  The removed range is kept per column
@@ -165,7 +167,10 @@ def fold(label: str, time_s: np.ndarray, columns: dict[str, np.ndarray], frequen
     mu = np.arange(n, dtype=float)
     drift: dict[str, float] = {}
     for name, v in columns.items():
-        v, drift[name] = detrend(t, np.asarray(v, dtype=float), frequency_hz)
+        v = np.asarray(v, dtype=float)
+        # With whole samples per period every bin sees every period alike: a drift only
+        # raises the scatter there, and such records are folded as measured.
+        v, drift[name] = (v, 0.0) if pairs is not None else detrend(t, v, frequency_hz)
         fp = np.bincount(b, weights=v, minlength=n)[filled] / counts[filled]
         grid = weights[0] * fp[bins[0]] + weights[1] * fp[bins[1]]
         values[name] = grid
