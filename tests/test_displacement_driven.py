@@ -34,8 +34,6 @@ ROOT = Path(__file__).resolve().parents[1]
 MR = ROOT / "tests" / "data" / "mr-damper"
 DAHL = f"{ROOT / 'identify' / 'models' / 'dahl.py'}:Dahl"
 LINEAR = ("Kx", "Kw", "F0")
-CAUSES = ("drift", "alias", "errors in variables", "model or discretisation error", "poorly identifiable",
-          "not determined")
 
 
 def identify(*args: str) -> subprocess.CompletedProcess:
@@ -125,9 +123,11 @@ def test_every_converged_per_record_fit_agrees_with_its_own_reference_or_names_a
         if not fit["converged"]:
             continue
         ref = reference([rec])
-        off = [name for name in LINEAR
+        # On these records every one agrees (0.0-1.7 σ): the issue's fallback, a warning naming
+        # the cause, is not needed, so it is not accepted here either.
+        off = [name for name in (*LINEAR, "rho")
                if abs(fit["parameters"][name]["value"] - ref[name]) > 3 * quoted_std(fit["parameters"][name])]
-        assert not off or any(c in w for w in fit["warnings"] for c in CAUSES), (label, off, fit["warnings"])
+        assert not off, (label, off, fit["parameters"], ref)
         for p in fit["parameters"].values():  # issue 33.4: never below what the noise gives, offsets included
             if p.get("std_residual") is not None:
                 assert p["std_residual"] >= p["std"]
