@@ -83,6 +83,11 @@ def reference(chosen: list) -> dict[str, float]:
 
 
 @pytest.fixture(scope="module")
+def per_record() -> dict[str, dict[str, float]]:
+    return {rec[0]: reference([rec]) for rec in records()}
+
+
+@pytest.fixture(scope="module")
 def fits(tmp_path_factory) -> dict:
     folder = tmp_path_factory.mktemp("dahl")
     (folder / "START.json").write_text(json.dumps({"model": "dahl", "parameters": {}}))
@@ -113,16 +118,13 @@ def test_a_displacement_driven_dahl_fit_with_all_defaults_agrees_with_a_time_dom
 
 
 @pytest.mark.slow
-def test_every_converged_per_record_fit_agrees_with_its_own_reference_or_names_a_cause(fits):
+def test_every_converged_per_record_fit_agrees_with_its_own_reference(fits, per_record):
     proc, doc = fits["per"]
     assert proc.returncode == 0, proc.stderr + proc.stdout
-    chosen = records()
-    for rec in chosen:
-        label = rec[0]
+    for label, ref in per_record.items():
         fit = doc["per_experiment"][label]
         if not fit["converged"]:
             continue
-        ref = reference([rec])
         # On these records every one agrees (0.0-1.7 σ): the issue's fallback, a warning naming
         # the cause, is not needed, so it is not accepted here either.
         off = [name for name in (*LINEAR, "rho")
@@ -166,10 +168,12 @@ def test_the_measured_start_on_an_oversampled_grid_takes_data_grid_inputs():
 
 
 @pytest.mark.slow
-def test_a_velocity_driven_spectral_fit_with_default_oversampling_returns_a_result(tmp_path):
-    """The user's own velocity column, a model whose output uses the input and has a
-    kink, the spectral scheme with its default oversampling, and a start far enough
-    off that the estimator restarts Newton from the measurements."""
+def test_a_velocity_driven_spectral_fit_with_default_oversampling_agrees_per_record(tmp_path, per_record):
+    """Issue 33.3 and 33.4: the user's own velocity column, a model whose output uses the
+    input and has a kink, the spectral scheme with its default oversampling (4), per
+    record: a traceback (data-grid inputs in the oversampled measured start) before,
+    and e07 Kw 93.5 ± 1.5 against 57 with the drifting fold; F0 0.028* against a
+    noise-only 0.155."""
     manifest = json.loads((MR / "dataset.json").read_text())
     for e in manifest["experiments"]:
         frame = pd.read_csv(MR / e["file"])
@@ -182,13 +186,19 @@ def test_a_velocity_driven_spectral_fit_with_default_oversampling_returns_a_resu
         (ROOT / "identify" / "models" / "dahl.py").read_text()
         .replace('{"x": Channel("displacement_mm", "mm", scale=1e-3)}', '{"v": Channel("velocity_m_s", "m/s")}')
         .replace("s.x_t", "s.v").replace('name = "dahl"', 'name = "dahl-v"'))
-    (tmp_path / "START.json").write_text(json.dumps({"model": "dahl-v", "parameters": {"rho": 3.0e3}}))
+    (tmp_path / "START.json").write_text(json.dumps({"model": "dahl-v", "parameters": {}}))
     proc = identify("fit", str(tmp_path), "--model", f"{tmp_path / 'dahl_v.py'}:Dahl", "--scheme", "spectral",
-                    "--params", str(tmp_path / "START.json"), "--estimate", "Kx,Kw,rho,F0", "--experiments", "e07,e09",
+                    "--params", str(tmp_path / "START.json"), "--estimate", "Kx,Kw,rho,F0", "--per-experiment",
                     "--output", str(tmp_path / "R.json"), "--quiet")
-    assert proc.returncode in (0, 1), proc.stderr
-    assert "Traceback" not in proc.stderr
-    assert json.loads((tmp_path / "R.json").read_text())["parameters"]["Kw"]["value"] > 0
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    doc = json.loads((tmp_path / "R.json").read_text())
+    assert "model solved on 4 x" in proc.stderr
+    for label, ref in per_record.items():
+        fit = doc["per_experiment"][label]
+        assert fit["converged"], label
+        off = [name for name in (*LINEAR, "rho")
+               if abs(fit["parameters"][name]["value"] - ref[name]) > 3 * quoted_std(fit["parameters"][name])]
+        assert not off, (label, off, fit["parameters"], ref)
 
 
 def test_flat_directions_print_no_meaningless_digits_and_calibration_is_scoped():
