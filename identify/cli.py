@@ -279,6 +279,9 @@ def run_predict(args: argparse.Namespace) -> int:
         for i, name in enumerate(model.output_names):
             if name not in cols:
                 cols[name] = d.outputs[name].from_si(grid.interpolate(y[i], phase))
+    elif model.input_derivatives:
+        raise InputError(f"experiment {label!r} is a {exp.kind} record, and model {model.name!r} takes its inputs' "
+                         f"derivatives, which identify takes on a periodic record's grid only")
     else:
         mass = float(exp.meta["drop_mass_kg"])
         v0 = float(exp.meta.get("drop_velocity_m_s", 0.0))

@@ -578,7 +578,7 @@ class Estimator:
         for b, o in enumerate(self.outputs):
             share = self._input_shares(ev, b)
             a = int(np.argmax(share))
-            if o not in {f[0] for f in flagged} and share[a] > INPUT_NOISE_NOTE:
+            if self.model.input_derivatives and o not in {f[0] for f in flagged} and share[a] > INPUT_NOISE_NOTE:
                 notes.append(f"{o}: the inputs' noise left by folding, carried through the model (errors in "
                              f"variables), explains {100 * share[a]:.0f} % of its residual variance in "
                              f"{self.data[a].label}; the weights and standard deviations include it")
@@ -593,7 +593,10 @@ class Estimator:
 
     def _input_share(self, ev: _Evaluation, output: str, label: str) -> str:
         """A clause saying how much of a record's residual variance the inputs' folded
-        noise explains (errors in variables), for the model-error warning."""
+        noise explains (errors in variables), for the model-error warning of a model that
+        takes an input's derivatives (whose folding noise it amplifies)."""
+        if not self.model.input_derivatives:  # the input itself, as always, not its folded derivative
+            return ""
         a = [d.label for d in self.data].index(label)
         share = float(self._input_shares(ev, self.outputs.index(output))[a])
         return f"; the inputs' folding noise, carried through the model, explains {100 * share:.0f} % of its " \

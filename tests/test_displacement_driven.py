@@ -83,6 +83,11 @@ def reference(chosen: list) -> dict[str, float]:
 
 
 @pytest.fixture(scope="module")
+def joint_reference() -> dict[str, float]:
+    return reference(records())
+
+
+@pytest.fixture(scope="module")
 def per_record() -> dict[str, dict[str, float]]:
     return {rec[0]: reference([rec]) for rec in records()}
 
@@ -92,7 +97,7 @@ def fits(tmp_path_factory) -> dict:
     folder = tmp_path_factory.mktemp("dahl")
     (folder / "START.json").write_text(json.dumps({"model": "dahl", "parameters": {}}))
     out = {}
-    for name, extra in (("joint", []), ("per", ["--per-experiment"])):
+    for name, extra in (("joint", []), ("per", ["--per-experiment"]), ("spectral", ["--scheme", "spectral"])):
         proc = identify("fit", str(MR), "--model", DAHL, "--params", str(folder / "START.json"), "--estimate",
                         "Kx,Kw,rho,F0", "--output", str(folder / f"{name}.json"), *extra)
         out[name] = (proc, json.loads((folder / f"{name}.json").read_text()) if proc.returncode in (0, 1) else None)
@@ -104,17 +109,28 @@ def quoted_std(p: dict) -> float:
 
 
 @pytest.mark.slow
-def test_a_displacement_driven_dahl_fit_with_all_defaults_agrees_with_a_time_domain_fit(fits):
+def test_a_displacement_driven_dahl_fit_with_all_defaults_agrees_with_a_time_domain_fit(fits, joint_reference):
     proc, doc = fits["joint"]
     assert proc.returncode == 0, proc.stderr + proc.stdout
     assert doc["converged"] and doc["scheme"] == "bdf2" and doc["n"] == 83
     assert "n = 83, the fewest samples per period of the records (83.1, in e10)" in " ".join(proc.stderr.split())
-    ref = reference(records())
+    ref = joint_reference
     for name in LINEAR:
         p = doc["parameters"][name]
         assert abs(p["value"] - ref[name]) <= 3 * quoted_std(p), (name, p, ref)
     rho = doc["parameters"]["rho"]
     assert abs(np.log(rho["value"] / ref["rho"])) <= 3 * quoted_std(rho) / rho["value"], (rho, ref)
+
+
+@pytest.mark.slow
+def test_the_spectral_displacement_driven_fit_agrees_too(fits, joint_reference):
+    proc, doc = fits["spectral"]
+    assert proc.returncode == 0, proc.stderr + proc.stdout
+    assert doc["n"] == 83 and doc["oversample"] == 4
+    ref = joint_reference
+    for name in (*LINEAR, "rho"):
+        p = doc["parameters"][name]
+        assert abs(p["value"] - ref[name]) <= 3 * quoted_std(p), (name, p, ref)
 
 
 @pytest.mark.slow
