@@ -114,6 +114,8 @@ def test_a_displacement_driven_dahl_fit_with_all_defaults_agrees_with_a_time_dom
     assert proc.returncode == 0, proc.stderr + proc.stdout
     assert doc["converged"] and doc["scheme"] == "bdf2" and doc["n"] == 83
     assert "n = 83, the fewest samples per period of the records (83.1, in e10)" in " ".join(proc.stderr.split())
+    assert any("the mean of displacement_mm drifts within records (by e01 0.18, e02 0.96" in w and "e09 1.4" in w
+               for w in doc["warnings"]), doc["warnings"]
     ref = joint_reference
     for name in LINEAR:
         p = doc["parameters"][name]
