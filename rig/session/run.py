@@ -273,6 +273,13 @@ class SessionRunner:
         # end the session there (qc run: every characteristic is decided), or None.
         self.decide: Callable[[RunResult], str | None] | None = None
 
+    def request_stop(self, reason: str) -> None:
+        """The one way to stop a running session from outside it (the console's Abort, its
+        E-STOP, its window closing): said in the session's log with ``reason``, then the
+        acquisition takes the safe stop at its next poll, as on SIGINT."""
+        self.bus.publish(Kind.LOG, message=f"{reason}: safe stop")
+        self.acquisition.stop_requested.set()
+
     def open_session(self) -> Session:
         """The session folder, with the DAQ's journal attached (see :meth:`create_session`)."""
         session = self.create_session()
@@ -496,21 +503,23 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
     return EXIT_OK
 
 
-def execute(prep: Prepared, console: Console, decide: Callable[[RunResult], str | None] | None = None) -> RunResult:
-    """``rig run`` and ``rig qc run``: the lifecycle with the terminal's progress lines.
-    ``decide``: see :attr:`SessionRunner.decide`."""
+def execute(prep: Prepared, console: Console) -> RunResult:
+    """``rig run``: the lifecycle with the terminal's progress lines."""
+    return run_lifecycle(prep, console, attach=terminal_progress(console))
+
+
+def terminal_progress(console: Console) -> Callable[[SessionContext], list[Subscriber]]:
+    """The terminal's subscribers of a session (``rig run``, ``rig qc run``): the pace
+    where the links run faster than the rig, then a line per phase and the ETA."""
     def progress(ctx: SessionContext) -> list[Subscriber]:
+        config = ctx.runner.prep.config
         if ctx.pace > 1.0:   # a simulator faster than the rig's own time
             console.print(f"the links run {ctx.pace:.3g} rig seconds per second: conditioning holds shorter "
-                          f"than {prep.config.min_hold_s * ctx.pace:.0f} s are not planned (session.log has "
+                          f"than {config.min_hold_s * ctx.pace:.0f} s are not planned (session.log has "
                           "the pace probe)", style="dim", highlight=False)
         return [ConsoleProgress(console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock)]
 
-    def hand_over(runner: SessionRunner | None) -> None:
-        if runner is not None:
-            runner.decide = decide
-
-    return run_lifecycle(prep, console, attach=progress, on_runner=hand_over)
+    return progress
 
 
 # ----- the one lifecycle ------------------------------------------------------------------------------
