@@ -150,7 +150,8 @@ def run_queue_s() -> float:
 def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.ndarray, float, float]:
     from identify.plans import STANDARD_SET
     from rig.events import Message
-    from rig.gui.station import FitDone, IdentifySettings
+    from rig.gui.fitting import IdentifySettings
+    from rig.gui.messages import FitDone
     from simulator.generate import generate
     from simulator.truth import load_truth
 
@@ -171,14 +172,14 @@ def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.n
             # The load is the fit running, one after the other; showing each result (once, at
             # the end of a real fit) is not part of it.
             fits["done"] += 1
-            window.station.refit(dataset, IdentifySettings())
+            window.station.fits.refit(dataset, IdentifySettings())
             return
         original(item)
     window._handle = handle  # type: ignore[method-assign]
     window.plan.identify.setChecked(False)
     window.run_plan()
     if fit:
-        window.station.refit(dataset, IdentifySettings())
+        window.station.fits.refit(dataset, IdentifySettings())
     late: list[float] = []
     waited: list[float] = []                 # run-queue time of the GUI thread within each delay
     period_ms = 10
@@ -204,8 +205,8 @@ def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.n
 
     def check_done() -> None:
         checks["all"] += 1
-        checks["fitting"] += window.station.fitting
-        if not window.station.session_running and window.plan.progress and time.monotonic() - t0 > seconds_min:
+        checks["fitting"] += window.station.fits.busy
+        if not window.station.sessions.running and window.plan.progress and time.monotonic() - t0 > seconds_min:
             loop.quit()
     check.timeout.connect(check_done)
     check.start(100)

@@ -25,7 +25,9 @@ from rig.planning.plans import Plan, comma_list, load_plan
 STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "skipped": "#ffe0b2", "interrupted": "#ffe0b2",
                   "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb", "stopping": "#e3f2fd"}
 UNITS = {"stroke_mm": "mm", "force_N": "N", "pressure_bar": "bar", "gas_temperature_C": "°C"}
-TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "left\n[wall m:s]")
+TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "left\n[rig m:s]")
+# Under the drift criterion the changes are for information: pale, but still saying under or over the threshold.
+INFO_UNDER, INFO_OVER = "#a5d6a7", "#ffb74d"
 
 
 def _clock(seconds: float) -> str:
@@ -112,7 +114,10 @@ class SteadyStateView(QtWidgets.QGroupBox):
             bar = self.bars[i]
             bar.setValue(int(min(ratio, 3.0) * 100))
             bar.setFormat(significant(ratio))
-            colour = "#9e9e9e" if self.drift else "#43a047" if ratio < 1 else "#fb8c00"
+            if self.drift:
+                colour = INFO_UNDER if ratio < 1 else INFO_OVER
+            else:
+                colour = "#43a047" if ratio < 1 else "#fb8c00"
             if bar.property("colour") != colour:     # a style sheet is costly to apply: only on a change
                 bar.setProperty("colour", colour)
                 bar.setStyleSheet(f"QProgressBar::chunk {{ background: {colour}; }}")
@@ -292,7 +297,6 @@ class PlanPanel(QtWidgets.QWidget):
             return          # a later edit, or a session started meanwhile
         self.show_progress(progress)
         self.progress = None
-        self._time_column("rig")            # nothing runs yet: the plan's own time
         self.eta.setText(f"{len(plan.experiments)} experiments, about "
                          f"{clock_text(sum(r.estimate_s for r in self._rows), 'rig time')}")
 
@@ -304,12 +308,8 @@ class PlanPanel(QtWidgets.QWidget):
         for w in (self.plan, self.experiments, self.folder, self.identify):
             w.setEnabled(not running)
 
-    def _time_column(self, clock: str) -> None:
-        self.table.setHorizontalHeaderItem(5, QtWidgets.QTableWidgetItem(f"left\n[{clock} m:s]"))
-
     def show_progress(self, progress: PlanProgress) -> None:
         self.progress = progress
-        self._time_column("wall")
         self._rows = progress.rows
         self.table.setRowCount(len(progress.rows))
         for i, r in enumerate(progress.rows):
@@ -342,7 +342,7 @@ class PlanPanel(QtWidgets.QWidget):
             status = _item(self.table, i, 4)
             status.setText(r.status_text())
             status.setBackground(QtGui.QColor(STATUS_COLOURS.get(r.status, "#ffffff")))
-            _item(self.table, i, 5).setText(_clock(progress.left_s(r)) if r.status != "done" else "")
+            _item(self.table, i, 5).setText(_clock(progress.rig_left_s(r)) if r.status != "done" else "")
         current = progress.current
         self.steady.show_count(current)
         capturing = current is not None and current.status == "capturing"
@@ -356,5 +356,5 @@ class PlanPanel(QtWidgets.QWidget):
             wall = progress.session_left_s()
             self.eta.setText(f"Session: about {clock_text(wall, 'wall')} left "
                              f"({clock_text(wall / progress.wall_per_rig_s(), 'rig time')})"
-                             + (f"; {current.label}: {clock_text(progress.left_s(current), 'wall')}"
+                             + (f"; {current.label}: {clock_text(progress.rig_left_s(current), 'rig time')}"
                                 if current else ""))

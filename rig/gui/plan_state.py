@@ -167,6 +167,10 @@ class PlanProgress:
             return max(row.estimate_s * scale - (self.clock() - row.started), 0.0)
         return 0.0 if row.status == "done" else math.nan
 
+    def rig_left_s(self, row: ExperimentRow) -> float:
+        """Rig seconds left for one experiment (the plan table's column: one clock throughout)."""
+        return self.left_s(row) / self.wall_per_rig_s()
+
     def _rig_s_left(self, row: ExperimentRow) -> float | None:
         """Rig time left from where the experiment is: the settling prediction (or the
         capture's fraction), the capture, the fade out; None when not known."""

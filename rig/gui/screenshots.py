@@ -92,7 +92,7 @@ def qc_view(speed: float, out: Path, sessions: Path) -> None:
     settle_view(0.5)
     shoot(qc, out / "qc-testing.png")
     wait("the QC verdict", lambda: qc.qc.last is not None, 900)
-    wait("the console's links back", lambda: qc.station.shaker is not None and qc.status is not None, 60)
+    wait("the console's links back", lambda: qc.station.manual.shaker is not None and qc.status is not None, 60)
     settle_view(1.0)
     shoot(qc, out / "qc-verdict.png")
     closed(qc)
