@@ -44,6 +44,10 @@ class ControllerPanel(QtWidgets.QGroupBox):
         if st is None:
             f["state"].setText(f"no answer ({snap.error})" if snap.error else "not connected")
             f["state"].setStyleSheet("color: #b00020; font-weight: bold" if snap.error else "")
+            # Nothing read: no number from an older read is shown beside it as if it were now.
+            for key in ("position", "alarm", "force", "cycles", "supply", "watchdog"):
+                f[key].setText("–")
+                f[key].setStyleSheet("")
             return
         f["state"].setText(st.state)
         f["state"].setStyleSheet(f"color: {STATE_COLOURS.get(st.state, '#000')}; font-weight: bold")

@@ -165,6 +165,7 @@ class LiveView(QtWidgets.QWidget):
         # in the axes' units (force in kN)
         self.min_span = [spans.get(c, 0.0) * scale for c, (_, _, scale, _) in zip(CHANNELS, TRACES, strict=True)]
         self._excitation: object = None
+        self.why_none = "no excitation running"
         self.history = LiveHistory(rate_hz)
         self.frequency_hz: float | None = None     # the excitation's, for the loops (None: not known)
         self.window_s = 10.0
@@ -248,17 +249,21 @@ class LiveView(QtWidgets.QWidget):
         self.window_s = float(self.window_box.currentData())
         self.traces[0].getViewBox().setXRange(-self.window_s, 0, padding=0)
 
-    def set_excitation(self, key: object, frequency_hz: float | None) -> None:
-        """The excitation running now (``key`` None: none); a new key clears the loops."""
+    def set_excitation(self, key: object, frequency_hz: float | None, why_none: str = "no excitation running") -> None:
+        """The excitation running now (``key`` None: none, for the reason ``why_none``); a new
+        key clears the loops."""
         if key != self._excitation:
             self._excitation = key
             self.history.set_mark()
         self.frequency_hz = frequency_hz if key is not None else None
+        self.why_none = why_none
 
     def refresh(self, daq: Daq | None) -> bool:
         """Take new samples and redraw; False when there was nothing new."""
         if not self.history.update(daq):
             if self.history.n == 0:
+                for curve in self.traces:           # no samples of this link: no old trace drawn as if live
+                    curve.setData([], [])
                 self._show_placeholders("no DAQ link" if daq is None else "no samples yet: the DAQ is not streaming"
                                         if not daq.streaming else "no samples yet")
             return False
@@ -290,7 +295,7 @@ class LiveView(QtWidgets.QWidget):
     def _refresh_loops(self) -> None:
         f = self.frequency_hz
         if not f:
-            self._show_placeholders("no excitation running")
+            self._show_placeholders(self.why_none)
             return
         n = analysis.last_cycles(self.history.since_mark(), self.rate_hz, f, self.cycles_box.value())
         _, v = self.history.latest(n / self.rate_hz)

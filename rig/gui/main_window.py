@@ -299,6 +299,8 @@ class MainWindow(QtWidgets.QMainWindow):
             elif button.toolTip() != self._tooltips[name] or not button.isEnabled():
                 button.setEnabled(True)
                 button.setToolTip(self._tooltips[name])
+        # A session holds the links until its safe stop: the console's own are taken back after it.
+        self.connect_button.setEnabled(not state.session_running)
         self.browser.resume_button.setEnabled(self.browser.resumable and "resume" not in blocked)
         self.browser.resume_button.setToolTip(f"Disabled: {blocked['resume']}" if "resume" in blocked else "")
 
@@ -381,19 +383,24 @@ class MainWindow(QtWidgets.QMainWindow):
             self._last_table = now
             self.plan.refresh()
 
-    def _excitation(self) -> tuple[object, float | None]:
+    def _excitation(self) -> tuple[object, float | None, str]:
         """The excitation running now, as (a key that changes when a new one starts, its
-        frequency); (None, None) when the rig is not excited (moving, at rest, tripped)."""
+        frequency, why there is none); (None, None, why) when the controller was not read
+        running (moving, at rest, tripped, not answering)."""
+        if self.status is None:
+            return None, None, "the controller's state is not read" if self.link_error else "no excitation running"
+        if self.status.state != "RUNNING":
+            return None, None, "no excitation running"
         progress = self.plan.progress
         current = progress.current if progress is not None and self.station.sessions.running else None
         if current is not None:
             if current.status in ("settling", "capturing"):
-                return current.label, current.spec.frequency_hz
-            return None, None
+                return current.label, current.spec.frequency_hz, ""
+            return None, None, "no excitation running"
         manual = self.station.manual
-        if self.status is not None and self.status.state == "RUNNING" and manual.frequency_hz:
-            return ("manual", manual.runs), manual.frequency_hz
-        return None, None
+        if manual.frequency_hz:
+            return ("manual", manual.runs), manual.frequency_hz, ""
+        return None, None, "no excitation running"
 
     def _handle(self, item: Message) -> None:
         # One dispatch on the record's type: a type without a handler is a bug, raised here.
@@ -413,8 +420,12 @@ class MainWindow(QtWidgets.QMainWindow):
             self._say(f"controller tripped: {item.status.alarm}", "error")
             self.alarm_latched = item.status.alarm
         if self.plan.progress is not None and self.station.sessions.running:
-            # The stream's sample count read with the status drives every count shown, in this frame.
-            if self.plan.progress.observe(item.samples, item.time) is not None:
+            # The stream's sample count read with the status drives every count shown, in this
+            # frame, as long as the controller was read running (cycles are not counted on a
+            # stream whose excitation nobody has read).
+            running = item.status is not None and item.status.state == "RUNNING"
+            self.plan.progress.unread = item.error
+            if running and self.plan.progress.observe(item.samples, item.time) is not None:
                 self.plan.refresh()
         self.controller.show_snapshot(item)
         self.live.show_health(item)
@@ -432,7 +443,11 @@ class MainWindow(QtWidgets.QMainWindow):
             self.setWindowTitle("Damper rig — operator console — SIMULATED RIG")
         self.connect_button.setText("Disconnect" if item.connected else "Connect")
         if not item.connected:
-            self.status = None
+            # Nothing read any more on these links: the panel and the DAQ line must not go on
+            # showing their last reading as if it were live.
+            self.status, self.link_error = None, None
+            self.controller.show_snapshot(Snapshot(None, None))
+            self.live.show_health(Snapshot(None, None))
         self._show_banner()
 
     def _on_session_opened(self, item: SessionOpened) -> None:
@@ -494,7 +509,7 @@ class MainWindow(QtWidgets.QMainWindow):
                   "info" if item.shown in ("PASS", "FAIL", "RETEST") else "error")
 
     def _show_banner(self, link_error: str | None = None) -> None:
-        st = self.status
+        st, link_error = self.status, link_error or self.link_error
         # What the actuator does now, from the registers: held only with pressure behind it.
         bar = f"{st.hydraulic_pressure_pa / 1e5:.0f} bar" if st is not None else ""
         held = (f"hydraulics OFF ({bar}): the actuator is not held" if st is not None and not hydraulics_on(st)
@@ -511,9 +526,11 @@ class MainWindow(QtWidgets.QMainWindow):
             text = f"ALARM: {which} — {held}; find the cause, then Reset…"
         elif link_error:
             text = f"Controller not answering: {link_error}"
+        elif st is None:
+            text = "No alarm known: the controller is not read (not connected)"
         else:
             text = "No alarm"
-        colour = BANNER_ALARM if alarm else BANNER_NO_ANSWER if link_error else BANNER_CLEAR
+        colour = BANNER_ALARM if alarm else BANNER_NO_ANSWER if st is None else BANNER_CLEAR
         self.banner.setText(text)
         self.banner.setStyleSheet(f"background: {colour if alarm else 'transparent'}; color: "
                                   f"{'white' if alarm else colour}; font-size: {'14pt' if alarm else '10pt'}; "

@@ -76,9 +76,11 @@ class ManualControl:
         self.urls = (shaker_url, daq_url)
         return self.submit("connect", self._connect)
 
-    def _connect(self) -> None:
+    def _connect(self, taking_back: bool = False) -> None:
         if self.shaker is not None:
             return
+        if self.session_running() and not taking_back:
+            raise BadInput("a session holds the rig's links: they come back to the console after its safe stop")
         shaker_url, daq_url = self.urls
         if not shaker_url or not daq_url:
             raise BadInput("give the controller's and the DAQ's addresses (--shaker, --daq) or --simulate")
@@ -117,12 +119,24 @@ class ManualControl:
         """Let go of the links for a session (waits until they are closed)."""
         self._held_before = self.shaker is not None
         self._commands.submit(self._release).result()
+        if self._held_before:
+            self.post(LinkState(False, "the session holds the links: the controller and the DAQ are read on its "
+                                       "own until its safe stop"))
 
     def take_back(self) -> None:
-        """After a session: the links again, if they were held before it."""
-        if self._held_before:
-            self._held_before = False
-            self.submit("reconnect", self._connect)
+        """After a session: the links again, if they were held before it; if they cannot
+        be opened, the link line says so (not the session's last words)."""
+        if not self._held_before:
+            return
+        self._held_before = False
+
+        def job() -> None:
+            try:
+                self._connect(taking_back=True)
+            except Exception as exc:
+                self.post(LinkState(False, f"not connected: the links were not taken back after the session ({exc})"))
+                raise
+        self.submit("reconnect", job)
 
     def _link_event(self, notice: LinkNotice) -> None:
         self.heartbeat.follow(notice.state)

@@ -221,6 +221,8 @@ class PlanPanel(QtWidgets.QWidget):
         self.capture.setStyleSheet("QProgressBar { font-weight: bold; min-height: 24px } "
                                    "QProgressBar::chunk { background: #64b5f6; }")
         self.steady = SteadyStateView(config)
+        # Its own height always: a long status line above takes it from the table, never from it.
+        self.steady.setSizePolicy(QtWidgets.QSizePolicy.Policy.Preferred, QtWidgets.QSizePolicy.Policy.Fixed)
 
         layout = QtWidgets.QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
@@ -340,7 +342,8 @@ class PlanPanel(QtWidgets.QWidget):
             return
         for i, r in enumerate(progress.rows):
             status = _item(self.table, i, 4)
-            status.setText(r.status_text())
+            unread = progress.unread is not None and r.status in ("moving", "settling", "capturing", "stopping")
+            status.setText(r.status_text() + (" — the controller is not answering" if unread else ""))
             status.setBackground(QtGui.QColor(STATUS_COLOURS.get(r.status, "#ffffff")))
             _item(self.table, i, 5).setText(_clock(progress.rig_left_s(r)) if r.status != "done" else "")
         current = progress.current

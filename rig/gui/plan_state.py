@@ -87,6 +87,7 @@ class PlanProgress:
                 row.status, row.note = "done", "earlier"
         self.by_label = {r.label: r for r in self.rows}
         self.ended: str | None = None
+        self.unread: str | None = None     # why the controller's last status read failed (None: it answered)
 
     @property
     def current(self) -> ExperimentRow | None:

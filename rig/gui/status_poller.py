@@ -29,7 +29,7 @@ class StatusPoller:
         self._thread.start()
 
     def read(self) -> Snapshot | None:
-        """One read of the links that hold the rig now (None: none)."""
+        """One read of the links that hold the rig now (None: no links held)."""
         shaker, daq, session = self.source()
         if shaker is None:
             return None
@@ -49,9 +49,9 @@ class StatusPoller:
 
     def _poll(self) -> None:
         while not self._closed.wait(self.period_s):
-            snap = self.read()
-            if snap is not None:
-                self.post(snap)
+            # No links held (between a session's end and the console's taking its links back,
+            # or disconnected): said as such, so that no older reading stays on screen as if now.
+            self.post(self.read() or Snapshot(None, None))
 
     def close(self) -> None:
         self._closed.set()
