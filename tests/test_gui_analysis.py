@@ -79,11 +79,11 @@ def test_peak_decimation_keeps_the_extremes_in_time_order():
 
 def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     """Under the drift criterion the bias bound is the deciding line and the cycles left
-    come from its decay; the changes stay, grey, for information (they were coloured as
-    failing thresholds that did not apply).  Under the change criterion, as before."""
+    come from its decay; the changes stay, pale, for information (they were coloured as
+    failing thresholds that did not apply), saying under or over their threshold.  Under the change criterion, as before."""
     from identify.notation import significant
     from rig.config import DEFAULT_RIG_CONFIG
-    from rig.gui.plan_panel import SteadyStateView
+    from rig.gui.plan_panel import INFO_OVER, INFO_UNDER, SteadyStateView
     from rig.gui.plan_state import ExperimentRow
 
     config = load_rig_config(DEFAULT_RIG_CONFIG)
@@ -100,7 +100,9 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     view.show_count(row)
     assert f"up to {significant(2 * fraction)} σ; captures below {fraction:g} σ" in view.bound.text()
     assert "predicted cycles left: 10" in view.cycles.text()     # halves every 10 cycles: 10 more
-    assert view.bars[3].property("colour") == "#9e9e9e"          # 13x its change threshold: no verdict
+    # 13x its change threshold: pale orange (over, for information), not the change criterion's orange,
+    # and not a grey that does not say over or under; the stroke's change, under its threshold, pale green
+    assert view.bars[3].property("colour") == INFO_OVER and view.bars[0].property("colour") == INFO_UNDER
 
     from dataclasses import replace
 
@@ -110,6 +112,14 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     assert plain.title() == "Steady state (change criterion)"
     plain.show_row(row)
     assert plain.bars[3].property("colour") == "#fb8c00"
+    # A QC spec's session brings its own criterion: the view takes it (the drift bound's
+    # field is absent from its reports; the cycles left come from the changes).
+    view.configure(change_config)
+    assert view.title() == "Steady state (change criterion)" and not view.bound.isVisibleTo(view)
+    row.settling = [(40, dict(change)), (50, {k: v / 2 for k, v in change.items()})]
+    view.show_row(row)
+    view.show_count(row)
+    assert "predicted cycles left:" in view.cycles.text() and view.bars[3].property("colour") == "#fb8c00"
 
 
 def test_a_new_excitation_starts_the_loops_afresh():

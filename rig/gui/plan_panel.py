@@ -28,6 +28,7 @@ UNITS = {"stroke_mm": "mm", "force_N": "N", "pressure_bar": "bar", "gas_temperat
 TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "left\n[rig m:s]")
 # Under the drift criterion the changes are for information: pale, but still saying under or over the threshold.
 INFO_UNDER, INFO_OVER = "#a5d6a7", "#ffb74d"
+ENDED_CHARS = 160                 # of a session's end status under the table
 
 
 def _clock(seconds: float) -> str:
@@ -65,10 +66,7 @@ class SteadyStateView(QtWidgets.QGroupBox):
     passing)."""
 
     def __init__(self, config: RigConfig, parent: QtWidgets.QWidget | None = None) -> None:
-        self.drift = config.steady_state.drift if config.steady_state.criterion == "drift" else None
-        super().__init__("Steady state (drift criterion decides; changes for information)" if self.drift
-                         else "Steady state (change criterion)", parent)
-        self.config = config
+        super().__init__(parent)
         layout = QtWidgets.QVBoxLayout(self)
         self.table = QtWidgets.QTableWidget(len(CHANNELS), 3)
         self.table.setObjectName("steadyStateTable")
@@ -78,10 +76,9 @@ class SteadyStateView(QtWidgets.QGroupBox):
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self.table.setFixedHeight(150)
         self.bars: list[QtWidgets.QProgressBar] = []
-        ss = config.steady_state
-        for i, c in enumerate(CHANNELS):
+        for i in range(len(CHANNELS)):
             self.table.setItem(i, 0, QtWidgets.QTableWidgetItem("–"))
-            self.table.setItem(i, 1, QtWidgets.QTableWidgetItem(f"{ss.thresholds[c]:g} {UNITS[c]}"))
+            self.table.setItem(i, 1, QtWidgets.QTableWidgetItem(""))
             bar = QtWidgets.QProgressBar()
             bar.setRange(0, 300)              # change ÷ threshold up to 3, in hundredths
             bar.setFormat("–")
@@ -92,12 +89,24 @@ class SteadyStateView(QtWidgets.QGroupBox):
         self.bound = QtWidgets.QLabel("")
         self.bound.setObjectName("driftBound")
         self.bound.setWordWrap(True)
-        if self.drift:
-            layout.addWidget(self.bound)
+        layout.addWidget(self.bound)
         self.cycles = QtWidgets.QLabel("Settling: –")
         self.cycles.setWordWrap(True)
         self.cycles.setObjectName("settleCycles")
         layout.addWidget(self.cycles)
+        self.configure(config)
+
+    def configure(self, config: RigConfig) -> None:
+        """The criterion and thresholds of the session shown (a QC spec brings its own)."""
+        self.config = config
+        ss = config.steady_state
+        self.drift = ss.drift if ss.criterion == "drift" else None
+        self.setTitle("Steady state (drift criterion decides; changes for information)" if self.drift
+                      else "Steady state (change criterion)")
+        for i, c in enumerate(CHANNELS):
+            _item(self.table, i, 1).setText(f"{ss.thresholds[c]:g} {UNITS[c]}")
+        self.bound.setText("")
+        self.bound.setVisible(self.drift is not None)
 
     def show_row(self, row: ExperimentRow | None) -> None:
         """The changes against their thresholds at the row's last settling report."""
@@ -312,6 +321,7 @@ class PlanPanel(QtWidgets.QWidget):
 
     def show_progress(self, progress: PlanProgress) -> None:
         self.progress = progress
+        self.steady.configure(progress.config)
         self._rows = progress.rows
         self.table.setRowCount(len(progress.rows))
         for i, r in enumerate(progress.rows):
@@ -354,7 +364,12 @@ class PlanPanel(QtWidgets.QWidget):
             self.capture.setValue(int(round(100 * current.fraction)))
             self.capture.setFormat(f"{current.label}: {capture_text(current)}")
         if progress.ended is not None:
-            self.eta.setText(f"Session {progress.ended}")
+            # A status can run to several sentences (a safe stop's failures): its head here, the
+            # whole of it in the tooltip and the log below, so the settling view keeps its height.
+            whole = f"Session {progress.ended}"
+            self.eta.setText(whole if len(whole) <= ENDED_CHARS else
+                             f"{whole[:ENDED_CHARS].rsplit(' ', 1)[0]} … (the whole status: the log below)")
+            self.eta.setToolTip(whole)
         else:
             wall = progress.session_left_s()
             self.eta.setText(f"Session: about {clock_text(wall, 'wall')} left "

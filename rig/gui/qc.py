@@ -145,7 +145,11 @@ class QcTracker:
                     return
             elif e.kind != Kind.SESSION_END:
                 return
-            self._emit(self._doing() if e.kind != Kind.SESSION_END else f"session {e.data['message']}")
+            if e.kind == Kind.SESSION_END:
+                judging = "; identifying and judging the unit" if e.data["exit_code"] == 0 else ""
+                self._emit(f"session {e.data['message']}{judging}")
+            else:
+                self._emit(self._doing())
 
     def predicted(self, prediction: Prediction) -> None:
         """The rest of the plan re-predicted (rig.qc.run.decider): its estimates scaled to it."""

@@ -81,8 +81,8 @@ def closed(window: MainWindow) -> None:
 
 
 def qc_view(speed: float, out: Path, sessions: Path) -> None:
-    """QC mode at 1280 × 1024 px: a unit with a worn orifice through python -m rig qc run, the
-    progress bar while it runs, then its FAIL with the table and the likely cause."""
+    """QC mode at 1280 × 1024 px: a unit with a worn orifice tested as rig qc run tests it, while
+    it settles, then its FAIL with the table and the likely cause."""
     qc = MainWindow.from_args(["--simulate", "--speed", f"{speed:g}", "--unit", "worn-orifice", "--out",
                                str(sessions)])
     qc.resize(1280, 1024)
@@ -90,7 +90,9 @@ def qc_view(speed: float, out: Path, sessions: Path) -> None:
     wait("the connection", lambda: qc.status is not None)
     qc.qc.serial.setText("SN-0042")
     qc.qc.test_button.click()
-    wait("the QC run's capture", lambda: "capturing" in qc.qc.step.text() and qc.qc.progress.value() > 0
+    # While the unit settles (its capture is a fraction of a second at 20x): the loops drawn,
+    # the DAQ's rate measured on the session's stream.
+    wait("the QC run's settling", lambda: "settling" in qc.qc.step.text() and "× real time" in qc.live.health.text()
          and not any(t.isVisible() for t in qc.live.placeholders), 600)
     settle_view(0.3)
     shoot(qc, out / "qc-testing.png")

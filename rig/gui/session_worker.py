@@ -173,9 +173,11 @@ class SessionWorker:
             path = folder[0] / "qc-report.html" if folder else None
             return path if path is not None and path.is_file() else None
 
+        # The session's links are closed once it ends: the console's are taken back before
+        # the identification and judging, so that the rig is read while they run.
         to = QcSubscribers(say=lambda text: self.post(Notice(f"QC {request.serial}: {_plain(text)}")), attach=attach,
                            subscribers=[self._event], on_runner=self._runner_changed, before_session=before,
-                           predicted=predicted)
+                           predicted=predicted, after_session=lambda _result: self._links_back())
         done: QcDone
         try:
             shaker_url, daq_url = self.manual.urls
@@ -191,9 +193,12 @@ class SessionWorker:
             done = ended(request, f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}", report(), bug=True)
         finally:
             self._tracker = None
-            if not self.closing:
-                self.manual.take_back()
+            self._links_back()
         self.post(done)
+
+    def _links_back(self) -> None:
+        if not self.closing:
+            self.manual.take_back()
 
 
 def _plain(text: str) -> str:

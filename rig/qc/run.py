@@ -86,6 +86,7 @@ class QcSubscribers:
     on_runner: Callable[[SessionRunner | None], object] | None = None
     before_session: Callable[[Prepared], object] | None = None  # checked, records open, nothing sent yet
     predicted: Callable[[Prediction], None] | None = None       # the time left, predicted again after an experiment
+    after_session: Callable[[RunResult], object] | None = None  # the session over, its links closed; judging next
     concluded: Callable[[QcRecord, float, Path, str], None] | None = None   # a verdict: record, k, report, database
 
 
@@ -176,6 +177,8 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
             raise
         finished = now_utc()
         session = result.session.path
+        if to.after_session is not None:
+            to.after_session(result)
         if result.error is not None:
             _store(records, _unjudged(spec, session, "ERROR", f"internal error: {result.error!r}", finished=finished,
                                       **identity), spec)
