@@ -80,7 +80,8 @@ def test_peak_decimation_keeps_the_extremes_in_time_order():
 def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     """Under the drift criterion the bias bound is the deciding line and the cycles left
     come from its decay; the changes stay, pale, for information (they were coloured as
-    failing thresholds that did not apply), saying under or over their threshold.  Under the change criterion, as before."""
+    failing thresholds that did not apply), saying under or over their threshold.  Under the
+    change criterion, as before."""
     from identify.notation import significant
     from rig.config import DEFAULT_RIG_CONFIG
     from rig.gui.plan_panel import INFO_OVER, INFO_UNDER, SteadyStateView
