@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from identify.exit_codes import EXIT_INTERRUPTED
 from rig.config import load_rig_config
@@ -143,3 +144,29 @@ def test_a_new_excitation_starts_the_loops_afresh():
     daq.ring.append(np.arange(20), np.ones((20, 4)))          # a new stream
     history.update(daq)
     assert history.n == 20 and history.since_mark() == 20
+
+
+def test_the_time_left_and_the_settling_view_count_the_same_cycles(qtbot):
+    """Under the drift criterion the table's rig time left for the settling experiment
+    comes from the cycles its bias bound's decay predicts, as the settling view says them
+    (it came from the change thresholds, already met: '0:02' beside '257 cycles left')."""
+    from dataclasses import replace
+
+    from rig.config import DEFAULT_RIG_CONFIG
+    from rig.gui.plan_panel import SteadyStateView
+    from rig.gui.plan_state import PlanProgress
+
+    config = load_rig_config(DEFAULT_RIG_CONFIG)
+    fraction = config.steady_state.drift.fraction
+    plan = load_plan("standard")
+    progress = PlanProgress(replace(plan, experiments=plan.experiments[:1]), config, "261124")
+    (row,) = progress.rows
+    change = {"stroke_mm": 1e-5, "force_N": 0.01, "pressure_bar": 1e-5, "gas_temperature_C": 1e-4}   # all met
+    row.settling = [(40, change | {"bias_sigma": 4 * fraction}), (50, change | {"bias_sigma": 2 * fraction})]
+    row.status, row.cycles, row.started = "settling", 50, 0.0
+    view = SteadyStateView(config)
+    qtbot.addWidget(view)
+    view.show_count(row)
+    assert "predicted cycles left: 10" in view.cycles.text()
+    ss, f = config.steady_state, row.spec.frequency_hz
+    assert progress.rig_left_s(row) == pytest.approx((10 + row.spec.periods) / f + ss.ramp_time_s)

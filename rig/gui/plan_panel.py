@@ -18,7 +18,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from identify.notation import at_place, significant
 from rig.config import CHANNELS, RigConfig
 from rig.events import Event
-from rig.gui.plan_state import ExperimentRow, PlanProgress
+from rig.gui.plan_state import ExperimentRow, PlanProgress, deciding
 from rig.planning.criterion import DAQ_LAG_S
 from rig.planning.plans import Plan, comma_list, load_plan
 
@@ -147,8 +147,7 @@ class SteadyStateView(QtWidgets.QGroupBox):
         if row.status == "capturing":
             self.cycles.setText(f"{row.label}: settled after {row.cycles} cycles; {capture_text(row)}")
             return
-        deciding = {"bias_sigma": self.drift.fraction} if self.drift else ss.thresholds
-        left = row.cycles_left(deciding, ss.min_cycles, ss.max_cycles)
+        left = row.cycles_left(deciding(self.config), ss.min_cycles, ss.max_cycles)
         after_run = ss.ramp_time_s + DAQ_LAG_S
         self.cycles.setText(f"{row.label}: settling {row.cycles} cycles, counted from {after_run:g} s after RUN "
                             f"(min {ss.min_cycles}, max {ss.max_cycles}); "

@@ -25,6 +25,16 @@ from rig.planning.plans import Plan, estimate_duration_s
 ACTIVE = ("moving", "settling", "capturing", "stopping")
 
 
+def deciding(config: RigConfig) -> dict[str, float]:
+    """What decides the capture, as the settling reports carry it: the drift criterion's
+    bias bound, or each channel's change threshold (the settling view's cycles left and
+    the table's time left come from the same)."""
+    ss = config.steady_state
+    if ss.criterion == "drift" and ss.drift is not None:
+        return {"bias_sigma": ss.drift.fraction}
+    return dict(ss.thresholds)
+
+
 @dataclass
 class ExperimentRow:
     spec: ExperimentSpec
@@ -179,7 +189,7 @@ class PlanProgress:
         if row.status == "capturing":
             return (1 - row.fraction) * periods / f + ss.ramp_time_s
         if row.status == "settling" and row.settling:
-            left = row.cycles_left(ss.thresholds, ss.min_cycles, ss.max_cycles)
+            left = row.cycles_left(deciding(self.config), ss.min_cycles, ss.max_cycles)
             return None if left is None else (left + periods) / f + ss.ramp_time_s
         return None
 
