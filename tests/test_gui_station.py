@@ -50,6 +50,11 @@ class FakeRunner:
 
     links: SimpleNamespace = field(default_factory=lambda: SimpleNamespace(shaker=FakeShaker(), daq=FakeDaq()))
     stops: list[str] = field(default_factory=list)
+    said: list[str] = field(default_factory=list)
+
+    @property
+    def bus(self) -> SimpleNamespace:
+        return SimpleNamespace(publish=lambda kind, **data: self.said.append(data["message"]))
 
     def request_stop(self, reason: str) -> None:
         self.stops.append(reason)
@@ -89,6 +94,7 @@ def test_the_worker_hands_a_stop_to_the_runner_even_one_asked_for_before_it_exis
     station.sessions.request_stop("Abort pressed by the operator")     # while the links are being opened
     station.sessions._runner_changed(runner)
     assert runner.stops == ["Abort pressed by the operator"]
+    assert runner.said == ["Abort pressed by the operator: safe stop"]       # in session.log when asked
     assert runner.links.shaker.interlock is station.emergency.latch    # before its first motion command
     assert station.links() == (runner.links.shaker, runner.links.daq, True)   # the poller reads the session's
     station.sessions.request_stop("the window was closed")

@@ -96,14 +96,14 @@ class SessionWorker:
         self._stop_reason = reason
         runner = self.runner
         if runner is not None:
-            runner.request_stop(reason)
+            _stop(runner, reason)
 
     def _runner_changed(self, runner: SessionRunner | None) -> None:
         if runner is not None:
             runner.links.shaker.interlock = self.emergency.latch   # before the session's first motion command
         self.runner = runner
         if runner is not None and self._stop_reason is not None:   # Abort or E-STOP while the links were opened
-            runner.request_stop(self._stop_reason)
+            _stop(runner, self._stop_reason)
 
     def _event(self, event: Event) -> None:
         """A session's events, for the window (queued: the acquisition never waits on it)."""
@@ -199,6 +199,12 @@ class SessionWorker:
     def _links_back(self) -> None:
         if not self.closing:
             self.manual.take_back()
+
+
+def _stop(runner: SessionRunner, reason: str) -> None:
+    """The operator's stop, said in session.log at the moment it is asked for."""
+    runner.bus.publish(Kind.LOG, message=f"{reason}: safe stop")
+    runner.request_stop(reason)
 
 
 def _plain(text: str) -> str:

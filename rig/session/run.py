@@ -265,6 +265,7 @@ class SessionRunner:
         self._durations: list[ExperimentDuration] | None = None   # the plan's prediction (durations)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="session-writer")
         self._writing: tuple[str, Future[None]] | None = None
+        self.stop_reason: str | None = None   # the first request_stop's reason
         self.signals: list[int] = []       # SIGINT, SIGTERM, SIGHUP received while the session ran
         # One time line for the rig: the acquisition waits on the shaker's clock (the wall
         # clock, or a simulated one when a test drives an in-process simulator).
@@ -272,13 +273,6 @@ class SessionRunner:
         # Asked after each captured experiment but the last, its data written: a reason to
         # end the session there (qc run: every characteristic is decided), or None.
         self.decide: Callable[[RunResult], str | None] | None = None
-
-    def request_stop(self, reason: str) -> None:
-        """The one way to stop a running session from outside it (the console's Abort, its
-        E-STOP, its window closing): said in the session's log with ``reason``, then the
-        acquisition takes the safe stop at its next poll, as on SIGINT."""
-        self.bus.publish(Kind.LOG, message=f"{reason}: safe stop")
-        self.acquisition.stop_requested.set()
 
     def open_session(self) -> Session:
         """The session folder, with the DAQ's journal attached (see :meth:`create_session`)."""
@@ -337,6 +331,15 @@ class SessionRunner:
         if self.pace is None:
             self.pace = self.acquisition.measure_pace()
         return self.pace
+
+    def request_stop(self, reason: str) -> None:
+        """Ask the session to stop, the one way to do it (the console's Abort and E-STOP,
+        SIGINT/SIGTERM/SIGHUP): the acquisition sees it at its next poll, the safe stop
+        follows, and the session ends ``interrupted (reason)``.  The first reason asked
+        is the one on record.  Safe from a signal handler: no lock is taken."""
+        if self.stop_reason is None:
+            self.stop_reason = reason
+        self.acquisition.stop_requested.set()
 
     def run(self, session: Session) -> RunResult:
         prep, bus, acq = self.prep, self.bus, self.acquisition
