@@ -94,7 +94,8 @@ def qc_view(speed: float, out: Path, sessions: Path) -> None:
     # the DAQ's rate measured on the session's stream.
     wait("the QC run's settling", lambda: "settling" in qc.qc.step.text() and "× real time" in qc.live.health.text()
          and not any(t.isVisible() for t in qc.live.placeholders), 600)
-    shoot(qc, out / "qc-testing.png")      # at once: a second more is the next phase
+    settle_view(0.2)                       # the loops' axes laid out; a second more is the next phase
+    shoot(qc, out / "qc-testing.png")
     wait("the QC verdict", lambda: qc.qc.last is not None, 900)
     wait("the console's links back", lambda: qc.station.manual.shaker is not None and qc.status is not None, 60)
     wait("the console's DAQ rate measured", lambda: "× real time" in qc.live.health.text(), 60)
