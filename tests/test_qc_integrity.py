@@ -253,13 +253,20 @@ def test_the_report_has_titles_acceptance_limits_units_and_a_sigma_note_per_char
 # ----- the console's QC panel, from the session's events and the stored record -------------------------
 def test_the_console_progress_follows_the_session_and_its_re_prediction():
     posted: list[QcProgress] = []
-    tracker = QcTracker({"261126l": 100.0, "261126v": 200.0}, posted.append)
+    now = [0.0]                               # the session's clock [s]; the links at 10x
+    tracker = QcTracker({"261126l": 100.0, "261126v": 200.0}, posted.append, lambda: now[0], lambda: 10.0)
     assert posted[-1].fraction == 0 and posted[-1].rig_left_s == 300 and not posted[-1].predicted_after
     tracker(Event(Kind.PHASE, "261126l", {"phase": "moving", "target_mm": 40.0}))
     assert posted[-1].text == "experiment 1 of 2 (261126l): moving"
+    now[0] = 5.0                              # 50 rig seconds into l
+    tracker(Event(Kind.PROGRESS, "261126l", {"phase": "settling", "cycles": 3, "change": {}}))
+    assert posted[-1].fraction == pytest.approx(50 / 300) and posted[-1].rig_left_s == pytest.approx(250)
+    assert "settling" in posted[-1].text
+    now[0] = 30.0                             # longer than its estimate: at most 95 % of it until written
     tracker(Event(Kind.PROGRESS, "261126l", {"phase": "capturing", "fraction": 0.5}))
-    assert posted[-1].fraction == pytest.approx(50 / 300) and "capturing" in posted[-1].text
+    assert posted[-1].fraction == pytest.approx(95 / 300) and "capturing" in posted[-1].text
     tracker(Event(Kind.PHASE, "261126v", {"phase": "moving", "target_mm": 133.0}))   # begun before l is written
+    assert posted[-1].fraction == pytest.approx(95 / 300)                           # l still counts
     tracker(Event(Kind.EXPERIMENT_DONE, "261126l", {"file": "l.csv", "samples": 1, "lost": 0, "flags": []}))
     assert posted[-1].fraction == pytest.approx(1 / 3) and posted[-1].rig_left_s == pytest.approx(200)
     assert "experiment 2 of 2" in posted[-1].text
@@ -268,7 +275,7 @@ def test_the_console_progress_follows_the_session_and_its_re_prediction():
     assert posted[-1].rig_left_s == pytest.approx(450) and posted[-1].predicted_after == "261126l"
     assert posted[-1].fraction == pytest.approx(100 / 550)
     tracker(Event(Kind.LOG, None, {"message": "anything"}))      # nothing the panel shows
-    assert len(posted) == 6
+    assert len(posted) == 7
 
 
 def test_the_console_table_comes_from_the_stored_record():

@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERNAL
-from rig.events import Event, Kind, Message, Phase
+from rig.events import Event, Kind, Message
 from rig.qc.judge import Outcome
 from rig.qc.present import shown
 from rig.qc.run import EXIT_BY_VERDICT, Prediction, QcOptions, QcOutcome
@@ -24,6 +24,7 @@ from rig.qc.run import EXIT_BY_VERDICT, Prediction, QcOptions, QcOutcome
 # What the operator is told to do: an INCONCLUSIVE unit is neither passed nor failed, it is tested again.
 SHOWN = {Outcome.PASS: "PASS", Outcome.FAIL: "FAIL", Outcome.INCONCLUSIVE: "RETEST"}
 VERDICT_BY_EXIT = {code: outcome for outcome, code in EXIT_BY_VERDICT.items()}
+RUNNING_SHARE = 0.95     # of its estimate, the most a running experiment counts as done before it is written
 
 
 @dataclass(frozen=True)
@@ -115,17 +116,20 @@ def ended(request: QcRequest, reason: str, report: Path | None, bug: bool) -> Qc
 class QcTracker:
     """A queued subscriber of the unit's session: its progress as :class:`QcProgress`,
     from the rig time predicted per experiment (the session's own estimates, on record
-    in session.json) and the events; after each captured experiment the time left is
-    predicted again from the parameters identified so far (:meth:`predicted`)."""
+    in session.json), the events and the rig time the running experiment has taken so
+    far (the session's clock at its measured pace, at most 95 % of its estimate until it
+    is written); after each captured experiment the time left is predicted again from the
+    parameters identified so far (:meth:`predicted`)."""
 
-    def __init__(self, estimates_s: dict[str, float], post: Callable[[Message], None]) -> None:
+    def __init__(self, estimates_s: dict[str, float], post: Callable[[Message], None],
+                 clock: Callable[[], float], pace: Callable[[], float]) -> None:
         self.estimates = dict(estimates_s)
         self.order = list(estimates_s)
-        self.post = post
+        self.post, self.clock, self.pace = post, clock, pace
         self.done: set[str] = set()
         self.current: str | None = None
+        self.started: dict[str, float] = {}    # each experiment's first event, on the session's clock
         self.phase = ""
-        self.captured = 0.0            # the running experiment's captured fraction
         self.after = ""
         self._lock = threading.Lock()  # the bus's thread and the session's (predicted) both call in
         self._emit("session started: the first experiment")
@@ -133,12 +137,9 @@ class QcTracker:
     def __call__(self, e: Event) -> None:
         with self._lock:
             if e.experiment is not None and e.experiment in self.estimates:
-                if e.kind == Kind.PHASE:
+                if e.kind in (Kind.PHASE, Kind.PROGRESS):
+                    self.started.setdefault(e.experiment, self.clock())
                     self.current, self.phase = e.experiment, str(e.data["phase"])
-                    if self.phase != Phase.CAPTURING:
-                        self.captured = 0.0
-                elif e.kind == Kind.PROGRESS and e.data.get("phase") == Phase.CAPTURING:
-                    self.current, self.phase, self.captured = e.experiment, "capturing", float(e.data["fraction"])
                 elif e.kind in (Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED):
                     self.done.add(e.experiment)
                 else:
@@ -171,8 +172,9 @@ class QcTracker:
     def _emit(self, text: str) -> None:
         total = sum(self.estimates.values())
         done = sum(self.estimates[label] for label in self.done)
-        running = 0.0
-        if self.current is not None and self.current not in self.done and self.phase == "capturing":
-            running = self.captured * self.estimates[self.current]
+        # begun, not yet written (an experiment's file is written while the next one moves)
+        now, pace = self.clock(), self.pace()
+        running = sum(min((now - t0) * pace, RUNNING_SHARE * self.estimates[label])
+                      for label, t0 in self.started.items() if label not in self.done)
         fraction = min((done + running) / total, 1.0) if total > 0 else 0.0
         self.post(QcProgress(fraction, max(total - done - running, 0.0), text, self.after))

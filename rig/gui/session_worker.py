@@ -162,7 +162,7 @@ class SessionWorker:
         def attach(ctx: SessionContext) -> list[Subscriber]:
             folder.append(ctx.session.path)
             self._opened(ctx, ctx.runner.prep.options, qc=True)
-            self._tracker = QcTracker(ctx.estimates_s, self.post)
+            self._tracker = QcTracker(ctx.estimates_s, self.post, ctx.rig_clock, ctx.current_pace)
             return [self._tracker]
 
         def predicted(prediction: Prediction) -> None:
