@@ -40,6 +40,7 @@ from scipy.linalg import LinAlgWarning, lapack
 
 from identify.dataset import DatasetError, Experiment
 from identify.differentiation import BDF2_D1, BDF2_D2, Factorization
+from identify.errors import InputError
 from identify.model import CompiledModel
 from identify.periodic import ConvergenceError
 from identify.start import Measured, rest_state
@@ -162,6 +163,9 @@ def prepare_transient(model: CompiledModel, experiments: list[Experiment], outpu
     """Each experiment's input and output columns in SI, sample by sample, with the
     channels' noise from their differences (:func:`white_noise_std`)."""
     d = model.declaration
+    if experiments and model.input_derivatives:
+        raise InputError(f"model {model.name!r} takes its inputs' derivatives, which a transient fit does not "
+                         f"provide yet: fit {experiments[0].label!r} as periodic (--capture steady)")
     out = []
     for exp in experiments:
         if exp.kind == "drop":
