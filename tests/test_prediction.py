@@ -100,11 +100,15 @@ def test_qc_run_publishes_its_re_prediction_as_an_event(monkeypatch, tmp_path):
     session = SimpleNamespace(path=tmp_path, label=lambda letter: f"261126{letter}")
     result = SimpleNamespace(session=session, captured=[SimpleNamespace(label="261126j")])
     runner = SimpleNamespace(bus=bus, timing=lambda: AT_10X)
-    assert qc_run.decider(spec, prep, Console(file=io.StringIO()))(result, runner) is None
+    told: list = []
+    assert qc_run.decider(spec, prep, told.append, lambda: runner)(result) is None
     (e,) = [e for e in events if e.kind == Kind.PREDICTION]
     rest = replace(prep.plan, experiments=prep.plan.experiments[1:])
     assert e.data["rig_time_left_s"] == pytest.approx(predict_s(rest, prep.config, AT_10X, 0.133, params), abs=0.06)
     assert e.data["basis"] == "the parameters identified from 261126j"
+    (p,) = told   # the console's QC panel hears the same figure (rig.qc.run.Prediction)
+    assert (p.after, p.undecided, p.rig_left_s) == (("261126j",), ("gas_precharge_bar",), pytest.approx(
+        e.data["rig_time_left_s"], abs=0.06))
 
 
 def test_the_terminal_takes_the_re_prediction_over():

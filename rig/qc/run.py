@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import datetime as _dt
 import getpass
+import io
 import json
 import shlex
 import socket
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -29,8 +30,8 @@ from rich.console import Console
 
 from identify.files import atomic_write_bytes
 from rig.errors import BadInput
-from rig.events import Kind
-from rig.planning.prediction import predict_s
+from rig.events import Kind, Subscriber
+from rig.planning.prediction import NOT_MEASURED, predict_s
 from rig.qc.characteristics import check_model
 from rig.qc.evaluate import Evaluation, evaluate
 from rig.qc.judge import Outcome
@@ -45,9 +46,11 @@ from rig.session.run import (
     Prepared,
     RunOptions,
     RunResult,
+    SessionContext,
     SessionRunner,
-    execute,
     prepare,
+    run_lifecycle,
+    terminal_progress,
 )
 
 EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
@@ -70,7 +73,68 @@ class QcOptions:
     register_map: str | None = None
 
 
+@dataclass
+class QcSubscribers:
+    """Who hears of one unit's test, and how: the command line's terminal
+    (:func:`terminal`) or the console's window (rig.gui.session_worker).  Everything
+    else (the checks, the session, the judgement, the record, the report, the exit
+    status) is :func:`test_unit`'s, the same for both."""
+
+    say: Callable[[str], None]                                  # a sentence for people (markup allowed)
+    attach: Callable[[SessionContext], Sequence[Subscriber]]    # the session's progress, once its time is predicted
+    subscribers: Sequence[Subscriber] = ()                      # every session event from the first
+    on_runner: Callable[[SessionRunner | None], object] | None = None
+    before_session: Callable[[Prepared], object] | None = None  # checked, records open, nothing sent yet
+    predicted: Callable[[Prediction], None] | None = None       # the time left, predicted again after an experiment
+    after_session: Callable[[RunResult], object] | None = None  # the session over, its links closed; judging next
+    concluded: Callable[[QcRecord, float, Path, str], None] | None = None   # a verdict: record, k, report, database
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """After a captured experiment: what is not decided yet and the rig time the rest of
+    the plan takes, predicted from the parameters identified so far."""
+
+    after: tuple[str, ...]          # the experiments captured
+    undecided: tuple[str, ...]      # the characteristics still INCONCLUSIVE
+    rig_left_s: float
+
+    def sentence(self) -> str:
+        return (f"after {', '.join(self.after)}: {', '.join(self.undecided)} not yet decided; the rest of the plan, "
+                f"predicted from the parameters identified so far: {self.rig_left_s:.0f} s")
+
+
+@dataclass(frozen=True)
+class QcOutcome:
+    """How one unit's test ended: its exit status (:data:`EXIT_BY_VERDICT`, or the
+    session's), the record stored (judged or not) and where its report is."""
+
+    exit_code: int
+    record: QcRecord
+    report: Path
+    k: float
+    database: str
+
+
+def terminal(console: Console) -> QcSubscribers:
+    """``rig qc run``'s subscribers: the session's lines and the summary in the terminal."""
+    # the re-prediction is said by the session's terminal progress (a prediction event, with the time left)
+    return QcSubscribers(say=lambda text: console.print(text, highlight=False), attach=terminal_progress(console),
+                         concluded=lambda record, k, report, database: _print_summary(record, k, report, database))
+
+
 def qc_run(opt: QcOptions, console: Console) -> int:
+    """``rig qc run``: :func:`test_unit` with the terminal as its subscriber."""
+    return test_unit(opt, terminal(console)).exit_code
+
+
+def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
+    """One unit's test, the one way ``rig qc run`` and the console run it: the spec's
+    checks, the records opened, the session (:func:`rig.session.run.run_lifecycle`),
+    the judgement, the record, the report.  A failure before the session folder exists
+    is raised with nothing recorded; after it, it is recorded (ABORTED, ERROR) and then
+    raised; a session that ended without its data (aborted, interrupted) is recorded
+    ABORTED and returned with the session's exit status."""
     spec = load_spec(opt.spec)
     spec.check_serial(opt.serial)
     check_model(spec)
@@ -87,11 +151,24 @@ def qc_run(opt: QcOptions, console: Console) -> int:
     # file is made only with the first record: a run that never starts leaves none.
     records = Records.open(opt.db or default_url(opt.out), create=True, defer=True)
     try:
-        console.print(f"QC {spec.name} {spec.version} on unit {opt.serial}: records in {records.name}", highlight=False)
+        to.say(f"QC {spec.name} {spec.version} on unit {opt.serial}: records in {records.name}")
+        if to.before_session is not None:
+            to.before_session(prep)
         started = now_utc()
         identity: dict[str, Any] = dict(serial=opt.serial, operator=operator, rig=rig_id, started=started)
+        running: list[SessionRunner] = []   # the session's runner: its links' timing and its bus
+        decide = decider(spec, prep, to.predicted, lambda: running[0] if running else None)
+
+        def hand_over(runner: SessionRunner | None) -> None:
+            if runner is not None:
+                runner.decide = decide
+                running[:] = [runner]
+            if to.on_runner is not None:
+                to.on_runner(runner)
+
         try:
-            result = execute(prep, console, decide=decider(spec, prep, console))
+            result = run_lifecycle(prep, Console(file=io.StringIO()), subscribers=to.subscribers, attach=to.attach,
+                                   on_runner=hand_over)
         except BaseException as exc:
             # A session that started (its folder exists) is on record as ABORTED; one that
             # never started (no link, refused) has nothing to record.
@@ -102,23 +179,25 @@ def qc_run(opt: QcOptions, console: Console) -> int:
             raise
         finished = now_utc()
         session = result.session.path
+        if to.after_session is not None:
+            to.after_session(result)
         if result.error is not None:
             _store(records, _unjudged(spec, session, "ERROR", f"internal error: {result.error!r}", finished=finished,
                                       **identity), spec)
             raise result.error
         if result.exit_code != EXIT_OK:
-            _store(records, _unjudged(spec, session, "ABORTED", f"session {result.status}", finished=finished,
-                                      **identity), spec)
-            console.print(f"[red]QC run ABORTED: session {result.status}; no verdict[/red]", highlight=False)
-            return result.exit_code
+            record = _store(records, _unjudged(spec, session, "ABORTED", f"session {result.status}",
+                                               finished=finished, **identity), spec)
+            to.say(f"[red]QC run ABORTED: session {result.status}; no verdict[/red]")
+            return QcOutcome(result.exit_code, record, session / "qc-report.html", spec.k, records.name)
         try:
             evaluation = evaluate(spec, session)
         except BaseException as exc:
             status = "ABORTED" if isinstance(exc, KeyboardInterrupt) else "ERROR"
-            _store(records, _unjudged(spec, session, status, f"judging ended: {exc!r}", finished=finished,
-                                      **identity), spec)
+            record = _store(records, _unjudged(spec, session, status, f"judging ended: {exc!r}", finished=finished,
+                                               **identity), spec)
             if isinstance(exc, KeyboardInterrupt):
-                return EXIT_INTERRUPTED
+                return QcOutcome(EXIT_INTERRUPTED, record, session / "qc-report.html", spec.k, records.name)
             raise
         retest = shlex.join(["python", "-m", "rig", "qc", "run", "--spec", opt.spec, "--serial", opt.serial,
                              "--shaker", opt.shaker, "--daq", opt.daq, "--out", str(opt.out),
@@ -126,19 +205,22 @@ def qc_run(opt: QcOptions, console: Console) -> int:
         evaluation.notes.append(stopping_note(result, prep))
         record = judged_record(spec, trace_session(session), evaluation, retest, rejudges=None, finished=finished,
                                **identity)
-        return _conclude(records, record, spec, evaluation, session / "qc-report.html", session / "qc-record.json")
+        report = session / "qc-report.html"
+        code = _conclude(records, record, spec, evaluation, report, session / "qc-record.json", to.concluded)
+        return QcOutcome(code, record, report, spec.k, records.name)
     finally:
         records.close()
 
 
-def decider(spec: Spec, prep: Prepared, console: Console) -> Callable[[RunResult, SessionRunner], str | None]:
+def decider(spec: Spec, prep: Prepared, predicted: Callable[[Prediction], None] | None,
+            runner: Callable[[], SessionRunner | None] = lambda: None) -> Callable[[RunResult], str | None]:
     """After each captured experiment but the last: fit and judge what there is, and end
     the session as soon as every characteristic is decided under the guard band (PASS,
     or FAIL at k·σ); otherwise predict the rest of the plan again from the parameters
     identified so far (a faulty unit heats and settles otherwise than the nominal one
     the first estimate assumed), at the links' measured timing, and publish it
     (``prediction``: every progress display takes it over)."""
-    def decide(result: RunResult, runner: SessionRunner) -> str | None:
+    def decide(result: RunResult) -> str | None:
         evaluation = evaluate(spec, result.session.path)
         labels = ", ".join(e.label for e in result.captured)
         open_ = [j.name for j in evaluation.judgement.characteristics if j.outcome is Outcome.INCONCLUSIVE]
@@ -148,13 +230,18 @@ def decider(spec: Spec, prep: Prepared, console: Console) -> Callable[[RunResult
         rest = tuple(e for e in prep.plan.experiments if result.session.label(e.letter) not in done)
         if evaluation.fit is not None and evaluation.fit.converged and rest:
             last = prep.plan.experiments[len(prep.plan.experiments) - len(rest) - 1]
-            left = predict_s(replace(prep.plan, experiments=rest), prep.config, runner.timing(),
+            session = runner()
+            left = predict_s(replace(prep.plan, experiments=rest), prep.config,
+                             session.timing() if session is not None else NOT_MEASURED,
                              last.static_position_mm * 1e-3, evaluation.fit.params)
             basis = f"the parameters identified from {labels}"
-            runner.bus.publish(Kind.PREDICTION, rig_time_left_s=round(left, 1), basis=basis,
-                               message=f"{', '.join(open_)} not yet decided after {labels}: the rest of the plan "
-                                       f"({len(rest)} experiment{'s' if len(rest) != 1 else ''}) predicted again "
-                                       f"from {basis}: {left:.0f} s of rig time")
+            if session is not None:   # on the bus: session.log, the terminal's and the bar's time left
+                session.bus.publish(Kind.PREDICTION, rig_time_left_s=round(left, 1), basis=basis,
+                                    message=f"{', '.join(open_)} not yet decided after {labels}: the rest of the "
+                                            f"plan ({len(rest)} experiment{'s' if len(rest) != 1 else ''}) "
+                                            f"predicted again from {basis}: {left:.0f} s of rig time")
+            if predicted is not None:
+                predicted(Prediction(tuple(e.label for e in result.captured), tuple(open_), left))
         return None
 
     return decide
@@ -196,7 +283,7 @@ def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str 
                                finished=first.finished if first else trace.finished)
         tag = f"{record.judged.replace(':', '').replace('-', '')[:15]}-{record.uid[:8]}"
         return _conclude(records, record, spec, evaluation, session / f"qc-report-{tag}.html",
-                         session / f"qc-record-{tag}.json")
+                         session / f"qc-record-{tag}.json", _print_summary)
     finally:
         records.close()
 
@@ -209,14 +296,15 @@ def rejudgement_note(first: QcRecord) -> str:
 
 
 def _conclude(records: Records, record: QcRecord, spec: Spec, evaluation: Evaluation, report: Path,
-              record_file: Path) -> int:
+              record_file: Path, concluded: Callable[[QcRecord, float, Path, str], None] | None) -> int:
     """The report rendered first (a failure there costs no record), then the record
     stored, then the files: a killed process leaves a verdict in the database or nowhere."""
     html = render_report(record, spec, evaluation)
     records.add(record)
     atomic_write_bytes(report, html.encode())
     atomic_write_bytes(record_file, (json.dumps(_document(record), indent=2) + "\n").encode())
-    _print_summary(record, spec.k, report, records.name)
+    if concluded is not None:
+        concluded(record, spec.k, report, records.name)
     assert record.verdict is not None  # a judged record
     return EXIT_BY_VERDICT[Outcome(record.verdict)]
 
@@ -229,12 +317,13 @@ def _document(record: QcRecord) -> dict:
     return doc
 
 
-def _store(records: Records, record: QcRecord, spec: Spec) -> None:
+def _store(records: Records, record: QcRecord, spec: Spec) -> QcRecord:
     """A run without a verdict: on record all the same, with a report that says why."""
     records.add(record)
     atomic_write_bytes(Path(record.session) / "qc-report.html", render_report(record, spec, None).encode())
     atomic_write_bytes(Path(record.session) / "qc-record.json",
                        (json.dumps(_document(record), indent=2) + "\n").encode())
+    return record
 
 
 def rejudge_remedy(spec: Spec) -> str:
@@ -280,8 +369,8 @@ def judged_record(spec: Spec, trace: SessionTrace, evaluation: Evaluation, retes
 
 
 def _print_summary(record: QcRecord, k: float, report: Path, database: str) -> None:
-    """The terminal summary: the console's QC panel reads it (rig.gui.qc), so its lines
-    are the panel's rows — one per characteristic, fields separated by ' | '."""
+    """The terminal summary: one line per characteristic, fields separated by ' | ' (the
+    console's QC panel shows the same cells from the record, rig.qc.present.shown)."""
     simulated = "  SIMULATED (not a production record)" if record.simulated else ""
     again = f"  RE-JUDGEMENT of record {record.rejudges}" if record.rejudges else ""
     print(f"{record.serial}: {record.verdict}  (spec {record.spec_name} {record.spec_version}; "

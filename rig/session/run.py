@@ -295,6 +295,7 @@ class SessionRunner:
         self._timing: LinkTiming | None = None                     # the links', measured (timing)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="session-writer")
         self._writing: tuple[str, Future[None]] | None = None
+        self.stop_reason: str | None = None   # the first request_stop's reason
         self.signals: list[int] = []       # SIGINT, SIGTERM, SIGHUP received while the session ran
         # One time line for the rig: the acquisition waits on the shaker's clock (the wall
         # clock, or a simulated one when a test drives an in-process simulator).
@@ -302,7 +303,7 @@ class SessionRunner:
         # Asked after each captured experiment but the last, its data written: a reason to
         # end the session there (qc run: every characteristic is decided), or None; it
         # may publish a re-prediction of the rest (Kind.PREDICTION) on the runner's bus.
-        self.decide: Callable[[RunResult, SessionRunner], str | None] | None = None
+        self.decide: Callable[[RunResult], str | None] | None = None
 
     def open_session(self) -> Session:
         """The session folder, with the DAQ's journal attached (see :meth:`create_session`)."""
@@ -369,6 +370,15 @@ class SessionRunner:
             self.pace = self.acquisition.measure_pace()
         return self.pace
 
+    def request_stop(self, reason: str) -> None:
+        """Ask the session to stop, the one way to do it (the console's Abort and E-STOP,
+        SIGINT/SIGTERM/SIGHUP): the acquisition sees it at its next poll, the safe stop
+        follows, and the session ends ``interrupted (reason)``.  The first reason asked
+        is the one on record.  Safe from a signal handler: no lock is taken."""
+        if self.stop_reason is None:
+            self.stop_reason = reason
+        self.acquisition.stop_requested.set()
+
     def run(self, session: Session) -> RunResult:
         prep, bus, acq = self.prep, self.bus, self.acquisition
         todo = [e for e in prep.plan.experiments if e.letter not in session.completed()]
@@ -397,7 +407,7 @@ class SessionRunner:
                         previous = session.label(spec.letter)
                         if self.decide is not None and k < len(todo) - 1:
                             self._written(result)
-                            result.decided = self.decide(result, self)
+                            result.decided = self.decide(result)
                             if result.decided:
                                 reason = result.decided
                                 bus.publish("log", message=f"ending the session before its plan: {reason}")
@@ -545,32 +555,36 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
     return EXIT_OK
 
 
-def execute(prep: Prepared, console: Console,
-            decide: Callable[[RunResult, SessionRunner], str | None] | None = None) -> RunResult:
-    """``rig run`` and ``rig qc run``: the lifecycle with the terminal's progress lines,
-    the first of them at once (nothing else is said before the links answer, the plan
-    is ordered and the pace is probed: seconds).  ``decide``: see :attr:`SessionRunner.decide`."""
+def execute(prep: Prepared, console: Console) -> RunResult:
+    """``rig run``: the lifecycle with the terminal's progress lines, the first of them at
+    once (nothing else is said before the links answer, the plan is ordered and the
+    pace is probed: seconds), and the ordering's while it runs."""
     plan, n = prep.plan, len(prep.plan.experiments)
     order = "in the order of least predicted rig time" if plan.order == "thermal" and n > 1 else "as listed"
     kept = f" ({len(prep.stored.completed())} captured before, kept)" if prep.stored else ""
     console.print(f"plan {plan.name}: {n} experiment{'s' if n != 1 else ''}{kept} {order}; connecting to the "
                   f"controller at {prep.shaker_url} and the DAQ at {prep.daq_url}", highlight=False)
     early = _EarlyLines(console)
+    return run_lifecycle(prep, console, subscribers=[early], attach=terminal_progress(console, early))
 
+
+def terminal_progress(console: Console, early: _EarlyLines | None = None
+                      ) -> Callable[[SessionContext], list[Subscriber]]:
+    """The terminal's subscribers of a session (``rig run``, ``rig qc run``): the pace
+    where the links run faster than the rig, then a line per phase and the ETA (and
+    the ``early`` lines end there)."""
     def progress(ctx: SessionContext) -> list[Subscriber]:
-        early.until = time.time()
+        if early is not None:
+            early.until = time.time()
+        config = ctx.runner.prep.config
         if ctx.pace > 1.0:   # a simulator faster than the rig's own time
             console.print(f"the links run {ctx.runner.acquisition.pace_reading()}: conditioning holds shorter "
-                          f"than {prep.config.min_hold_s * ctx.pace:.0f} s are not planned (session.log has "
+                          f"than {config.min_hold_s * ctx.pace:.0f} s are not planned (session.log has "
                           "the pace probe)", style="dim", highlight=False)
         return [ConsoleProgress(console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock,
                                 ctx.runner.acquisition.pace_reading)]
 
-    def hand_over(runner: SessionRunner | None) -> None:
-        if runner is not None:
-            runner.decide = decide
-
-    return run_lifecycle(prep, console, subscribers=[early], attach=progress, on_runner=hand_over)
+    return progress
 
 
 class _EarlyLines:
