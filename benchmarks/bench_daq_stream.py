@@ -22,7 +22,7 @@ import crcmod.predefined
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from rig.daq import Daq  # noqa: E402
+from rig.drivers.daq import Daq  # noqa: E402
 
 TICKS = os.sysconf("SC_CLK_TCK")
 
@@ -106,7 +106,7 @@ def main() -> int:
         proc.wait(timeout=20)
     print(f"DAQ stream, 2 kHz x 20 over a pty, {args.seconds:g} s wall ({args.seconds * 20:g} s simulated)")
     print(f"{'reader':<34} {'frames/s':>10} {'received':>10} {'lost':>6} {'reader CPU':>11}")
-    print(f"{'rig.daq (vectorised parser)':<34} {rig['frames_per_s']:>10.0f} {rig['received']:>10} "
+    print(f"{'rig.drivers.daq (vectorised parser)':<34} {rig['frames_per_s']:>10.0f} {rig['received']:>10} "
           f"{rig['lost']:>6} {rig['cpu']:>10.0%}")
     print(f"{'baseline: per-frame Python loop':<34} {naive['frames_per_s']:>10.0f} {naive['received']:>10} "
           f"{naive['lost']:>6} {naive['cpu']:>10.0%}")

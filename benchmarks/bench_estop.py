@@ -1,10 +1,10 @@
-"""The E-STOP's press-to-answer time on a served virtual rig (rig.estop).
+"""The E-STOP's press-to-answer time on a served virtual rig (rig.drivers.estop).
 
 The rig runs a sine (hydraulics on, RUNNING); another thread keeps the main link busy
 with back-to-back status reads, as a session's acquisition does; the E-STOP is pressed
 ``--presses`` times, the rig set running again between presses.  Printed: the time from
 each press to both writes (STOP, hydraulics off) answered by the controller, median
-and worst, beside the target of 0.3 s (rig.estop.BUDGET_S).
+and worst, beside the target of 0.3 s (rig.drivers.estop.BUDGET_S).
 
     python benchmarks/bench_estop.py [--presses 20] [--speed 10]
 
@@ -23,9 +23,9 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np  # noqa: E402
 
 from rig.config import load_rig_config  # noqa: E402
-from rig.estop import BUDGET_S, EStop  # noqa: E402
-from rig.registers import load_register_map  # noqa: E402
-from rig.shaker import Shaker  # noqa: E402
+from rig.drivers.estop import BUDGET_S, EStop  # noqa: E402
+from rig.drivers.registers import load_register_map  # noqa: E402
+from rig.drivers.shaker import Shaker  # noqa: E402
 from rig.virtual import VirtualRig  # noqa: E402
 
 

@@ -37,7 +37,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np  # noqa: E402
 from PySide6 import QtCore  # noqa: E402
 
-from rig.daq import Daq, RingBuffer  # noqa: E402
+from rig.drivers.daq import Daq, RingBuffer  # noqa: E402
 from rig.gui.main_window import GIL_SWITCH_S, MainWindow, application  # noqa: E402
 
 RATE = 2000.0

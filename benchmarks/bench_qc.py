@@ -39,7 +39,7 @@ from rich.console import Console  # noqa: E402
 from rig.config import DEFAULT_RIG_CONFIG  # noqa: E402
 from rig.qc.evaluate import evaluate  # noqa: E402
 from rig.qc.spec import load_spec  # noqa: E402
-from rig.run import Links, RunOptions, SessionRunner, prepare  # noqa: E402
+from rig.session.run import Links, RunOptions, SessionRunner, prepare  # noqa: E402
 from simulator.generate import generate  # noqa: E402
 from simulator.physics import Damper  # noqa: E402
 from simulator.truth import load_truth  # noqa: E402

@@ -1,7 +1,7 @@
 """Rig time of the standard session: the change criterion with direct moves (before the
 rig-time work) against the shipped default, the drift criterion with model-planned
-conditioning holds (rig/settling.py) in the order of least predicted rig time
-(rig/ordering.py), the same as listed (``--order fixed``), and the shipped default with
+conditioning holds (rig/planning/settling.py) in the order of least predicted rig time
+(rig/planning/ordering.py), the same as listed (``--order fixed``), and the shipped default with
 lost samples on the line.
 
 Runs on the in-process virtual rig on simulated time (tests/virtual_rig_inprocess.py:
@@ -60,7 +60,7 @@ def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tu
     from rich.console import Console
 
     from rig.config import DEFAULT_RIG_CONFIG
-    from rig.run import Links, RunOptions, SessionRunner, fit_session, prepare
+    from rig.session.run import Links, RunOptions, SessionRunner, fit_session, prepare
     from tests.virtual_rig_inprocess import DAQ_URL, SHAKER_URL, InProcessRig
 
     criterion, order, faults, holds = CASES[name]

@@ -26,7 +26,7 @@ from identify.model import load_model  # noqa: E402
 from identify.parameters import Parameters  # noqa: E402
 from rig.config import load_rig_config  # noqa: E402
 from rig.design import candidate_specs, standalone_seconds  # noqa: E402
-from rig.plans import load_plan  # noqa: E402
+from rig.planning.plans import load_plan  # noqa: E402
 
 MARKERS = ("*", "D", "^", "v")
 COLOURS = ("tab:red", "tab:blue", "tab:green", "tab:purple")

@@ -8,7 +8,7 @@ from typing import Any
 def __getattr__(name: str) -> Any:
     # The API is loaded on first use, so that `python -m rig` starts without it.
     if name in ("open", "Rig", "Session", "SessionFailed"):
-        from rig import api
+        from rig.session import api
 
         return getattr(api, name)
     raise AttributeError(f"module 'rig' has no attribute {name!r}")

@@ -29,14 +29,14 @@ from identify.errors import InputError
 from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK
 from identify.model import DEFAULT_ESTIMATE
 from rig.config import load_rig_config
-from rig.daq import Calibration, Daq
+from rig.drivers.daq import Calibration, Daq
+from rig.drivers.registers import load_register_map
+from rig.drivers.shaker import LimitError, Shaker
 from rig.errors import BadInput, RigFault
 from rig.gui.options import ConsoleOptions, add_console_arguments, add_link_arguments
-from rig.plans import comma_list
+from rig.planning.plans import comma_list
 from rig.qc.cli import add_parser as add_qc_parser
-from rig.registers import load_register_map
-from rig.run import RunOptions, run_session
-from rig.shaker import LimitError, Shaker
+from rig.session.run import RunOptions, run_session
 
 
 def _positive_int(text: str) -> int:

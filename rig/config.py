@@ -7,13 +7,14 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from rig.criterion import DriftCriterion, SteadyStateCriteria
-from rig.daq import CHANNELS
 from rig.errors import BadInput
-from rig.registers import CONFIG_DIR
 from rig.tomlfile import read_toml
 
+# The shipped data files (register map, DAQ calibration, rig defaults) live beside this module.
+CONFIG_DIR = Path(__file__).parent / "config"
 DEFAULT_RIG_CONFIG = CONFIG_DIR / "rig-default.toml"
+# The four channels every DAQ frame carries, in frame order (engineering units in the names).
+CHANNELS = ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")
 
 
 class ConfigError(BadInput):
@@ -30,6 +31,48 @@ class Limits:
     max_velocity_m_s: float
     max_frequency_hz: float
     watchdog_timeout_s: float
+
+
+@dataclass(frozen=True)
+class DriftCriterion:
+    """The criterion's settings (``[steady_state]`` of rig-default.toml)."""
+
+    fraction: float                  # bound on the bias, in standard deviations of the fit
+    fit_cycles: int                  # block means fitted with the geometric law (the latest ones)
+    max_time_constant_s: float       # slowest thermal relaxation looked for: bounds r at low frequencies
+    noise: dict[str, float]          # transducer noise per sample of each fitted channel (engineering units)
+    # the relaxations looked for are within this factor of the damper model's prediction
+    # for the experiment (0: any up to max_time_constant_s)
+    model_time_constant_factor: float = 0.0
+
+    def time_constant_range_s(self, model_time_constant_s: float | None) -> tuple[float, float]:
+        """The relaxations looked for: within the factor of the model's prediction, no
+        slower than max_time_constant_s.  The fastest matters as much as the slowest: a
+        large transient's first blocks decay faster than its tail (the ramp, the gas
+        far from its periodic state), and a fit free to take their pace reads the tail
+        as settled."""
+        f = self.model_time_constant_factor
+        if f > 0 and model_time_constant_s and math.isfinite(model_time_constant_s):
+            return model_time_constant_s / f, min(self.max_time_constant_s, f * model_time_constant_s)
+        return 0.0, self.max_time_constant_s
+
+
+@dataclass(frozen=True)
+class SteadyStateCriteria:
+    """When a periodic experiment counts as settled (engineering units per channel).
+
+    ``criterion``: ``change`` compares the channel means of consecutive blocks with the
+    thresholds; ``drift`` bounds the bias the transient left over the capture window
+    would cause in the fit (the criterion above)."""
+
+    block_s: float
+    thresholds: dict[str, float]
+    min_cycles: int
+    max_cycles: int
+    max_recaptures: int
+    ramp_time_s: float
+    criterion: str = "change"
+    drift: DriftCriterion | None = None
 
 
 CRITERIA = ("change", "drift")

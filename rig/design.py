@@ -10,7 +10,7 @@ with it the information one captured period gives the estimator, under the
 transducers' noise of the rig configuration (``drift_noise``).
 
 Cost: the predicted rig seconds of the whole sequence as ``rig run`` will spend them
-(rig.plans' estimate: moves, conditioning holds, ramps, settling under the criterion
+(rig.planning.plans' estimate: moves, conditioning holds, ramps, settling under the criterion
 from where the previous experiment left actuator and gas, captures, fades).
 
 Goals: ``--target theta4,theta6,theta16 --no-worse-than standard`` (every σ at most the
@@ -55,10 +55,10 @@ from identify.model import CompiledModel, load_model
 from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
 from rig.config import RigConfig, load_rig_config
+from rig.drivers.shaker import check_waveform
 from rig.errors import BadInput
-from rig.imposed import imposed_stroke
-from rig.plans import Plan, check_plan, estimate_experiment_durations, load_plan
-from rig.shaker import check_waveform
+from rig.planning.imposed import imposed_stroke
+from rig.planning.plans import Plan, check_plan, estimate_experiment_durations, load_plan
 
 # The candidate grid: the standard set's static positions, amplitudes and frequencies.
 STATIC_MM = (14.0, 40.0, 79.0, 133.0, 179.0, 219.0, 249.0)
@@ -146,7 +146,7 @@ def informations(goal: Goal, specs: Sequence[ExperimentSpec], config: RigConfig,
 
 
 def rig_seconds(plan: Plan, config: RigConfig, params: Parameters) -> float:
-    """Predicted rig time of a plan run in its order (rig.plans, as the session's ETA)."""
+    """Predicted rig time of a plan run in its order (rig.planning.plans, as the session's ETA)."""
     return sum(d.total_s for d in estimate_experiment_durations(plan.ordered(config), config, 0.0, params))
 
 

@@ -21,7 +21,7 @@ from typing import Any
 
 
 class Phase(StrEnum):
-    """The acquisition's states (rig.acquisition); a ``phase`` event enters one."""
+    """The acquisition's states (rig.session.acquisition); a ``phase`` event enters one."""
 
     IDLE = "idle"
     MOVING = "moving"
@@ -73,7 +73,7 @@ class LinkCondition(StrEnum):
 
 class Message:
     """A record that one thread hands to another's queue: the bus's :class:`Event` and the
-    console's own records (rig.gui.station, rig.gui.qc, rig.estop).  Each is a frozen
+    console's own records (rig.gui.station, rig.gui.qc, rig.drivers.estop).  Each is a frozen
     dataclass with named fields; a receiver dispatches on its type and reads the fields,
     never a sentence."""
 
@@ -82,7 +82,7 @@ class Message:
 
 @dataclass(frozen=True)
 class LinkNotice:
-    """What a driver (rig.shaker, rig.daq) says of its link, for whoever listens (``on_event``)."""
+    """What a driver (rig.drivers.shaker, rig.drivers.daq) says of its link, for whoever listens (``on_event``)."""
 
     link: str                                # "controller" or "DAQ"
     state: LinkCondition
@@ -152,7 +152,7 @@ class EventBus:
         return event
 
     def publish_link(self, notice: LinkNotice) -> None:
-        """A driver's notice of its link (``on_event`` of rig.shaker and rig.daq)."""
+        """A driver's notice of its link (``on_event`` of rig.drivers.shaker and rig.drivers.daq)."""
         self.publish(Kind.LINK, link=notice.link, state=notice.state.value, message=notice.message)
 
     def close(self, timeout_s: float = 2.0) -> None:

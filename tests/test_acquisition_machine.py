@@ -20,11 +20,10 @@ import numpy as np
 import pytest
 
 from identify.plans import STANDARD_SET
-from rig.acquisition import POLL_S, STATUS_POLL_S, Acquisition, ExperimentRecord, Interrupted, Recorder
-from rig.config import load_rig_config
-from rig.daq import CHANNELS
-from rig.run import EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK
-from rig.shaker import AlarmError
+from rig.config import CHANNELS, load_rig_config
+from rig.drivers.shaker import AlarmError
+from rig.session.acquisition import POLL_S, STATUS_POLL_S, Acquisition, ExperimentRecord, Interrupted, Recorder
+from rig.session.run import EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK
 from simulator.controller import Alarm, State
 from tests.virtual_rig_inprocess import SHAKER_URL, InProcessRig, quick_rig_config
 
@@ -140,8 +139,8 @@ def test_the_pace_is_the_median_of_several_probes_which_one_stalled_probe_does_n
 def test_the_session_corrects_the_probed_pace_from_its_own_streams():
     """Once the session has streamed PACE_FROM_STREAMS_S, the pace shown (the rig time
     a session says it took) is the samples its DAQ took against the time it streamed."""
-    from rig.acquisition import PACE_FROM_STREAMS_S
     from rig.events import EventBus
+    from rig.session.acquisition import PACE_FROM_STREAMS_S
 
     links = _BusyHostLinks()
     links.PACES = [6.95] * 5       # every probe on a starved simulator
@@ -375,7 +374,7 @@ def shipped_config(tmp_path: Path, criterion: str, holds: bool = False) -> Path:
 @pytest.mark.parametrize(("letter", "criterion"), [("a", "change"), ("j", "change"), ("a", "drift"), ("j", "drift")])
 def test_lost_samples_do_not_stretch_settling(tmp_path, letter, criterion):
     """Line faults while settling: neither criterion (the default change thresholds, or
-    rig.criterion's drift bound) may pass early nor, because the holes make the block
+    rig.planning.criterion's drift bound) may pass early nor, because the holes make the block
     means scatter, keep waiting (a took 109 cycles instead of 8, j 380 instead of 110)."""
     from identify.plans import STANDARD_SET, select
 
@@ -433,7 +432,7 @@ def hold_before(config: Path, letters: str) -> tuple[list, list]:
     """The plan of ``letters`` on ``config`` (from rest at 0 mm): its experiments and their
     predicted durations, each with its conditioning hold."""
     from identify.plans import select
-    from rig.plans import Plan, estimate_experiment_durations
+    from rig.planning.plans import Plan, estimate_experiment_durations
 
     specs = select(STANDARD_SET, list(letters))
     return specs, estimate_experiment_durations(Plan("t", tuple(specs)), load_rig_config(config))

@@ -1,4 +1,4 @@
-"""The drift criterion (rig.criterion) on synthetic block means, and its settings."""
+"""The drift criterion (rig.planning.criterion) on synthetic block means, and its settings."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from rig.config import DEFAULT_RIG_CONFIG, ConfigError, load_rig_config
-from rig.criterion import DriftCriterion, bias_bound, window_drift
+from rig.planning.criterion import DriftCriterion, bias_bound, window_drift
 
 NOISE = {"stroke_mm": 0.01, "force_N": 2.0, "pressure_bar": 0.003}
 CRITERION = DriftCriterion(10.0, 12, 120.0, NOISE)

@@ -32,8 +32,8 @@ from identify.preparation import model_columns
 from rig.cli import main as rig_main
 from rig.config import load_rig_config
 from rig.design import transducer_noise
-from rig.imposed import imposed_stroke
-from rig.plans import check_plan, load_plan
+from rig.planning.imposed import imposed_stroke
+from rig.planning.plans import check_plan, load_plan
 from simulator.generate import generate
 from simulator.truth import load_truth
 

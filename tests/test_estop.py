@@ -1,4 +1,4 @@
-"""The E-STOP on its own (rig.estop): the two writes on its own line by byte replay and
+"""The E-STOP on its own (rig.drivers.estop): the two writes on its own line by byte replay and
 against the in-process simulator, also while another thread holds the main link in a
 slow transaction; the latch that keeps motion commands in the program until the
 operator confirms a reset.
@@ -18,13 +18,13 @@ from typing import Any
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-from rig.acquisition import Acquisition
 from rig.config import DEFAULT_RIG_CONFIG
-from rig.estop import BUDGET_S, EStop, EStopLatched, LatchChanged, MotionLatch
+from rig.drivers.estop import BUDGET_S, EStop, EStopLatched, LatchChanged, MotionLatch
+from rig.drivers.registers import load_register_map
+from rig.drivers.shaker import Shaker
 from rig.gui.station import Notice, Station
-from rig.registers import load_register_map
-from rig.run import RunOptions
-from rig.shaker import Shaker
+from rig.session.acquisition import Acquisition
+from rig.session.run import RunOptions
 from tests.conftest import HANG_S
 from tests.test_rig_drivers import LIMITS, ModbusReplay
 from tests.virtual_rig_inprocess import SHAKER_URL, InProcessModbusClient, InProcessRig

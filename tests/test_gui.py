@@ -20,7 +20,7 @@ pytest.importorskip("pytestqt")
 from PySide6 import QtCore, QtWidgets  # noqa: E402
 
 from rig.config import DEFAULT_RIG_CONFIG  # noqa: E402
-from rig.estop import EstopDone, LatchChanged  # noqa: E402
+from rig.drivers.estop import EstopDone, LatchChanged  # noqa: E402
 from rig.events import Event, Kind, Message  # noqa: E402
 from rig.gui import MainWindow  # noqa: E402
 from rig.gui.live import LiveView  # noqa: E402

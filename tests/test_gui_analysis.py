@@ -11,7 +11,7 @@ from rig.config import load_rig_config
 from rig.events import Event
 from rig.gui import analysis
 from rig.gui.plan_state import PlanProgress
-from rig.plans import load_plan
+from rig.planning.plans import load_plan
 
 
 def test_loop_energy_of_a_viscous_damper_is_pi_c_omega_a_squared():
@@ -115,7 +115,7 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
 def test_a_new_excitation_starts_the_loops_afresh():
     """The loops take only the samples after the mark a new excitation sets; a new stream
     (the DAQ restarted at a session's RUN) starts with no mark."""
-    from rig.daq import RingBuffer
+    from rig.drivers.daq import RingBuffer
     from rig.gui.live import LiveHistory
 
     class Source:

@@ -18,15 +18,15 @@ from sqlalchemy.exc import SQLAlchemyError
 
 from rig.cli import build_parser, main
 from rig.config import load_rig_config
-from rig.daq import Calibration, Daq
+from rig.drivers.daq import Calibration, Daq
+from rig.drivers.peer_identity import Peers
+from rig.drivers.shaker import Shaker
 from rig.gui.qc import ProgressReader, QcRequest, outcome
-from rig.peer_identity import Peers
 from rig.qc.evaluate import _for_the_verdict
 from rig.qc.history import MIN_CAPABILITY_N, capability, imr_limits, index
 from rig.qc.present import limits_text, shown, sigma_note
 from rig.qc.records import ADDED_IN_2, CharacteristicRecord, QcRecord, Records
 from rig.qc.spec import load_spec
-from rig.shaker import Shaker
 from simulator.generate import generate
 from simulator.truth import load_truth
 from tests.test_qc_records import qc, record

@@ -13,7 +13,7 @@ import pytest
 from identify.model import load_model
 from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
-from rig.imposed import loop_energy_j
+from rig.planning.imposed import loop_energy_j
 from rig.qc.characteristics import drop_peak_force, gas_pressure, loop_energy
 from rig.qc.judge import Outcome, decide
 from rig.qc.spec import SPECS_DIR, load_spec

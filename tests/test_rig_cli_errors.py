@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from rig.config import DEFAULT_RIG_CONFIG
-from rig.daq import probe_daq
+from rig.drivers.daq import probe_daq
 from rig.gui.station import Notice, Station
 from tests.conftest import HANG_S
 

@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 from rig.config import load_rig_config
-from rig.daq import Daq
-from rig.frames import FrameParser
-from rig.registers import RegisterMapError, load_register_map
-from rig.shaker import LimitError, Shaker, ShakerError
+from rig.drivers.daq import Daq
+from rig.drivers.frames import FrameParser
+from rig.drivers.registers import RegisterMapError, load_register_map
+from rig.drivers.shaker import LimitError, Shaker, ShakerError
 
 CRC = crcmod.predefined.mkCrcFun("modbus")
 LIMITS = load_rig_config().limits

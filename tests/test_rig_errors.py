@@ -10,9 +10,9 @@ from types import SimpleNamespace
 import pytest
 
 from rig.config import load_rig_config
+from rig.drivers.shaker import Shaker, ShakerAddress, ShakerLinkError
 from rig.errors import AddressError, BadInput, RigFault
 from rig.events import FIELDS, EventBus, Kind, Phase
-from rig.shaker import Shaker, ShakerAddress, ShakerLinkError
 
 
 class StepClock:
@@ -138,8 +138,8 @@ def test_event_kinds_and_their_fields_are_declared_once():
 def test_the_recorder_holds_a_bounded_stretch_however_long_the_stream():
     import numpy as np
 
-    from rig.acquisition import Recorder
-    from rig.daq import Samples
+    from rig.drivers.daq import Samples
+    from rig.session.acquisition import Recorder
 
     rec, block = Recorder(), 10_000
     for k in range(300):                                 # 3 million samples, read block by block
@@ -162,7 +162,7 @@ def test_the_recorder_holds_a_bounded_stretch_however_long_the_stream():
 def test_block_means_with_holes_are_those_of_the_whole_block():
     import numpy as np
 
-    from rig.acquisition import MAX_LOST_IN_BLOCK, block_means
+    from rig.session.acquisition import MAX_LOST_IN_BLOCK, block_means
 
     spp, cycles = 50_000, 1                              # a 0.04 Hz cycle at 2 kHz
     phase = 2 * np.pi * np.arange(spp * cycles) / spp
@@ -191,7 +191,7 @@ def test_block_means_of_several_cycles_with_holes_hold_for_any_harmonic_content(
     of a block mean (2 N / √10000 for the force); the fit of 12 harmonics is not."""
     import numpy as np
 
-    from rig.acquisition import HARMONICS_IN_BLOCK_MEAN, block_means
+    from rig.session.acquisition import HARMONICS_IN_BLOCK_MEAN, block_means
 
     spp, cycles = 2000, 5
     index = np.arange(spp * cycles) + 777                        # a block starts anywhere in the cycle

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 from pymodbus.client import ModbusTcpClient
 
-from rig.frames import FrameParser
-from rig.session import read_log
+from rig.drivers.frames import FrameParser
+from rig.session.storage import read_log
 from tests.conftest import HANG_S
 
 TOLERANCE = {"theta4": 1e-3, "theta6": 1e-3, "theta16": 1e-2}
@@ -248,7 +248,7 @@ def test_the_console_gives_the_rig_time_taken_and_announced_in_minutes_and_secon
     from rich.console import Console
 
     from rig.events import Event
-    from rig.progress import ConsoleProgress
+    from rig.session.progress import ConsoleProgress
 
     now = [100.0]
     out = io.StringIO()
@@ -268,7 +268,7 @@ def test_the_console_says_the_rig_time_taken_at_the_pace_the_session_measured_la
     from rich.console import Console
 
     from rig.events import Event
-    from rig.progress import ConsoleProgress
+    from rig.session.progress import ConsoleProgress
 
     now, pace = [100.0], [6.95]
     out = io.StringIO()
@@ -289,7 +289,7 @@ def test_the_eta_trusts_the_experiments_done_as_far_as_they_are_the_session():
     from rich.console import Console
 
     from rig.events import Event
-    from rig.progress import ConsoleProgress
+    from rig.session.progress import ConsoleProgress
 
     now = [0.0]
     out = io.StringIO()

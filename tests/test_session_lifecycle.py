@@ -1,4 +1,4 @@
-"""The one session lifecycle (rig.run.run_lifecycle) with a failure injected at each of
+"""The one session lifecycle (rig.session.run.run_lifecycle) with a failure injected at each of
 its steps, on the in-process virtual rig's simulated clock: whatever fails, once the
 session folder exists its status is not ``running`` (nor ``complete``), the exit code
 says why, the safe stop was taken where motion may have started, and nothing is left
@@ -16,13 +16,13 @@ from pathlib import Path
 import pytest
 from rich.console import Console
 
-from rig.daq import DaqError
+from rig.drivers.daq import DaqError
+from rig.drivers.shaker import ShakerLinkError
 from rig.errors import RigFault
 from rig.events import Event, Kind
-from rig.progress import ConsoleProgress, describe
-from rig.run import EXIT_ABORTED, EXIT_INTERNAL, EXIT_OK, RunResult, SessionRunner
-from rig.session import Session, SessionError, SessionLog, SessionWriteError, read_log
-from rig.shaker import ShakerLinkError
+from rig.session.progress import ConsoleProgress, describe
+from rig.session.run import EXIT_ABORTED, EXIT_INTERNAL, EXIT_OK, RunResult, SessionRunner
+from rig.session.storage import Session, SessionError, SessionLog, SessionWriteError, read_log
 from simulator.controller import State
 from tests.virtual_rig_inprocess import InProcessRig, quick_rig_config
 
@@ -142,7 +142,7 @@ def test_a_bug_in_the_durations_is_an_internal_error_on_record(vrig, tmp_path, m
     def broken(*args, **kwargs):
         raise ZeroDivisionError("injected bug")
 
-    monkeypatch.setattr("rig.run.estimate_experiment_durations", broken)
+    monkeypatch.setattr("rig.session.run.estimate_experiment_durations", broken)
     result, meta = run(vrig, tmp_path / "s")
     assert (result.exit_code, type(result.error)) == (EXIT_INTERNAL, ZeroDivisionError)
     assert meta["status"] == "aborted: internal error: ZeroDivisionError: injected bug (before anything moved)"

@@ -3,7 +3,7 @@
 The reference drives the simulator's controller (its move profile, ramp and fade)
 and streaming plant in-process on the simulated clock, and applies the
 acquisition's block comparison to the noise-free channels: it shares no code with
-rig.settling, which works from identify's compiled model.
+rig.planning.settling, which works from identify's compiled model.
 """
 
 from __future__ import annotations
@@ -18,17 +18,23 @@ import pytest
 from identify.model import load_model
 from identify.parameters import Parameters
 from identify.plans import STANDARD_SET, ExperimentSpec, select
-from rig.config import DEFAULT_RIG_CONFIG, ConfigError, SteadyStateCriteria, load_rig_config, steady_state_from_table
-from rig.criterion import bias_bound
-from rig.daq import CHANNELS
-from rig.plans import Plan, conditioning_for, estimate_duration_s, estimate_experiment_durations, load_plan
-from rig.settling import PAUSE_S, GasThermalModel, landing_error_k, predict_settling
+from rig.config import (
+    CHANNELS,
+    DEFAULT_RIG_CONFIG,
+    ConfigError,
+    SteadyStateCriteria,
+    load_rig_config,
+    steady_state_from_table,
+)
+from rig.planning.criterion import bias_bound
+from rig.planning.plans import Plan, conditioning_for, estimate_duration_s, estimate_experiment_durations, load_plan
+from rig.planning.settling import PAUSE_S, GasThermalModel, landing_error_k, predict_settling
 from simulator.controller import ShakerController, State
 from simulator.physics import Actuator, StreamingPlant
 from simulator.truth import load_truth
 
 SHIPPED = load_rig_config()     # the default: the drift criterion, conditioning holds
-# The lead-in and the criteria without holds: the change criterion, and the drift criterion (rig.criterion)
+# The lead-in and the criteria without holds: the change criterion, and the drift criterion (rig.planning.criterion)
 CONFIG = replace(SHIPPED, max_hold_s=0.0, steady_state=steady_state_from_table(
     {**tomllib.loads(DEFAULT_RIG_CONFIG.read_text())["steady_state"], "criterion": "change"}, "change", ConfigError))
 DRIFT = replace(CONFIG, steady_state=SHIPPED.steady_state)
@@ -215,7 +221,7 @@ def test_a_hold_answered_off_in_time_lands_off_by_the_gass_rate_and_settles_long
     predicted to settle in 33, 65 and 120 cycles as if they landed exactly, and took
     63-78, 125-145 and 210-280 in the demo; answered that far off they are predicted
     well above the exact landing, and the announced session grows by a tenth.  (In the
-    order the standard session runs, rig.ordering's; a hold that no longer pays for
+    order the standard session runs, rig.planning.ordering's; a hold that no longer pays for
     itself once its landing is uncertain is not planned.)"""
     standard = load_plan("standard")
     plan = standard.select(list("mnlkabghjifedc"))
@@ -325,7 +331,7 @@ def test_the_standard_plan_runs_in_its_quicker_thermal_order_and_fixed_keeps_it_
 
 
 def test_a_plan_file_pins_its_order_or_is_refused_with_one_line(tmp_path):
-    from rig.plans import PlanError
+    from rig.planning.plans import PlanError
 
     body = "".join(f'[[experiment]]\nlabel = "{e.letter}"\nstatic_mm = {e.static_position_mm}\n'
                    f"amplitude_mm = {e.amplitude_mm}\nfrequency_Hz = {e.frequency_hz}\n"

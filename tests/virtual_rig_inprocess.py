@@ -1,9 +1,9 @@
 """The virtual rig in the test's own process, on a simulated clock: deterministic tests
 of the acquisition with no subprocess, no socket, no engine thread and no real sleep.
 
-    rig.shaker ── InProcessModbusClient ──▶ simulator.modbus.ControllerContext ──▶ ShakerController
-    rig.daq    ── SerialLine.host ══ SerialLine.device ──▶ simulator.daq.DaqDevice
-    every wait of the rig (rig.clock.Clock) ── SimClock.sleep(dt) ──▶ VirtualRig.step_to(t + dt)
+    rig.drivers.shaker ── InProcessModbusClient ──▶ simulator.modbus.ControllerContext ──▶ ShakerController
+    rig.drivers.daq    ── SerialLine.host ══ SerialLine.device ──▶ simulator.daq.DaqDevice
+    every wait of the rig (rig.drivers.clock.Clock) ── SimClock.sleep(dt) ──▶ VirtualRig.step_to(t + dt)
 
 Only the thread that drives the session (the test's) moves simulated time.  After each
 step the clock waits until the DAQ device has put on the line what it emitted and the
@@ -30,12 +30,12 @@ from pymodbus.constants import ExcCodes
 from rich.console import Console
 
 from rig.config import DEFAULT_RIG_CONFIG, load_rig_config
-from rig.daq import Calibration, Daq
+from rig.drivers.daq import Calibration, Daq
+from rig.drivers.registers import load_register_map
+from rig.drivers.shaker import Shaker
 from rig.events import Event, EventBus
-from rig.registers import load_register_map
-from rig.run import Links, RunOptions, RunResult, SessionRunner, prepare, run_lifecycle
-from rig.session import Session, SessionLog
-from rig.shaker import Shaker
+from rig.session.run import Links, RunOptions, RunResult, SessionRunner, prepare, run_lifecycle
+from rig.session.storage import Session, SessionLog
 from simulator.controller import DEVICE_IDENTIFICATION, ShakerController
 from simulator.engine import PHYSICS_RATE_HZ, VirtualRig
 from simulator.faults import FaultLog, parse_fault
@@ -52,7 +52,7 @@ TEST_CONFIG = {'criterion = "drift"': 'criterion = "change"', "max_hold_s = 300.
                "reconnect_s = 20.0": "reconnect_s = 3.0"}
 SHAKER_URL = "tcp://virtual-rig:502"      # only named in messages: nothing listens there
 DAQ_URL = "socket://virtual-rig:4001"
-READ_POLL_S = 0.05      # a read with nothing to read gives up after this (wall) time, like pyserial in rig.daq
+READ_POLL_S = 0.05      # a read with nothing to read gives up after this (wall) time, like pyserial in rig.drivers.daq
 HANG_S = 10.0           # wall time after which a wait in the harness is a failure, never a delay
 MAX_STEP_S = 0.25       # simulated time per step: bounds what the DAQ's FIFO must hold between two drains
 _HALF_STEP_S = 0.5 / PHYSICS_RATE_HZ
@@ -71,7 +71,7 @@ def quick_rig_config(folder: Path) -> Path:
 
 # ----- the DAQ's serial line ---------------------------------------------------------------------------
 class SerialLine:
-    """A serial line in memory: :attr:`host` is what rig.daq reads and writes (pyserial's
+    """A serial line in memory: :attr:`host` is what rig.drivers.daq reads and writes (pyserial's
     read/write/close), :attr:`device` the simulator's :class:`simulator.daq.Port`."""
 
     def __init__(self) -> None:
@@ -90,7 +90,7 @@ class SerialLine:
 
 
 class _HostEnd:
-    """pyserial as rig.daq uses it: ``read(size)`` returns what has arrived, waiting up to
+    """pyserial as rig.drivers.daq uses it: ``read(size)`` returns what has arrived, waiting up to
     :data:`READ_POLL_S` for the first byte."""
 
     def __init__(self, line: SerialLine) -> None:
@@ -140,7 +140,7 @@ class _DeviceEnd:
             self._line._cond.notify_all()
 
     def disconnect(self) -> None:
-        # rig.daq reopens a lost line by its URL, which an in-memory line does not have.
+        # rig.drivers.daq reopens a lost line by its URL, which an in-memory line does not have.
         raise NotImplementedError("the in-memory DAQ line cannot be unplugged; use simulator serve for disconnects")
 
     def close(self) -> None:
@@ -155,7 +155,7 @@ OBJECT_IDS = {"VendorName": 0, "ProductCode": 1, "MajorMinorRevision": 2, "Vendo
 
 @dataclass
 class ModbusResponse:
-    """The parts of a pymodbus response that rig.shaker reads."""
+    """The parts of a pymodbus response that rig.drivers.shaker reads."""
 
     registers: list[int] = field(default_factory=list)
     bits: list[bool] = field(default_factory=list)
@@ -177,7 +177,7 @@ def _complete(coroutine: Coroutine[Any, Any, Any]) -> Any:
 
 
 class InProcessModbusClient:
-    """The calls rig.shaker makes of a pymodbus client, answered in the caller's thread by
+    """The calls rig.drivers.shaker makes of a pymodbus client, answered in the caller's thread by
     the simulator's own server context (the same tables and exceptions as ``simulator
     serve``: 2 for an address outside the map, 3 for a write the controller refuses).
 
@@ -245,7 +245,7 @@ class InProcessModbusClient:
 
 # ----- simulated time ----------------------------------------------------------------------------------
 class SimClock:
-    """:class:`rig.clock.Clock` on the virtual rig's simulated time.
+    """:class:`rig.drivers.clock.Clock` on the virtual rig's simulated time.
 
     ``sleep(dt)`` advances the rig by ``dt`` in steps of at most :data:`MAX_STEP_S`,
     stopping at each timed action, and after each step waits until the rig's DAQ reader
@@ -304,7 +304,7 @@ class InProcessRig:
 
     ``events`` holds every event published on ``bus`` with the simulated time it was
     published at.  The watchdog runs on simulated time too; the harness feeds it the
-    heartbeat rig.shaker's thread would send (that thread waits on the wall clock), and
+    heartbeat rig.drivers.shaker's thread would send (that thread waits on the wall clock), and
     the heartbeat gets through only while the Modbus link is up."""
 
     def __init__(self, rig_config: Path, seed: int = 0, truth: Damper | None = None) -> None:
@@ -331,7 +331,7 @@ class InProcessRig:
 
 
     def connect(self) -> None:
-        """What rig.run.connect does, with the heartbeat on simulated time."""
+        """What rig.session.run.connect does, with the heartbeat on simulated time."""
         self.sim.daq.start()
         self.shaker.connect(heartbeat=False)
         timeout = self.config.limits.watchdog_timeout_s
@@ -389,7 +389,7 @@ class InProcessRig:
         return runner, session
 
     def run_session(self, out: Path, letters: list[str], on_alarm: str = "abort", **hooks: Any) -> RunResult:
-        """``rig run`` from ``prepare`` on, through :func:`rig.run.run_lifecycle`, on these
+        """``rig run`` from ``prepare`` on, through :func:`rig.session.run.run_lifecycle`, on these
         links and this bus (both stay open: the harness closes them)."""
         prep = prepare(RunOptions(plan="standard", shaker=SHAKER_URL, daq=DAQ_URL, out=out, experiments=letters,
                                   on_alarm=on_alarm, rig_config=str(self.rig_config), date="261122"))

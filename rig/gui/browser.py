@@ -18,7 +18,7 @@ from identify.model import DEFAULT_ESTIMATE
 from rig.gui.fit_view import fill_parameter_table, parameter_table
 from rig.gui.plotting import labelled
 from rig.gui.station import IdentifySettings
-from rig.progress import log_text
+from rig.session.progress import log_text
 
 EXPERIMENT_COLUMNS = ("experiment", "f [Hz]", "static [mm]", "amplitude [mm]", "periods", "settle cycles",
                       "steady", "lost samples", "flags")

@@ -9,8 +9,8 @@ from collections.abc import Callable
 
 from PySide6 import QtWidgets
 
+from rig.drivers.shaker import ShakerStatus
 from rig.gui.station import Snapshot, Station
-from rig.shaker import ShakerStatus
 
 STATE_COLOURS = {"OFF": "#666666", "IDLE": "#1f77b4", "MOVING": "#ff7f0e", "AT_STATIC": "#1f77b4",
                  "RUNNING": "#2ca02c", "ALARM": "#b00020"}

@@ -7,7 +7,7 @@ minimum span of the rig configuration (``[display] min_span``), so a rig at rest
 its noise as noise; the loops draw only the current excitation's cycles (cleared when a
 new one starts) and say "no cycle yet", with no axes, while there is none.
 
-Samples come from the DAQ's ring buffer (:attr:`rig.daq.Daq.ring`), read on the GUI's
+Samples come from the DAQ's ring buffer (:attr:`rig.drivers.daq.Daq.ring`), read on the GUI's
 timer: the reader thread never waits on the plots.  What the ring holds (10 s) is
 copied into a 60 s history here, so the longest window does not depend on the driver.
 """
@@ -21,7 +21,8 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtGui, QtWidgets
 
-from rig.daq import CHANNELS, Daq
+from rig.config import CHANNELS
+from rig.drivers.daq import Daq
 from rig.gui import analysis
 from rig.gui.plotting import labelled
 from rig.gui.station import Snapshot

@@ -23,9 +23,10 @@ from typing import Any
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from identify.exit_codes import EXIT_BAD_INPUT
-from rig.daq import check_daq_address
+from rig.drivers.daq import check_daq_address
+from rig.drivers.estop import EstopDone, LatchChanged
+from rig.drivers.shaker import ShakerAddress, ShakerStatus
 from rig.errors import BadInput
-from rig.estop import EstopDone, LatchChanged
 from rig.events import Event, Kind, Message
 from rig.gui.browser import SessionBrowser
 from rig.gui.controls import ControllerPanel, ManualPanel
@@ -50,11 +51,10 @@ from rig.gui.station import (
     Station,
     session_options,
 )
-from rig.plans import comma_list, load_plan
-from rig.progress import describe
+from rig.planning.plans import comma_list, load_plan
 from rig.qc.spec import load_spec
-from rig.run import RunOptions
-from rig.shaker import ShakerAddress, ShakerStatus
+from rig.session.progress import describe
+from rig.session.run import RunOptions
 from rig.virtual import VirtualRig
 
 REDRAW_HZ = 30
@@ -276,7 +276,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self._show_banner()
 
     def rig_state(self) -> RigState:
-        # The E-STOP's latch (rig.estop) holds every motion command in the drivers; the strip and
+        # The E-STOP's latch (rig.drivers.estop) holds every motion command in the drivers; the strip and
         # the controls show it, and an alarm seen, until the operator confirms the reset.
         latch = self.station.emergency.latch
         trip = latch.reason if latch.latched else "E-STOP" if self.estop_text else self.alarm_latched

@@ -16,12 +16,11 @@ from pathlib import Path
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from identify.notation import at_place, significant
-from rig.config import RigConfig
-from rig.criterion import DAQ_LAG_S
-from rig.daq import CHANNELS
+from rig.config import CHANNELS, RigConfig
 from rig.events import Event
 from rig.gui.plan_state import ExperimentRow, PlanProgress
-from rig.plans import Plan, comma_list, load_plan
+from rig.planning.criterion import DAQ_LAG_S
+from rig.planning.plans import Plan, comma_list, load_plan
 
 STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "skipped": "#ffe0b2", "interrupted": "#ffe0b2",
                   "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb", "stopping": "#e3f2fd"}
@@ -267,7 +266,7 @@ class PlanPanel(QtWidgets.QWidget):
     def preview(self) -> None:
         """The chosen plan's experiments, all pending, before anything runs.  Their times
         come from a thread: predicting the standard plan's settling is seconds of Python
-        (rig.settling), which in the GUI thread would freeze the window at every edit."""
+        (rig.planning.settling), which in the GUI thread would freeze the window at every edit."""
         if self.progress is not None and self.progress.ended is None:
             return
         try:

@@ -2,7 +2,7 @@
 (no Qt here): pending, moving, settling n, capturing %, done, failed/skipped, and the
 time left per experiment and for the session.
 
-Times left come from :func:`rig.plans.estimate_duration_s` (rig time), turned into
+Times left come from :func:`rig.planning.plans.estimate_duration_s` (rig time), turned into
 wall time by the simulator's speed at first and, once experiments are done, by how
 long they actually took against their estimates (as the terminal's progress does).
 """
@@ -17,10 +17,10 @@ from dataclasses import dataclass, field, replace
 from identify.exit_codes import EXIT_INTERRUPTED
 from identify.plans import ExperimentSpec
 from rig.config import RigConfig
-from rig.criterion import first_block_sample
 from rig.events import Event
 from rig.gui.analysis import predicted_cycles_left
-from rig.plans import Plan, estimate_duration_s
+from rig.planning.criterion import first_block_sample
+from rig.planning.plans import Plan, estimate_duration_s
 
 ACTIVE = ("moving", "settling", "capturing", "stopping")
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from rig.shaker import ShakerStatus
+from rig.drivers.shaker import ShakerStatus
 
 # Supply pressure from which the hydraulics count as on: the register is the one
 # reading that tells, whatever the coil was last written (a lost supply reads 0 bar).

@@ -8,11 +8,12 @@ Threads:
 
 ``rig-command``   manual commands, connecting, reconnecting after a session (one at a time)
 ``rig-status``    reads the controller's status and the DAQ's counters, 4 times a second
-``rig-session``   prepare → :func:`rig.run.run_lifecycle` (links → session → safe stop → teardown), as ``rig run``;
+``rig-session``   prepare → :func:`rig.session.run.run_lifecycle` (links → session → safe stop),
+                  as ``rig run``;
                   or QC mode's ``python -m rig qc run`` as a child process (:mod:`rig.gui.qc`)
 ``fit``           identification and re-fits, one at a time, each in a process of its own
                   (:mod:`rig.gui.fits`: a fit in this process would stall the window)
-``e-stop``        :class:`rig.estop.EStop`: on a press, mode STOP and hydraulics off on a
+``e-stop``        :class:`rig.drivers.estop.EStop`: on a press, mode STOP and hydraulics off on a
                   Modbus connection of its own, opened in advance and used for nothing
                   else; its latch then vetoes every motion command of the console's and
                   the session's links until the operator confirms the reset
@@ -43,18 +44,19 @@ from rich.console import Console
 from identify.errors import IdentifyError, InputError
 from identify.model import DEFAULT_ESTIMATE
 from rig.config import RigConfig, load_rig_config
-from rig.daq import Calibration, Daq, DaqError
+from rig.drivers.daq import Calibration, Daq, DaqError
+from rig.drivers.estop import EStop
+from rig.drivers.peer_identity import Peers
+from rig.drivers.peers import wrong_peer_or
+from rig.drivers.registers import RegisterMap, load_register_map
+from rig.drivers.shaker import Shaker, ShakerLinkError, ShakerStatus, check_waveform
 from rig.errors import BadInput, RigError
-from rig.estop import EStop
 from rig.events import Event, Kind, LinkCondition, LinkNotice, Message, Subscriber
 from rig.gui import fits
 from rig.gui.fits import FitRunner, FitSummary
 from rig.gui.plan_state import PlanProgress
 from rig.gui.qc import ProgressReader, QcDone, QcRequest, outcome, qc_command
-from rig.peer_identity import Peers
-from rig.peers import wrong_peer_or
-from rig.registers import RegisterMap, load_register_map
-from rig.run import (
+from rig.session.run import (
     EXIT_OK,
     Links,
     RunOptions,
@@ -65,7 +67,6 @@ from rig.run import (
     prepare,
     run_lifecycle,
 )
-from rig.shaker import Shaker, ShakerLinkError, ShakerStatus, check_waveform
 
 STATUS_PERIOD_S = 0.25
 CONSOLE_RECONNECT_S = 2.0
@@ -98,7 +99,7 @@ class Notice(Message):
 class LinkState(Message):
     connected: bool
     text: str
-    simulated: bool = False     # a peer named itself a simulator (rig.peer_identity)
+    simulated: bool = False     # a peer named itself a simulator (rig.drivers.peer_identity)
 
 
 @dataclass(frozen=True)

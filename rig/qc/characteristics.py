@@ -137,7 +137,7 @@ def _model_function(model: CompiledModel, c: Characteristic) -> Callable[[np.nda
     if c.kind == "drop_peak_force":
         return lambda theta: drop_peak_force(model, theta, a["mass_kg"], a["velocity_m_s"])
     if c.kind == "loop_energy":     # an experiment the plan does not run (spec: its conditions given)
-        from rig.imposed import loop_energy_j
+        from rig.planning.imposed import loop_energy_j
 
         run = ExperimentSpec(a["experiment"], "", a["static_mm"], a["amplitude_mm"], a["frequency_Hz"])
         params = Parameters(model)

@@ -1,4 +1,4 @@
-"""``qc run`` and ``qc judge``: a QC run is a rig session (rig.run: the same checks before
+"""``qc run`` and ``qc judge``: a QC run is a rig session (rig.session.run: the same checks before
 anything moves, the same safe stop whatever ends it) followed by identification and
 judging; a re-judgement is the second half alone, on stored data.
 
@@ -29,7 +29,7 @@ from rich.console import Console
 
 from identify.files import atomic_write_bytes
 from rig.errors import BadInput
-from rig.plans import estimate_experiment_durations
+from rig.planning.plans import estimate_experiment_durations
 from rig.qc.characteristics import check_model
 from rig.qc.evaluate import Evaluation, evaluate
 from rig.qc.judge import Outcome
@@ -38,7 +38,7 @@ from rig.qc.records import CharacteristicRecord, QcRecord, Records, default_url
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
 from rig.qc.trace import SessionTrace, now_utc, software_version, trace_session
-from rig.run import EXIT_INTERRUPTED, EXIT_OK, Prepared, RunOptions, RunResult, execute, prepare
+from rig.session.run import EXIT_INTERRUPTED, EXIT_OK, Prepared, RunOptions, RunResult, execute, prepare
 
 EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
 

@@ -18,7 +18,7 @@ from typing import Any
 
 from rig.config import SteadyStateCriteria, steady_state_from_table
 from rig.errors import BadInput
-from rig.plans import Plan, PlanError, load_plan
+from rig.planning.plans import Plan, PlanError, load_plan
 from rig.tomlfile import read_toml
 
 SPECS_DIR = Path(__file__).resolve().parent / "specs"

@@ -48,18 +48,18 @@ from identify.exit_codes import (
 )
 from identify.files import atomic_write_bytes
 from identify.model import DEFAULT_ESTIMATE
-from rig.acquisition import Acquisition, ExperimentRecord, Interrupted
 from rig.config import RigConfig, load_rig_config
-from rig.daq import Calibration, Daq, DaqError, check_daq_address
+from rig.drivers.daq import Calibration, Daq, DaqError, check_daq_address
+from rig.drivers.peer_identity import Peers
+from rig.drivers.peers import wrong_peer_or
+from rig.drivers.registers import RegisterMap, load_register_map
+from rig.drivers.shaker import AlarmError, Shaker, ShakerAddress, ShakerError, ShakerLinkError
 from rig.errors import RigError, RigFault
 from rig.events import EventBus, Kind, LinkNotice, Subscriber
-from rig.peer_identity import Peers
-from rig.peers import wrong_peer_or
-from rig.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
-from rig.progress import ConsoleProgress
-from rig.registers import RegisterMap, load_register_map
-from rig.session import Session, SessionError, SessionLog
-from rig.shaker import AlarmError, Shaker, ShakerAddress, ShakerError, ShakerLinkError
+from rig.planning.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
+from rig.session.acquisition import Acquisition, ExperimentRecord, Interrupted
+from rig.session.progress import ConsoleProgress
+from rig.session.storage import Session, SessionError, SessionLog
 
 if TYPE_CHECKING:  # the numerics are imported when a fit runs, not with the command line
     from identify.result import FitResult
@@ -307,7 +307,7 @@ class SessionRunner:
 
     def durations(self, session: Session, start_position_m: float) -> list[ExperimentDuration]:
         """Rig time per experiment still to do, in plan order, with its conditioning hold:
-        each starts where the one before it leaves the actuator and the gas (rig.settling),
+        each starts where the one before it leaves the actuator and the gas (rig.planning.settling),
         which is what makes the standard session's settling, most of its time, predictable
         and, with the holds, short.  The damper is taken as nominal: an identification's
         start file is a guess meant to be off.  Computed once, so that the ETA announced

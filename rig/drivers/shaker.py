@@ -1,6 +1,6 @@
 """Driver of the hydraulic shaker controller over Modbus (TCP or RTU).
 
-The register map is data (:mod:`rig.registers`); this module offers a typed API in
+The register map is data (:mod:`rig.drivers.registers`); this module offers a typed API in
 SI units, checks every value against the rig's limits before anything is sent,
 turns Modbus exceptions into errors that say what was refused, feeds the
 controller's watchdog from a heartbeat thread, and reconnects with back-off when
@@ -21,12 +21,12 @@ from pymodbus.client import ModbusSerialClient, ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 from pymodbus.framer import FramerType
 
-from rig.clock import WALL_CLOCK, Clock
 from rig.config import Limits
+from rig.drivers.clock import WALL_CLOCK, Clock
+from rig.drivers.peer_identity import OBJECT_NAMES
+from rig.drivers.registers import RegisterMap, load_register_map
 from rig.errors import AddressError, BadInput, RigFault
 from rig.events import LinkCondition, LinkNotice
-from rig.peer_identity import OBJECT_NAMES
-from rig.registers import RegisterMap, load_register_map
 
 EXCEPTION_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal data value",
                    4: "device failure", 6: "device busy"}
@@ -60,7 +60,7 @@ class LimitError(BadInput):
 
 class MotionInterlock(Protocol):
     """What may veto a command that can set the actuator moving (an E-STOP's latch,
-    :class:`rig.estop.MotionLatch`): ``check`` raises, naming ``what``, to refuse it."""
+    :class:`rig.drivers.estop.MotionLatch`): ``check`` raises, naming ``what``, to refuse it."""
 
     def check(self, what: str) -> None: ...
 

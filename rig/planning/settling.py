@@ -1,6 +1,6 @@
 """How long a periodic experiment takes to settle, predicted from the damper model.
 
-The acquisition (:mod:`rig.acquisition`) compares the channel means of consecutive
+The acquisition (:mod:`rig.session.acquisition`) compares the channel means of consecutive
 blocks of whole cycles and calls the experiment settled when no mean moves by more
 than its threshold.  What moves is the gas temperature (and the pressure, which
 follows it through the gas law): it drifts from wherever the lead-in left it
@@ -33,7 +33,7 @@ from identify.model import CompiledModel, load_model
 from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
 from rig.config import SteadyStateCriteria
-from rig.criterion import (
+from rig.planning.criterion import (
     MIN_BLOCKS,
     block_cycles,
     blocks_bias,
@@ -558,7 +558,7 @@ def _run_in(gas: GasThermalModel, runs: _Runs, criteria: SteadyStateCriteria, t0
 def _apply_drift_criterion(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray, channels: tuple[str, ...],
                            criteria: SteadyStateCriteria, runs: _Runs, periods: list[int], rate_hz: float,
                            draws: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The acquisition's drift criterion (rig.criterion) on the predicted block means:
+    """The acquisition's drift criterion (rig.planning.criterion) on the predicted block means:
     settle cycles, whether it passed, and the fitted channel with the largest drift.
 
     The criterion bounds what its data cannot exclude, so the transducers' noise (its

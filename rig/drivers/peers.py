@@ -9,10 +9,10 @@ from __future__ import annotations
 
 from urllib.parse import urlparse
 
-from rig.daq import DaqError, probe_daq
+from rig.drivers.daq import DaqError, probe_daq
+from rig.drivers.registers import RegisterMap
+from rig.drivers.shaker import ShakerAddress, ShakerLinkError, probe_controller
 from rig.errors import RigError, RigFault
-from rig.registers import RegisterMap
-from rig.shaker import ShakerAddress, ShakerLinkError, probe_controller
 
 
 class WrongPeer(RigFault):

@@ -21,7 +21,7 @@ from rich.markup import escape
 
 from identify.notation import at_place, decimal_place
 from rig.events import Event, Kind, Phase
-from rig.session import read_log
+from rig.session.storage import read_log
 
 # How the settling change of each channel is said: its word, unit and decimals (the
 # block means' resolution: a block averages thousands of samples of the transducer's noise).

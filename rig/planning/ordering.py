@@ -4,8 +4,8 @@ Most of a session is settling, and an experiment settles for as long as the gas 
 to get from where the one before left it to its own periodic temperature (a move up
 the stroke compresses the gas and heats it, a move down cools it).  So the rig time of
 an experiment depends on its predecessor; with the model's prediction of every
-predecessor–successor pair (:mod:`rig.settling`, through the plan's duration estimate,
-which :meth:`rig.plans.Plan.ordered` hands in), the order of least total rig time is a
+predecessor–successor pair (:mod:`rig.planning.settling`, through the plan's duration estimate,
+which :meth:`rig.planning.plans.Plan.ordered` hands in), the order of least total rig time is a
 shortest Hamiltonian path, exact by dynamic programming over subsets up to
 ``EXACT_UP_TO`` experiments, greedy beyond.
 """

@@ -25,11 +25,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from rig.clock import WALL_CLOCK, Clock
 from rig.config import Limits
+from rig.drivers.clock import WALL_CLOCK, Clock
+from rig.drivers.registers import RegisterMap
+from rig.drivers.shaker import Shaker, ShakerError
 from rig.events import Message
-from rig.registers import RegisterMap
-from rig.shaker import Shaker, ShakerError
 
 BUDGET_S = 0.3            # press to both writes answered by the controller
 LINE_TIMEOUT_S = 0.25     # per request on the E-STOP's own line: a dead line falls back to the others quickly
@@ -65,7 +65,7 @@ class LatchChanged(Message):
 
 class MotionLatch:
     """Tripped by an E-STOP; while tripped, :meth:`check` refuses every motion command
-    (the :class:`rig.shaker.MotionInterlock` of the drivers that share it)."""
+    (the :class:`rig.drivers.shaker.MotionInterlock` of the drivers that share it)."""
 
     def __init__(self) -> None:
         self._lock = threading.Lock()

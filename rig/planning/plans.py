@@ -1,7 +1,7 @@
 """Experiment plans: the standard set built in, or a TOML file; checked against the
 rig's limits before anything moves (every violation listed), with an estimated
 duration: the controller's moves and ramps, the acquisition's waits and blocks, and
-the thermal settling predicted from the damper model (:mod:`rig.settling`)."""
+the thermal settling predicted from the damper model (:mod:`rig.planning.settling`)."""
 
 from __future__ import annotations
 
@@ -16,11 +16,11 @@ import numpy as np
 from identify.parameters import Parameters
 from identify.plans import STANDARD_SET, ExperimentSpec
 from rig.config import RigConfig
-from rig.criterion import first_block_s
+from rig.drivers.shaker import check_waveform
 from rig.errors import BadInput
-from rig.ordering import thermal_order
-from rig.settling import DRIFT_DRAWS, PAUSE_S, Conditioning, Hold, move_duration_s, predict_settling
-from rig.shaker import check_waveform
+from rig.planning.criterion import first_block_s
+from rig.planning.ordering import thermal_order
+from rig.planning.settling import DRIFT_DRAWS, PAUSE_S, Conditioning, Hold, move_duration_s, predict_settling
 from rig.tomlfile import read_toml
 
 EXPERIMENT_KEYS = {"label", "group", "static_mm", "amplitude_mm", "frequency_Hz", "waveform", "periods"}
@@ -37,7 +37,7 @@ ORDERS = ("thermal", "fixed")
 @dataclass(frozen=True)
 class Plan:
     """``order``: ``thermal`` runs the experiments in the order of least predicted rig time
-    (rig.ordering), ``fixed`` as listed."""
+    (rig.planning.ordering), ``fixed`` as listed."""
 
     name: str
     experiments: tuple[ExperimentSpec, ...]
@@ -143,7 +143,7 @@ class ExperimentDuration:
     pause_s: float        # at rest before it: commands, handshakes, writing the previous data
     move_s: float         # to its static position (the controller's profile), by way of the hold
     lead_in_s: float      # RUN to the first comparison block (amplitude ramp + the acquisition's wait)
-    settle_cycles: int    # predicted by rig.settling
+    settle_cycles: int    # predicted by rig.planning.settling
     settle_s: float       # the comparison blocks until the criterion passes
     capture_s: float      # the captured periods
     fade_s: float         # the waveform faded out to the static position
@@ -168,8 +168,8 @@ def conditioning_for(plan: Plan, config: RigConfig, pace: float = 1.0, answer_s:
 
     How far off a hold's end is answered, in the rig's seconds: the acquisition's own
     timing (``hold_timing_s``) and the commands between the hold's end and RUN
-    (``answer_s``, measured by :meth:`rig.acquisition.Acquisition.measure_pace`), both
-    in the links' seconds, times the pace (see :func:`rig.settling.landing_error_k`)."""
+    (``answer_s``, measured by :meth:`rig.session.acquisition.Acquisition.measure_pace`), both
+    in the links' seconds, times the pace (see :func:`rig.planning.settling.landing_error_k`)."""
     if config.max_hold_s <= 0 or not plan.experiments:
         return None
     low = min(e.static_position_mm - e.amplitude_mm for e in plan.experiments) * 1e-3
@@ -192,10 +192,10 @@ def estimate_experiment_durations(plan: Plan, config: RigConfig, start_position_
     rig seconds per second and ``answer_s`` the time [s] its commands take between a
     hold's end and RUN (see :func:`conditioning_for`); ``overhead_s`` the time [s] an
     experiment's polls and commands take beyond the rig's own motion (both measured by
-    :meth:`rig.acquisition.Acquisition.measure_pace`), rig time at the pace, and a held
+    :meth:`rig.session.acquisition.Acquisition.measure_pace`), rig time at the pace, and a held
     experiment's ``answer_s`` too: nothing on a rig, where they are milliseconds, a few
     seconds each on a simulator at 50x; ``noise_draws``: see
-    :func:`rig.settling.predict_settling`."""
+    :func:`rig.planning.settling.predict_settling`."""
     ss, rate = config.steady_state, config.daq_rate_hz
     settling = predict_settling(plan.experiments, ss, rate, params, start_position_m=start_position_m,
                                 start_temperature_k=start_temperature_k, pause_s=pause_s,

@@ -10,7 +10,7 @@
 
 Nothing here runs a subprocess: a :class:`Rig` holds the same two links as ``rig run``
 and a session goes through the same prepare / run / safe stop
-(:mod:`rig.run`), so a scripted session is on disk what a command-line session is.
+(:mod:`rig.session.run`), so a scripted session is on disk what a command-line session is.
 Leaving the ``with`` block, whatever the reason, ends in the safe stop.  Errors are
 those of :mod:`rig.errors`; a session that did not complete raises
 :class:`SessionFailed` after its safe stop, with the session attached for a resume.
@@ -28,14 +28,15 @@ from rich.console import Console
 
 from identify.dataset import Experiment
 from identify.model import DEFAULT_ESTIMATE
-from rig.acquisition import Acquisition
 from rig.config import RigConfig, load_rig_config
-from rig.daq import Calibration
+from rig.drivers.daq import Calibration
+from rig.drivers.registers import RegisterMap, load_register_map
+from rig.drivers.shaker import ShakerStatus
 from rig.errors import BadInput, RigFault
 from rig.events import Event, EventBus, LinkNotice, Subscriber
-from rig.progress import ConsoleProgress, ProgressBar
-from rig.registers import RegisterMap, load_register_map
-from rig.run import (
+from rig.session.acquisition import Acquisition
+from rig.session.progress import ConsoleProgress, ProgressBar
+from rig.session.run import (
     EXIT_OK,
     Links,
     RunOptions,
@@ -48,8 +49,7 @@ from rig.run import (
     prepare,
     run_lifecycle,
 )
-from rig.session import Session as SessionFolder
-from rig.shaker import ShakerStatus
+from rig.session.storage import Session as SessionFolder
 
 if TYPE_CHECKING:
     from identify.result import FitResult

@@ -14,7 +14,7 @@ import numpy as np
 
 from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
-from rig.settling import GasThermalModel
+from rig.planning.settling import GasThermalModel
 
 
 def imposed_stroke(params: Parameters, specs: Sequence[ExperimentSpec], n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -22,7 +22,7 @@ def imposed_stroke(params: Parameters, specs: Sequence[ExperimentSpec], n: int) 
     rig imposes each experiment's stroke (measured stroke = q + θ12), at ``params``.
 
     The gas temperature's periodic state is the fixed point of its one-period map,
-    which is nearly affine (rig.settling): two integrations and a secant step, then one
+    which is nearly affine (rig.planning.settling): two integrations and a secant step, then one
     more period from it on the grid; the force then follows from the force balance
     (the model's first residual, linear in its input)."""
     gas = GasThermalModel(params)

@@ -2,7 +2,7 @@
 pyserial URL).
 
 A reader thread journals every byte received (append-only, flushed at least every
-:data:`JOURNAL_FLUSH_S`), parses frames (:mod:`rig.frames`), converts counts with the
+:data:`JOURNAL_FLUSH_S`), parses frames (:mod:`rig.drivers.frames`), converts counts with the
 rig's calibration file, fills a ring buffer for live views and hands each block to
 the listeners (the acquisition).  Lost samples are counted from sequence gaps and
 ``OK STOP <n>``; a dropped link is reopened with back-off and the stream goes on,
@@ -24,10 +24,10 @@ from typing import Protocol
 import numpy as np
 import serial
 
+from rig.config import CHANNELS, CONFIG_DIR
+from rig.drivers.frames import Block, FrameParser, LossCounters
 from rig.errors import AddressError, BadInput, RigFault
 from rig.events import LinkCondition, LinkNotice
-from rig.frames import Block, FrameParser, LossCounters
-from rig.registers import CONFIG_DIR
 from rig.tomlfile import read_toml
 
 DEFAULT_CALIBRATION = CONFIG_DIR / "daq-calibration-datasheet.toml"
@@ -36,7 +36,6 @@ BAUDRATE = 460800
 IDENTITY_PREFIX = "DAQ4,"                 # how the datasheet's DAQ begins its *IDN? answer
 _STOP_ANSWER = re.compile(rb"OK STOP (\d+)\n")
 # The datasheet's channel order of the frames; the dataset columns carry these names.
-CHANNELS = ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")
 
 
 class SerialLine(Protocol):

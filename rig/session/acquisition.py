@@ -23,14 +23,21 @@ from typing import Any
 import numpy as np
 
 from identify.plans import ExperimentSpec
-from rig.clock import WALL_CLOCK, Clock
-from rig.config import RigConfig
-from rig.criterion import MIN_BLOCKS, block_cycles, blocks_bias, change_passes, drift_passes, first_block_sample
-from rig.daq import CHANNELS, Daq, Samples
+from rig.config import CHANNELS, RigConfig
+from rig.drivers.clock import WALL_CLOCK, Clock
+from rig.drivers.daq import Daq, Samples
+from rig.drivers.shaker import AlarmError, Shaker, ShakerTimeout
 from rig.errors import RigFault
 from rig.events import EventBus, Kind, Phase
-from rig.settling import Hold, move_duration_s
-from rig.shaker import AlarmError, Shaker, ShakerTimeout
+from rig.planning.criterion import (
+    MIN_BLOCKS,
+    block_cycles,
+    blocks_bias,
+    change_passes,
+    drift_passes,
+    first_block_sample,
+)
+from rig.planning.settling import Hold, move_duration_s
 
 POLL_S = 0.05
 # Block means with lost samples (see block_means): harmonics of the excitation fitted

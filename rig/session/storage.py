@@ -24,10 +24,10 @@ import pandas as pd
 
 from identify.dataset import FORMAT, Experiment, csv_bytes, write_manifest
 from identify.files import atomic_write_bytes
-from rig.acquisition import ExperimentRecord
-from rig.daq import CHANNELS
+from rig.config import CHANNELS
 from rig.errors import BadInput, RigFault
 from rig.events import Event, Kind
+from rig.session.acquisition import ExperimentRecord
 
 SESSION_FILE = "session.json"
 CSV_SLICE_ROWS = 1000                # rows per pandas call when an experiment is written (see _csv_in_slices)

@@ -35,6 +35,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rig.config import DriftCriterion, SteadyStateCriteria
+
 # Ratios searched for r: dense near 1 (slow relaxations: small gas volume, small wall
 # area), where 1 - r spans 1e-4 (a time constant of 10^4 cycles) to 1.
 RATIO_GRID = 1.0 - np.geomspace(1e-4, 0.99, 240)
@@ -45,48 +47,6 @@ MIN_BLOCKS = 3
 # The first settling block begins this long after RUN's fade-in: the actuator's lag behind
 # its command, which the acquisition skips and the settling prediction starts from.
 DAQ_LAG_S = 0.5
-
-
-@dataclass(frozen=True)
-class DriftCriterion:
-    """The criterion's settings (``[steady_state]`` of rig-default.toml)."""
-
-    fraction: float                  # bound on the bias, in standard deviations of the fit
-    fit_cycles: int                  # block means fitted with the geometric law (the latest ones)
-    max_time_constant_s: float       # slowest thermal relaxation looked for: bounds r at low frequencies
-    noise: dict[str, float]          # transducer noise per sample of each fitted channel (engineering units)
-    # the relaxations looked for are within this factor of the damper model's prediction
-    # for the experiment (0: any up to max_time_constant_s)
-    model_time_constant_factor: float = 0.0
-
-    def time_constant_range_s(self, model_time_constant_s: float | None) -> tuple[float, float]:
-        """The relaxations looked for: within the factor of the model's prediction, no
-        slower than max_time_constant_s.  The fastest matters as much as the slowest: a
-        large transient's first blocks decay faster than its tail (the ramp, the gas
-        far from its periodic state), and a fit free to take their pace reads the tail
-        as settled."""
-        f = self.model_time_constant_factor
-        if f > 0 and model_time_constant_s and math.isfinite(model_time_constant_s):
-            return model_time_constant_s / f, min(self.max_time_constant_s, f * model_time_constant_s)
-        return 0.0, self.max_time_constant_s
-
-
-@dataclass(frozen=True)
-class SteadyStateCriteria:
-    """When a periodic experiment counts as settled (engineering units per channel).
-
-    ``criterion``: ``change`` compares the channel means of consecutive blocks with the
-    thresholds; ``drift`` bounds the bias the transient left over the capture window
-    would cause in the fit (the criterion above)."""
-
-    block_s: float
-    thresholds: dict[str, float]
-    min_cycles: int
-    max_cycles: int
-    max_recaptures: int
-    ramp_time_s: float
-    criterion: str = "change"
-    drift: DriftCriterion | None = None
 
 
 @dataclass(frozen=True)
@@ -151,7 +111,7 @@ def bias_bound(criterion: DriftCriterion, channels: tuple[str, ...], means: np.n
     return DriftFit(r, drift, float(np.sqrt(np.sum(z**2))))
 
 
-# ----- the blocks both the acquisition and its prediction (rig.settling) compare -------------------------
+# ----- the blocks both the acquisition and its prediction (rig.planning.settling) compare -------------------------
 def first_block_sample(criteria: SteadyStateCriteria, rate_hz: float) -> int:
     """The sample (counted from RUN and the DAQ's START) at which the first block begins."""
     return math.ceil((criteria.ramp_time_s + DAQ_LAG_S) * rate_hz)

@@ -8,10 +8,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+from rig.config import CONFIG_DIR
 from rig.errors import BadInput
 from rig.tomlfile import read_toml
 
-CONFIG_DIR = Path(__file__).parent / "config"
 DEFAULT_MAP = CONFIG_DIR / "shaker-datasheet.toml"
 TABLES = ("holding", "coils", "inputs")
 
