@@ -52,8 +52,11 @@ class DamperSolubility(ModelDeclaration):
     outputs = Damper2Dof.outputs
     default_outputs = Damper2Dof.default_outputs
     parameters = Damper2Dof.parameters + (
+        # Bounded above 0: at θ18 = 0 the dissolution equation loses its derivative (z turns
+        # algebraic, which time integration cannot take); at 10 ms the gas is at equilibrium
+        # on every time scale of a shaker cycle or a landing, which is the 2-dof model.
         ParameterSpec("theta18", "solubility_time", "s", 10.0, "time constant of gas dissolution and release",
-                      minimum=0.0),
+                      minimum=0.01),
     )
 
     @staticmethod
