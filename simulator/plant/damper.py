@@ -107,6 +107,14 @@ class PlantDamper:
         q_max = orifice.max_flow(self.k, p - self.k.oil_cavitation_pressure, nu)
         return (void > 0) | (-self.area * velocity > q_max)
 
+    def void_drive(self, q, velocity, y):
+        """The rate the cavitation void would grow at [m³/s]: the oil the extending piston
+        demands below it less what the orifice passes at the cavitation pressure; the
+        void follows it where it is open and stays shut where it would go negative."""
+        p, _ = self.gas_pressure(q, y)
+        nu = oil.kinematic_viscosity(self.k, y[1])
+        return -self.area * velocity - orifice.max_flow(self.k, p - self.k.oil_cavitation_pressure, nu)
+
     def rates(self, q, velocity, y):
         """dy/dt at stroke q [m] and stroke velocity [m/s]; y is (6,) or (6, m)."""
         k, gas = self.k, self.gas

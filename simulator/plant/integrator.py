@@ -8,8 +8,9 @@ over each step (exponential trapezoid) and the whole block solved as a scan with
 cumulative products; the iteration repeats until the block no longer changes.  Stiff
 states (the transducer line, ~1 ms) are thereby exact in their linear part, and a block
 costs a handful of vectorised right-hand sides instead of thousands of scalar ones.
-Longer stretches are cut into blocks of :data:`MAX_BLOCK_POINTS` (the transfer matrices
-grow with the square of a block).
+Longer stretches are cut into blocks of at most :data:`MAX_BLOCK_POINTS` (the transfer
+matrices grow with the square of a block) and :data:`MAX_BLOCK_S` (the iteration
+contracts over a short block); a block that does not settle is halved and tried again.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ import numpy as np
 from simulator.plant.damper import PlantDamper
 
 MAX_BLOCK_POINTS = 64
+MAX_BLOCK_S = 0.5
+MIN_BLOCK_POINTS = 3
 STEP_S = 4e-3          # the states' finest grid: the DAQ's 2 kHz reads them interpolated
 MAX_ITERATIONS = 40
 LINEARISED = (0, 1, 2, 3, 4)  # not the void: its rate jumps where it opens
@@ -73,9 +76,9 @@ def integrate_block(plant: PlantDamper, t: np.ndarray, q: np.ndarray, v: np.ndar
         new = np.empty_like(Y)
         new[:, 0] = y0
         new[:, 1:] = free + np.einsum("skj,sj->sk", E, beta)
+        new[5] = _reflected(y0[5], plant.void_drive(q, v, Y), dt[0])
         change = float(np.max(np.abs(new - Y) / scale))
         Y = new
-        Y[5] = np.maximum(Y[5], 0.0)  # a void cannot be negative
         if change < TOLERANCE:
             return Y
         F = plant.rates(q, v, Y)
@@ -83,14 +86,30 @@ def integrate_block(plant: PlantDamper, t: np.ndarray, q: np.ndarray, v: np.ndar
                                 f"over {t[0]:.3f}-{t[-1]:.3f} s (change {change:.2g})")
 
 
+def _reflected(start: float, drive: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    """x_k = max(x_{k−1} + Δ_k, 0) for all k at once (the Skorokhod reflection of the
+    trapezoid sums S: x = S − min(0, running minimum of S)); the void opens and shuts
+    exactly, where an iteration on its switching rate would chatter."""
+    S = start + np.concatenate([[0.0], np.cumsum(0.5 * (drive[1:] + drive[:-1]) * dt)])
+    return S - np.minimum(0.0, np.minimum.accumulate(S))
+
+
 def integrate(plant: PlantDamper, t: np.ndarray, q: np.ndarray, v: np.ndarray, y0: np.ndarray) -> np.ndarray:
-    """States along a stroke of any length: block by block (MAX_BLOCK_POINTS each)."""
+    """States along a stroke of any length, block by block."""
     out = np.empty((len(y0), len(t)))
     out[:, 0] = y0
     start = 0
     while start < len(t) - 1:
-        stop = min(start + MAX_BLOCK_POINTS - 1, len(t) - 1)
-        out[:, start:stop + 1] = integrate_block(plant, t[start:stop + 1], q[start:stop + 1], v[start:stop + 1],
-                                                 out[:, start])
+        by_time = int(np.searchsorted(t, t[start] + MAX_BLOCK_S * (1 + 1e-9), side="right")) - 1
+        stop = min(start + MAX_BLOCK_POINTS - 1, len(t) - 1, max(by_time, start + MIN_BLOCK_POINTS - 1))
+        while True:
+            try:
+                out[:, start:stop + 1] = integrate_block(plant, t[start:stop + 1], q[start:stop + 1],
+                                                         v[start:stop + 1], out[:, start])
+                break
+            except PlantConvergenceError:
+                if stop - start < MIN_BLOCK_POINTS:
+                    raise
+                stop = start + (stop - start) // 2
         start = stop
     return out
