@@ -64,8 +64,7 @@ def generate(world: str, plan: str, out: Path, unit: Unit = Unit(), seed: int = 
         raise WorldUnavailable(f"no {world} world on this checkout")
     cmd = [sys.executable, "-m", "simulator", "generate", "--plan", plan, "--out", str(out), "--seed", str(seed),
            "--date", "261126", *unit.args()]
-    if world != "model" or available("plant"):
-        cmd += ["--physics", world]
+    cmd += ["--physics", world]
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
     if proc.returncode != 0:
@@ -85,8 +84,11 @@ def drop(world: str, unit: Unit = Unit(), t: np.ndarray | None = None) -> Drop:
         return Drop(t, s.axle_force, s.stroke - damper.theta["theta12"])
     if not available(world):
         raise WorldUnavailable(f"no {world} world on this checkout")
-    from simulator.plant.drop import simulate_drop  # type: ignore[import-not-found,unused-ignore]
+    from simulator.plant.drop import simulate_drop
 
-    s = simulate_drop(unit=unit.kind, unit_seed=unit.seed, mass_kg=DROP_MASS_KG, velocity_m_s=DROP_VELOCITY_M_S,
-                      t=t)
-    return Drop(t, np.asarray(s.force_N), np.asarray(s.stroke_m))
+    rate = (len(t) - 1) / (t[-1] - t[0])
+    record = simulate_drop(unit.kind, unit.seed, mass_kg=DROP_MASS_KG, velocity_m_s=DROP_VELOCITY_M_S,
+                           duration_s=float(t[-1] - t[0]), rate_hz=rate)
+    if len(record.t) != len(t):
+        raise RuntimeError(f"plant drop sampled {len(record.t)} times, asked for {len(t)}")
+    return Drop(t, np.asarray(record.force_N), np.asarray(record.stroke_m))

@@ -23,8 +23,6 @@ prediction's uncertainty covers ≥ 9 of 10 plant units.
 
 from __future__ import annotations
 
-import _setup  # noqa: F401  (one BLAS thread, repository on the path)
-
 import argparse
 import json
 import subprocess
@@ -34,9 +32,12 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
+from _setup import ROOT  # first: one BLAS thread, set before numpy loads
 
-from _worlds import DROP_MASS_KG, DROP_VELOCITY_M_S, ROOT, WORLDS, Drop, Unit, available, drop, generate
+# isort: split
+import numpy as np
+from _worlds import DROP_MASS_KG, DROP_VELOCITY_M_S, WORLDS, Drop, Unit, available, drop, generate
+
 from identify.dataset import read_dataset
 from identify.differentiation import Grid
 from identify.discrepancy import Discrepancy, from_errors, relative_pressure_errors
@@ -44,7 +45,6 @@ from identify.fit import fit_experiments
 from identify.model import CompiledModel, load_model
 from identify.parameters import Parameters
 from identify.periodic import PeriodicSolver
-from identify.plans import STANDARD_SET
 from identify.preparation import prepare_periodic
 from identify.transient import drop_test
 
@@ -140,9 +140,9 @@ def type_test_discrepancy(model: CompiledModel, choice: ModelChoice, theta: np.n
     rest = [e for e in standard if _key(e) not in run_keys]
     if rest:
         data = prepare_periodic(model, rest, N_GRID, OUTPUTS)
-        errors = relative_pressure_errors(model, theta, data, OUTPUTS, N_GRID)
-        return from_errors(errors, f"{len(rest)} held-out standard experiments")
-    errors = []
+        held = relative_pressure_errors(model, theta, data, OUTPUTS, N_GRID)
+        return from_errors(held, f"{len(rest)} held-out standard experiments")
+    errors: list[float] = []
     groups = sorted({e.meta.get("group", "") for e in run})
     for g in groups:
         inside = [e for e in run if e.meta.get("group", "") != g]
@@ -296,7 +296,8 @@ def print_table(rows: list[Row]) -> None:
                    if ho else "— (ran the whole set)")
         print(f"| {r.world} | {r.plan} | {r.model} | {r.rig_s:.0f} s | {_kn(p.peak_force)} ± {_kn(p.peak_force_std)} "
               f"({_kn(r.total_peak_std())}) | {_kn(float(r.truth.force_N.max()))} | {cov} ({cov_d}) | "
-              f"{1e3 * p.peak_stroke:.2f} ± {1e3 * p.peak_stroke_std:.2f} / {1e3 * float(r.truth.stroke_m.max()):.2f} | "
+              f"{1e3 * p.peak_stroke:.2f} ± {1e3 * p.peak_stroke_std:.2f} / "
+              f"{1e3 * float(r.truth.stroke_m.max()):.2f} | "
               f"{_kn(r.rms_error)} | {ho_text} |")
 
 

@@ -64,7 +64,7 @@ def relative_pressure_errors(model: CompiledModel, theta: np.ndarray, data: Sequ
     return np.array(out)
 
 
-def from_errors(errors: Sequence[float], source: str) -> Discrepancy:
+def from_errors(errors: Sequence[float] | np.ndarray, source: str) -> Discrepancy:
     """σ_δ from held-out relative errors: their root mean square."""
     e = np.asarray(errors, dtype=float)
     if e.size == 0:
