@@ -239,6 +239,8 @@ def measure(world: str, plan_name: str, plan: str, model_name: str, unit: Unit, 
     (the type test: the reference unit's standard set) also the held-out prediction and
     the discrepancy estimated from it; otherwise ``discrepancy`` is the type test's."""
     choice = MODELS[model_name]
+    if plan_name == "drop":   # the plan rig design --predict drop made, for the parameters it estimates
+        choice = ModelChoice(choice.spec, ("theta3", *choice.estimate), choice.start)
     model = load_model(choice.spec)
     folder = work / f"{world}-{plan_name}-{unit}-{seed}"
     if not folder.exists():
@@ -325,7 +327,7 @@ def main() -> int:
                     "for --predict drop), qc (the QC spec's), or plan files")
     ap.add_argument("--models", default=",".join(MODELS))
     ap.add_argument("--units", type=int, default=10, help="good production units for the σ coverage (0: none)")
-    ap.add_argument("--coverage-plans", default="standard,lab,drop", help="plans whose σ coverage is measured")
+    ap.add_argument("--coverage-plans", default="drop,lab,standard", help="plans whose σ coverage is measured")
     ap.add_argument("--reference-units", type=int, default=3,
                     help="good units whose own drop is the type test the drop discrepancy is estimated from")
     ap.add_argument("--drop-discrepancy", type=float, default=0.0,
@@ -366,7 +368,7 @@ def main() -> int:
         print("| world | plan | model | covered: parameter σ | + held-out σ_δ | + drop type-test σ_δ | "
               "median |error| [kN] | median σ: parameter / + held-out / + drop type test [kN] | drop σ_δ |")
         print("|---|---|---|---|---|---|---|---|---|")
-        cov_plans = {k: v for k, v in chosen.items() if k in args.coverage_plans.split(",")}
+        cov_plans = {k: chosen[k] for k in args.coverage_plans.split(",") if k in chosen}
         for world in worlds:
             for plan_name, plan in cov_plans.items():
                 for model_name in models:
