@@ -24,7 +24,7 @@ from simulator.modbus import ModbusEndpoint
 from simulator.physics import Actuator, Damper
 from simulator.plant.damper import PlantDamper
 from simulator.sensors import SensorSet
-from simulator.tiers import DropTrack, make_tier
+from simulator.tiers import DropTrack, make_tier, rest_stroke
 
 PHYSICS_RATE_HZ = 10_000.0
 BLOCK_S = 0.1  # at most; at 1x a wall tick is a couple of milliseconds of simulated time
@@ -63,11 +63,9 @@ class VirtualRig:
         self._dt = 1.0 / PHYSICS_RATE_HZ
         # The controller's position transducer reads the measured stroke; a drop rig holds
         # the damper at q = 0 until the release.
-        self.tier = make_tier(self.damper, self.actuator, self._dt, 0.0)
-        rest_m = self.tier.rest_stroke() if self.rig_type == "drop" else 0.0
+        rest_m = rest_stroke(self.damper) if self.rig_type == "drop" else 0.0
         self.controller = ShakerController(initial_position_m=rest_m, on_event=lambda m: self.log.record(self.t, m))
-        if rest_m != 0.0:
-            self.tier = make_tier(self.damper, self.actuator, self._dt, self.controller.position_m)
+        self.tier = make_tier(self.damper, self.actuator, self._dt, self.controller.position_m)
         self.sensors = SensorSet(seed=self.seed)
         self.daq = DaqDevice(self.daq_port, now=lambda: self.t, log=self.log, speed=self.speed, seed=self.seed)
         self.modbus = ModbusEndpoint(self.controller, host=self.modbus_host, port=self.modbus_port,

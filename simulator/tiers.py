@@ -47,9 +47,6 @@ class ModelTier:
         self.damper = damper
         self.plant = StreamingPlant(damper, actuator, dt_s, position_m)
 
-    def rest_stroke(self) -> float:
-        return float(self.damper.measured_stroke(0.0))
-
     def rest(self) -> np.ndarray:
         return np.array([self.plant.temperature_k])
 
@@ -102,9 +99,6 @@ class PlantTier:
         self.plant = plant
         self.stream = StreamingPlantTruth(plant, actuator, dt_s, position_m)
 
-    def rest_stroke(self) -> float:
-        return 0.0
-
     def rest(self) -> np.ndarray:
         return self.stream.state.copy()
 
@@ -145,6 +139,11 @@ class _PlantDrop:
 
     def stroke(self, since_s):
         return float(np.interp(min(since_s, self.rec.t[-1]), self.rec.t, self.rec.stroke_m)) if since_s >= 0 else 0.0
+
+
+def rest_stroke(damper: Damper | PlantDamper) -> float:
+    """What the stroke transducer reads with the damper fully extended (q = 0) [m]."""
+    return 0.0 if isinstance(damper, PlantDamper) else float(damper.measured_stroke(0.0))
 
 
 def make_tier(damper: Damper | PlantDamper, actuator: Actuator, dt_s: float,

@@ -162,3 +162,14 @@ def test_the_drop_test_reaches_about_half_a_metre_per_second_and_settles_at_the_
 
 def test_the_gas_constant_is_codata():
     assert R_GAS == pytest.approx(8.314462618)
+
+
+def test_docs_plant_lists_every_constant_with_its_value():
+    from pathlib import Path
+
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "plant.md").read_text()
+    for name, entry in sources().items():
+        assert f"`{name}`" in doc, name
+        value = entry["value"]
+        shown = ", ".join(f"{x:g}" for x in value) if isinstance(value, list) else f"{value:g}"
+        assert f"`{name}` | {shown} |" in doc, f"{name}: docs/plant.md shows another value than constants.toml"
