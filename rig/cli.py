@@ -8,6 +8,7 @@
 ``gui``      the operator's console: live view, manual control, plans, fits, sessions
 ``qc``       quality control of production dampers (run, judge, history)
 ``design``   a plan of experiments for a precision goal at the least predicted rig time
+``log-times`` a session's predicted against real rig time, phase by phase, from its session.log
 
 Exit status (every command): 0 done; 1 identification did not converge (``run
 --identify``); 2 bad input (a file, address or argument; one line naming it, and
@@ -70,6 +71,13 @@ def cmd_run(args: argparse.Namespace) -> int:
                      model=args.model, params=args.params, estimate=comma_list(args.estimate) or [], date=args.date,
                      unit_serial=args.unit)
     return run_session(opt)
+
+
+def cmd_log_times(args: argparse.Namespace) -> int:
+    from rig.session.timing import format_times, log_times
+
+    print(format_times(log_times(args.session)))
+    return EXIT_OK
 
 
 def cmd_status(args: argparse.Namespace) -> int:
@@ -246,6 +254,10 @@ def build_parser() -> argparse.ArgumentParser:
     des.add_argument("--rig-config", help="limits, criteria and transducer noise TOML (default: rig-default.toml)")
     des.add_argument("--out", required=True, help="the plan file to write")
     des.set_defaults(func=cmd_design)
+
+    times = sub.add_parser("log-times", help="a session's predicted against real rig time, phase by phase")
+    times.add_argument("session", help="session folder (its session.log)")
+    times.set_defaults(func=cmd_log_times)
 
     add_qc_parser(sub)
     return parser

@@ -27,6 +27,7 @@ from typing import Any
 
 from rich.console import Console
 
+from identify.exit_codes import EXIT_INTERRUPTED, EXIT_OK
 from identify.files import atomic_write_bytes
 from rig.errors import BadInput
 from rig.planning.plans import estimate_experiment_durations
@@ -38,7 +39,7 @@ from rig.qc.records import CharacteristicRecord, QcRecord, Records, default_url
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
 from rig.qc.trace import SessionTrace, now_utc, software_version, trace_session
-from rig.session.run import EXIT_INTERRUPTED, EXIT_OK, Prepared, RunOptions, RunResult, execute, prepare
+from rig.session.run import Prepared, RunOptions, RunResult, execute, prepare
 
 EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
 
