@@ -31,7 +31,7 @@ from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERNAL, EXI
 from identify.model import DEFAULT_ESTIMATE
 from rig.config import load_rig_config
 from rig.drivers.daq import Calibration, Daq
-from rig.drivers.registers import load_register_map
+from rig.drivers.registers import ControllerState, load_register_map
 from rig.drivers.shaker import LimitError, Shaker
 from rig.errors import BadInput, RigFault
 from rig.gui.options import ConsoleOptions, add_console_arguments, add_link_arguments
@@ -88,7 +88,7 @@ def cmd_status(args: argparse.Namespace) -> int:
         shaker.close()
     print(f"state {st.state}  alarm {st.alarm}  position {st.position_m * 1e3:.2f} mm  "
           f"force {st.force_n / 1e3:.2f} kN  cycles {st.cycles}  supply {st.hydraulic_pressure_pa / 1e5:.0f} bar")
-    return EXIT_OK if st.state != "ALARM" else EXIT_ABORTED
+    return EXIT_OK if st.state is not ControllerState.ALARM else EXIT_ABORTED
 
 
 def cmd_move(args: argparse.Namespace) -> int:
@@ -97,7 +97,7 @@ def cmd_move(args: argparse.Namespace) -> int:
         try:
             shaker.move_to(args.position_mm * 1e-3, switch_on=True)
             if args.wait:
-                st = shaker.wait_for({"AT_STATIC"}, timeout_s=args.wait)
+                st = shaker.wait_for({ControllerState.AT_STATIC}, timeout_s=args.wait)
                 print(f"at static position {st.position_m * 1e3:.2f} mm")
         except LimitError:
             raise  # refused before anything was sent: nothing moves, nothing to stop
@@ -119,7 +119,7 @@ def cmd_stop(args: argparse.Namespace) -> int:
     try:
         if args.reset:
             shaker.reset_alarm()
-        elif args.fade and shaker.status().state == "RUNNING":
+        elif args.fade and shaker.status().state is ControllerState.RUNNING:
             shaker.fade_out()
         else:
             if args.fade:
@@ -169,9 +169,9 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def cmd_design(args: argparse.Namespace) -> int:
-    from rig.design import run_design  # numerics only this command needs
+    from rig.design import DesignOptions, run_design  # numerics only this command needs
 
-    return run_design(args)
+    return run_design(DesignOptions.from_args(args))
 
 
 def cmd_gui(args: argparse.Namespace) -> int:

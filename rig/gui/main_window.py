@@ -25,6 +25,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from identify.exit_codes import EXIT_BAD_INPUT
 from rig.drivers.daq import check_daq_address
 from rig.drivers.estop import EstopDone, LatchChanged
+from rig.drivers.registers import ControllerState
 from rig.drivers.shaker import ShakerAddress, ShakerStatus
 from rig.errors import BadInput
 from rig.events import Event, Kind, Message
@@ -309,7 +310,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 return
         self.estop_text = self.alarm_latched = None
         self.station.emergency.confirm_reset()
-        if self.status is not None and self.status.state == "ALARM":
+        if self.status is not None and self.status.state is ControllerState.ALARM:
             self.manual._do(self.station.reset_alarm())
         self._show_banner()
 
@@ -388,7 +389,8 @@ class MainWindow(QtWidgets.QMainWindow):
             if current.status in ("settling", "capturing"):
                 return current.label, current.spec.frequency_hz
             return None, None
-        if self.status is not None and self.status.state == "RUNNING" and self.station.manual_frequency_hz:
+        running = self.status is not None and self.status.state is ControllerState.RUNNING
+        if running and self.station.manual_frequency_hz:
             return ("manual", self.station.manual_runs), self.station.manual_frequency_hz
         return None, None
 
@@ -405,10 +407,12 @@ class MainWindow(QtWidgets.QMainWindow):
         was = self.status
         self.status = item.status
         self.link_error = item.error
-        if item.status is not None and item.status.state == "ALARM" and (was is None or was.state != "ALARM"):
+        st = item.status
+        tripped = st is not None and st.state is ControllerState.ALARM
+        if st is not None and tripped and (was is None or was.state is not ControllerState.ALARM):
             # A trip outside a session (a manual sine) has no acquisition event to log it.
-            self._say(f"controller tripped: {item.status.alarm}", "error")
-            self.alarm_latched = item.status.alarm
+            self._say(f"controller tripped: {st.alarm}", "error")
+            self.alarm_latched = st.alarm
         if self.plan.progress is not None and self.station.session_running:
             # The stream's sample count read with the status drives every count shown, in this frame.
             if self.plan.progress.observe(item.samples, item.time) is not None:
@@ -499,8 +503,8 @@ class MainWindow(QtWidgets.QMainWindow):
                 else "the controller's state is not known (no answer)")
         if self.estop_text:
             text, colour = f"{self.estop_text} — {held}. Reset… once the rig is safe", "#d50000"
-        elif st is not None and st.state == "ALARM" or self.alarm_latched:
-            which = st.alarm if st is not None and st.state == "ALARM" else \
+        elif st is not None and st.state is ControllerState.ALARM or self.alarm_latched:
+            which = st.alarm if st is not None and st.state is ControllerState.ALARM else \
                 f"{self.alarm_latched}, latched here (the controller reads {st.state if st else '?'})"
             text, colour = f"ALARM: {which} — {held}; find the cause, then Reset…", "#d50000"
         elif link_error:

@@ -26,6 +26,7 @@ from identify.plans import ExperimentSpec
 from rig.config import CHANNELS, RigConfig
 from rig.drivers.clock import WALL_CLOCK, Clock
 from rig.drivers.daq import Daq, Samples
+from rig.drivers.registers import ControllerState
 from rig.drivers.shaker import AlarmError, Shaker, ShakerTimeout
 from rig.errors import RigFault
 from rig.events import EventBus, Kind, Phase
@@ -272,9 +273,9 @@ class Acquisition:
         static, amp = spec.static_position_mm * 1e-3, spec.amplitude_mm * 1e-3
         self._enter(Phase.MOVING, label, target_mm=spec.static_position_mm)
         st = self.shaker.status()
-        if st.state == "ALARM":
+        if st.state is ControllerState.ALARM:
             raise AlarmError(st)
-        if st.state == "OFF":
+        if st.state is ControllerState.OFF:
             self.shaker.hydraulics(True)
         position = st.position_m
         lost0 = self.daq.counters.lost_samples   # the hold's stream and the experiment's
@@ -283,7 +284,7 @@ class Acquisition:
             position = hold.position_m
         else:
             self.shaker.move_to(static)
-        self._wait_state({"AT_STATIC"}, MOVE_TIMEOUT_S + 2 * move_duration_s(static - position))
+        self._wait_state({ControllerState.AT_STATIC}, MOVE_TIMEOUT_S + 2 * move_duration_s(static - position))
         self._check_stop()
 
         self._enter(Phase.SETTLING, label)
@@ -307,7 +308,7 @@ class Acquisition:
                                                f"stream, {record.lost_samples} in the captured window")
         self._enter(Phase.STOPPING, label)
         self.shaker.fade_out()
-        self._wait_state({"AT_STATIC"}, 30.0 + 2 * ss.ramp_time_s)
+        self._wait_state({ControllerState.AT_STATIC}, 30.0 + 2 * ss.ramp_time_s)
         self.shaker.stop()
         self._enter(Phase.IDLE, label)
         return record
@@ -447,7 +448,7 @@ class Acquisition:
             return self.probed_pace
         return max(1.0, self._streamed_samples / self.daq.rate_hz / self._streamed_s)
 
-    def _wait_state(self, states: set[str], timeout_s: float) -> None:
+    def _wait_state(self, states: set[ControllerState], timeout_s: float) -> None:
         """Wait for a controller state in short slices, so that Ctrl-C is honoured."""
         deadline = self.clock.monotonic() + timeout_s
         while True:
@@ -565,7 +566,7 @@ class Acquisition:
             now = self.clock.monotonic()
             if now - last_status > 0.2:
                 st = self.shaker.status()
-                if st.state == "ALARM":
+                if st.state is ControllerState.ALARM:
                     raise AlarmError(st)
                 last_status = now
                 if capture:
@@ -590,11 +591,12 @@ class Acquisition:
             # quick try, so the record is written while the controller's watchdog takes over.
             patience = QUICK_RECONNECT_S
         veto = self.shaker.veto("fade out")
-        if st is not None and st.state == "RUNNING" and veto is not None:
+        if st is not None and st.state is ControllerState.RUNNING and veto is not None:
             self.bus.publish(Kind.LOG, None, message=f"safe stop: no fade ({veto})")
-        elif st is not None and st.state == "RUNNING":
+        elif st is not None and st.state is ControllerState.RUNNING:
             steps.append(("fade out", self.shaker.fade_out))
-            steps.append(("wait at static", lambda: self.shaker.wait_for({"AT_STATIC", "ALARM"}, 30.0)))
+            at_rest = {ControllerState.AT_STATIC, ControllerState.ALARM}
+            steps.append(("wait at static", lambda: self.shaker.wait_for(at_rest, 30.0)))
             done.append("faded out")
         steps += [("stop", self.shaker.stop), ("hydraulics off", lambda: self.shaker.hydraulics(False))]
         done += ["STOP", "hydraulics off"]

@@ -47,7 +47,7 @@ from rig.config import RigConfig, load_rig_config
 from rig.drivers.daq import Calibration, Daq, DaqError, check_daq_address
 from rig.drivers.peer_identity import Peers
 from rig.drivers.peers import wrong_peer_or
-from rig.drivers.registers import RegisterMap, load_register_map
+from rig.drivers.registers import ControllerState, RegisterMap, load_register_map
 from rig.drivers.shaker import AlarmError, MotionInterlock, Shaker, ShakerAddress, ShakerError, ShakerLinkError
 from rig.errors import RigError, RigFault
 from rig.events import EventBus, Kind, LinkNotice, Subscriber
@@ -207,7 +207,7 @@ def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Ca
         links.peers = Peers(shaker.identify(), links.identity)
         status = shaker.status()
         links.start_position_m = status.position_m
-        if status.state == "ALARM":
+        if status.state is ControllerState.ALARM:
             if not reset_alarm:
                 raise AlarmLatched(
                     f"the controller at {shaker_url} holds a latched alarm: {status.alarm} (stroke "
@@ -215,7 +215,7 @@ def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Ca
                     f"'python -m rig stop --reset --shaker {shaker_url}' or run again with --reset-alarm")
             links.latched_alarm = status.alarm
             shaker.reset_alarm()
-            if shaker.status().state == "ALARM":
+            if shaker.status().state is ControllerState.ALARM:
                 raise AlarmLatched(f"the controller at {shaker_url} still holds the alarm {status.alarm} "
                                    "after a reset: the cause is still there")
     except (ShakerLinkError, DaqError) as exc:
