@@ -33,7 +33,7 @@ from identify.model import DEFAULT_ESTIMATE, CompiledModel, load_model
 from identify.parameters import Parameters, load_document
 from identify.periodic import PeriodicSolver
 from identify.preparation import model_columns, prepare_periodic, resolve_outputs
-from identify.result import FitResult
+from identify.result import FitResult, failed_document, write_document
 from identify.transient import drop_test
 
 if TYPE_CHECKING:
@@ -186,7 +186,7 @@ def run_fit(args: argparse.Namespace) -> int:
                 print(f"warning ({label}): {w}")
         doc = {"model": model.name, "converged": all(r.converged for _, r in results) and len(results) == len(groups),
                "interrupted": interrupted, "per_experiment": {lb: r.to_document() for lb, r in results}}
-        atomic_write_bytes(Path(args.output), (json.dumps(doc, indent=2) + "\n").encode())
+        write_document(args.output, doc)
         return EXIT_INTERRUPTED if interrupted else EXIT_OK if doc["converged"] else EXIT_NOT_CONVERGED
     result = results[0][1]
     result.write_json(args.output)
@@ -207,13 +207,7 @@ def _write_figures(result: FitResult, folder: Path, console: Console) -> None:
 
 
 def _write_failed(path: str, model: CompiledModel, params: Parameters, message: str) -> None:
-    doc = {"model": model.name, "converged": False, "iterations": 0, "message": message,
-           "parameters": {p.name: {"value": p.value, "std": None, "estimated": p.vary, "unit": p.unit,
-                                   **{k: v for k, v in (("prior_std", p.prior_std), ("min", p.minimum),
-                                                        ("max", p.maximum), ("initial", p.initial)) if v is not None}}
-                          for p in params},
-           "correlation": {}, "channels": {}, "experiments": {}}
-    atomic_write_bytes(Path(path), (json.dumps(doc, indent=2) + "\n").encode())
+    write_document(path, failed_document(model, params, message))
 
 
 def _print_table(table: Table) -> None:
