@@ -5,6 +5,7 @@ console's progress and table read from the run's output."""
 
 from __future__ import annotations
 
+import io
 import json
 import sqlite3
 from dataclasses import replace
@@ -13,6 +14,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from rich.console import Console
 from sqlalchemy import text
 from sqlalchemy.exc import SQLAlchemyError
 
@@ -21,12 +23,15 @@ from rig.config import load_rig_config
 from rig.drivers.daq import Calibration, Daq
 from rig.drivers.peer_identity import Peers
 from rig.drivers.shaker import Shaker
-from rig.gui.qc import ProgressReader, QcRequest, outcome
+from rig.events import Event, Kind, Phase
+from rig.gui.qc import ProgressReader, QcProgress, QcRequest, outcome
 from rig.qc.evaluate import _for_the_verdict
 from rig.qc.history import MIN_CAPABILITY_N, capability, imr_limits, index
 from rig.qc.present import limits_text, shown, sigma_note
 from rig.qc.records import ADDED_IN_2, CharacteristicRecord, QcRecord, Records
+from rig.qc.run import _print_summary
 from rig.qc.spec import load_spec
+from rig.session.progress import ConsoleProgress
 from simulator.generate import generate
 from simulator.truth import load_truth
 from tests.test_qc_records import qc, record
@@ -250,30 +255,49 @@ def test_the_report_has_titles_acceptance_limits_units_and_a_sigma_note_per_char
 
 # ----- the console's QC panel, from the run's own output ----------------------------------------------
 def test_the_console_reads_progress_and_rig_time_left_from_the_run():
+    """The lines are the terminal's own (ConsoleProgress on a session's events), not typed here."""
+    out = io.StringIO()
     reader = ProgressReader()
-    assert reader.feed("QC default 1.2.0 on unit SN-1: records in sqlite:///x") is None
-    start = reader.feed("session: 3 experiments, about 4:36 min:s of rig time")
+
+    def said(*events: Event) -> QcProgress | None:
+        for e in events:
+            terminal(e)
+        lines = out.getvalue().splitlines()
+        out.seek(0)
+        out.truncate()
+        got = [reader.feed(line) for line in lines]
+        return got[-1] if got else None
+
+    # the announcement: "session: 3 experiments, about 4:36 min:s of rig time"
+    terminal = ConsoleProgress(Console(file=out, width=200), {"261126l": 92.0, "261126v": 92.0, "261126j": 92.0})
+    start = said()
     assert start is not None and start.fraction == 0 and start.rig_left_s == 276
-    reader.feed("[1/3] 261126l  Moving to the static position 40.0 mm.")
-    half = reader.feed("[1/3] 261126l  Captured 50 % of the window.")
+    said(Event(Kind.PHASE, "261126l", {"phase": Phase.MOVING, "target_mm": 40.0}))
+    half = said(Event(Kind.PROGRESS, "261126l", {"phase": Phase.CAPTURING, "fraction": 0.5}))
     assert half is not None and half.fraction == pytest.approx(0.5 / 3) and "capturing" in half.text
-    reader.feed("[2/3] 261126v  Moving to the static position 133.0 mm.")    # begun before l's file is written
-    done = reader.feed("[1/3] 261126l  Written to 261126l.csv: 6000 samples, none lost in the window.")
+    said(Event(Kind.PHASE, "261126v", {"phase": Phase.MOVING, "target_mm": 133.0}))   # before l's file is written
+    done = said(Event(Kind.EXPERIMENT_DONE, "261126l", {"file": "261126l.csv", "samples": 6000, "lost": 0,
+                                                        "flags": []}))
     assert done is not None and done.fraction == pytest.approx(1 / 3) and done.rig_left_s == pytest.approx(184)
     assert "experiment 2 of 3" in done.text
 
 
-def test_the_console_table_comes_from_the_summary_the_run_prints():
-    stdout = ("SN-0042: FAIL  (spec default 1.2.0; value ± 2σ)  SIMULATED (not a production record)\n"
-              "  FAIL         | Damping force at 0.3 m/s | 344.1 ± 4.0 N | limits 450 N ± 10 % | "
-              "accept 409.0 … 491.0 N | σ 2.0 N residual-based\n"
-              "  likely cause: Damping force at 0.3 m/s too low: orifice wear or wrong oil\n"
-              "report /tmp/x/qc-report.html; record abc in sqlite:///x\n")
-    done = outcome(QcRequest("SN-0042"), 1, stdout, [])
+def test_the_console_table_comes_from_the_summary_the_run_prints(capsys):
+    """The summary is the one `rig qc run` prints (rig.qc.run's printer on a record), not typed here."""
+    characteristic = CharacteristicRecord("damping_force_0.3_N", "N", 344.1, 2.0, 1.9, 0.5, 405.0, 495.0, 450.0,
+                                          "FAIL", "Damping force at 0.3 m/s", "residual")
+    unit = replace(record("SN-0042", "abc"), characteristics=(characteristic,), simulated=True,
+                   diagnosis=("Damping force at 0.3 m/s too low: orifice wear or wrong oil",), remedy="replace it")
+    capsys.readouterr()
+    _print_summary(unit, 2.0, Path("/tmp/x/qc-report.html"), "sqlite:///x")
+    done = outcome(QcRequest("SN-0042"), 1, capsys.readouterr().out, [])
+    expected = shown(unit, characteristic, 2.0)
     (row,) = done.rows
     assert (row.title, row.value, row.limits, row.acceptance, row.outcome) == (
-        "Damping force at 0.3 m/s", "344.1 ± 4.0 N", "450 N ± 10 %", "409.0 … 491.0 N", "FAIL")
-    assert done.causes == ["Damping force at 0.3 m/s too low: orifice wear or wrong oil"] and done.simulated
+        expected.title, expected.value, expected.limits, expected.acceptance, "FAIL")
+    assert row.value.startswith("344") and row.value.endswith(" N")
+    assert (done.shown, done.report, done.causes, done.remedy, done.simulated) == \
+        ("FAIL", Path("/tmp/x/qc-report.html"), list(unit.diagnosis), "replace it", True)
 
 
 def test_gui_unit_and_fault_go_to_the_simulated_rig_only(capsys):

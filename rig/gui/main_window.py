@@ -143,6 +143,37 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ----- layout ----------------------------------------------------------------------------------
     def _build(self, args: ConsoleOptions, shaker: str | None, daq: str | None) -> None:
+        """The window: the header (links, E-STOP, banner), the state strip, the controls
+        beside the views, the log."""
+        header = self._build_header(args, shaker, daq)
+        self.strip = StateStrip()
+        split = QtWidgets.QSplitter()
+        split.addWidget(self._build_controls(args))
+        split.addWidget(self._build_views(args))
+        split.setStretchFactor(0, 0)
+        split.setStretchFactor(1, 1)
+        split.setSizes([520, 1080])
+        self.log = QtWidgets.QPlainTextEdit()
+        self.log.setObjectName("logView")
+        self.log.setReadOnly(True)
+        self.log.setMaximumBlockCount(5000)
+        self.log.setFixedHeight(110)
+        central = QtWidgets.QWidget()
+        layout = QtWidgets.QVBoxLayout(central)
+        layout.addLayout(header)
+        layout.addWidget(self.strip)
+        layout.addWidget(split, 1)
+        layout.addWidget(self.log)
+        self.setCentralWidget(central)
+        self.resize(1600, 1000)
+        self._motion = {"hydraulics_on": self.manual.hyd_on, "move": self.manual.move_button,
+                        "sine": self.manual.sine_button, "run_plan": self.plan.run_button,
+                        "resume": self.plan.resume_button, "qc_test": self.qc.test_button}
+        self._tooltips = {name: button.toolTip() for name, button in self._motion.items()}
+        self._show_banner()
+
+    def _build_header(self, args: ConsoleOptions, shaker: str | None, daq: str | None) -> QtWidgets.QHBoxLayout:
+        """The links' addresses and Connect, the SIMULATED line, the alarm banner with Reset…, the E-STOP."""
         top = QtWidgets.QHBoxLayout()
         self.shaker_edit = QtWidgets.QLineEdit(shaker or "")
         self.shaker_edit.setPlaceholderText("tcp://HOST:PORT or rtu:///dev/DEVICE")
@@ -195,8 +226,10 @@ class MainWindow(QtWidgets.QMainWindow):
         header = QtWidgets.QHBoxLayout()
         header.addLayout(head, 1)
         header.addWidget(self.estop_button)
-        self.strip = StateStrip()
+        return header
 
+    def _build_controls(self, args: ConsoleOptions) -> QtWidgets.QWidget:
+        """The controller's panel above the Plan, Manual and QC tabs."""
         st = self.station
         self.controller = ControllerPanel(st.config.limits.watchdog_timeout_s)
         self.plan = PlanPanel(st.config, args.plan, args.experiments, Path(args.out))
@@ -220,7 +253,11 @@ class MainWindow(QtWidgets.QMainWindow):
         left_layout.setContentsMargins(0, 0, 0, 0)
         left_layout.addWidget(self.controller)
         left_layout.addWidget(self.left_tabs, 1)
+        return left
 
+    def _build_views(self, args: ConsoleOptions) -> QtWidgets.QTabWidget:
+        """The Live, Fit and Sessions views."""
+        st = self.station
         self.live = LiveView(st.config.daq_rate_hz, st.config.min_span)
         self.fit_view = FitView()
         self.fit_view.compareRequested.connect(self.compare)
@@ -232,32 +269,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.tabs.addTab(self.live, "Live")
         self.tabs.addTab(self.fit_view, "Fit")
         self.tabs.addTab(self.browser, "Sessions")
-
-        self.log = QtWidgets.QPlainTextEdit()
-        self.log.setObjectName("logView")
-        self.log.setReadOnly(True)
-        self.log.setMaximumBlockCount(5000)
-        self.log.setFixedHeight(110)
-
-        split = QtWidgets.QSplitter()
-        split.addWidget(left)
-        split.addWidget(self.tabs)
-        split.setStretchFactor(0, 0)
-        split.setStretchFactor(1, 1)
-        split.setSizes([520, 1080])
-        central = QtWidgets.QWidget()
-        layout = QtWidgets.QVBoxLayout(central)
-        layout.addLayout(header)
-        layout.addWidget(self.strip)
-        layout.addWidget(split, 1)
-        layout.addWidget(self.log)
-        self.setCentralWidget(central)
-        self.resize(1600, 1000)
-        self._motion = {"hydraulics_on": self.manual.hyd_on, "move": self.manual.move_button,
-                        "sine": self.manual.sine_button, "run_plan": self.plan.run_button,
-                        "resume": self.plan.resume_button, "qc_test": self.qc.test_button}
-        self._tooltips = {name: button.toolTip() for name, button in self._motion.items()}
-        self._show_banner()
+        return self.tabs
 
     # ----- operator actions ------------------------------------------------------------------------
     def connect_rig(self) -> None:
