@@ -57,7 +57,7 @@ def rig_session(spec, out: Path, truth: Damper | None = None, seed: int = 0) -> 
         prep = replace(prep, config=replace(prep.config, steady_state=spec.steady_state))
         t0 = rig.sim.t
         result = run_lifecycle(prep, links=Links(rig.shaker, rig.daq, rig.identity, None), bus=rig.bus)
-        return rig.sim.t - t0, result.status
+        return rig.sim.t - t0, result.exit_status.value
     finally:
         rig.close()
 

@@ -24,7 +24,7 @@ from rig.errors import RigFault
 from rig.events import Event, Kind
 from rig.session.outcome import ExitStatus
 from rig.session.progress import ConsoleProgress, describe
-from rig.session.run import RunResult, SessionRunner
+from rig.session.run import RunOptions, RunResult, SessionRunner, prepare
 from rig.session.storage import Session, SessionError, SessionLog, SessionWriteError, read_log
 from rig.session.timing import log_times
 from simulator.controller import State
@@ -94,6 +94,14 @@ def test_a_session_that_completes_leaves_nothing_behind(vrig, tmp_path):
         (ExitStatus.COMPLETE, False, "", None)
     assert meta["outcome"] == {"exit_status": "complete", "exit_code": EXIT_OK, "interrupted": False, "reason": "",
                                "exception": None, "before_motion": False, "skipped": [], "safe_stop_failures": []}
+    # a complete session is not resumed: read from its outcome, or from the bare word of an older session.json
+    resume = RunOptions(plan="standard", shaker=None, daq=None, out=tmp_path / "s", resume=True)
+    with pytest.raises(SessionError, match="the session is complete; nothing to resume"):
+        prepare(resume)
+    older = {k: v for k, v in meta.items() if k != "outcome"}
+    (tmp_path / "s" / "session.json").write_text(json.dumps(older))
+    with pytest.raises(SessionError, match="the session is complete; nothing to resume"):
+        prepare(resume)
 
 
 def test_predicted_and_real_rig_time_per_phase_come_from_the_logs_fields(vrig, tmp_path, capsys):

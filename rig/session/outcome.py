@@ -31,6 +31,15 @@ EXIT_CODES = {ExitStatus.COMPLETE: EXIT_OK, ExitStatus.ENDED: EXIT_OK, ExitStatu
               ExitStatus.RUNNING: EXIT_INTERNAL}
 
 
+def stored_exit_status(meta: dict[str, Any]) -> ExitStatus | None:
+    """How a stored session ended, from its session.json's ``outcome``.  A session written
+    before the outcome was has only the sentence: its status where the sentence is the
+    bare word (``complete``, ``running``), otherwise None (the sentence is not parsed)."""
+    outcome = meta.get("outcome")
+    word = outcome.get("exit_status") if isinstance(outcome, dict) else meta.get("status")
+    return ExitStatus(word) if word in set(ExitStatus) else None
+
+
 @dataclass
 class RunResult:
     """How a session ended (the record of it is ``session.json``).

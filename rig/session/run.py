@@ -53,7 +53,7 @@ from rig.errors import RigError, RigFault
 from rig.events import EventBus, Kind, LinkNotice, Subscriber
 from rig.planning.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
 from rig.session.acquisition import Acquisition, ExperimentRecord, Interrupted
-from rig.session.outcome import ExitStatus, RunResult
+from rig.session.outcome import ExitStatus, RunResult, stored_exit_status
 from rig.session.progress import ConsoleProgress
 from rig.session.storage import Session, SessionError, SessionLog
 
@@ -139,7 +139,7 @@ def prepare(opt: RunOptions) -> Prepared:
     stored = None
     if opt.resume:
         stored = Session.load(opt.out)
-        if stored.meta.get("status") == "complete":
+        if stored_exit_status(stored.meta) is ExitStatus.COMPLETE:
             raise SessionError(f"{opt.out}: the session is complete; nothing to resume")
         meta = stored.meta
         if "identify" in meta and not opt.identify:   # asked for when the session began
