@@ -61,7 +61,7 @@ from rig.virtual import VirtualRig
 REDRAW_HZ = 30
 DRAIN_MAX = 5000                 # records taken from the queue per tick, so a flood cannot freeze the window
 LOGGED_EVENTS = (Kind.SESSION_START, Kind.PHASE, Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED, Kind.ALARM, Kind.LOG,
-                 Kind.LINK, Kind.SESSION_END)
+                 Kind.PACE_PROBE, Kind.HOLD, Kind.HOLD_END, Kind.CAPTURE_WINDOW, Kind.LINK, Kind.SESSION_END)
 ESTOP_KEYS = ("Esc", "F12")
 GIL_SWITCH_S = 0.0005
 SIMULATOR_NICE = 5
