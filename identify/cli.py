@@ -154,7 +154,7 @@ def run_fit(args: argparse.Namespace) -> int:
     if args.report:
         atomic_write_bytes(Path(args.report), (report + "\n").encode())
     if args.figures:
-        _write_figures(result, Path(args.figures), console)
+        _write_figures(result, Path(args.figures), console, bool(job.model.input_derivatives))
     return EXIT_INTERRUPTED if interrupted else EXIT_OK if result.converged else EXIT_NOT_CONVERGED
 
 
@@ -224,7 +224,7 @@ def _per_experiment_output(job: _FitJob, results: list[tuple[str, FitResult]], a
         atomic_write_bytes(Path(args.report), "".join(f"=== experiment {label} ===\n{r.fit_report()}\n"
                                                       for label, r in results).encode())
     for label, r in results if args.figures else []:  # a folder per experiment: the same file names in each
-        _write_figures(r, Path(args.figures) / label, console)
+        _write_figures(r, Path(args.figures) / label, console, bool(job.model.input_derivatives))
     for label, r in results:
         for w in r.warnings:
             print(f"warning ({label}): {w}")
@@ -235,10 +235,10 @@ def _per_experiment_output(job: _FitJob, results: list[tuple[str, FitResult]], a
     return EXIT_INTERRUPTED if interrupted else EXIT_OK if converged else EXIT_NOT_CONVERGED
 
 
-def _write_figures(result: FitResult, folder: Path, console: Console) -> None:
+def _write_figures(result: FitResult, folder: Path, console: Console, loops: bool) -> None:
     from identify.figures import write_figures
 
-    for path in write_figures(result, folder):
+    for path in write_figures(result, folder, loops):
         console.print(f"figure {path}", highlight=False, soft_wrap=True)  # a path whole, to copy
 
 
@@ -309,6 +309,9 @@ def run_predict(args: argparse.Namespace) -> int:
         for i, name in enumerate(model.output_names):
             if name not in cols:
                 cols[name] = d.outputs[name].from_si(grid.interpolate(y[i], phase))
+    elif model.input_derivatives:
+        raise InputError(f"experiment {label!r} is a {exp.kind} record, and model {model.name!r} takes its inputs' "
+                         f"derivatives, which identify takes on a periodic record's grid only")
     else:
         mass = float(exp.meta["drop_mass_kg"])
         v0 = float(exp.meta.get("drop_velocity_m_s", 0.0))

@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     import pandas as pd
 
 RELATIVE_STD_WARNING = 0.10  # a parameter known to worse than 10 % is flagged
+UNDETERMINED = 100.0  # a σ this many times the value: a flat direction, printed without digits that mean nothing
 # Monte-Carlo calibration of the reported σ, written by benchmarks/bench_sigma.py --record.
 CALIBRATION_FILE = Path(__file__).with_name("calibration.json")
 CONDITION_WARNING = 1e6  # of the weighted, parameter-scaled sensitivity matrix
@@ -172,7 +173,11 @@ class FitResult:
         for nm in self.estimated:
             value = self.params[nm].value
             s = self.honest_std(nm)
-            if value != 0 and s / abs(value) > RELATIVE_STD_WARNING:
+            if value == 0 or s / abs(value) > UNDETERMINED:
+                out.append(f"{nm} ({self.params[nm].alias}) is not determined by these experiments: its σ "
+                           f"({notation.significant(s)}) is more than {UNDETERMINED:g} times its value; a flat "
+                           f"direction of the fit, so its estimate is no result")
+            elif s / abs(value) > RELATIVE_STD_WARNING:
                 out.append(f"{nm} ({self.params[nm].alias}) is poorly identifiable from these experiments: "
                            f"±{100 * s / abs(value):.0f} %"
                            + (" (residual-based σ)" if self.std_residual is not None else ""))
@@ -312,10 +317,10 @@ class FitResult:
                 residual = ""
                 if self.std_residual is not None:
                     sr = self.std_residual[p.name]
-                    residual = f"   [{notation.plus_minus(p.value, sr)}{_relative(p.value, sr)} *]"
+                    residual = f"   [{_with_std(p.value, sr)}{_relative(p.value, sr)} *]"
                 side = p.at_bound()
                 bound = f"   [AT {side.upper()}, see warnings]" if side else ""
-                lines.append(f"    {p.name:8s} {p.alias:18s} {notation.plus_minus(p.value, s, unit)}"
+                lines.append(f"    {p.name:8s} {p.alias:18s} {_with_std(p.value, s, unit)}"
                              f"{_relative(p.value, s)} {init_s}, {prior_s}" + residual + bound)
         if self.std_residual is not None:
             E = float(len(self.experiments))
@@ -364,8 +369,18 @@ class FitResult:
         return "\n".join(ln for ln in lines if ln != "")
 
 
+def _with_std(value: float, std: float, unit: str = "") -> str:
+    """value ± σ, or the value alone where σ dwarfs it (a flat direction: "(0.0 ± 2.8)×10¹⁶"
+    carries no digit that means anything)."""
+    if not value or std > UNDETERMINED * abs(value):
+        return notation.plus_minus(value, None, unit)
+    return notation.plus_minus(value, std, unit)
+
+
 def _relative(value: float, std: float) -> str:
-    return f" ({100 * std / abs(value):.2g} %)" if value else ""
+    if not value or std > UNDETERMINED * abs(value):
+        return " (not determined, see warnings)"
+    return f" ({100 * std / abs(value):.2g} %)"
 
 
 def _calibration_line(model: str) -> str | None:
@@ -376,8 +391,10 @@ def _calibration_line(model: str) -> str | None:
         seeds, calibrated = int(doc["seeds"]), str(doc["model"])
     except (OSError, ValueError, KeyError, TypeError):
         return None
-    scope = "" if calibrated == model else f" (for model {calibrated}, not {model})"
-    return (f"    σ validated by Monte-Carlo{scope}, {seeds} seeds per case: spread/σ {lo:.2f}–{hi:.2f} "
+    if calibrated != model:
+        return (f"    σ not validated by Monte-Carlo for model {model} (the calibration on record is for model "
+                f"{calibrated}: benchmarks/bench_sigma.py, docs/uncertainty.md)")
+    return (f"    σ validated by Monte-Carlo, {seeds} seeds per case: spread/σ {lo:.2f}–{hi:.2f} "
             f"({', '.join(doc.get('estimated', []))}; benchmarks/bench_sigma.py, docs/uncertainty.md)")
 
 

@@ -245,6 +245,34 @@ def drop_test(damper: Damper, mass_kg: float, velocity_m_s: float, t: np.ndarray
     return SteadyState(t, q, d.measured_stroke(q), v, a, T, d.pressure(q, T), d.damper_force(q, v, T))
 
 
+class ActuatorTrack:
+    """The servo-hydraulic actuator's response to a setpoint sampled every ``dt_s``,
+    discretised exactly for a first-order hold (so that the acceleration is continuous),
+    advanced block by block; both physics tiers drive their damper with it."""
+
+    def __init__(self, actuator: Actuator, dt_s: float, position_m: float) -> None:
+        wa, zeta = 2 * np.pi * actuator.bandwidth_hz, actuator.damping_ratio
+        self._wa, self._zeta = wa, zeta
+        den = [1.0, 2 * zeta * wa, wa**2]
+        bq, aq, _ = cont2discrete(([wa**2], den), dt_s, method="foh")
+        bv, av, _ = cont2discrete(([wa**2, 0.0], den), dt_s, method="foh")
+        self._q_filter = (np.ravel(bq), np.ravel(aq))
+        self._v_filter = (np.ravel(bv), np.ravel(av))
+        self._zq = lfilter_zi(*self._q_filter) * position_m
+        self._zv = lfilter_zi(*self._v_filter) * position_m
+
+    def track(self, setpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple]:
+        """Stroke, velocity, acceleration at the setpoint's steps, and the filter state
+        after them (for :meth:`keep`)."""
+        stroke, zq = lfilter(*self._q_filter, setpoint, zi=self._zq)
+        v, zv = lfilter(*self._v_filter, setpoint, zi=self._zv)
+        a = self._wa**2 * (setpoint - stroke) - 2 * self._zeta * self._wa * v
+        return stroke, v, a, (zq, zv)
+
+    def keep(self, state: tuple) -> None:
+        self._zq, self._zv = state
+
+
 class StreamingPlant:
     """The actuator and damper advanced block by block in simulated time.
 
@@ -260,36 +288,27 @@ class StreamingPlant:
 
     def __init__(self, damper: Damper, actuator: Actuator, dt_s: float, position_m: float) -> None:
         self.damper, self.actuator, self.dt = damper, actuator, dt_s
-        wa, zeta = 2 * np.pi * actuator.bandwidth_hz, actuator.damping_ratio
-        self._wa, self._zeta = wa, zeta
-        den = [1.0, 2 * zeta * wa, wa**2]
-        bq, aq, _ = cont2discrete(([wa**2], den), dt_s, method="foh")
-        bv, av, _ = cont2discrete(([wa**2, 0.0], den), dt_s, method="foh")
-        self._q_filter = (np.ravel(bq), np.ravel(aq))
-        self._v_filter = (np.ravel(bv), np.ravel(av))
-        self._zq = lfilter_zi(*self._q_filter) * position_m
-        self._zv = lfilter_zi(*self._v_filter) * position_m
+        self._track = ActuatorTrack(actuator, dt_s, position_m)
         self.temperature_k = damper.ambient_k
         self._last = (position_m, 0.0)  # measured stroke and velocity at the last step taken
-        self._pending: tuple = (0, None, None, None, None, None)
+        self._pending: tuple = (0, None, None, None, None)
 
     def advance(self, setpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Measured stroke, velocity, acceleration and temperature at the next
         ``len(setpoint)`` steps, the setpoint being sampled at those steps.  Nothing is
         committed until :meth:`commit` (a block cut short by a trip is recomputed)."""
-        stroke, zq = lfilter(*self._q_filter, setpoint, zi=self._zq)
-        v, zv = lfilter(*self._v_filter, setpoint, zi=self._zv)
-        a = self._wa**2 * (setpoint - stroke) - 2 * self._zeta * self._wa * v
+        stroke, v, a, filters = self._track.track(setpoint)
         T = self._temperature(stroke, v)
-        self._pending = (len(setpoint), zq, zv, stroke, v, T)
+        self._pending = (len(setpoint), filters, stroke, v, T)
         return stroke, v, a, T
 
     def commit(self, n: int) -> None:
         """Keep the first ``n`` steps of the last :meth:`advance`."""
-        length, zq, zv, stroke, v, T = self._pending
+        length, filters, stroke, v, T = self._pending
         if n != length:
             raise ValueError("commit a whole block; recompute a shorter one with advance()")
-        self._zq, self._zv, self.temperature_k = zq, zv, float(T[-1])
+        self._track.keep(filters)
+        self.temperature_k = float(T[-1])
         self._last = (float(stroke[-1]), float(v[-1]))
 
     def _temperature(self, stroke: np.ndarray, v: np.ndarray) -> np.ndarray:
