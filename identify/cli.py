@@ -35,6 +35,7 @@ from identify.parameters import Parameters, load_document
 from identify.periodic import PeriodicSolver
 from identify.preparation import model_columns, prepare_periodic, resolve_outputs
 from identify.result import FitResult, failed_document, write_document
+from identify.trajectory import is_transient
 from identify.transient import drop_test
 
 if TYPE_CHECKING:
@@ -130,6 +131,7 @@ class _FitJob:
     params: Parameters
     estimate: list[str]
     choice: GridChoice
+    transient: bool | None               # --capture: None as each record says, else all transient or all steady
     fixed: dict[str, dict[int, float]] | None = None   # friction held fixed per experiment (--friction)
 
 
@@ -177,6 +179,15 @@ def _fit_job(args: argparse.Namespace, console: Console) -> _FitJob:
                   f"({grid.scheme}, n = {grid.n})", highlight=False)
     for note in [taken] * bool(taken) + choice.notes + [f"warning: {w}" for w in choice.warnings]:
         console.print(f"  {note}", highlight=False)
+    transient = {"auto": None, "steady": False, "transient": True}[args.capture]
+    if args.transient_oversample < 1:
+        raise UsageError(f"--transient-oversample {args.transient_oversample}: must be 1 or more")
+    as_transient = [e.label for e in ds.select(labels) if (is_transient(e) if transient is None else transient)]
+    if as_transient:
+        console.print(f"  fitted as transient records (from a fitted initial state, sample by sample"
+                      f"{', ' if args.capture == 'auto' else ''}"
+                      f"{'as the dataset says' if args.capture == 'auto' else ''}): {', '.join(as_transient)}",
+                      highlight=False)
     if args.time_limit is not None and not args.time_limit > 0:
         raise UsageError(f"--time-limit {args.time_limit:g}: must be a positive number of seconds")
     groups = [[e] for e in ds.select(labels)] if args.per_experiment else [ds.select(labels)]
@@ -185,7 +196,7 @@ def _fit_job(args: argparse.Namespace, console: Console) -> _FitJob:
         from identify.friction import load_fixed
 
         fixed = load_fixed(args.friction, params.names())
-    return _FitJob(model, outputs, groups, params, estimate, choice, fixed)
+    return _FitJob(model, outputs, groups, params, estimate, choice, transient, fixed)
 
 
 def _fit_groups(job: _FitJob, args: argparse.Namespace, console: Console) -> list[tuple[str, FitResult]] | int:
@@ -201,7 +212,8 @@ def _fit_groups(job: _FitJob, args: argparse.Namespace, console: Console) -> lis
                                      max_iterations=args.max_iterations, progress=progress, fixed=job.fixed,
                                      stability=args.stability, oversample=job.choice.oversample,
                                      time_limit_s=args.time_limit,
-                                     announce=lambda text: console.print(f"  {text}", highlight=False))
+                                     announce=lambda text: console.print(f"  {text}", highlight=False),
+                                     transient=job.transient, transient_oversample=args.transient_oversample)
         except EstimationError as exc:
             console.print(f"[red]fit failed:[/red] {exc}", highlight=False)
             _write_failed(args.output, job.model, job.params, str(exc))
@@ -557,6 +569,13 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--figures", help="folder for PNG figures (measured vs predicted, residual bands; multisine "
                                                     "records: frequency response at the excited lines)")
     fit.add_argument("--quiet", action="store_true", help="no iteration progress")
+    fit.add_argument("--capture", choices=("auto", "steady", "transient"), default="auto",
+                     help="fit records as steady states folded onto a period, or as transients sample by sample "
+                          "from a fitted initial state (default auto: transient where dataset.json says "
+                          "capture = \"transient\")")
+    fit.add_argument("--transient-oversample", type=int, default=1, metavar="K",
+                     help="solve a transient record's model on K points per sample step (default 1; more for "
+                          "content near the sampling rate, e.g. 8 for Silverbox)")
     fit.add_argument("--friction", help="FRICTION.json: fixed per-experiment theta8, theta9, theta10")
     fit.add_argument("--stability", action="store_true",
                      help="Floquet multipliers of each periodic solution (warns about unstable orbits)")

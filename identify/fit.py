@@ -27,6 +27,7 @@ from identify.preparation import (
     resolve_outputs,
 )
 from identify.result import FitResult
+from identify.trajectory import TransientData, is_transient, prepare_transient
 
 DEFAULT_POINTS = 800  # per period on the bdf2 grid, as in the paper
 # Kinks (|ẋ|, hysteresis) make every scheme converge at second order in the step: a
@@ -130,7 +131,8 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
                     progress: Callable[[int, float, np.ndarray], None] | None = None,
                     fixed: dict[str, dict[int, float]] | None = None, stability: bool = False,
                     oversample: int | None = 1, linear_solver: str = "auto",
-                    time_limit_s: float | None = None, announce: Callable[[str], None] | None = None) -> FitResult:
+                    time_limit_s: float | None = None, announce: Callable[[str], None] | None = None,
+                    transient: bool | None = None, transient_oversample: int = 1) -> FitResult:
     """Joint Bayesian fit of ``estimate`` over all ``experiments`` (shared parameters).
 
     ``params`` gives the start values and priors; it is not modified.  ``fixed`` holds
@@ -140,15 +142,26 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
     the result names the start of its first periodic solve (:mod:`identify.start`).
     Stopped by ``max_iterations``, ``time_limit_s`` or Ctrl-C, the result is the last
     iterate, not converged (``interrupted`` for Ctrl-C).  ``announce`` is told of slow
-    steps after the iterations (``stability``'s Floquet multipliers)."""
+    steps after the iterations (``stability``'s Floquet multipliers).
+
+    ``transient`` True fits every record sample by sample from its fitted initial state
+    (:mod:`identify.trajectory`), False folds every one onto a period; None (the
+    default) fits as transient the records whose dataset entry says ``capture =
+    "transient"`` and folds the others.  A transient record's model is solved on
+    ``transient_oversample`` points per sample step."""
     params = params.copy()
     # The original start: a fit restarted from a RESULT.json carries it as "initial".
     start = {p.name: p.value if p.initial is None else p.initial for p in params}
     params.set_estimated(estimate)
     outputs = resolve_outputs(model, outputs)
-    grid = choose_grid(model, experiments, outputs, n, scheme, oversample)
+    as_transient = [e for e in experiments if (is_transient(e) if transient is None else transient)]
+    periodic = [e for e in experiments if e not in as_transient]
+    grid = choose_grid(model, periodic or experiments, outputs, n, scheme, oversample)
     n, oversample = grid.n, grid.oversample
-    data = prepare_periodic(model, experiments, n, outputs)
+    prepared: dict[str, PeriodicData | TransientData] = {
+        d.label: d for d in prepare_periodic(model, periodic, n, outputs)}
+    prepared.update({d.label: d for d in prepare_transient(model, as_transient, outputs, transient_oversample)})
+    data = [prepared[e.label] for e in experiments]
     if fixed:
         names = params.names()
         for d in data:
@@ -163,10 +176,11 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
     result.start = {k: start[k] for k in result.estimated}
     result.priors = {k: params[k].prior_std for k in result.estimated}
     result.oversample = oversample
-    result.warnings += grid.warnings + drift_warnings(model, data)
+    result.warnings += grid.warnings + drift_warnings(model, [d for d in data if isinstance(d, PeriodicData)])
     channels = list(model.declaration.inputs.values())
     result.units = {ch.column: ch.unit for ch in [*channels, *(model.declaration.outputs[o] for o in outputs)]}
     for e, d in zip(result.experiments, data, strict=True):
-        e.start = estimator.solver.starts_used.get(e.label, "")
+        e.start = estimator.solvers[e.label].starts_used.get(e.label, "")
+        e.capture = "transient" if e.label in {x.label for x in as_transient} else "steady"
         e.inputs = {ch.column: ch.from_si(u) for ch, u in zip(channels, d.inputs[:len(channels)], strict=True)}
     return result

@@ -79,6 +79,9 @@ class ExperimentFit:
     floquet: np.ndarray | None = None  # multipliers, largest magnitude first (when asked for)
     start: str = ""  # where the first periodic solve started (identify.start: static, transient, ...)
     inputs: dict[str, np.ndarray] = field(default_factory=dict)  # the model's inputs on the grid, column units
+    # "steady": folded onto one period (measured/predicted on its grid); "transient": fitted
+    # sample by sample from its fitted initial state (measured/predicted per sample).
+    capture: str = "steady"
 
     def residual(self, column: str) -> np.ndarray:
         return self.measured[column] - self.predicted[column]
@@ -253,6 +256,8 @@ class FitResult:
             }
             if e.start:
                 experiments[e.label]["start"] = e.start
+            if e.capture != "steady":
+                experiments[e.label]["capture"] = e.capture
             if e.floquet is not None:
                 experiments[e.label]["floquet_max_multiplier"] = float(np.abs(e.floquet[0]))
                 experiments[e.label]["stable"] = bool(np.abs(e.floquet[0]) < 1.0)
@@ -297,6 +302,8 @@ class FitResult:
             f"    scheme, n          = {self.scheme}, {self.n_grid} points per period"
             + (f" (model on {self.n_grid * self.oversample})" if self.oversample > 1 else ""),
             f"    experiments        = {len(self.experiments)} ({', '.join(e.label for e in self.experiments)})",
+            *([f"    fitted as transient = {', '.join(transient)} (sample by sample from a fitted initial state)"]
+              if (transient := [e.label for e in self.experiments if e.capture == "transient"]) else []),
             f"    fitted outputs     = {', '.join(self.outputs)}",
             f"    data points        = {n_points}",
             f"    variables          = {len(self.estimated)}",
@@ -336,6 +343,10 @@ class FitResult:
                          f"±{100 / math.sqrt(2 * max(effective - len(self.estimated), 1)):.0f} %, "
                          f"and does not cover a bias the model error may cause")
         calibration = _calibration_line(self.model)
+        if any(e.capture == "transient" for e in self.experiments):
+            # That calibration is of periodic fits; the transient fit's σ has its own check.
+            calibration = ("    σ of a transient fit: its Monte-Carlo check is benchmarks/bench_transient.py "
+                           "(docs/identify.md)")
         if calibration:
             lines.append(calibration)
         fixed = [p for p in self.params if p.name not in self.estimated]

@@ -53,6 +53,12 @@ def run_generate(args: argparse.Namespace) -> int:
         raise UsageError(f"--periods {args.periods}: at least one whole period")
     if args.rate <= 0:
         raise UsageError(f"--rate {args.rate:g}: must be positive")
+    if args.ramp < 0:
+        raise UsageError(f"--ramp {args.ramp:g}: must be 0 or more seconds")
+    if args.capture == "transient" and args.model != "2dof":
+        raise UsageError("--capture transient: the record from rest needs --model 2dof (the gas temperature state)")
+    if args.capture == "transient" and args.physics != "model":
+        raise UsageError("--capture transient: recorded from RUN with the model's physics only (--physics model)")
     letters = [x.strip() for x in args.experiments.split(",")] if args.experiments else None
     plan = select(read_plan(args.plan), letters)
     if not plan:
@@ -60,7 +66,8 @@ def run_generate(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     truth = _truth(args)
     out = generate(args.out, plan, truth, periods=args.periods, rate_hz=args.rate, seed=args.seed, drop=args.drop,
-                   date=args.date, noise_scale=args.noise_scale, serial=args.serial)
+                   date=args.date, noise_scale=args.noise_scale, serial=args.serial,
+                   capture=args.capture, ramp_s=args.ramp)
     print(f"wrote {out} ({len(plan)} experiments{' + drop test' if args.drop else ''}, {args.physics} physics, "
           f"{time.perf_counter() - t0:.1f} s)")
     return 0
@@ -248,6 +255,10 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--drop", action="store_true", help="add the drop test (350 kg, v0 = 0)")
     gen.add_argument("--date", help="label date yymmdd (default: today)")
     gen.add_argument("--noise-scale", type=float, default=1.0, help="multiplies the transducer noise")
+    gen.add_argument("--capture", choices=("steady", "transient"), default="steady",
+                     help="record the periodic steady state (default), or from RUN on, started at rest with the "
+                          "amplitude ramped over --ramp seconds (no waiting)")
+    gen.add_argument("--ramp", type=float, default=2.0, help="amplitude ramp of a transient capture, s (default 2)")
     gen.set_defaults(func=run_generate)
 
     serve = sub.add_parser("serve", help="run the rig behind its Modbus controller and serial DAQ",

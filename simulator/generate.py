@@ -14,7 +14,7 @@ import numpy as np
 from identify.dataset import FORMAT, csv_bytes, write_manifest
 from identify.files import atomic_write_bytes
 from identify.plans import ExperimentSpec
-from simulator.physics import Actuator, Damper, SteadyState, drop_test, periodic_steady_state
+from simulator.physics import Actuator, Damper, SteadyState, drop_test, periodic_steady_state, run_from_rest
 from simulator.plant.damper import PlantDamper
 from simulator.plant.drop import simulate_drop
 from simulator.plant.sequence import run_plan
@@ -22,6 +22,8 @@ from simulator.sensors import SensorSet
 from simulator.truth import truth_document
 
 SETTLE_S = 60.0  # simulated time from RUN to the first captured sample (ramp + settling)
+CAPTURES = ("steady", "transient")
+RAMP_S = 2.0  # the controller's default ramp time (ramp_time 20 x 0.1 s), for records captured from RUN
 DROP_MASS_KG = 350.0
 DROP_DURATION_S = 40.0
 
@@ -46,15 +48,24 @@ def _digitise(t: np.ndarray, si: np.ndarray, sensors: SensorSet,
 def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper | PlantDamper, *, periods: int | None = 3,
              rate_hz: float = 2000.0, seed: int = 0, drop: bool = False, date: str | None = None,
              actuator: Actuator | None = None, noise_scale: float = 1.0, name: str | None = None,
-             serial: str = "SIM-0001") -> Path:
+             serial: str = "SIM-0001", capture: str = "steady", ramp_s: float = RAMP_S) -> Path:
     """Write the dataset folder ``out`` and return its path.
 
     Labels are ``date + letter`` as in the paper; ``truth.json`` beside the manifest
     holds the simulated parameters (the plant: its constants) for round-trip checks.
     ``periods`` None captures each experiment's own number of periods.  A
     :class:`PlantDamper` runs the plan in order, the wall's heat and the dissolved gas
-    carried from one experiment to the next.
+    carried from one experiment to the next.  ``capture`` "transient" records each
+    experiment from RUN on (the model's physics only), started at rest with the gas at
+    ambient temperature and the amplitude ramped over ``ramp_s`` (dataset key
+    ``capture``: "transient"); "steady" records its periodic steady state.
     """
+    if capture not in CAPTURES:
+        raise ValueError(f"unknown capture {capture!r} (steady or transient)")
+    transient = [capture == "transient" or spec.capture == "transient" for spec in plan]
+    if any(transient) and isinstance(damper, PlantDamper):
+        raise ValueError("a transient capture from RUN needs the model's physics (--physics model), "
+                         "not the plant's")
     out = Path(out)
     actuator = actuator or Actuator()
     date = date or _dt.date.today().strftime("%y%m%d")
@@ -69,7 +80,10 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper | Plant
         sensors = SensorSet(seed=seed * 1000 + i, noise_scale=noise_scale)
         k_periods = spec.periods if periods is None else periods
         t = times[i]
-        if plant is None:
+        if transient[i]:
+            assert isinstance(damper, Damper)  # refused above for the plant
+            cols, over = _record(run_from_rest(damper, actuator, spec, t - t[0], ramp_s), sensors, True)
+        elif plant is None:
             assert isinstance(damper, Damper)
             cols, over = _record(periodic_steady_state(damper, actuator, spec, t), sensors, True)
         else:
@@ -78,6 +92,8 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper | Plant
         atomic_write_bytes(out / f"{label}.csv", csv_bytes(cols))
         entry = {"label": label, "file": f"{label}.csv", **spec.metadata(), "sample_rate_Hz": rate_hz,
                  "periods": k_periods}
+        if transient[i]:
+            entry.update(capture="transient", ramp_s=ramp_s)
         if over:
             entry["over_range_samples"] = over
         entries.append(entry)

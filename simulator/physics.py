@@ -225,6 +225,30 @@ def periodic_steady_state(damper: Damper, actuator: Actuator, spec: ExperimentSp
     return SteadyState(t, q, stroke, v, a, T, damper.pressure(q, T), damper.axle_force(q, v, a, T))
 
 
+def run_from_rest(damper: Damper, actuator: Actuator, spec: ExperimentSpec, t: np.ndarray,
+                  ramp_s: float) -> SteadyState:
+    """Signals at times ``t`` (uniform, from RUN at t[0]) of an experiment started at
+    rest: the damper held at its static position with the gas at ambient temperature,
+    the commanded amplitude ramped up linearly over ``ramp_s`` (the controller's ramp
+    time), no waiting for the steady state.  The actuator and gas are those of the
+    served rig (:class:`StreamingPlant`)."""
+    if damper.model != "2dof":
+        raise ValueError("a record from rest needs the 2-dof model's gas temperature")
+    dt = float(t[1] - t[0])
+    position = spec.static_position_mm * 1e-3
+    plant = StreamingPlant(damper, actuator, dt, position)
+    k, b = waveform_harmonics(spec.waveform)
+    tau = t - t[0]
+    envelope = np.clip(tau / max(ramp_s, 1e-9), 0.0, 1.0)
+    shape = np.sin(np.outer(tau, 2 * np.pi * spec.frequency_hz * k)) @ b
+    stroke, v, a, T = plant.advance(position + spec.amplitude_mm * 1e-3 * envelope * shape)
+    if np.max(np.abs(v)) > actuator.velocity_limit_m_s:
+        raise ValueError(f"experiment {spec.letter}: peak velocity {np.max(np.abs(v)):.3f} m/s exceeds the "
+                         f"actuator's limit {actuator.velocity_limit_m_s} m/s")
+    q = damper.internal_stroke(stroke)
+    return SteadyState(t, q, stroke, v, a, T, damper.pressure(q, T), damper.axle_force(q, v, a, T))
+
+
 def drop_test(damper: Damper, mass_kg: float, velocity_m_s: float, t: np.ndarray) -> SteadyState:
     """Drop test of docs/models.md: θ1 = M, θ2 = −g, Fe = 0, released at q = 0, T = ambient;
     the stroke channel reads q + θ12.
