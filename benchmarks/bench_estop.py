@@ -24,7 +24,10 @@ import numpy as np  # noqa: E402
 
 from rig.config import load_rig_config  # noqa: E402
 from rig.drivers.estop import BUDGET_S, EStop  # noqa: E402
-from rig.drivers.registers import load_register_map  # noqa: E402
+from rig.drivers.registers import (
+    ControllerState,
+    load_register_map,  # noqa: E402
+)
 from rig.drivers.shaker import Shaker  # noqa: E402
 from rig.virtual import VirtualRig  # noqa: E402
 
@@ -51,9 +54,9 @@ def main() -> None:
             for _ in range(args.presses):
                 estop.confirm_reset()
                 main_link.move_to(0.133, switch_on=True)
-                main_link.wait_for({"AT_STATIC"}, 60.0)
+                main_link.wait_for({ControllerState.AT_STATIC}, 60.0)
                 main_link.run(0.133, 0.005, 2.0, "sine", 0.5)
-                main_link.wait_for({"RUNNING"}, 60.0)
+                main_link.wait_for({ControllerState.RUNNING}, 60.0)
                 if not poller.is_alive():
                     poller.start()
                 estop.press()

@@ -39,7 +39,6 @@ sys.path.insert(0, str(ROOT))
 TARGET = 0.20
 ANNOUNCED = re.compile(r"session: \d+ experiments?, about (\d+):(\d\d) min:s of rig time")
 TOOK = re.compile(r"session took .*?(?:about (\d+):(\d\d) min:s of rig time|(\d+):(\d\d) min:s of rig time)")
-PACE = re.compile(r"the links run ([0-9.]+) rig seconds per second")
 ETA = re.compile(r"About (\d+):(\d\d) left \(m:s of wall clock\)")
 STAMP = re.compile(r"^(\d{4}-\d\d-\d\d \d\d:\d\d:\d\d\.\d+) (session-start|experiment-done|session-end)", re.M)
 
@@ -73,6 +72,8 @@ def busy_cores(n: int) -> list[subprocess.Popen]:
 
 def run_once(plan: str, experiments: str | None, speed: float, busy: int, seed: int, nice: int,
              unit: str | None = None) -> dict:
+    from rig.events import Kind
+    from rig.session.storage import read_log
     from rig.virtual import VirtualRig
 
     load = busy_cores(busy)
@@ -92,15 +93,16 @@ def run_once(plan: str, experiments: str | None, speed: float, busy: int, seed: 
             if r.returncode not in (0, 1, 4):     # QC: PASS, FAIL, INCONCLUSIVE all ran the plan
                 raise SystemExit(f"rig run exit {r.returncode}:\n{said[-3000:]}")
             announced, took = ANNOUNCED.search(said), TOOK.search(said)
-            session_log = next(Path(tmp).glob("*/session.log")).read_text()
-            probe = PACE.findall(session_log)
+            log_path = next(Path(tmp).glob("*/session.log"))
+            session_log = log_path.read_text()
+            probe = [e.data["pace"] for e in read_log(log_path) if e.kind == Kind.PACE_PROBE]   # a field, not prose
             if announced is None or took is None or not probe:
                 raise SystemExit(f"no announced or taken rig time, or no pace probe, in:\n{said[-3000:]}")
             said_took = [g for g in took.groups() if g is not None]
             return {"announced_s": int(announced[1]) * 60 + int(announced[2]),
                     "taken_s": sim.rig_time_s(),
                     "said_took_s": int(said_took[0]) * 60 + int(said_took[1]),
-                    "pace": float(probe[-1]), "corrected": corrected_error(said, session_log)}
+                    "pace": probe[-1], "corrected": corrected_error(said, session_log)}
     finally:
         for p in load:
             p.kill()

@@ -23,7 +23,6 @@ Printed:
 from __future__ import annotations
 
 import argparse
-import io
 import sys
 import tempfile
 import time
@@ -34,12 +33,11 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from rich.console import Console  # noqa: E402
 
 from rig.config import DEFAULT_RIG_CONFIG  # noqa: E402
 from rig.qc.evaluate import evaluate  # noqa: E402
 from rig.qc.spec import load_spec  # noqa: E402
-from rig.session.run import Links, RunOptions, SessionRunner, prepare  # noqa: E402
+from rig.session.run import Links, RunOptions, prepare, run_lifecycle  # noqa: E402
 from simulator.generate import generate  # noqa: E402
 from simulator.physics import Damper  # noqa: E402
 from simulator.truth import load_truth  # noqa: E402
@@ -58,11 +56,9 @@ def rig_session(spec, out: Path, truth: Damper | None = None, seed: int = 0) -> 
         prep = prepare(RunOptions(plan=spec.source, shaker=SHAKER_URL, daq=DAQ_URL, out=out, date="261122",
                                   unit_serial="SN-0001"))
         prep = replace(prep, config=replace(prep.config, steady_state=spec.steady_state))
-        runner = SessionRunner(prep, Links(rig.shaker, rig.daq, rig.identity, None), rig.bus,
-                               Console(file=io.StringIO()))
         t0 = rig.sim.t
-        result = runner.run(runner.open_session())
-        return rig.sim.t - t0, result.status
+        result = run_lifecycle(prep, links=Links(rig.shaker, rig.daq, rig.identity, None), bus=rig.bus)
+        return rig.sim.t - t0, result.exit_status.value
     finally:
         rig.close()
 

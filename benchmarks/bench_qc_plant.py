@@ -41,7 +41,7 @@ import numpy as np
 
 from identify.dataset import read_dataset
 from identify.plans import ExperimentSpec
-from rig.qc.characteristics import _model_function, check_model, loop_energy
+from rig.qc.characteristics import check_model, loop_energy, model_function
 from rig.qc.evaluate import evaluate
 from rig.qc.judge import judge
 from rig.qc.spec import Spec, load_spec
@@ -96,7 +96,7 @@ def direct_values(spec: Spec, job: Job, tmp: Path, only: str | None = None) -> d
         model = check_model(spec)
         theta = Parameters(model, dict(job.truth.theta)).vector()  # type: ignore[attr-defined]
         for c in chosen:
-            out[c.name] = _model_function(model, c)(theta) / c.si_factor
+            out[c.name] = model_function(model, c)(theta) / c.si_factor
         return out
     from simulator.plant import oil, orifice, seals
     from simulator.plant.damper import PlantDamper, equilibrium_pressure

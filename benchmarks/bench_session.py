@@ -24,7 +24,6 @@ difference and its standard error: a bias is a mean that stays off zero.
 from __future__ import annotations
 
 import argparse
-import io
 import json
 import re
 import resource
@@ -34,6 +33,7 @@ import tempfile
 from concurrent.futures import ThreadPoolExecutor
 from functools import partial
 from pathlib import Path
+from typing import Any
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -57,10 +57,9 @@ START = ROOT / "examples" / "start-2dof.json"
 def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tuple[str, ...] = (),
              plan: str = "standard") -> dict:
     """One session in this process; returns its figures (JSON-able)."""
-    from rich.console import Console
-
     from rig.config import DEFAULT_RIG_CONFIG
-    from rig.session.run import Links, RunOptions, SessionRunner, fit_session, prepare
+    from rig.session.outcome import ExitStatus
+    from rig.session.run import Links, RunOptions, SessionContext, fit_session, prepare, run_lifecycle
     from tests.virtual_rig_inprocess import DAQ_URL, SHAKER_URL, InProcessRig
 
     criterion, order, faults, holds = CASES[name]
@@ -86,14 +85,18 @@ def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tu
             rig.when("settling", 0.0, partial(rig.inject, fault))
         letters = ["a"] if hold_cycles else None
         prep = prepare(RunOptions(plan=plan, shaker=SHAKER_URL, daq=DAQ_URL, out=out / "session",
-                                  experiments=letters, rig_config=str(config), date="261122", order=order)).ordered()
-        runner = SessionRunner(prep, Links(rig.shaker, rig.daq, rig.identity, None), rig.bus,
-                               Console(file=io.StringIO()))
-        session = runner.open_session()
-        eta = sum(runner.estimates_s(session, rig.shaker.status().position_m).values())
-        t0 = rig.clock.monotonic()
-        result = runner.run(session)
-        taken = rig.clock.monotonic() - t0
+                                  experiments=letters, rig_config=str(config), date="261122", order=order))
+        started: dict[str, Any] = {}
+
+        def predicted(ctx: SessionContext) -> list:
+            # once the pace is probed and the durations predicted: the run's rig time starts here
+            started.update(eta=sum(ctx.estimates_s.values()), t0=rig.clock.monotonic(), prep=ctx.runner.prep)
+            return []
+
+        result = run_lifecycle(prep, links=Links(rig.shaker, rig.daq, rig.identity, None), bus=rig.bus,
+                               attach=predicted)
+        taken = rig.clock.monotonic() - started["t0"]
+        eta, prep, session = started["eta"], started["prep"], result.session
         phases = rig.phases()
         per = {}
         for e in prep.plan.experiments:
@@ -103,7 +106,7 @@ def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tu
                            if ev.kind == "phase" and ev.experiment == label and ev.data.get("phase") == "capturing"), 0)
             per[e.letter] = (max(times) - min(times) if times else 0.0, cycles)
         fit = {}
-        if not hold_cycles and result.status == "complete":
+        if not hold_cycles and result.exit_status is ExitStatus.COMPLETE:
             fitted = fit_session(session, "2dof", START, ESTIMATE, result.captured)
             fit = {k: (fitted.params[k].value, fitted.std[k]) for k in ESTIMATE}
     finally:

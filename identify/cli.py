@@ -16,24 +16,25 @@ import argparse
 import json
 import os
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from identify import notation
-from identify.dataset import csv_bytes, read_dataset, read_manifest
+from identify.dataset import Experiment, csv_bytes, read_dataset, read_manifest
 from identify.differentiation import SCHEMES, Grid
 from identify.errors import ComputationError, InputError
 from identify.estimator import EstimationError
 from identify.exit_codes import EXIT_BAD_INPUT, EXIT_INTERRUPTED, EXIT_NOT_CONVERGED, EXIT_OK
 from identify.files import atomic_write_bytes
-from identify.fit import DEFAULT_POINTS, choose_grid, fit_experiments
+from identify.fit import DEFAULT_POINTS, GridChoice, choose_grid, fit_experiments
 from identify.model import DEFAULT_ESTIMATE, CompiledModel, load_model
 from identify.parameters import Parameters, load_document
 from identify.periodic import PeriodicSolver
 from identify.preparation import model_columns, prepare_periodic, resolve_outputs
-from identify.result import FitResult
+from identify.result import FitResult, failed_document, write_document
 from identify.trajectory import is_transient
 from identify.transient import drop_test
 
@@ -120,10 +121,47 @@ def _progress(console, params: Parameters, estimate: list[str]):
     return report
 
 
+@dataclass
+class _FitJob:
+    """``identify fit``'s inputs, read and checked: the model, the data, the start, the grid."""
+
+    model: CompiledModel
+    outputs: list[str]
+    groups: list[list[Experiment]]       # one joint group, or one per experiment (--per-experiment)
+    params: Parameters
+    estimate: list[str]
+    choice: GridChoice
+    transient: bool | None               # --capture: None as each record says, else all transient or all steady
+    fixed: dict[str, dict[int, float]] | None = None   # friction held fixed per experiment (--friction)
+
+
 def run_fit(args: argparse.Namespace) -> int:
     from rich.console import Console
 
     console = Console(stderr=True, soft_wrap=True)   # log lines unbroken when stderr is a file
+    job = _fit_job(args, console)
+    results = _fit_groups(job, args, console)
+    if isinstance(results, int):                     # failed before a result: RESULT.json holds the start
+        return results
+    interrupted = any(r.interrupted for _, r in results)
+    if interrupted:
+        console.print("interrupted: RESULT.json holds the last iterate (converged false); restart with "
+                      "--params RESULT.json", highlight=False, soft_wrap=True)
+    if args.per_experiment:
+        return _per_experiment_output(job, results, args, console)
+    result = results[0][1]
+    result.write_json(args.output)
+    report = result.fit_report()
+    print(report)
+    if args.report:
+        atomic_write_bytes(Path(args.report), (report + "\n").encode())
+    if args.figures:
+        _write_figures(result, Path(args.figures), console, bool(job.model.input_derivatives))
+    return EXIT_INTERRUPTED if interrupted else EXIT_OK if result.converged else EXIT_NOT_CONVERGED
+
+
+def _fit_job(args: argparse.Namespace, console: Console) -> _FitJob:
+    """Model, data, start and grid, each checked before the (slow) fit; the grid said."""
     model = load_model(args.model)
     outputs = resolve_outputs(model, _csv_list(args.outputs))
     labels = _chosen_labels(args.dataset, args.experiments)
@@ -135,8 +173,7 @@ def run_fit(args: argparse.Namespace) -> int:
     params.copy().set_estimated(estimate)  # names checked before the (slower) folding
     scheme, n_given, oversample_given, taken = _grid_args(args)
     choice = choose_grid(model, ds.select(labels), outputs, n_given, scheme, oversample_given)
-    n, oversample = choice.n, choice.oversample
-    grid = Grid(n, choice.scheme, oversample=oversample)
+    grid = Grid(choice.n, choice.scheme, oversample=choice.oversample)
     plural = "s" if len(labels) != 1 else ""
     console.print(f"fitting {', '.join(estimate)} of model {model.name} on {len(labels)} experiment{plural} "
                   f"({grid.scheme}, n = {grid.n})", highlight=False)
@@ -153,61 +190,61 @@ def run_fit(args: argparse.Namespace) -> int:
                       highlight=False)
     if args.time_limit is not None and not args.time_limit > 0:
         raise UsageError(f"--time-limit {args.time_limit:g}: must be a positive number of seconds")
-    results: list[tuple[str, FitResult]] = []
     groups = [[e] for e in ds.select(labels)] if args.per_experiment else [ds.select(labels)]
     fixed = None
     if args.friction:
         from identify.friction import load_fixed
 
         fixed = load_fixed(args.friction, params.names())
-    for group in groups:
+    return _FitJob(model, outputs, groups, params, estimate, choice, transient, fixed)
+
+
+def _fit_groups(job: _FitJob, args: argparse.Namespace, console: Console) -> list[tuple[str, FitResult]] | int:
+    """Each group's fit, until one is interrupted; an exit status where one had no result."""
+    results: list[tuple[str, FitResult]] = []
+    for group in job.groups:
         if args.per_experiment:
             console.print(f"experiment {group[0].label}", highlight=False)
-        progress = _progress(console, params, estimate) if not args.quiet else None
+        progress = _progress(console, job.params, job.estimate) if not args.quiet else None
         try:
-            result = fit_experiments(model, group, params, estimate, n=n, scheme=choice.scheme, outputs=outputs,
-                                     max_iterations=args.max_iterations, progress=progress, fixed=fixed,
-                                     stability=args.stability, oversample=oversample, time_limit_s=args.time_limit,
+            result = fit_experiments(job.model, group, job.params, job.estimate, n=job.choice.n,
+                                     scheme=job.choice.scheme, outputs=job.outputs,
+                                     max_iterations=args.max_iterations, progress=progress, fixed=job.fixed,
+                                     stability=args.stability, oversample=job.choice.oversample,
+                                     time_limit_s=args.time_limit,
                                      announce=lambda text: console.print(f"  {text}", highlight=False),
-                                     transient=transient, transient_oversample=args.transient_oversample)
+                                     transient=job.transient, transient_oversample=args.transient_oversample)
         except EstimationError as exc:
             console.print(f"[red]fit failed:[/red] {exc}", highlight=False)
-            _write_failed(args.output, model, params, str(exc))
+            _write_failed(args.output, job.model, job.params, str(exc))
             return EXIT_NOT_CONVERGED
         except KeyboardInterrupt:  # while the start was evaluated, or a second Ctrl-C during the wrap-up
             console.print("interrupted before the fit had a result; RESULT.json holds the start", highlight=False)
-            _write_failed(args.output, model, params, "interrupted (Ctrl-C) before the fit had a result")
+            _write_failed(args.output, job.model, job.params, "interrupted (Ctrl-C) before the fit had a result")
             return EXIT_INTERRUPTED
         results.append((group[0].label if args.per_experiment else "joint", result))
         if result.interrupted:
             break
-    interrupted = any(r.interrupted for _, r in results)
-    if interrupted:
-        console.print("interrupted: RESULT.json holds the last iterate (converged false); restart with "
-                      "--params RESULT.json", highlight=False, soft_wrap=True)
-    if args.per_experiment:
-        _per_experiment_table(results)
-        if args.report:
-            atomic_write_bytes(Path(args.report), "".join(f"=== experiment {label} ===\n{r.fit_report()}\n"
-                                                          for label, r in results).encode())
-        for label, r in results if args.figures else []:  # a folder per experiment: the same file names in each
-            _write_figures(r, Path(args.figures) / label, console, bool(model.input_derivatives))
-        for label, r in results:
-            for w in r.warnings:
-                print(f"warning ({label}): {w}")
-        doc = {"model": model.name, "converged": all(r.converged for _, r in results) and len(results) == len(groups),
-               "interrupted": interrupted, "per_experiment": {lb: r.to_document() for lb, r in results}}
-        atomic_write_bytes(Path(args.output), (json.dumps(doc, indent=2) + "\n").encode())
-        return EXIT_INTERRUPTED if interrupted else EXIT_OK if doc["converged"] else EXIT_NOT_CONVERGED
-    result = results[0][1]
-    result.write_json(args.output)
-    report = result.fit_report()
-    print(report)
+    return results
+
+
+def _per_experiment_output(job: _FitJob, results: list[tuple[str, FitResult]], args: argparse.Namespace,
+                           console: Console) -> int:
+    """--per-experiment: the table, the reports and figures per experiment, one RESULT.json of all."""
+    _per_experiment_table(results)
     if args.report:
-        atomic_write_bytes(Path(args.report), (report + "\n").encode())
-    if args.figures:
-        _write_figures(result, Path(args.figures), console, bool(model.input_derivatives))
-    return EXIT_INTERRUPTED if interrupted else EXIT_OK if result.converged else EXIT_NOT_CONVERGED
+        atomic_write_bytes(Path(args.report), "".join(f"=== experiment {label} ===\n{r.fit_report()}\n"
+                                                      for label, r in results).encode())
+    for label, r in results if args.figures else []:  # a folder per experiment: the same file names in each
+        _write_figures(r, Path(args.figures) / label, console, bool(job.model.input_derivatives))
+    for label, r in results:
+        for w in r.warnings:
+            print(f"warning ({label}): {w}")
+    interrupted = any(r.interrupted for _, r in results)
+    converged = all(r.converged for _, r in results) and len(results) == len(job.groups)
+    write_document(args.output, {"model": job.model.name, "converged": converged, "interrupted": interrupted,
+                                 "per_experiment": {lb: r.to_document() for lb, r in results}})
+    return EXIT_INTERRUPTED if interrupted else EXIT_OK if converged else EXIT_NOT_CONVERGED
 
 
 def _write_figures(result: FitResult, folder: Path, console: Console, loops: bool) -> None:
@@ -218,13 +255,7 @@ def _write_figures(result: FitResult, folder: Path, console: Console, loops: boo
 
 
 def _write_failed(path: str, model: CompiledModel, params: Parameters, message: str) -> None:
-    doc = {"model": model.name, "converged": False, "iterations": 0, "message": message,
-           "parameters": {p.name: {"value": p.value, "std": None, "estimated": p.vary, "unit": p.unit,
-                                   **{k: v for k, v in (("prior_std", p.prior_std), ("min", p.minimum),
-                                                        ("max", p.maximum), ("initial", p.initial)) if v is not None}}
-                          for p in params},
-           "correlation": {}, "channels": {}, "experiments": {}}
-    atomic_write_bytes(Path(path), (json.dumps(doc, indent=2) + "\n").encode())
+    write_document(path, failed_document(model, params, message))
 
 
 def _print_table(table: Table) -> None:

@@ -91,12 +91,6 @@ class Dataset:
         chosen = [self.experiment(lb) for lb in labels] if labels else list(self.experiments)
         return [e for e in chosen if kind is None or e.kind == kind]
 
-    @property
-    def ambient_temperature_k(self) -> float | None:
-        amb = self.manifest.get("ambient") or {}
-        value = amb.get("temperature_K") if isinstance(amb, dict) else None
-        return float(value) if isinstance(value, (int, float)) else None
-
 
 # ------------------------------------------------------------------------------------------
 # Reading

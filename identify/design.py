@@ -40,6 +40,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
+from enum import StrEnum
 from typing import Any
 
 import numpy as np
@@ -51,7 +52,15 @@ from identify.folding import fold
 from identify.model import CompiledModel
 from identify.periodic import PeriodicSolver
 
-CRITERIA = ("sigma", "D", "A")
+
+class Criterion(StrEnum):
+    """What a design optimises: ``SIGMA`` the least cost for a σ per quantity;
+    ``D`` (the determinant) or ``A`` (the scaled trace) of the quantities' covariance
+    within a budget."""
+
+    SIGMA = "sigma"
+    D = "D"
+    A = "A"
 SHORTLIST = 6           # moves per greedy step whose cost is evaluated (each a call of the caller's cost)
 DERIVATIVE_STEP = 1e-5  # relative step of the central differences of a derived quantity
 REFERENCE_PERIODS = 4   # the fold whose grid covariance scales to one period (see experiment_information)
@@ -214,7 +223,7 @@ class Design:
 class _Problem:
     """The criterion of a sequence, and the caller's cost with a cache."""
 
-    def __init__(self, info: Sequence[Information], quantities: Quantities, criterion: str,
+    def __init__(self, info: Sequence[Information], quantities: Quantities, criterion: Criterion,
                  targets: np.ndarray | None, scale: np.ndarray | None, prior: np.ndarray | None,
                  cost: Callable[[Sequence[Choice]], float],
                  estimate: Callable[[Sequence[Choice]], float] | None = None) -> None:
@@ -233,10 +242,10 @@ class _Problem:
         if not seq:
             return math.inf
         cov = self.cov(seq)
-        if self.criterion == "sigma":
+        if self.criterion is Criterion.SIGMA:
             assert self.targets is not None
             return float(np.sum(np.maximum(0.0, np.log(sigmas(cov, self.quantities) / self.targets))))
-        if self.criterion == "D":
+        if self.criterion is Criterion.D:
             return d_criterion(cov, self.quantities)
         assert self.scale is not None
         return a_criterion(cov, self.quantities, self.scale)
@@ -250,14 +259,15 @@ class _Problem:
 
 
 def optimise(info: Sequence[Information], quantities: Quantities, cost: Callable[[Sequence[Choice]], float], *,
-             criterion: str = "sigma", targets: Sequence[float] | np.ndarray | None = None, budget: float | None = None,
+             criterion: Criterion = Criterion.SIGMA, targets: Sequence[float] | np.ndarray | None = None,
+             budget: float | None = None,
              scale: Sequence[float] | None = None, periods: Sequence[int] = (2, 3, 4, 6, 8, 12),
              required: Sequence[Choice] = (), max_experiments: int = 10,
              prior_precision: np.ndarray | None = None, shortlist: int = SHORTLIST,
              estimate: Callable[[Sequence[Choice]], float] | None = None) -> Design:
     """Experiments from the candidates (their ``info``) and their periods, in order.
 
-    ``criterion`` "sigma": the least-cost plan whose quantities' σ are each at most
+    ``criterion`` SIGMA: the least-cost plan whose quantities' σ are each at most
     ``targets`` (``budget`` optional, a cap); "D" or "A" (``scale``: the quantities'
     sizes for A): the best criterion within ``budget``.  ``cost(sequence)`` is the
     caller's cost of running those choices in that order (e.g. rig seconds); it is
@@ -267,13 +277,14 @@ def optimise(info: Sequence[Information], quantities: Quantities, cost: Callable
     moves that lower the criterion most are shortlisted, whatever they cost."""
     if not info:
         raise DesignError("no candidate experiment to choose from")
-    if criterion not in CRITERIA:
-        raise DesignError(f"unknown criterion {criterion!r} (criteria: {', '.join(CRITERIA)})")
+    if criterion not in set(Criterion):   # a caller without type checks
+        raise DesignError(f"unknown criterion {criterion!r} (criteria: {', '.join(Criterion)})")
+    criterion = Criterion(criterion)
     q = len(quantities.names)
     t = None if targets is None else np.asarray(targets, float)
-    if criterion == "sigma" and (t is None or t.shape != (q,) or not np.all(t > 0)):
+    if criterion is Criterion.SIGMA and (t is None or t.shape != (q,) or not np.all(t > 0)):
         raise DesignError(f"the sigma criterion needs {q} positive targets, one per quantity")
-    if criterion != "sigma" and budget is None:
+    if criterion is not Criterion.SIGMA and budget is None:
         raise DesignError(f"the {criterion} criterion needs a budget")
     s = np.ones(q) if scale is None else np.asarray(scale, float)
     periods = sorted(set(int(p) for p in periods))
@@ -284,7 +295,7 @@ def optimise(info: Sequence[Information], quantities: Quantities, cost: Callable
     size = max_experiments + len(required)
 
     def done(sequence: list[Choice]) -> bool:
-        return criterion == "sigma" and problem.value(sequence) <= 0.0
+        return criterion is Criterion.SIGMA and problem.value(sequence) <= 0.0
 
     def build(start: list[Choice], excluded: frozenset[int] = frozenset()) -> list[Choice]:
         grown = _greedy(problem, start, len(info), periods, done, cap, size, shortlist, excluded)
@@ -306,14 +317,14 @@ def optimise(info: Sequence[Information], quantities: Quantities, cost: Callable
     cov = problem.cov(seq) if seq else None
     sigma = sigmas(cov, quantities) if cov is not None else np.full(q, math.inf)
     value = problem.value(seq)
-    met = done(seq) if criterion == "sigma" else bool(seq) and problem.cost(seq) <= cap
+    met = done(seq) if criterion is Criterion.SIGMA else bool(seq) and problem.cost(seq) <= cap
     return Design(tuple(seq), sigma, problem.cost(seq), value, met, problem.calls)
 
 
 def _better(problem: _Problem, a: list[Choice], b: list[Choice], done: Callable[[list[Choice]], bool]) -> bool:
     """Whether plan a beats plan b: σ criterion, meeting the targets, then cost; D and A,
     the criterion (within the same budget)."""
-    if problem.criterion == "sigma":
+    if problem.criterion is Criterion.SIGMA:
         if done(a) != done(b):
             return done(a)
         return problem.cost(a) < problem.cost(b) if done(a) else problem.value(a) < problem.value(b)
@@ -384,9 +395,9 @@ def _prune(problem: _Problem, seq: list[Choice], keep: int, periods: list[int],
             fewer = [p for p in periods if p < ch.periods]
             if fewer:
                 trials.append(seq[:k] + [Choice(ch.candidate, fewer[-1])] + seq[k + 1:])
-        good = [s for s in trials if s and (done(s) if problem.criterion == "sigma" else
+        good = [s for s in trials if s and (done(s) if problem.criterion is Criterion.SIGMA else
                                             problem.value(s) <= now_value)]
-        if problem.criterion == "sigma" and not done(seq):
+        if problem.criterion is Criterion.SIGMA and not done(seq):
             good = []   # targets not reached: nothing to give away
         cheaper = [(problem.cost(s), s) for s in good]
         cheaper = [(c, s) for c, s in cheaper if c < now_cost and c <= cap]
@@ -396,7 +407,7 @@ def _prune(problem: _Problem, seq: list[Choice], keep: int, periods: list[int],
 
 
 __all__ = [
-    "Candidate", "Choice", "Design", "DesignError", "Information", "Noise", "Quantities", "a_criterion",
+    "Candidate", "Choice", "Criterion", "Design", "DesignError", "Information", "Noise", "Quantities", "a_criterion",
     "covariance", "d_criterion", "derived_quantities", "experiment_information", "optimise", "parameter_quantities",
     "sigma_criterion", "sigmas",
 ]

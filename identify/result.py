@@ -27,6 +27,36 @@ CONDITION_WARNING = 1e6  # of the weighted, parameter-scaled sensitivity matrix
 CORRELATION_REPORT = 0.5
 
 
+def _parameter_entry(p: Any, estimated: bool, std: float | None, initial: float | None,
+                     prior_std: float | None) -> dict[str, Any]:
+    """One parameter of RESULT.json, the same fields whether the fit had a result or not."""
+    entry: dict[str, Any] = {"value": p.value, "std": std, "estimated": estimated, "unit": p.unit, "alias": p.alias}
+    for key, bound in (("min", p.minimum), ("max", p.maximum)):
+        if bound is not None:
+            entry[key] = bound
+    if initial is not None:
+        entry["initial"] = initial
+    if prior_std:                      # what a restart needs to take the same steps
+        entry["prior_std"] = prior_std
+    return entry
+
+
+def failed_document(model: CompiledModel, params: Parameters, message: str) -> dict[str, Any]:
+    """RESULT.json of a fit that has no result (it failed, or was interrupted before its
+    first iterate): the start values, ``converged`` false, the fields of
+    :meth:`FitResult.to_document` where there is something to say."""
+    return {"model": model.name, "converged": False, "iterations": 0, "message": message,
+            # it started, and stopped, at the start values
+            "parameters": {p.name: _parameter_entry(p, p.vary, None, p.value, p.prior_std if p.vary else None)
+                           for p in params},
+            "correlation": {}, "channels": {}, "experiments": {}}
+
+
+def write_document(path: str | Path, doc: dict[str, Any]) -> None:
+    """RESULT.json on disk, atomically: the one writer of the file."""
+    atomic_write_bytes(Path(path), (json.dumps(doc, indent=2) + "\n").encode())
+
+
 @dataclass(frozen=True)
 class ParameterEstimate:
     name: str
@@ -206,21 +236,12 @@ class FitResult:
         params = {}
         for p in self.params:
             est = p.name in self.estimated
-            params[p.name] = {
-                "value": p.value, "std": self.std[p.name] if est else None, "estimated": est, "unit": p.unit,
-                "alias": p.alias,
-            }
+            params[p.name] = _parameter_entry(p, est, self.std[p.name] if est else None, self.start.get(p.name),
+                                              self.priors.get(p.name) if est else None)
             if est and self.std_residual is not None:
                 params[p.name]["std_residual"] = self.std_residual[p.name]
-            for key, bound in (("min", p.minimum), ("max", p.maximum)):
-                if bound is not None:
-                    params[p.name][key] = bound
             if est and p.at_bound():
                 params[p.name]["at_bound"] = p.at_bound()
-            if p.name in self.start:
-                params[p.name]["initial"] = self.start[p.name]
-            if est and self.priors.get(p.name):  # what a restart needs to take the same steps
-                params[p.name]["prior_std"] = self.priors[p.name]
         corr = {a: {b: _finite(self.correlation[i, j]) for j, b in enumerate(self.estimated)}
                 for i, a in enumerate(self.estimated)}
         experiments = {}
@@ -269,7 +290,7 @@ class FitResult:
         }
 
     def write_json(self, path: str | Path) -> None:
-        atomic_write_bytes(Path(path), (json.dumps(self.to_document(), indent=2) + "\n").encode())
+        write_document(path, self.to_document())
 
     # ----------------------------------------------------------------------------------
     def fit_report(self, correlation_threshold: float = CORRELATION_REPORT) -> str:

@@ -8,6 +8,7 @@
 ``gui``      the operator's console: live view, manual control, plans, fits, sessions
 ``qc``       quality control of production dampers (run, judge, history)
 ``design``   a plan of experiments for a precision goal at the least predicted rig time
+``log-times`` a session's predicted against real rig time, phase by phase, from its session.log
 
 Exit status (every command): 0 done; 1 identification did not converge (``run
 --identify``); 2 bad input (a file, address or argument; one line naming it, and
@@ -30,7 +31,7 @@ from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERNAL, EXI
 from identify.model import DEFAULT_ESTIMATE
 from rig.config import load_rig_config
 from rig.drivers.daq import Calibration, Daq
-from rig.drivers.registers import load_register_map
+from rig.drivers.registers import ControllerState, load_register_map
 from rig.drivers.shaker import LimitError, Shaker
 from rig.errors import BadInput, RigFault
 from rig.gui.options import ConsoleOptions, add_console_arguments, add_link_arguments
@@ -72,6 +73,13 @@ def cmd_run(args: argparse.Namespace) -> int:
     return run_session(opt)
 
 
+def cmd_log_times(args: argparse.Namespace) -> int:
+    from rig.session.timing import format_times, log_times
+
+    print(format_times(log_times(args.session)))
+    return EXIT_OK
+
+
 def cmd_status(args: argparse.Namespace) -> int:
     shaker = _shaker(args)
     try:
@@ -80,7 +88,7 @@ def cmd_status(args: argparse.Namespace) -> int:
         shaker.close()
     print(f"state {st.state}  alarm {st.alarm}  position {st.position_m * 1e3:.2f} mm  "
           f"force {st.force_n / 1e3:.2f} kN  cycles {st.cycles}  supply {st.hydraulic_pressure_pa / 1e5:.0f} bar")
-    return EXIT_OK if st.state != "ALARM" else EXIT_ABORTED
+    return EXIT_OK if st.state is not ControllerState.ALARM else EXIT_ABORTED
 
 
 def cmd_move(args: argparse.Namespace) -> int:
@@ -89,7 +97,7 @@ def cmd_move(args: argparse.Namespace) -> int:
         try:
             shaker.move_to(args.position_mm * 1e-3, switch_on=True)
             if args.wait:
-                st = shaker.wait_for({"AT_STATIC"}, timeout_s=args.wait)
+                st = shaker.wait_for({ControllerState.AT_STATIC}, timeout_s=args.wait)
                 print(f"at static position {st.position_m * 1e3:.2f} mm")
         except LimitError:
             raise  # refused before anything was sent: nothing moves, nothing to stop
@@ -111,7 +119,7 @@ def cmd_stop(args: argparse.Namespace) -> int:
     try:
         if args.reset:
             shaker.reset_alarm()
-        elif args.fade and shaker.status().state == "RUNNING":
+        elif args.fade and shaker.status().state is ControllerState.RUNNING:
             shaker.fade_out()
         else:
             if args.fade:
@@ -161,9 +169,9 @@ def cmd_monitor(args: argparse.Namespace) -> int:
 
 
 def cmd_design(args: argparse.Namespace) -> int:
-    from rig.design import run_design  # numerics only this command needs
+    from rig.design import DesignOptions, run_design  # numerics only this command needs
 
-    return run_design(args)
+    return run_design(DesignOptions.from_args(args))
 
 
 def cmd_gui(args: argparse.Namespace) -> int:
@@ -255,6 +263,10 @@ def build_parser() -> argparse.ArgumentParser:
                                       "predict the rig time at them (default: the last measured on this computer)")
     des.add_argument("--daq", help="with --shaker (see there)")
     des.set_defaults(func=cmd_design)
+
+    times = sub.add_parser("log-times", help="a session's predicted against real rig time, phase by phase")
+    times.add_argument("session", help="session folder (its session.log)")
+    times.set_defaults(func=cmd_log_times)
 
     add_qc_parser(sub)
     return parser

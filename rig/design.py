@@ -24,6 +24,7 @@ and the terminal say so, and the status is 1); 2 bad input (one line).
 
 from __future__ import annotations
 
+import argparse
 import datetime as _dt
 import math
 import shlex
@@ -33,10 +34,12 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
+import tomli_w
 
 from identify.design import (
     Candidate,
     Choice,
+    Criterion,
     Design,
     DesignError,
     Information,
@@ -92,12 +95,49 @@ class Goal:
 
 
 @dataclass(frozen=True)
+class DesignOptions:
+    """``rig design``'s arguments, typed (see rig.cli for their help)."""
+
+    out: Path
+    argv: tuple[str, ...]            # the command as typed, for the plan's first comment
+    target: str | None = None
+    qc_spec: str | None = None
+    no_worse_than: str | None = None
+    sigma: str | None = None
+    compare: str | None = None
+    model: str = "2dof"
+    params: str | None = None
+    rig_config: str | None = None
+    predict: str | None = None       # "drop"
+    accuracy: float = 0.02           # --predict: relative σ wanted
+    discrepancy: float = 0.0         # --predict: the model discrepancy's relative σ
+    estimate: str | None = None      # --predict: estimated parameters (comma-separated)
+    shaker: str | None = None        # with daq: the links whose pace the rig time is predicted at
+    daq: str | None = None
+
+    @classmethod
+    def from_args(cls, args: argparse.Namespace) -> DesignOptions:
+        return cls(Path(args.out), tuple(args.argv), args.target, args.qc_spec, args.no_worse_than, args.sigma,
+                   args.compare, args.model, args.params, args.rig_config, args.predict, args.accuracy,
+                   args.discrepancy, args.estimate, args.shaker, args.daq)
+
+
+@dataclass(frozen=True)
+class Reference:
+    """The plan a design is compared with, as predicted for the same goal."""
+
+    name: str
+    sigma: np.ndarray                # of the goal's quantities, SI
+    rig_s: float                     # predicted rig time
+
+
+@dataclass(frozen=True)
 class Designed:
     plan: Plan
     sigma: np.ndarray                # of the quantities, SI, without the prior
     rig_s: float
     met: bool
-    reference: tuple[str, np.ndarray, float] | None   # name, σ, rig time
+    reference: Reference | None
     candidates: tuple[ExperimentSpec, ...]
     design_s: float
     timing: LinkTiming = NOT_MEASURED   # the links' the rig times were predicted on
@@ -200,7 +240,7 @@ def design(goal: Goal, config: RigConfig, reference: Plan | None, name: str,
                            f"a periodic solution at the prior parameters")
         ref_sigma = sigmas(covariance([(i, e.periods) for i, e in zip(ref_info, ref_specs, strict=True)]),
                            goal.quantities)
-        reference_figures = (reference.name, ref_sigma, rig_seconds(reference, config, goal.params, timing))
+        reference_figures = Reference(reference.name, ref_sigma, rig_seconds(reference, config, goal.params, timing))
         if no_worse_than:
             targets = ref_sigma
     prior = _prior_precision(goal)
@@ -217,8 +257,8 @@ def design(goal: Goal, config: RigConfig, reference: Plan | None, name: str,
         return sum(alone[c.candidate] + c.periods / specs[c.candidate].frequency_hz for c in seq)
 
     try:
-        found: Design = optimise(info, goal.quantities, cost, criterion="sigma", targets=targets, periods=PERIODS,
-                                 required=required, prior_precision=prior, estimate=estimate)
+        found: Design = optimise(info, goal.quantities, cost, criterion=Criterion.SIGMA, targets=targets,
+                                 periods=PERIODS, required=required, prior_precision=prior, estimate=estimate)
     except DesignError as exc:
         raise BadInput(f"design: {exc}") from None
     plan = _plan(name, specs, found.choices, len(required))
@@ -258,7 +298,7 @@ def qc_goal(spec_source: str) -> Goal:
     """The spec's model-based characteristics, each to a quarter of its tolerance
     half-width (combined with u_cal); a loop energy the spec gives the conditions of is
     one of them (computed from the model there), otherwise its experiment is kept."""
-    from rig.qc.characteristics import _model_function, check_model
+    from rig.qc.characteristics import check_model, model_function
     from rig.qc.spec import load_spec
 
     spec = load_spec(spec_source)
@@ -278,7 +318,7 @@ def qc_goal(spec_source: str) -> Goal:
         if wanted <= u_cal:
             raise BadInput(f"spec {spec.source}: characteristic {c.name!r}: u_cal alone is above "
                            f"{QC_SIGMA_FRACTION:g} of the tolerance half-width; no plan can meet it")
-        functions[c.name] = _model_function(model, c)
+        functions[c.name] = model_function(model, c)
         targets.append(math.sqrt(wanted**2 - u_cal**2))
         units.append(c.unit)
         scales.append(c.si_factor)
@@ -366,7 +406,8 @@ def drop_peak_stroke(model: CompiledModel, theta: np.ndarray, mass_kg: float, ve
 
 
 def plan_text(designed: Designed, goal: Goal, command: str) -> str:
-    """The plan file: today's plan format, with the prediction in comments."""
+    """The plan file: today's plan format (written by tomli-w), the prediction in comments above it."""
+    ref = designed.reference
     lines = [f"# Designed by: {command}",
              f"# on {_dt.date.today().isoformat()}: the least predicted rig time whose predicted σ meet the goal "
              f"({'met' if designed.met else 'NOT met'}); {len(designed.candidates)} candidates, "
@@ -374,90 +415,94 @@ def plan_text(designed: Designed, goal: Goal, command: str) -> str:
              f"# Predicted at the prior parameters with the transducers' noise of the rig configuration; "
              f"estimated: {', '.join(goal.estimate)}.",
              "#",
-             _row("quantity", "target σ", "designed σ", designed.reference[0] + " σ" if designed.reference else "")]
+             _row("quantity", "target σ", "designed σ", ref.name + " σ" if ref else "")]
     for k, name in enumerate(goal.quantities.names):
         scale = goal.scales[k]
-        ref = f"{designed.reference[1][k] / scale:.3g}" if designed.reference else ""
+        ref_sigma = f"{ref.sigma[k] / scale:.3g}" if ref else ""
         target = goal.targets[k] / scale if np.isfinite(goal.targets[k]) else math.nan
         unit = goal.units[k]
         lines.append(_row(name, f"{target:.3g} {unit}" if np.isfinite(target) else "(reference)",
-                          f"{designed.sigma[k] / scale:.3g} {unit}", f"{ref} {unit}" if ref else ""))
-    ref_time = f"{designed.reference[2]:.0f} s" if designed.reference else ""
-    lines.append(_row("rig time (predicted)", "", f"{designed.rig_s:.0f} s", ref_time))
+                          f"{designed.sigma[k] / scale:.3g} {unit}", f"{ref_sigma} {unit}" if ref_sigma else ""))
+    lines.append(_row("rig time (predicted)", "", f"{designed.rig_s:.0f} s", f"{ref.rig_s:.0f} s" if ref else ""))
     lines.append(f"# rig time predicted {designed.timing.describe()}")
     if goal.risks:
         lines += ["#", "# The risk that remains:"] + [f"# - {r}" for r in goal.risks]
-    lines += ["#", f'name = "{designed.plan.name}"',
-              '# as listed: the order the rig time was predicted for (each experiment starts where the one',
-              '# before left the actuator and the gas)',
-              'order = "fixed"', ""]
-    for e in designed.plan.experiments:
-        lines += ["[[experiment]]", f'label = "{e.letter}"', f'group = "{e.group}"',
-                  f"static_mm = {e.static_position_mm:g}", f"amplitude_mm = {e.amplitude_mm:g}",
-                  f"frequency_Hz = {e.frequency_hz:g}", f"periods = {e.periods}", ""]
-    return "\n".join(lines)
+    lines += ["#", "# order fixed: as listed, the order the rig time was predicted for (each experiment starts",
+              "# where the one before left the actuator and the gas)", ""]
+    doc = {"name": designed.plan.name, "order": "fixed",
+           "experiment": [{"label": e.letter, "group": e.group, "static_mm": e.static_position_mm,
+                           "amplitude_mm": e.amplitude_mm, "frequency_Hz": e.frequency_hz, "periods": e.periods}
+                          for e in designed.plan.experiments]}
+    return "\n".join(lines) + "\n" + tomli_w.dumps(doc)
 
 
 def _row(*cells: str) -> str:
     return "# " + f"{cells[0]:<24}" + "".join(f"{c:>16}" for c in cells[1:])
 
 
-def run_design(args: object) -> int:
-    """The ``rig design`` command (arguments as rig.cli parses them)."""
-    a = vars(args)
-    config = load_rig_config(a["rig_config"])
-    if sum(bool(a.get(k)) for k in ("target", "qc_spec", "predict")) != 1:
+def run_design(opt: DesignOptions) -> int:
+    """The ``rig design`` command."""
+    config = load_rig_config(opt.rig_config)
+    if sum(bool(x) for x in (opt.target, opt.qc_spec, opt.predict)) != 1:
         raise BadInput("design: give one of --target PARAMETERS, --qc-spec SPEC or --predict drop")
-    reference = load_plan(a["compare"]) if a["compare"] else None
-    if a["no_worse_than"]:
-        reference = load_plan(a["no_worse_than"])
-    if a["target"]:
-        names = [x.strip() for x in a["target"].split(",") if x.strip()]
-        sigma = None
-        if a["sigma"]:
-            try:
-                sigma = [float(x) for x in a["sigma"].split(",")]
-            except ValueError:
-                raise BadInput(f"--sigma {a['sigma']!r}: not a comma-separated list of numbers") from None
-            if not all(s > 0 and math.isfinite(s) for s in sigma):
-                raise BadInput(f"--sigma {a['sigma']!r}: every σ must be a positive number")
-        if sigma is None and not a["no_worse_than"]:
-            raise BadInput("design --target: say how precise: --no-worse-than PLAN or --sigma S1,S2,…")
-        goal = parameter_goal(a["model"], a["params"], names, sigma)
+    reference = load_plan(opt.compare) if opt.compare else None
+    if opt.no_worse_than:
+        reference = load_plan(opt.no_worse_than)
+    if opt.target:
+        goal = parameter_goal(opt.model, opt.params, [x.strip() for x in opt.target.split(",") if x.strip()],
+                              _sigmas(opt))
         name = "designed-" + "-".join(goal.estimate)
-    elif a.get("predict"):
-        estimate = [x.strip() for x in a["estimate"].split(",") if x.strip()] if a.get("estimate") else None
-        goal = drop_goal(a["model"], a["params"], estimate, a["accuracy"], a["discrepancy"], config)
+    elif opt.predict:
+        estimate = [x.strip() for x in opt.estimate.split(",") if x.strip()] if opt.estimate else None
+        goal = drop_goal(opt.model, opt.params, estimate, opt.accuracy, opt.discrepancy, config)
         name = "designed-predict-drop"
     else:
-        goal = qc_goal(a["qc_spec"])
-        name = f"designed-qc-{Path(a['qc_spec']).stem}"
+        assert opt.qc_spec is not None   # one of the three, checked above
+        goal = qc_goal(opt.qc_spec)
+        name = f"designed-qc-{Path(opt.qc_spec).stem}"
     for problem in check_plan(reference, config) if reference else []:
         raise BadInput(f"reference plan: {problem}")
-    out = Path(a["out"])
-    if not out.parent.is_dir():
-        raise BadInput(f"--out {out}: folder {out.parent} does not exist")
-    if bool(a.get("shaker")) != bool(a.get("daq")):
+    if not opt.out.parent.is_dir():
+        raise BadInput(f"--out {opt.out}: folder {opt.out.parent} does not exist")
+    if bool(opt.shaker) != bool(opt.daq):
         raise BadInput("design: --shaker and --daq go together (the links whose pace the rig time is predicted at)")
-    if a.get("shaker"):
+    if opt.shaker and opt.daq:
         from rig.session.run import probe_timing  # the links only this form needs
 
-        timing = probe_timing(a["shaker"], a["daq"], config)
+        timing = probe_timing(opt.shaker, opt.daq, config)
     else:
         timing = last_measured()
     print(f"rig time predicted {timing.describe()}", flush=True)
-    designed = design(goal, config, reference, name, no_worse_than=bool(a["no_worse_than"]), timing=timing)
-    command = shlex.join(["python", "-m", "rig", *a["argv"]])
-    atomic_write_bytes(out, plan_text(designed, goal, command).encode())
-    print(f"{out}: {len(designed.plan.experiments)} experiment{'s' if len(designed.plan.experiments) != 1 else ''}, "
-          f"{designed.rig_s:.0f} s of rig time predicted"
-          + (f" ({designed.reference[0]}: {designed.reference[2]:.0f} s)" if designed.reference else "")
-          + f"; designed in {designed.design_s:.0f} s")
-    for k, nm in enumerate(goal.quantities.names):
-        ref = f"  ({designed.reference[0]} {designed.reference[1][k] / goal.scales[k]:.3g})" \
-            if designed.reference else ""
-        print(f"  σ {nm:<22} {designed.sigma[k] / goal.scales[k]:.3g} {goal.units[k]}{ref}")
+    designed = design(goal, config, reference, name, no_worse_than=bool(opt.no_worse_than), timing=timing)
+    command = shlex.join(["python", "-m", "rig", *opt.argv])
+    atomic_write_bytes(opt.out, plan_text(designed, goal, command).encode())
+    _say(designed, goal, opt.out)
     if not designed.met:
         print("goal NOT met: the plan written is the best found (see its comments)")
         return EXIT_GOAL_NOT_MET
     return 0
+
+
+def _sigmas(opt: DesignOptions) -> list[float] | None:
+    """--sigma as numbers (None: not given, where --no-worse-than says how precise)."""
+    if not opt.sigma:
+        if not opt.no_worse_than:
+            raise BadInput("design --target: say how precise: --no-worse-than PLAN or --sigma S1,S2,…")
+        return None
+    try:
+        sigma = [float(x) for x in opt.sigma.split(",")]
+    except ValueError:
+        raise BadInput(f"--sigma {opt.sigma!r}: not a comma-separated list of numbers") from None
+    if not all(s > 0 and math.isfinite(s) for s in sigma):
+        raise BadInput(f"--sigma {opt.sigma!r}: every σ must be a positive number")
+    return sigma
+
+
+def _say(designed: Designed, goal: Goal, out: Path) -> None:
+    """The terminal's summary: the plan written, its rig time and each σ (beside the reference's)."""
+    ref, n = designed.reference, len(designed.plan.experiments)
+    print(f"{out}: {n} experiment{'s' if n != 1 else ''}, {designed.rig_s:.0f} s of rig time predicted"
+          + (f" ({ref.name}: {ref.rig_s:.0f} s)" if ref else "") + f"; designed in {designed.design_s:.0f} s")
+    for k, nm in enumerate(goal.quantities.names):
+        beside = f"  ({ref.name} {ref.sigma[k] / goal.scales[k]:.3g})" if ref else ""
+        print(f"  σ {nm:<22} {designed.sigma[k] / goal.scales[k]:.3g} {goal.units[k]}{beside}")

@@ -37,7 +37,8 @@ class Kind(StrEnum):
     Subscribers read the fields; ``message`` is prose for people only."""
 
     SESSION_START = "session-start"          # shaker, daq (addresses), identity (the DAQ's *IDN?)
-    PHASE = "phase"                          # phase (Phase); moving: target_mm; capturing: cycles; stopping: reason;
+    PHASE = "phase"                          # phase (Phase), clock_s (the acquisition's clock: rig seconds over
+    #                                          the pace); moving: target_mm; capturing: cycles; stopping: reason;
     #                                          alarm: message
     PROGRESS = "progress"                    # phase; settling: cycles, change {channel: |Δ block mean|}
     #                                          [drift criterion: bias_sigma, ratio, drift]; capturing: fraction
@@ -47,21 +48,42 @@ class Kind(StrEnum):
     LINK = "link"                            # link ("controller", "DAQ"), state (LinkCondition), message
     PREDICTION = "prediction"                # rig_time_left_s: the rest of the plan predicted again (rig
     #                                          seconds), basis (what it was predicted from), message
+    PHASE_PLAN = "phase-plan"                # per experiment, before the first: the plan's rig time by phase [s]:
+    #                                          move_s (with the hold's moves), hold_s, lead_in_s, settle_cycles,
+    #                                          settle_s, capture_s, fade_s, links_s, total_s
+    PACE_PROBE = "pace-probe"                # samples, lost, probes, probe_s, pace (the median), pace_min,
+    #                                          pace_max, daq_start_s, daq_stop_s, status_read_s, answer_s,
+    #                                          overhead_s (seconds of the links' clock)
+    HOLD = "hold"                            # a conditioning hold begins: position_mm, experiment_mm,
+    #                                          target_c, predicted_s, compressed (bool)
+    HOLD_END = "hold-end"                    # the move on commanded: gas_c (measured then), target_c, held_s
+    #                                          (rig seconds at the hold, from the DAQ's samples), predicted_s, lead_s
+    CAPTURE_WINDOW = "capture-window"        # a capture window that lost samples: window (1-based), lost,
+    #                                          steady_loss (the line's loss while settling, a fraction),
+    #                                          kept (as the steady loss predicts), again (captured again)
     LOG = "log"                              # message: anything else worth a line
-    SESSION_END = "session-end"              # message: the status written to session.json; exit_code
+    SESSION_END = "session-end"              # message: the status written to session.json; exit_code;
+    #                                          exit_status (rig.session.outcome.ExitStatus)
 
 
 FIELDS: dict[Kind, tuple[str, ...]] = {
     Kind.SESSION_START: ("shaker", "daq", "identity"),
-    Kind.PHASE: ("phase",),
+    Kind.PHASE: ("phase", "clock_s"),
     Kind.PROGRESS: ("phase",),
     Kind.EXPERIMENT_DONE: ("file", "samples", "lost", "flags"),
     Kind.EXPERIMENT_FAILED: ("message",),
     Kind.ALARM: ("message",),
     Kind.LINK: ("link", "state", "message"),
     Kind.PREDICTION: ("rig_time_left_s", "basis", "message"),
+    Kind.PHASE_PLAN: ("move_s", "hold_s", "lead_in_s", "settle_cycles", "settle_s", "capture_s", "fade_s",
+                      "links_s", "total_s"),
+    Kind.PACE_PROBE: ("samples", "lost", "probes", "probe_s", "pace", "pace_min", "pace_max", "daq_start_s",
+                      "daq_stop_s", "status_read_s", "answer_s", "overhead_s"),
+    Kind.HOLD: ("position_mm", "experiment_mm", "target_c", "predicted_s", "compressed"),
+    Kind.HOLD_END: ("gas_c", "target_c", "held_s", "predicted_s", "lead_s"),
+    Kind.CAPTURE_WINDOW: ("window", "lost", "steady_loss", "kept", "again"),
     Kind.LOG: ("message",),
-    Kind.SESSION_END: ("message", "exit_code"),
+    Kind.SESSION_END: ("message", "exit_code", "exit_status"),
 }
 
 
@@ -141,8 +163,9 @@ class EventBus:
         thread.start()
         self._queued.append((q, thread))
 
-    def publish(self, kind: str, experiment: str | None = None, **data: Any) -> Event:
-        kind = Kind(kind)                    # an undeclared kind is a bug: ValueError
+    def publish(self, kind: Kind, experiment: str | None = None, **data: Any) -> Event:
+        if not isinstance(kind, Kind):       # mypy says so first; a caller that is not checked learns it here
+            raise TypeError(f"publish takes a Kind, not {type(kind).__name__} {kind!r}")
         missing = [f for f in FIELDS[kind] if f not in data]
         if missing:
             raise TypeError(f"{kind} event without {', '.join(missing)}")

@@ -19,11 +19,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from identify.exit_codes import EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK
 from identify.plans import STANDARD_SET
 from rig.config import CHANNELS, load_rig_config
 from rig.drivers.shaker import AlarmError
+from rig.events import Event, Kind
 from rig.session.acquisition import POLL_S, STATUS_POLL_S, Acquisition, ExperimentRecord, Interrupted, Recorder
-from rig.session.run import EXIT_ABORTED, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK
+from rig.session.outcome import ExitStatus
+from rig.session.progress import describe
 from simulator.controller import Alarm, State
 from tests.virtual_rig_inprocess import SHAKER_URL, InProcessRig, quick_rig_config
 
@@ -81,8 +84,12 @@ def test_the_pace_probe_times_the_commands_a_hold_and_an_experiment_add(vrig):
     assert acq.measure_pace() == pytest.approx(1.0, rel=0.01)
     assert acq.answer_s == 0.0
     assert acq.overhead_s == pytest.approx(POLL_S / 2 + STATUS_POLL_S)
+    (probe,) = [e for _, e in vrig.events if e.kind == Kind.PACE_PROBE]
+    assert (probe.data["answer_s"], probe.data["probes"]) == (0.0, 5)
+    assert probe.data["overhead_s"] == pytest.approx(0.045) and probe.data["pace"] == acq.probed_pace
+    # and people read it in a sentence made from those fields
     assert re.search(r"from a hold's end to RUN 0\.0 ms, 0\.00 s of the rig's time; an experiment's polls and "
-                     r"commands 45\.0 ms", "\n".join(vrig.messages()))
+                     r"commands 45\.0 ms", describe(probe))
 
 
 class _BusyHostLinks:
@@ -213,7 +220,8 @@ def test_samples_lost_in_the_capture_window_are_captured_again(vrig):
     vrig.when("capturing", 0.5, lambda: vrig.inject("overflow=300"))
     record = acquisition(vrig).run_experiment(J, "261122j")
 
-    assert "capture window 1 lost 300 samples; capturing again" in vrig.messages()
+    windows = [e.data for _, e in vrig.events if e.kind == Kind.CAPTURE_WINDOW]
+    assert [(w["window"], w["lost"], w["kept"], w["again"]) for w in windows] == [(1, 300, False, True)]
     assert (record.recaptures, record.lost_samples, record.stream_lost, record.flags) == (1, 0, 300, [])
     first_window = math.ceil((vrig.config.steady_state.ramp_time_s + 0.5) * 2000) + record.settle_cycles * 1000
     assert np.array_equal(record.index, first_window + 3000 + np.arange(3000))   # the second window, whole
@@ -228,10 +236,9 @@ def test_a_window_that_keeps_losing_samples_is_kept_and_flagged(vrig):
     assert record.lost_samples > 0 and len(record.index) == 3000 - record.lost_samples
     assert record.flags == [f"{record.lost_samples} samples lost in the captured window (rows absent; best of 3 "
                             "windows)"]
-    windows = [re.sub(r"lost \d+ samples", "lost N samples", m) for m in vrig.messages()
-               if m.startswith("capture window ")]
-    assert windows == ["capture window 1 lost N samples; capturing again",
-                       "capture window 2 lost N samples; capturing again", "capture window 3 lost N samples"]
+    windows = [e.data for _, e in vrig.events if e.kind == Kind.CAPTURE_WINDOW]
+    assert [(w["window"], w["lost"] > 0, w["kept"], w["again"]) for w in windows] == \
+        [(1, True, False, True), (2, True, False, True), (3, True, False, False)]
 
 
 def test_an_estop_while_settling_raises_the_alarm_at_the_next_status_poll(vrig):
@@ -247,13 +254,14 @@ def test_an_estop_while_settling_raises_the_alarm_at_the_next_status_poll(vrig):
 
 # ----- the session's error boundary -------------------------------------------------------------------------
 def test_an_alarm_aborts_the_session_after_the_safe_stop(vrig, tmp_path):
-    runner, session = vrig.open_session(tmp_path / "s", ["j", "n"])
     vrig.when("settling", 3.0, lambda: vrig.inject("estop"))
-    result = runner.run(session)
+    result = vrig.run_session(tmp_path / "s", ["j", "n"])
 
     (alarm,) = vrig.messages("alarm")
     assert alarm.startswith("shaker alarm: emergency stop (")
     assert (result.status, result.exit_code, result.error) == (f"aborted: {alarm}", EXIT_ABORTED, None)
+    assert (result.exit_status, result.interrupted, result.reason) == (ExitStatus.ABORTED, True, alarm)
+    assert isinstance(result.exception, AlarmError)
     # seen at the next status poll (every 0.2 s), and the safe stop began at once
     assert 0 <= round(first_phase(vrig, "stopping", None) - fault_time(vrig, "fault: emergency stop pressed"), 6) \
         <= 0.25
@@ -261,16 +269,19 @@ def test_an_alarm_aborts_the_session_after_the_safe_stop(vrig, tmp_path):
     assert_at_rest(vrig, Alarm.EMERGENCY_STOP)
     meta, manifest = session_meta(tmp_path / "s")
     assert meta["status"] == result.status and manifest["experiments"] == []
+    assert meta["outcome"] == {"exit_status": "aborted", "exit_code": EXIT_ABORTED, "interrupted": True,
+                               "reason": alarm, "exception": f"AlarmError: {alarm}", "before_motion": False,
+                               "skipped": [], "safe_stop_failures": []}
     assert "261122n" not in {e for _, e, _ in vrig.phases()}
 
 
 def test_with_on_alarm_skip_the_next_experiment_is_captured(vrig, tmp_path):
-    runner, session = vrig.open_session(tmp_path / "s", ["j", "n"], on_alarm="skip")
     vrig.when("settling", 3.0, lambda: vrig.inject("estop"), experiment="261122j")
-    result = runner.run(session)
+    result = vrig.run_session(tmp_path / "s", ["j", "n"], on_alarm="skip")
 
     assert (result.status, result.exit_code) == \
         ("ended: 1 of 2 experiments captured, skipped after alarms: 261122j", EXIT_OK)
+    assert (result.exit_status, result.interrupted, result.skipped) == (ExitStatus.ENDED, False, ["261122j"])
     (alarm,) = vrig.messages("alarm")
     assert vrig.messages("experiment-failed") == [f"261122j skipped after the alarm ({alarm})"]
     assert [m for _, m in vrig.fault_log.entries if "reset" in m] == ["alarm emergency_stop reset"]
@@ -282,20 +293,20 @@ def test_with_on_alarm_skip_the_next_experiment_is_captured(vrig, tmp_path):
 
 
 def test_ctrl_c_fades_out_and_switches_the_hydraulics_off(vrig, tmp_path):
-    runner, session = vrig.open_session(tmp_path / "s", ["j"])
     # A real SIGINT, raised in this (the main) thread: the session's own handler must turn it into a
     # stop request; one that reached the handler outside the session would be a miss, not a crash of pytest.
     vrig.when("settling", 3.0, lambda: signal.raise_signal(signal.SIGINT))
     missed = []
     previous = signal.signal(signal.SIGINT, lambda signum, frame: missed.append(signum))
     try:
-        result = runner.run(session)
+        result = vrig.run_session(tmp_path / "s", ["j"])
     finally:
         signal.signal(signal.SIGINT, previous)
     assert missed == []
 
     assert (result.status, result.exit_code, result.safe_stop_failures) == \
         ("interrupted (SIGINT)", EXIT_INTERRUPTED, [])
+    assert (result.exit_status, result.reason, result.exception) == (ExitStatus.INTERRUPTED, "SIGINT", None)
     asked = first_phase(vrig, "settling", "261122j") + 3.0
     stopping, idle = first_phase(vrig, "stopping", None), first_phase(vrig, "idle", None)
     assert 0 <= round(stopping - asked, 6) <= 0.05       # honoured at the next poll
@@ -304,12 +315,12 @@ def test_ctrl_c_fades_out_and_switches_the_hydraulics_off(vrig, tmp_path):
     assert_at_rest(vrig)
     meta, manifest = session_meta(tmp_path / "s")
     assert meta["status"] == "interrupted (SIGINT)" and manifest["experiments"] == []
+    assert (meta["outcome"]["exit_status"], meta["outcome"]["reason"]) == ("interrupted", "SIGINT")
 
 
 def test_a_modbus_link_back_within_the_reconnect_time_is_ridden_through(vrig, tmp_path):
-    runner, session = vrig.open_session(tmp_path / "s", ["j"])
     vrig.when("settling", 3.0, lambda: vrig.client.cut(1.0))   # shorter than the watchdog's 2 s, too
-    result = runner.run(session)
+    result = vrig.run_session(tmp_path / "s", ["j"])
 
     assert (result.status, result.exit_code) == ("complete", EXIT_OK)
     log = vrig.messages()
@@ -322,9 +333,8 @@ def test_a_modbus_link_back_within_the_reconnect_time_is_ridden_through(vrig, tm
 
 
 def test_a_modbus_link_gone_for_good_aborts_and_the_watchdog_stops_the_shaker(vrig, tmp_path):
-    runner, session = vrig.open_session(tmp_path / "s", ["j"])
     vrig.when("settling", 3.0, lambda: vrig.client.cut(600.0))
-    result = runner.run(session)
+    result = vrig.run_session(tmp_path / "s", ["j"])
 
     assert result.exit_code == EXIT_ABORTED
     assert result.safe_stop_failures == [f"stop: {LINK_STILL_GONE}", f"hydraulics off: {LINK_STILL_GONE}"]
@@ -348,11 +358,11 @@ def test_a_bug_in_the_acquisition_still_ends_in_the_safe_stop(vrig, tmp_path, mo
         raise TypeError("injected bug")
 
     monkeypatch.setattr(Recorder, "window", broken_window)   # first called once the first block is in
-    runner, session = vrig.open_session(tmp_path / "s", ["j"])
-    result = runner.run(session)
+    result = vrig.run_session(tmp_path / "s", ["j"])
 
     assert (result.status, result.exit_code) == ("aborted: internal error: TypeError: injected bug", EXIT_INTERNAL)
     assert isinstance(result.error, TypeError) and str(result.error) == "injected bug"
+    assert result.exit_status is ExitStatus.FAILED and result.exception is result.error
     assert [p for _, _, p in vrig.phases()] == ["moving", "settling", "stopping", "idle"]
     stopping, idle = first_phase(vrig, "stopping", None), first_phase(vrig, "idle", None)
     assert idle - stopping >= vrig.config.steady_state.ramp_time_s    # it was running: faded out
@@ -452,28 +462,28 @@ def test_a_conditioning_hold_lands_the_gas_and_settling_is_short(tmp_path):
     hold = planned[1].hold
     assert hold is not None and hold.position_m > specs[1].static_position_mm * 1e-3
 
-    def settle_c(with_hold: bool) -> tuple[int, list[str]]:
+    def settle_c(with_hold: bool) -> tuple[int, list[Event]]:
         rig = InProcessRig(config)
         rig.connect()
         try:
             acq = acquisition(rig)
             acq.run_experiment(specs[0], "261122j", planned[0].hold, planned[0].time_constant_s)
             record = acq.run_experiment(specs[1], "261122c", hold if with_hold else None, planned[1].time_constant_s)
-            return record.settle_cycles, [e.data["message"] for _, e in rig.events if e.kind == "log"
-                                          and e.experiment == "261122c" and "conditioning" in e.data["message"]]
+            return record.settle_cycles, [e for _, e in rig.events if e.kind in (Kind.HOLD, Kind.HOLD_END)
+                                          and e.experiment == "261122c"]
         finally:
             rig.close()
 
     held, log = settle_c(True)
     direct, none = settle_c(False)
-    assert none == [] and len(log) == 2 and "the gas was at" in log[1], log
-    landed = float(re.search(r"the gas was at (-?[\d.]+) °C", log[1]).group(1))
-    assert landed == pytest.approx(hold.end_temperature_k - 273.15, abs=0.2)
+    assert none == [] and [e.kind for e in log] == [Kind.HOLD, Kind.HOLD_END], log
+    end = log[1].data
+    assert end["gas_c"] == pytest.approx(hold.end_temperature_k - 273.15, abs=0.2)
+    assert end["target_c"] == pytest.approx(hold.end_temperature_k - 273.15) and end["held_s"] > 0
     # The simulator's actuator tracks its setpoint through a 25 Hz second-order loop: a
     # delay of about 9 ms, which the gas, changing ~1 K/s at the hold, would turn into
     # a landing error the drift criterion waits out for tens of cycles.
-    delay_ms = float(re.search(r"(\d+) ms ahead of the crossing", log[1]).group(1))
-    assert 3 <= delay_ms <= 30, log[1]
+    assert 3 <= end["lead_s"] * 1e3 <= 30, end
     assert held < 0.6 * direct, (held, direct)
 
 
@@ -489,7 +499,7 @@ def test_ctrl_c_during_a_conditioning_hold_ends_in_the_safe_stop(tmp_path):
         vrig.when("moving", 1.0, acq.stop_requested.set, experiment="261122c")
         with pytest.raises(Interrupted):
             acq.run_experiment(specs[1], "261122c", planned[1].hold)
-        assert any("conditioning: holding" in m for m in vrig.messages())
+        assert [e.experiment for _, e in vrig.events if e.kind == Kind.HOLD] == ["261122c"]
         assert acq.safe_stop("interrupted") == []
         assert vrig.messages()[-1] == SAFE_STOP_DONE
         assert_at_rest(vrig)

@@ -14,6 +14,7 @@ from identify.dataset import read_dataset
 from identify.design import (
     Candidate,
     Choice,
+    Criterion,
     DesignError,
     Information,
     covariance,
@@ -120,7 +121,7 @@ def test_d_criterion_within_a_budget() -> None:
     info = [_info([1.0, 1.0]), _info([4.0, 4.0])]
     price = [1.0, 2.0]
     q = parameter_quantities(["p0", "p1"], ["p0", "p1"])
-    d = optimise(info, q, lambda seq: sum(price[c.candidate] for c in seq), criterion="D", budget=2.0,
+    d = optimise(info, q, lambda seq: sum(price[c.candidate] for c in seq), criterion=Criterion.D, budget=2.0,
                  periods=(1,))
     # within 2 s: one of candidate 1 (info 4) beats two of candidate 0 (info 2)
     assert [c.candidate for c in d.choices] == [1]
@@ -134,7 +135,7 @@ def test_bad_problems_are_refused() -> None:
     with pytest.raises(DesignError):
         optimise([_info([1.0])], q, lambda seq: 0.0, targets=[1.0, 2.0])
     with pytest.raises(DesignError):
-        optimise([_info([1.0])], q, lambda seq: 0.0, criterion="D")
+        optimise([_info([1.0])], q, lambda seq: 0.0, criterion=Criterion.D)
     with pytest.raises(DesignError):
         parameter_quantities(["p0"], ["p1"])
 

@@ -19,8 +19,8 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from rig.config import DEFAULT_RIG_CONFIG
-from rig.drivers.estop import BUDGET_S, EStop, EStopLatched, LatchChanged, MotionLatch
-from rig.drivers.registers import load_register_map
+from rig.drivers.estop import BUDGET_S, EStop, EstopDone, EStopLatched, LatchChanged, MotionLatch
+from rig.drivers.registers import ControllerState, load_register_map
 from rig.drivers.shaker import Shaker
 from rig.gui.messages import Notice
 from rig.gui.station import Station
@@ -170,9 +170,9 @@ def test_with_no_link_at_all_the_estop_says_so():
 def running(vrig: InProcessRig) -> None:
     """Hydraulics on, at 133 mm, a 10 mm 2 Hz sine faded in: the rig moving."""
     vrig.shaker.move_to(0.133, switch_on=True)
-    vrig.shaker.wait_for({"AT_STATIC"}, 30.0)
+    vrig.shaker.wait_for({ControllerState.AT_STATIC}, 30.0)
     vrig.shaker.run(0.133, 0.010, 2.0, "sine", 1.0)
-    vrig.shaker.wait_for({"RUNNING"}, 30.0)
+    vrig.shaker.wait_for({ControllerState.RUNNING}, 30.0)
     vrig.clock.sleep(2.0)
 
 
@@ -256,3 +256,66 @@ def test_a_sessions_safe_stop_after_an_estop_does_not_fade(vrig):
            "confirm the reset first)" in vrig.messages()
     assert "safe stop done: stream stopped, STOP, hydraulics off" in vrig.messages()
     assert vrig.sim.controller.read_holding(0, 1) == [0] and vrig.sim.controller.read_coils(0, 1) == [False]
+
+
+class GatedClient:
+    """A client whose first write once :attr:`armed` waits at a gate: a press's writes
+    caught between its STOP going out and its answer."""
+
+    def __init__(self, client: Any) -> None:
+        self._client = client
+        self.armed = False
+        self.entered, self.release = threading.Event(), threading.Event()
+
+    def connect(self) -> bool:
+        return self._client.connect()
+
+    def close(self) -> None:
+        self._client.close()
+
+    def write_registers(self, *args: Any, **kwargs: Any) -> Any:
+        if self.armed:
+            self.armed = False
+            self.entered.set()
+            assert self.release.wait(HANG_S), "the gate was never opened"
+        return self._client.write_registers(*args, **kwargs)
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self._client, name)
+
+
+def test_a_second_press_during_the_first_ones_writes_gets_its_own_result_and_timing(vrig):
+    """Each press has its own status (ophyd's StatusBase): the second, pressed while the
+    first one's STOP is still out, is not handed the first one's result; it sends both
+    writes again and is timed from its own press."""
+    running(vrig)
+    clock = FakeClock()
+    gated = GatedClient(InProcessModbusClient(vrig.sim.controller, vrig.clock))
+    handled: list[EstopDone] = []
+    estop = EStop(LIMITS, MAP, clock=clock, on_done=handled.append)
+    estop.open(SHAKER_URL, client=TimedClient(gated, clock))
+    gated.armed = True
+    try:
+        first = estop.press()                       # at 1000.0; its STOP goes out at 1000.1 and waits at the gate
+        assert gated.entered.wait(HANG_S)
+        second = estop.press()                      # at 1000.1, during the first one's writes
+        assert (first.number, second.number) == (1, 2) and not first.done and not second.done
+        assert second.pressed_at == pytest.approx(first.pressed_at + TRANSACTION_S)
+        assert estop.wait(0) is None                # the latest press is not answered yet
+        callbacks: list[EstopDone] = []
+        second.add_callback(callbacks.append)
+        gated.release.set()
+        one, two = first.wait(HANG_S), second.wait(HANG_S)
+    finally:
+        gated.release.set()
+        estop.close()
+    assert one is not None and two is not None and one is not two
+    assert (one.failures, one.line, two.failures, two.line) == ([], "E-STOP line", [], "E-STOP line")
+    assert one.elapsed_s == pytest.approx(2 * TRANSACTION_S)       # its STOP and hydraulics off
+    assert two.elapsed_s == pytest.approx(3 * TRANSACTION_S)       # the first one's answer, then its own two writes
+    assert handled == [one, two] and callbacks == [two] and estop.last is two
+    assert estop.wait(0) is two and first.result is one
+    done: list[EstopDone] = []
+    first.add_callback(done.append)                 # added after the press was handled: told at once
+    assert done == [one]
+    assert vrig.sim.controller.read_coils(0, 1)[0] is False

@@ -248,3 +248,31 @@ def test_a_stop_after_a_slow_creep_says_so_and_a_brisk_one_does_not():
     assert f"the last {CREEP_ITERATIONS + 1} iterations lowered the objective by 0.5 in all" in said
     assert "shallow" in said
     assert Estimator._creep([100.0, 40.0, 10.0, 9.95]) == ""
+
+
+def test_a_fit_without_a_result_writes_result_json_with_the_same_fields(tmp_path, monkeypatch):
+    """RESULT.json has one writer: a fit interrupted before its first iterate keeps the
+    start values under the same fields (alias, unit, bounds, initial) as a fit's result."""
+    from identify import cli
+
+    model = lin.write_model(tmp_path)
+    data = lin.write_dataset(tmp_path / "data")
+    argv = ["fit", str(data), "--model", model, "--scheme", "spectral", "--params",
+            str(_start(tmp_path, m=2.6, c=7.0, k=3.5e4)), "--estimate", "m,c,k", "--quiet", "--output"]
+    assert cli.main([*argv, str(tmp_path / "good.json")]) == 0
+    good = json.loads((tmp_path / "good.json").read_text())
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt   # while the start is evaluated: no iterate yet
+
+    monkeypatch.setattr(cli, "fit_experiments", interrupted)
+    assert cli.main([*argv, str(tmp_path / "failed.json")]) == 130
+    failed = json.loads((tmp_path / "failed.json").read_text())
+    assert (failed["converged"], failed["iterations"]) == (False, 0)
+    assert set(failed) <= set(good)
+    for name, entry in failed["parameters"].items():
+        result_only = {"std_residual", "at_bound"}
+        assert set(entry) == set(good["parameters"][name]) - result_only, name
+        assert (entry["alias"], entry["unit"], entry["std"]) == \
+            (good["parameters"][name]["alias"], good["parameters"][name]["unit"], None)
+        assert entry["value"] == entry["initial"] == good["parameters"][name]["initial"]

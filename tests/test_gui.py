@@ -103,7 +103,8 @@ def test_plan_to_the_end_fills_the_fit_table(qtbot, tmp_path, relaxed_config):
     table = find(window, QtWidgets.QTableWidget, "parameterTable")
     qtbot.waitUntil(lambda: table.rowCount() == 3, timeout=HANG_MS)
     assert [table.item(i, 0).text().split()[0] for i in range(3)] == ["theta4", "theta6", "theta16"]
-    assert "converged" in window.fit_view.title.text()
+    # " — converged after": "NOT converged" must not pass for it
+    assert " — converged after " in window.fit_view.title.text(), window.fit_view.title.text()
     # Numbers by their uncertainty: σ to two significant digits, the value to the same place; units in Unicode.
     for i in range(3):
         value, std = table.item(i, 1).text(), table.item(i, 2).text()

@@ -29,8 +29,14 @@ def test_a_limit_takes_the_place_of_the_value_beside_it():
     assert at_place(91.2755, decimal_place(37.0)) == "91"
 
 
-def test_concise_matches_plus_minus():
-    assert concise(0.85006, 6.0e-5) == "0.850060(60)"
+@pytest.mark.parametrize("value, std, long, short", [
+    (0.85006, 6.0e-5, "0.850060 ± 0.000060", "0.850060(60)"),
+    (1234.4, 370.0, "(1.23 ± 0.37)×10³", "1.23(37)e+03"),
+])
+def test_concise_matches_plus_minus(value, std, long, short):
+    """The same digits in both notations: the value's and the σ's two significant ones."""
+    assert plus_minus(value, std) == long
+    assert concise(value, std) == short
 
 
 @pytest.mark.parametrize("declared, shown", [("m^2", "m²"), ("s^-1", "s⁻¹"), ("N*s/m", "N·s/m"), ("K", "K")])

@@ -3,6 +3,7 @@ PyMeasure's ``expected_protocol``), the frame parser, maps, plans and limits."""
 
 from __future__ import annotations
 
+import re
 import socket
 import struct
 import subprocess
@@ -16,7 +17,7 @@ import pytest
 from rig.config import load_rig_config
 from rig.drivers.daq import Daq
 from rig.drivers.frames import FrameParser
-from rig.drivers.registers import RegisterMapError, load_register_map
+from rig.drivers.registers import DEFAULT_MAP, ControllerState, RegisterMapError, load_register_map
 from rig.drivers.shaker import LimitError, Shaker, ShakerError
 
 CRC = crcmod.predefined.mkCrcFun("modbus")
@@ -185,6 +186,26 @@ def test_register_map_errors_name_file_and_field(tmp_path):
     bad.write_text('unit_id = 1\n[holding]\nmode = { type = "u16" }\n')
     with pytest.raises(RegisterMapError, match=r"map.toml: \[holding\] mode: needs an address"):
         load_register_map(bad)
+
+
+@pytest.mark.parametrize("change, says", [
+    (('"AT_STATIC"', '"AT_REST"'), r"states: 'AT_REST' is not a controller state the program knows"),
+    (('"RUNNING", ', ''), r"states: lacks RUNNING$"),
+    (('"OFF", "IDLE"', '"OFF", "OFF"'), r"states: OFF named twice; lacks IDLE$"),
+    (("static = 1", "statik = 1"), r"modes: lacks static \(it has stop, statik, run\)$"),
+    (("sine = 0, ", ""), r"waveforms: lacks sine \(it has triangle\)$"),
+])
+def test_a_renamed_state_or_mode_fails_at_load_in_one_line_naming_file_and_key(tmp_path, change, says):
+    """The names the program acts on (ControllerState, Mode, the waveforms) are checked
+    when the map is read, not when the rig first reports or is sent one."""
+    text = DEFAULT_MAP.read_text()
+    assert change[0] in text
+    bad = tmp_path / "map.toml"
+    bad.write_text(text.replace(change[0], change[1], 1))
+    with pytest.raises(RegisterMapError, match=rf"^{re.escape(str(bad))}: {says}") as refused:
+        load_register_map(bad)
+    assert "\n" not in str(refused.value)
+    assert load_register_map().states == tuple(ControllerState)    # the datasheet's map, in word order
 
 
 def test_plan_breaking_a_limit_is_refused_before_anything_moves(tmp_path):

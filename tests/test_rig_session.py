@@ -18,6 +18,7 @@ import pytest
 from pymodbus.client import ModbusTcpClient
 
 from rig.drivers.frames import FrameParser
+from rig.events import Kind
 from rig.session.storage import read_log
 from tests.conftest import HANG_S
 
@@ -95,11 +96,12 @@ def test_line_faults_are_counted_exactly_and_the_capture_recaptured_or_flagged(v
     (entry,) = manifest(out)["experiments"]
     assert sim.lost_frames() > 500
     # the reader's count equals the simulator's: the experiment's streams and the pace probe's
-    probe = re.search(r"pace probe: \d+ samples taken, (\d+) lost", (out / "session.log").read_text())
-    assert probe is not None and entry["stream_lost_samples"] + int(probe.group(1)) == sim.lost_frames()
+    events = read_log(out / "session.log")
+    (probe,) = [e.data for e in events if e.kind == Kind.PACE_PROBE]
+    assert entry["stream_lost_samples"] + probe["lost"] == sim.lost_frames()
     # a window is captured again for a burst, not for the line's steady loss (its holes declared)
-    log = (out / "session.log").read_text()
-    assert entry["recaptures"] > 0 or entry["lost_samples"] == 0 or "as the line's steady loss predicts" in log
+    kept = [e.data for e in events if e.kind == Kind.CAPTURE_WINDOW and e.data["kept"]]
+    assert entry["recaptures"] > 0 or entry["lost_samples"] == 0 or kept
     if entry["lost_samples"]:
         assert any("lost" in f for f in entry["flags"])
     # identify accepts the declared holes and nothing else
@@ -207,7 +209,10 @@ def test_ctrl_c_ramps_out_switches_hydraulics_off_and_leaves_consistent_files(vi
     assert proc.returncode == 130, err
     assert c.read_input_registers(0, count=2, device_id=1).registers == [0, 0]   # OFF, no alarm
     c.close()
-    assert json.loads((out / "session.json").read_text())["status"] == "interrupted (SIGINT)"
+    meta = json.loads((out / "session.json").read_text())
+    assert meta["status"] == "interrupted (SIGINT)"
+    assert (meta["outcome"]["exit_status"], meta["outcome"]["reason"], meta["outcome"]["exit_code"]) == \
+        ("interrupted", "SIGINT", 130)
     assert manifest(out)["experiments"] == []
     assert "safe stop:" not in err                     # no safe-stop step failed
 

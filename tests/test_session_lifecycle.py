@@ -16,13 +16,17 @@ from pathlib import Path
 import pytest
 from rich.console import Console
 
+from identify.exit_codes import EXIT_ABORTED, EXIT_INTERNAL, EXIT_OK
+from rig.cli import main
 from rig.drivers.daq import DaqError
 from rig.drivers.shaker import ShakerLinkError
 from rig.errors import RigFault
 from rig.events import Event, Kind
+from rig.session.outcome import ExitStatus
 from rig.session.progress import ConsoleProgress, describe
-from rig.session.run import EXIT_ABORTED, EXIT_INTERNAL, EXIT_OK, RunResult, SessionRunner
+from rig.session.run import RunOptions, RunResult, SessionRunner, prepare
 from rig.session.storage import Session, SessionError, SessionLog, SessionWriteError, read_log
+from rig.session.timing import log_times
 from simulator.controller import State
 from tests.virtual_rig_inprocess import InProcessRig, quick_rig_config
 
@@ -86,6 +90,42 @@ def test_a_session_that_completes_leaves_nothing_behind(vrig, tmp_path):
     assert [line["kind"] for line in lines].count("experiment-done") == 2 and lines[-1]["kind"] == "session-end"
     assert [e.kind for e in read_log(tmp_path / "s" / "session.log")] == [line["kind"] for line in lines]
     assert all(describe(e)[0].isupper() and describe(e).endswith(".") for e in read_log(tmp_path / "s" / "session.log"))
+    assert (result.exit_status, result.interrupted, result.reason, result.exception) == \
+        (ExitStatus.COMPLETE, False, "", None)
+    assert meta["outcome"] == {"exit_status": "complete", "exit_code": EXIT_OK, "interrupted": False, "reason": "",
+                               "exception": None, "before_motion": False, "skipped": [], "safe_stop_failures": []}
+    # a complete session is not resumed: read from its outcome, or from the bare word of an older session.json
+    resume = RunOptions(plan="standard", shaker=None, daq=None, out=tmp_path / "s", resume=True)
+    with pytest.raises(SessionError, match="the session is complete; nothing to resume"):
+        prepare(resume)
+    older = {k: v for k, v in meta.items() if k != "outcome"}
+    (tmp_path / "s" / "session.json").write_text(json.dumps(older))
+    with pytest.raises(SessionError, match="the session is complete; nothing to resume"):
+        prepare(resume)
+
+
+def test_predicted_and_real_rig_time_per_phase_come_from_the_logs_fields(vrig, tmp_path, capsys):
+    """rig log-times on a simulated session: every phase of each experiment, predicted
+    against taken, from the prediction, phase and pace-probe events (no sentence read)."""
+    run(vrig, tmp_path / "s", ["j", "n"])
+    rows = log_times(tmp_path / "s")
+    by = {(r.experiment, r.phase): r for r in rows}
+    assert sorted(by) == sorted((x, p) for x in ("261122j", "261122n")
+                                for p in ("moving", "settling", "capturing", "stopping", "total"))
+    predicted = {e.experiment: e.data for e in read_log(tmp_path / "s" / "session.log") if e.kind == Kind.PHASE_PLAN}
+    for label, p in predicted.items():
+        # the capture is whole periods of samples: taken as predicted, but for the polls that see its end
+        capturing = by[label, "capturing"]
+        assert capturing.predicted_s == p["capture_s"]
+        assert 0 <= capturing.taken_s - capturing.predicted_s <= 0.3, capturing
+        assert by[label, "stopping"].taken_s >= p["fade_s"]          # the fade-out, then the wait for AT_STATIC
+        total = by[label, "total"]
+        assert total.taken_s == pytest.approx(sum(by[label, x].taken_s for x in
+                                                  ("moving", "settling", "capturing", "stopping")))
+    assert main(["log-times", str(tmp_path / "s")]) == 0
+    table = capsys.readouterr().out.splitlines()
+    assert table[0].split() == ["experiment", "phase", "predicted", "s", "taken", "s", "error"]
+    assert len(table) == 1 + len(rows) and table[1].split()[:2] == ["261122j", "moving"]
 
 
 def test_the_terminal_says_each_line_under_the_experiment_it_belongs_to():

@@ -19,11 +19,12 @@ from pathlib import Path
 import pytest
 from rich.console import Console
 
+from identify.exit_codes import EXIT_ABORTED, EXIT_OK
 from rig.drivers.daq import DaqError
 from rig.events import Event, Kind, Phase
 from rig.session.acquisition import PaceReading
 from rig.session.progress import ConsoleProgress, describe
-from rig.session.run import EXIT_ABORTED, EXIT_OK, SessionContext, SessionRunner
+from rig.session.run import SessionContext, SessionRunner
 from rig.session.storage import read_log
 from simulator.controller import State
 from tests.virtual_rig_inprocess import InProcessRig, quick_rig_config

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import errno
 import heapq
-import io
 import itertools
 import math
 import threading
@@ -27,15 +26,13 @@ from pathlib import Path
 from typing import Any
 
 from pymodbus.constants import ExcCodes
-from rich.console import Console
 
 from rig.config import DEFAULT_RIG_CONFIG, load_rig_config
 from rig.drivers.daq import Calibration, Daq
 from rig.drivers.registers import load_register_map
 from rig.drivers.shaker import Shaker
 from rig.events import Event, EventBus
-from rig.session.run import Links, RunOptions, RunResult, SessionRunner, prepare, run_lifecycle
-from rig.session.storage import Session, SessionLog
+from rig.session.run import Links, RunOptions, RunResult, prepare, run_lifecycle
 from simulator.controller import DEVICE_IDENTIFICATION, ShakerController
 from simulator.engine import PHYSICS_RATE_HZ, VirtualRig
 from simulator.faults import FaultLog, parse_fault
@@ -327,7 +324,6 @@ class InProcessRig:
                        reconnect_s=self.config.reconnect_s, on_event=self.bus.publish_link)
         self.identity = ""
         self._beat = 0
-        self._session_log: SessionLog | None = None
 
 
     def connect(self) -> None:
@@ -376,31 +372,16 @@ class InProcessRig:
         kinds = kinds or ("log", "link")
         return [e.data.get("message", "") for _, e in self.events if e.kind in kinds]
 
-    def open_session(self, out: Path, letters: list[str], on_alarm: str = "abort") -> tuple[SessionRunner, Session]:
-        """``rig run`` from ``prepare`` on, with these links: the runner and its session
-        folder, whose log records the bus; ``runner.run(session)`` does the rest."""
-        prep = prepare(RunOptions(plan="standard", shaker=SHAKER_URL, daq=DAQ_URL, out=out, experiments=letters,
-                                  on_alarm=on_alarm, rig_config=str(self.rig_config), date="261122")).ordered()
-        runner = SessionRunner(prep, Links(self.shaker, self.daq, self.identity, None), self.bus,
-                               Console(file=io.StringIO()))
-        session = runner.open_session()
-        self._session_log = SessionLog(session.path / "session.log")
-        self.bus.subscribe(self._session_log, inline=True)
-        return runner, session
-
     def run_session(self, out: Path, letters: list[str], on_alarm: str = "abort", **hooks: Any) -> RunResult:
         """``rig run`` from ``prepare`` on, through :func:`rig.session.run.run_lifecycle`, on these
         links and this bus (both stay open: the harness closes them)."""
         prep = prepare(RunOptions(plan="standard", shaker=SHAKER_URL, daq=DAQ_URL, out=out, experiments=letters,
                                   on_alarm=on_alarm, rig_config=str(self.rig_config), date="261122"))
-        return run_lifecycle(prep, Console(file=io.StringIO()),
-                             links=Links(self.shaker, self.daq, self.identity, None), bus=self.bus, **hooks)
+        return run_lifecycle(prep, links=Links(self.shaker, self.daq, self.identity, None), bus=self.bus, **hooks)
 
     def close(self) -> None:
         """Links first (their threads publish), then the bus and the log, then the simulator."""
         self.shaker.close()
         self.daq.close()
         self.bus.close()
-        if self._session_log is not None:
-            self._session_log.close()
         self.sim.close()

@@ -5,7 +5,10 @@ the program until the operator confirms a reset.
 Its own connection, because a session or the status poll may hold the main link in a
 slow transaction (a request timing out, a reconnect): the E-STOP never waits behind it.
 Its own thread, because the press (a click, a key) must return at once; the writes are
-made there and reported as :class:`EstopDone`, timed from the press.
+made there.  Each press returns its own :class:`EstopStatus` (as ophyd's ``StatusBase``
+does for a move): its writes, and its :class:`EstopDone` timed from that press.  A
+second press during the first one's writes is queued behind them, sends both writes
+again and gets its own result and timing, never the first one's.
 
 Each of the two writes goes out on the first link that answers: the E-STOP's own line,
 then the caller's active link (``fallback``), then a link opened for the occasion.  A
@@ -20,6 +23,8 @@ STOP, hydraulics off and status reads always go through.
 from __future__ import annotations
 
 import datetime as _dt
+import itertools
+import queue
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -53,6 +58,46 @@ class EstopDone(Message):
     @property
     def within_budget(self) -> bool:
         return not self.failures and self.elapsed_s <= BUDGET_S
+
+
+class EstopStatus:
+    """One press of the E-STOP, from the press to both writes answered (or failed): its
+    own :class:`EstopDone`, which :meth:`wait` returns and each callback is given once."""
+
+    def __init__(self, number: int, pressed_at: float) -> None:
+        self.number = number                  # 1 for the E-STOP's first press, and so on
+        self.pressed_at = pressed_at          # on the E-STOP's clock
+        self.result: EstopDone | None = None
+        self._finished = threading.Event()
+        self._lock = threading.Lock()
+        self._callbacks: list[Callable[[EstopDone], object]] = []
+
+    @property
+    def done(self) -> bool:
+        return self._finished.is_set()
+
+    def wait(self, timeout_s: float | None = None) -> EstopDone | None:
+        """This press's outcome once both writes are answered (or failed); None on timeout."""
+        return self.result if self._finished.wait(timeout_s) else None
+
+    def add_callback(self, callback: Callable[[EstopDone], object]) -> None:
+        """``callback(result)`` once this press is handled (at once if it already is)."""
+        with self._lock:
+            if self.result is None:
+                self._callbacks.append(callback)
+                return
+            result = self.result
+        callback(result)
+
+    def finish(self, result: EstopDone) -> None:
+        with self._lock:
+            self.result, callbacks = result, list(self._callbacks)
+            self._finished.set()
+        for callback in callbacks:
+            callback(result)
+
+    def __repr__(self) -> str:
+        return f"EstopStatus(press {self.number}, {'done' if self.done else 'writing'})"
 
 
 @dataclass(frozen=True)
@@ -108,8 +153,9 @@ class MotionLatch:
 
 
 class EStop:
-    """The E-STOP of one controller.  ``press`` returns at once; :meth:`wait` (or
-    ``on_done``) gives the outcome.  ``fallback`` returns the caller's active link (or
+    """The E-STOP of one controller.  ``press`` returns at once with the press's own
+    :class:`EstopStatus`; :meth:`wait` gives the outcome of the latest press, ``on_done``
+    is told each press's.  ``fallback`` returns the caller's active link (or
     None); ``clock`` times the press to the answers (tests inject a fake one)."""
 
     def __init__(self, limits: Limits, register_map: RegisterMap, *,
@@ -120,13 +166,12 @@ class EStop:
         self.fallback, self.on_done = fallback, on_done
         self.latch = latch or MotionLatch()
         self.url: str | None = None           # the controller's address, for a link opened for the occasion
-        self.last: EstopDone | None = None
+        self.last: EstopDone | None = None    # the latest press handled
         self._line: Shaker | None = None
         self._lock = threading.Lock()         # the line is swapped, never used, under it
-        self._pressed = threading.Event()
-        self._done = threading.Event()
-        self._pressed_at = 0.0
-        self._closed = False
+        self._presses: queue.Queue[EstopStatus | None] = queue.Queue()   # None: closed
+        self._numbers = itertools.count(1)
+        self._latest: EstopStatus | None = None
         self._thread = threading.Thread(target=self._loop, name="e-stop", daemon=True)
         self._thread.start()
 
@@ -167,27 +212,24 @@ class EStop:
         with self._lock:
             self._line = line
 
-    @property
-    def has_line(self) -> bool:
-        return self._line is not None
-
     # ----- the press ------------------------------------------------------------------------------------
-    def press(self) -> None:
-        """Latch at once, then STOP and hydraulics off on the E-STOP's thread."""
-        self._pressed_at = self.clock.monotonic()
-        self._done.clear()
+    def press(self) -> EstopStatus:
+        """Latch at once, then STOP and hydraulics off on the E-STOP's thread; this press's status."""
+        status = self._latest = EstopStatus(next(self._numbers), self.clock.monotonic())
         try:
             self.latch.trip(f"E-STOP pressed at {_dt.datetime.now():%H:%M:%S}")
         finally:
-            self._pressed.set()      # the writes go out even if a listener of the latch failed
+            self._presses.put(status)      # the writes go out even if a listener of the latch failed
+        return status
 
     def wait(self, timeout_s: float | None = None) -> EstopDone | None:
-        """The outcome of the last press once both writes are answered (or failed); None on timeout."""
-        return self.last if self._done.wait(timeout_s) else None
+        """The outcome of the latest press once both writes are answered (or failed); None
+        on timeout or before any press."""
+        latest = self._latest
+        return latest.wait(timeout_s) if latest is not None else None
 
     def close(self) -> None:
-        self._closed = True
-        self._pressed.set()
+        self._presses.put(None)
         self._thread.join(timeout=2)
         with self._lock:
             line, self._line = self._line, None
@@ -195,17 +237,13 @@ class EStop:
             line.close()
 
     def _loop(self) -> None:
-        while True:
-            self._pressed.wait()
-            if self._closed:
-                return
-            self._pressed.clear()
-            done = self._stop_all()
+        while (status := self._presses.get()) is not None:
+            done = self._stop_all(status.pressed_at)
             self.last = done
-            self._done.set()
+            status.finish(done)
             self.on_done(done)
 
-    def _stop_all(self) -> EstopDone:
+    def _stop_all(self, pressed_at: float) -> EstopDone:
         """Each write on the first link that answers: the E-STOP's line, the active link, a new one."""
         failures: list[str] = []
         used: list[str] = []
@@ -241,4 +279,4 @@ class EStop:
         finally:
             if spare is not None:
                 spare.close()
-        return EstopDone(failures, self.clock.monotonic() - self._pressed_at, ", ".join(dict.fromkeys(used)))
+        return EstopDone(failures, self.clock.monotonic() - pressed_at, ", ".join(dict.fromkeys(used)))

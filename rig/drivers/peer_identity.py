@@ -36,12 +36,6 @@ class Peers:
     def to_json(self) -> dict[str, Any]:
         return {"controller": dict(self.controller), "daq": self.daq, "simulated": self.simulated}
 
-    @classmethod
-    def from_json(cls, doc: Any) -> Peers | None:
-        if not isinstance(doc, dict) or not isinstance(doc.get("controller"), dict):
-            return None
-        return cls({str(k): str(v) for k, v in doc["controller"].items()}, str(doc.get("daq", "")))
-
     def describe(self) -> str:
         """One line: 'controller damper-rig SIMULATOR 1.23 (firmware 1.23); DAQ DAQ4,SIM0001,1.00,SIMULATOR'."""
         c = self.controller

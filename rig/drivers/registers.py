@@ -6,6 +6,7 @@ speaks field names and SI values; this module turns them into register words.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from enum import StrEnum
 from pathlib import Path
 
 from rig.config import CONFIG_DIR
@@ -14,6 +15,29 @@ from rig.tomlfile import read_toml
 
 DEFAULT_MAP = CONFIG_DIR / "shaker-datasheet.toml"
 TABLES = ("holding", "coils", "inputs")
+
+
+class ControllerState(StrEnum):
+    """The controller's states the program acts on, by the names a register map gives
+    its ``state`` register's words (``states = [...]``, in word order)."""
+
+    OFF = "OFF"
+    IDLE = "IDLE"
+    MOVING = "MOVING"
+    AT_STATIC = "AT_STATIC"
+    RUNNING = "RUNNING"
+    ALARM = "ALARM"
+
+
+class Mode(StrEnum):
+    """The controller's modes the program commands (``modes = {...}``: name → word)."""
+
+    STOP = "stop"
+    STATIC = "static"
+    RUN = "run"
+
+
+WAVEFORMS = ("sine", "triangle")     # the waveforms a plan may ask for (``waveforms = {...}``)
 
 
 class RegisterMapError(BadInput):
@@ -59,9 +83,9 @@ class RegisterMap:
     source: str
     unit_id: int
     fields: dict[str, Field]
-    states: tuple[str, ...]
+    states: tuple[ControllerState, ...]   # by the state register's word
     alarms: tuple[str, ...]
-    modes: dict[str, int]
+    modes: dict[Mode, int]
     waveforms: dict[str, int]
     text: str  # the file as read, for the session's configuration snapshot
 
@@ -95,8 +119,39 @@ def load_register_map(path: str | Path | None = None) -> RegisterMap:
     missing = sorted(required - fields.keys())
     if missing:
         raise RegisterMapError(f"{path}: the map lacks {', '.join(missing)}")
-    try:
-        return RegisterMap(str(path), int(doc.get("unit_id", 1)), fields, tuple(doc["states"]), tuple(doc["alarms"]),
-                           dict(doc["modes"]), dict(doc["waveforms"]), text)
-    except KeyError as exc:
-        raise RegisterMapError(f"{path}: missing top-level key {exc.args[0]!r}") from None
+    for key in ("states", "alarms", "modes", "waveforms"):
+        if key not in doc:
+            raise RegisterMapError(f"{path}: missing top-level key {key!r}")
+    return RegisterMap(str(path), int(doc.get("unit_id", 1)), fields, _states(path, doc["states"]),
+                       tuple(doc["alarms"]), _names(path, "modes", doc["modes"], Mode),
+                       _names(path, "waveforms", doc["waveforms"], None), text)
+
+
+def _states(path: Path, names: object) -> tuple[ControllerState, ...]:
+    """The state register's words as :class:`ControllerState`: every name known, each once,
+    none the program acts on missing (a renamed state fails here, not at the rig)."""
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise RegisterMapError(f"{path}: states: a list of state names in word order, e.g. {list(ControllerState)}")
+    known = {s.value for s in ControllerState}
+    for name in names:
+        if name not in known:
+            raise RegisterMapError(f"{path}: states: {name!r} is not a controller state the program knows "
+                                   f"({', '.join(known)})")
+    doubled = sorted({n for n in names if names.count(n) > 1})
+    missing = [s.value for s in ControllerState if s.value not in names]
+    if doubled or missing:
+        raise RegisterMapError(f"{path}: states: " + "; ".join(
+            ([f"{', '.join(doubled)} named twice"] if doubled else []) +
+            ([f"lacks {', '.join(missing)}"] if missing else [])))
+    return tuple(ControllerState(n) for n in names)
+
+
+def _names(path: Path, key: str, table: object, enum: type[Mode] | None) -> dict:
+    """A ``name = word`` table (modes, waveforms), checked for the names the program sends."""
+    wanted = [m.value for m in enum] if enum is not None else list(WAVEFORMS)
+    if not isinstance(table, dict) or not all(isinstance(w, int) for w in table.values()):
+        raise RegisterMapError(f"{path}: {key}: a table of name = register word, e.g. {{ {wanted[0]} = 0 }}")
+    missing = [n for n in wanted if n not in table]
+    if missing:
+        raise RegisterMapError(f"{path}: {key}: lacks {', '.join(missing)} (it has {', '.join(table) or 'none'})")
+    return {enum(n) if enum is not None else n: int(w) for n, w in table.items() if n in wanted}

@@ -24,7 +24,7 @@ from pymodbus.framer import FramerType
 from rig.config import Limits
 from rig.drivers.clock import WALL_CLOCK, Clock
 from rig.drivers.peer_identity import OBJECT_NAMES
-from rig.drivers.registers import RegisterMap, load_register_map
+from rig.drivers.registers import ControllerState, Mode, RegisterMap, load_register_map
 from rig.errors import AddressError, BadInput, RigFault
 from rig.events import LinkCondition, LinkNotice
 
@@ -91,7 +91,7 @@ class ShakerAddress:
 
 @dataclass(frozen=True)
 class ShakerStatus:
-    state: str
+    state: ControllerState
     alarm: str
     position_m: float
     force_n: float
@@ -227,7 +227,10 @@ class Shaker:
     def status(self) -> ShakerStatus:
         raw = self._read("inputs")
         state, alarm = int(raw["state"]), int(raw["alarm"])
-        return ShakerStatus(self.map.states[state] if state < len(self.map.states) else f"state {state}",
+        if state >= len(self.map.states):
+            raise ShakerError(f"the controller at {self.url} reports state word {state}, which its register map "
+                              f"{self.map.source} does not name (states has {len(self.map.states)})")
+        return ShakerStatus(self.map.states[state],
                             self.map.alarms[alarm] if alarm < len(self.map.alarms) else f"alarm {alarm}",
                             raw["position"], raw["force"], int(raw["cycles"]), raw["hydraulic_pressure"])
 
@@ -266,10 +269,10 @@ class Shaker:
             raise LimitError(f"static position {static_m * 1e3:.2f} mm outside the stroke limits "
                              f"{lim.stroke_low_m * 1e3:.1f}…{lim.stroke_high_m * 1e3:.1f} mm")
         self._may_move(f"move to {static_m * 1e3:.2f} mm")
-        if switch_on and self.status().state == "OFF":
+        if switch_on and self.status().state is ControllerState.OFF:
             self.hydraulics(True)
         self._write_holding({"static_position": static_m})
-        self._write_holding({"mode": self.map.modes["static"]})
+        self._write_holding({"mode": self.map.modes[Mode.STATIC]})
 
     def run(self, static_m: float, amplitude_m: float, frequency_hz: float, waveform: str = "sine",
             ramp_s: float = 2.0) -> None:
@@ -280,25 +283,25 @@ class Shaker:
         self._may_move("RUN")
         self._write_holding({"waveform": self.map.waveforms[waveform], "static_position": static_m,
                              "amplitude": amplitude_m, "frequency": frequency_hz, "ramp_time": ramp_s})
-        self._write_holding({"mode": self.map.modes["run"]})
+        self._write_holding({"mode": self.map.modes[Mode.RUN]})
 
     def fade_out(self) -> None:
         """Fade the waveform out over its ramp time and stay at the static position."""
         self._may_move("fade out")   # a move to the static position: after an E-STOP only STOP holds
-        self._write_holding({"mode": self.map.modes["static"]})
+        self._write_holding({"mode": self.map.modes[Mode.STATIC]})
 
     def stop(self) -> None:
         """Stop motion and hold the present position."""
-        self._write_holding({"mode": self.map.modes["stop"]})
+        self._write_holding({"mode": self.map.modes[Mode.STOP]})
 
-    def wait_for(self, states: set[str], timeout_s: float, poll_s: float = 0.02) -> ShakerStatus:
+    def wait_for(self, states: set[ControllerState], timeout_s: float, poll_s: float = 0.02) -> ShakerStatus:
         """Poll until the controller is in one of ``states``; an alarm raises :class:`AlarmError`."""
         deadline = self.clock.monotonic() + timeout_s
         while True:
             st = self.status()
             if st.state in states:
                 return st
-            if st.state == "ALARM":
+            if st.state is ControllerState.ALARM:
                 raise AlarmError(st)
             if self.clock.monotonic() > deadline:
                 raise ShakerTimeout(f"controller still {st.state} after {timeout_s:g} s (waiting for "

@@ -184,9 +184,6 @@ class SessionBrowser(QtWidgets.QWidget):
             self.table.selectRow(0)
         return True
 
-    def result_document(self) -> dict[str, Any] | None:
-        return _read_json(self.folder / "RESULT.json") if self.folder else None
-
     def _plot_selected(self) -> None:
         rows = self.table.selectionModel().selectedRows()
         self.plot.clear()

@@ -9,12 +9,14 @@ from collections.abc import Callable
 
 from PySide6 import QtWidgets
 
+from rig.drivers.registers import ControllerState
 from rig.drivers.shaker import ShakerStatus
 from rig.gui.manual import ManualControl
 from rig.gui.messages import Snapshot
 
-STATE_COLOURS = {"OFF": "#666666", "IDLE": "#1f77b4", "MOVING": "#ff7f0e", "AT_STATIC": "#1f77b4",
-                 "RUNNING": "#2ca02c", "ALARM": "#b00020"}
+STATE_COLOURS = {ControllerState.OFF: "#666666", ControllerState.IDLE: "#1f77b4", ControllerState.MOVING: "#ff7f0e",
+                 ControllerState.AT_STATIC: "#1f77b4", ControllerState.RUNNING: "#2ca02c",
+                 ControllerState.ALARM: "#b00020"}
 
 
 class ControllerPanel(QtWidgets.QGroupBox):
@@ -52,10 +54,10 @@ class ControllerPanel(QtWidgets.QGroupBox):
         f["state"].setText(st.state)
         f["state"].setStyleSheet(f"color: {STATE_COLOURS.get(st.state, '#000')}; font-weight: bold")
         f["alarm"].setText(st.alarm)
-        f["alarm"].setStyleSheet("color: #b00020; font-weight: bold" if st.state == "ALARM" else "")
+        f["alarm"].setStyleSheet("color: #b00020; font-weight: bold" if st.state is ControllerState.ALARM else "")
         f["position"].setText(f"{st.position_m * 1e3:.2f} mm")
         f["force"].setText(f"{st.force_n / 1e3:.2f} kN")
-        f["cycles"].setText(f"{st.cycles} since RUN" if st.state == "RUNNING" else str(st.cycles))
+        f["cycles"].setText(f"{st.cycles} since RUN" if st.state is ControllerState.RUNNING else str(st.cycles))
         f["supply"].setText(f"{st.hydraulic_pressure_pa / 1e5:.0f} bar")
         # Who feeds it, from which links were read: the session's while one runs, else the console's.
         feeder = "the session's link" if snap.session else "the console's link"
@@ -74,9 +76,9 @@ class ControllerPanel(QtWidgets.QGroupBox):
         if f["state"].text() == state:          # a style sheet is costly: this runs on every tick
             return
         f["state"].setText(state)
-        f["state"].setStyleSheet(f"color: {STATE_COLOURS['ALARM']}; font-weight: bold")
+        f["state"].setStyleSheet(f"color: {STATE_COLOURS[ControllerState.ALARM]}; font-weight: bold")
         f["alarm"].setText(f"{trip}, until Reset… is confirmed")
-        f["alarm"].setStyleSheet(f"color: {STATE_COLOURS['ALARM']}; font-weight: bold")
+        f["alarm"].setStyleSheet(f"color: {STATE_COLOURS[ControllerState.ALARM]}; font-weight: bold")
 
 
 def _spin(low: float, high: float, value: float, suffix: str, decimals: int = 2) -> QtWidgets.QDoubleSpinBox:

@@ -159,15 +159,6 @@ class FitView(QtWidgets.QWidget):
         self.experiment.blockSignals(False)
         self._draw()
 
-    def show_document(self, title: str, doc: dict[str, Any]) -> None:
-        """A stored RESULT.json: the table and warnings (the curves need a re-fit)."""
-        self.result, self.comparison = None, None
-        self.compare_table.setVisible(False)
-        self.compare_label.setText("")
-        self.experiment.clear()
-        self.plots.clear()
-        self._header(title + " (stored result; re-fit to see the curves)", doc)
-
     def _header(self, title: str, doc: dict[str, Any]) -> None:
         converged = doc.get("converged")
         self.title.setText(f"{title} — {'converged' if converged else 'NOT converged'} "

@@ -25,6 +25,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from identify.exit_codes import EXIT_INTERRUPTED
 from rig.drivers.daq import check_daq_address
 from rig.drivers.estop import EstopDone, LatchChanged
+from rig.drivers.registers import ControllerState
 from rig.drivers.shaker import ShakerAddress, ShakerStatus
 from rig.errors import BadInput
 from rig.events import Event, Kind, Message
@@ -56,10 +57,10 @@ from rig.session.run import RunOptions
 from rig.virtual import VirtualRig
 
 REDRAW_HZ = 30
-BANNER_ALARM, BANNER_NO_ANSWER, BANNER_CLEAR = COLOURS["ALARM"], "#e65100", "#2e7d32"
+BANNER_ALARM, BANNER_NO_ANSWER, BANNER_CLEAR = COLOURS[ControllerState.ALARM], "#e65100", "#2e7d32"
 DRAIN_MAX = 5000                 # records taken from the queue per tick, so a flood cannot freeze the window
 LOGGED_EVENTS = (Kind.SESSION_START, Kind.PHASE, Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED, Kind.ALARM, Kind.LOG,
-                 Kind.LINK, Kind.SESSION_END)
+                 Kind.PACE_PROBE, Kind.HOLD, Kind.HOLD_END, Kind.CAPTURE_WINDOW, Kind.LINK, Kind.SESSION_END)
 ESTOP_KEYS = ("Esc", "F12")
 GIL_SWITCH_S = 0.0005
 SIMULATOR_NICE = 5
@@ -142,6 +143,37 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ----- layout ----------------------------------------------------------------------------------
     def _build(self, args: ConsoleOptions, shaker: str | None, daq: str | None) -> None:
+        """The window: the header (links, E-STOP, banner), the state strip, the controls
+        beside the views, the log."""
+        header = self._build_header(args, shaker, daq)
+        self.strip = StateStrip()
+        split = QtWidgets.QSplitter()
+        split.addWidget(self._build_controls(args))
+        split.addWidget(self._build_views(args))
+        split.setStretchFactor(0, 0)
+        split.setStretchFactor(1, 1)
+        split.setSizes([520, 1080])
+        self.log = QtWidgets.QPlainTextEdit()
+        self.log.setObjectName("logView")
+        self.log.setReadOnly(True)
+        self.log.setMaximumBlockCount(5000)
+        self.log.setFixedHeight(110)
+        central = QtWidgets.QWidget()
+        layout = QtWidgets.QVBoxLayout(central)
+        layout.addLayout(header)
+        layout.addWidget(self.strip)
+        layout.addWidget(split, 1)
+        layout.addWidget(self.log)
+        self.setCentralWidget(central)
+        self.resize(1600, 1000)
+        self._motion = {"hydraulics_on": self.manual.hyd_on, "move": self.manual.move_button,
+                        "sine": self.manual.sine_button, "run_plan": self.plan.run_button,
+                        "resume": self.plan.resume_button, "qc_test": self.qc.test_button}
+        self._tooltips = {name: button.toolTip() for name, button in self._motion.items()}
+        self._show_banner()
+
+    def _build_header(self, args: ConsoleOptions, shaker: str | None, daq: str | None) -> QtWidgets.QHBoxLayout:
+        """The links' addresses and Connect, the SIMULATED line, the alarm banner with Reset…, the E-STOP."""
         top = QtWidgets.QHBoxLayout()
         self.shaker_edit = QtWidgets.QLineEdit(shaker or "")
         self.shaker_edit.setPlaceholderText("tcp://HOST:PORT or rtu:///dev/DEVICE")
@@ -195,8 +227,10 @@ class MainWindow(QtWidgets.QMainWindow):
         header = QtWidgets.QHBoxLayout()
         header.addLayout(head, 1)
         header.addWidget(self.estop_button)
-        self.strip = StateStrip()
+        return header
 
+    def _build_controls(self, args: ConsoleOptions) -> QtWidgets.QWidget:
+        """The controller's panel above the Plan, Manual and QC tabs."""
         st = self.station
         self.controller = ControllerPanel(st.config.limits.watchdog_timeout_s)
         self.plan = PlanPanel(st.config, args.plan, args.experiments, Path(args.out))
@@ -220,6 +254,11 @@ class MainWindow(QtWidgets.QMainWindow):
         left_layout.setContentsMargins(0, 0, 0, 0)
         left_layout.addWidget(self.controller)
         left_layout.addWidget(self.left_tabs, 1)
+        return left
+
+    def _build_views(self, args: ConsoleOptions) -> QtWidgets.QTabWidget:
+        """The Live, Fit and Sessions views."""
+        st = self.station
 
         self.live = LiveView(st.config.daq_rate_hz, st.config.min_span, args.speed if self.simulated else 1.0)
         self.fit_view = FitView()
@@ -232,32 +271,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.tabs.addTab(self.live, "Live")
         self.tabs.addTab(self.fit_view, "Fit")
         self.tabs.addTab(self.browser, "Sessions")
-
-        self.log = QtWidgets.QPlainTextEdit()
-        self.log.setObjectName("logView")
-        self.log.setReadOnly(True)
-        self.log.setMaximumBlockCount(5000)
-        self.log.setFixedHeight(110)
-
-        split = QtWidgets.QSplitter()
-        split.addWidget(left)
-        split.addWidget(self.tabs)
-        split.setStretchFactor(0, 0)
-        split.setStretchFactor(1, 1)
-        split.setSizes([520, 1080])
-        central = QtWidgets.QWidget()
-        layout = QtWidgets.QVBoxLayout(central)
-        layout.addLayout(header)
-        layout.addWidget(self.strip)
-        layout.addWidget(split, 1)
-        layout.addWidget(self.log)
-        self.setCentralWidget(central)
-        self.resize(1600, 1000)
-        self._motion = {"hydraulics_on": self.manual.hyd_on, "move": self.manual.move_button,
-                        "sine": self.manual.sine_button, "run_plan": self.plan.run_button,
-                        "resume": self.plan.resume_button, "qc_test": self.qc.test_button}
-        self._tooltips = {name: button.toolTip() for name, button in self._motion.items()}
-        self._show_banner()
+        return self.tabs
 
     # ----- operator actions ------------------------------------------------------------------------
     def connect_rig(self) -> None:
@@ -313,7 +327,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 return
         self.estop_text = self.alarm_latched = None
         self.station.emergency.confirm_reset()
-        if self.status is not None and self.status.state == "ALARM":
+        if self.status is not None and self.status.state is ControllerState.ALARM:
             self.manual._do(self.station.manual.reset_alarm())
         self._show_banner()
 
@@ -389,7 +403,7 @@ class MainWindow(QtWidgets.QMainWindow):
         running (moving, at rest, tripped, not answering)."""
         if self.status is None:
             return None, None, "the controller's state is not read" if self.link_error else "no excitation running"
-        if self.status.state != "RUNNING":
+        if self.status.state is not ControllerState.RUNNING:
             return None, None, "no excitation running"
         progress = self.plan.progress
         current = progress.current if progress is not None and self.station.sessions.running else None
@@ -415,15 +429,17 @@ class MainWindow(QtWidgets.QMainWindow):
         was = self.status
         self.status = item.status
         self.link_error = item.error
-        if item.status is not None and item.status.state == "ALARM" and (was is None or was.state != "ALARM"):
+        st = item.status
+        tripped = st is not None and st.state is ControllerState.ALARM
+        if st is not None and tripped and (was is None or was.state is not ControllerState.ALARM):
             # A trip outside a session (a manual sine) has no acquisition event to log it.
-            self._say(f"controller tripped: {item.status.alarm}", "error")
-            self.alarm_latched = item.status.alarm
+            self._say(f"controller tripped: {st.alarm}", "error")
+            self.alarm_latched = st.alarm
         if self.plan.progress is not None and self.station.sessions.running:
             # The stream's sample count read with the status drives every count shown, in this
             # frame, as long as the controller was read running (cycles are not counted on a
             # stream whose excitation nobody has read).
-            running = item.status is not None and item.status.state == "RUNNING"
+            running = item.status is not None and item.status.state is ControllerState.RUNNING
             self.plan.progress.unread = item.error
             if running and self.plan.progress.observe(item.samples, item.time) is not None:
                 self.plan.refresh()
@@ -516,7 +532,7 @@ class MainWindow(QtWidgets.QMainWindow):
                 else f"the controller holds the position ({bar})" if st is not None
                 else "the controller's state is not known (no answer)")
         # alarm: from the readings (the controller's state register) and the console's latch
-        alarm_read = st is not None and st.state == "ALARM"
+        alarm_read = st is not None and st.state is ControllerState.ALARM
         alarm = bool(self.estop_text) or alarm_read or self.alarm_latched is not None
         if self.estop_text:
             text = f"{self.estop_text} — {held}. Reset… once the rig is safe"

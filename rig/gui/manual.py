@@ -22,7 +22,7 @@ from rig.drivers.daq import Calibration, Daq, DaqError
 from rig.drivers.estop import MotionLatch
 from rig.drivers.peer_identity import Peers
 from rig.drivers.peers import wrong_peer_or
-from rig.drivers.registers import RegisterMap
+from rig.drivers.registers import ControllerState, RegisterMap
 from rig.drivers.shaker import Shaker, ShakerLinkError, ShakerStatus, check_waveform
 from rig.errors import BadInput, RigError
 from rig.events import LinkCondition, LinkNotice, Message
@@ -150,9 +150,9 @@ class ManualControl:
             return [f"{self.latch.reason}: confirm the reset first"]
         if self.shaker is None:
             return ["not connected"]
-        if status is not None and status.state == "ALARM":
+        if status is not None and status.state is ControllerState.ALARM:
             return [f"alarm latched ({status.alarm}): reset it first"]
-        if need_hydraulics and status is not None and status.state == "OFF":
+        if need_hydraulics and status is not None and status.state is ControllerState.OFF:
             return ["the hydraulics are off: switch them on first"]
         return []
 
@@ -198,7 +198,7 @@ class ManualControl:
         """Stop: fade a running waveform out (then hold), else hold at once."""
         problems = self._refuse(None, need_hydraulics=False, motion=False)
         # A fade is a move to the static position: after an E-STOP only STOP holds.
-        running = status is not None and status.state == "RUNNING" and not self.latch.latched
+        running = status is not None and status.state is ControllerState.RUNNING and not self.latch.latched
 
         def stop(s: Shaker) -> None:
             s.fade_out() if running else s.stop()

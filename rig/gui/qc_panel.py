@@ -10,13 +10,11 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from rig.gui.qc import QcDone, QcProgress, QcRequest
+from rig.gui.qc import SHOWN, QcDone, QcProgress, QcRequest
+from rig.qc.present import verdict_colours
 
-# (background, text) per verdict; no verdict (ABORTED, REFUSED, ERROR) is grey, never green.
-COLOURS = {"PASS": ("#2e7d32", "white"), "FAIL": ("#c62828", "white"), "RETEST": ("#f9a825", "black"),
-           "testing": ("#e3f2fd", "#0d47a1")}
-NO_VERDICT = ("#9e9e9e", "white")
-OUTCOME_COLOURS = {"PASS": "#1a7f37", "FAIL": "#c62828", "INCONCLUSIVE": "#b26a00"}
+TESTING = ("#e3f2fd", "#0d47a1")                     # (background, text) while a unit is tested
+OUTCOME_SHOWN = {word: outcome for outcome, word in SHOWN.items()}   # RETEST → INCONCLUSIVE
 COLUMNS = ("Characteristic", "Value ± kσ", "Limits (spec)", "Acceptance limits", "Outcome")
 
 
@@ -113,7 +111,8 @@ class QcPanel(QtWidgets.QWidget):
         layout.addWidget(self.causes)
         layout.addWidget(self.report)
         layout.addWidget(self.table, 1)
-        self._paint("—", NO_VERDICT)
+        none = verdict_colours(None)
+        self._paint("—", (none.banner, none.banner_text))
 
     def _request(self, periods: int | None = None) -> QcRequest:
         return QcRequest(self.serial.text().strip(), self.spec.text().strip() or "default",
@@ -139,7 +138,7 @@ class QcPanel(QtWidgets.QWidget):
         self.last = None
         self.unit.setText(f"Unit {request.serial}" + (f" — retest, {request.periods} periods" if request.periods
                                                       else ""))
-        self._paint("TESTING…", COLOURS["testing"], size_pt=36)
+        self._paint("TESTING…", TESTING, size_pt=36)
         self.reason.setText("The spec's plan runs, then identification and judging: the same test as "
                             "python -m rig qc run, in this console's session.")
         self.report.setText("")
@@ -165,7 +164,8 @@ class QcPanel(QtWidgets.QWidget):
         # The verdict itself says SIMULATED: the line below it is easily missed across the room.
         shown = (f"{done.shown}<div style='font-size: 16pt'>SIMULATED — not a production verdict</div>"
                  if done.simulated else done.shown)
-        self._paint(shown, COLOURS.get(done.shown, NO_VERDICT), size_pt=48)
+        colours = verdict_colours(OUTCOME_SHOWN.get(done.shown))   # no verdict (ABORTED, ERROR…): grey
+        self._paint(shown, (colours.banner, colours.banner_text), size_pt=48)
         reason = {"PASS": "Every characteristic within its limits, uncertainty included.",
                   "FAIL": "At least one characteristic outside its limits, uncertainty included.",
                   "RETEST": "Inconclusive: a characteristic's uncertainty straddles a limit. Test again with "
@@ -196,7 +196,7 @@ class QcPanel(QtWidgets.QWidget):
                     font = item.font()
                     font.setBold(True)
                     item.setFont(font)
-                    item.setForeground(QtGui.QColor(OUTCOME_COLOURS.get(text, "#555555")))
+                    item.setForeground(QtGui.QColor(verdict_colours(text).text))
                 if j == 1 and row.sigma:
                     item.setToolTip(f"σ {row.sigma}")
                 self.table.setItem(i, j, item)

@@ -23,6 +23,7 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 
 from PySide6 import QtCore, QtWidgets  # noqa: E402
 
+from rig.drivers.registers import ControllerState
 from rig.gui.main_window import MainWindow, application  # noqa: E402
 
 
@@ -68,7 +69,7 @@ def manual_sine(window: MainWindow) -> None:
     window.left_tabs.setCurrentIndex(1)
     wait("the connection", lambda: window.status is not None)
     window.manual.hyd_on.click()
-    wait("hydraulics on", lambda: window.status is not None and window.status.state == "IDLE")
+    wait("hydraulics on", lambda: window.status is not None and window.status.state is ControllerState.IDLE)
     window.manual.sine_static.setValue(133.0)
     window.manual.sine_amplitude.setValue(20.0)
     window.manual.sine_frequency.setValue(1.0)
@@ -163,7 +164,7 @@ def alarm_view(args: argparse.Namespace, out: Path, sessions: Path) -> None:
                                   "--out", str(sessions)])
     alarm.show()
     manual_sine(alarm)
-    wait("the trip", lambda: alarm.status is not None and alarm.status.state == "ALARM", 60)
+    wait("the trip", lambda: alarm.status is not None and alarm.status.state is ControllerState.ALARM, 60)
     settle_view(1.0)
     shoot(alarm, out / "alarm.png")
     closed(alarm)
@@ -174,11 +175,11 @@ def estop_view(args: argparse.Namespace, out: Path, sessions: Path) -> None:
     estop = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--out", str(sessions)])
     estop.show()
     manual_sine(estop)
-    wait("the sine", lambda: estop.status is not None and estop.status.state == "RUNNING" and
+    wait("the sine", lambda: estop.status is not None and estop.status.state is ControllerState.RUNNING and
          estop.status.cycles >= 3, 60)
     estop.estop()
     wait("the E-STOP's writes", lambda: estop.station.emergency.wait(0) is not None, 30)
-    wait("the controller off", lambda: estop.status is not None and estop.status.state == "OFF", 30)
+    wait("the controller off", lambda: estop.status is not None and estop.status.state is ControllerState.OFF, 30)
     settle_view(1.0)
     shoot(estop, out / "alarm-after-estop.png")
     closed(estop)

@@ -99,8 +99,6 @@ class SessionWorker:
             _stop(runner, reason)
 
     def _runner_changed(self, runner: SessionRunner | None) -> None:
-        if runner is not None:
-            runner.links.shaker.interlock = self.emergency.latch   # before the session's first motion command
         self.runner = runner
         if runner is not None and self._stop_reason is not None:   # Abort or E-STOP while the links were opened
             _stop(runner, self._stop_reason)
@@ -133,7 +131,7 @@ class SessionWorker:
                 return []
 
             result = run_lifecycle(prep, Console(file=io.StringIO()), subscribers=[self._event], attach=attach,
-                                   on_runner=self._runner_changed)
+                                   on_runner=self._runner_changed, interlock=self.emergency.latch)
             if result.error is not None:
                 self.post(Notice(f"internal error in the session: {result.error!r}", "error"))
         except (BadInput, InputError, RigError) as exc:
@@ -176,7 +174,8 @@ class SessionWorker:
         # The session's links are closed once it ends: the console's are taken back before
         # the identification and judging, so that the rig is read while they run.
         to = QcSubscribers(say=lambda text: self.post(Notice(f"QC {request.serial}: {_plain(text)}")), attach=attach,
-                           subscribers=[self._event], on_runner=self._runner_changed, before_session=before,
+                           subscribers=[self._event], on_runner=self._runner_changed, interlock=self.emergency.latch,
+                           before_session=before,
                            predicted=predicted, after_session=lambda _result: self._links_back())
         done: QcDone
         try:

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
+from rig.drivers.registers import ControllerState
 from rig.drivers.shaker import ShakerStatus
 
 # Supply pressure from which the hydraulics count as on: the register is the one
@@ -22,8 +23,9 @@ HYDRAULICS_ON_PA = 10e5
 MOTION = ("hydraulics_on", "move", "sine", "run_plan", "resume", "qc_test")
 NEED_HYDRAULICS = ("move", "sine")
 MANUAL = ("hydraulics_on", "move", "sine")
-COLOURS = {"ALARM": "#c62828", "RUNNING": "#2e7d32", "MOVING": "#ef6c00", "AT_STATIC": "#1565c0",
-           "IDLE": "#1565c0", "OFF": "#616161"}
+COLOURS: dict[str, str] = {ControllerState.ALARM: "#c62828", ControllerState.RUNNING: "#2e7d32",
+                           ControllerState.MOVING: "#ef6c00", ControllerState.AT_STATIC: "#1565c0",
+                           ControllerState.IDLE: "#1565c0", ControllerState.OFF: "#616161"}
 NO_LINK_COLOUR = "#ef6c00"
 
 
@@ -43,8 +45,8 @@ class RigState:
 
     @property
     def word(self) -> str:
-        if self.trip is not None or (self.status is not None and self.status.state == "ALARM"):
-            return "ALARM"
+        if self.trip is not None or (self.status is not None and self.status.state is ControllerState.ALARM):
+            return ControllerState.ALARM
         if self.status is None:
             return "NOT READ" if self.link_error else "NOT CONNECTED"
         return self.status.state
@@ -54,18 +56,18 @@ class RigState:
         st = self.status
         if self.trip is not None:
             parts.append(self.trip)
-        elif st is not None and st.state == "ALARM":
+        elif st is not None and st.state is ControllerState.ALARM:
             parts.append(st.alarm)
         if st is None:
             parts.append("HYDRAULICS ?" + (f" ({self.link_error})" if self.link_error else ""))
         else:
             parts.append(f"HYDRAULICS {'ON' if hydraulics_on(st) else 'OFF'}  {st.hydraulic_pressure_pa / 1e5:.0f} bar")
-            if self.trip is not None and st.state != "ALARM":
+            if self.trip is not None and st.state is not ControllerState.ALARM:
                 parts.append(f"controller {st.state}")
         return "   ·   ".join(parts)
 
     def colour(self) -> str:
-        return COLOURS["ALARM"] if self.word == "ALARM" else COLOURS.get(self.word, NO_LINK_COLOUR)
+        return COLOURS.get(self.word, NO_LINK_COLOUR)
 
     def blocked(self) -> dict[str, str]:
         """Each motion control that is not allowed now, with the reason its tooltip gives."""
@@ -74,7 +76,7 @@ class RigState:
         if self.trip is not None:
             reason = f"{self.trip}: latched until Reset… is confirmed"
             return dict.fromkeys(MOTION, reason)
-        if st is not None and st.state == "ALARM":
+        if st is not None and st.state is ControllerState.ALARM:
             return dict.fromkeys(MOTION, f"controller in ALARM ({st.alarm}): find the cause, then Reset…")
         if self.session_running:
             why.update(dict.fromkeys(MOTION, "a session is running: it commands the rig until it ends (Abort)"))

@@ -110,7 +110,7 @@ def measure(spec: Spec, model: CompiledModel, identified: Identified | None,
             out.append(_missing(c, "the identification did not converge"))
             continue
         else:
-            value, std = _propagate(model, identified, _model_function(model, c), c.kind == "drop_peak_force")
+            value, std = _propagate(model, identified, model_function(model, c), c.kind == "drop_peak_force")
             basis = identified.basis
         scale = c.si_factor
         std_fit = std / scale
@@ -123,7 +123,7 @@ def _missing(c: Characteristic, why: str) -> Measured:
     return Measured(c.name, c.unit, None, None, None, c.u_cal, why)
 
 
-def _model_function(model: CompiledModel, c: Characteristic) -> Callable[[np.ndarray], float]:
+def model_function(model: CompiledModel, c: Characteristic) -> Callable[[np.ndarray], float]:
     """θ (full vector, SI) → the characteristic (SI)."""
     a = c.args
     if c.kind == "gas_pressure":

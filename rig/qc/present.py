@@ -14,6 +14,7 @@ import math
 from dataclasses import dataclass
 
 from identify.notation import at_place, decimal_place, expanded, plus_minus, rounded, unit_text
+from rig.qc.judge import Outcome
 from rig.qc.records import CharacteristicRecord, QcRecord
 
 # Which σ the verdict used, as the report and the console name it, and why that one.
@@ -28,6 +29,31 @@ WHY = {"noise": "the fit's residuals are at the level of the measurement noise (
                        "for a residual-based covariance: the noise-only one is propagated and may understate σ",
        "scatter": "a measured quantity: σ is the scatter of the loop energy between the captured periods "
                   "(standard error of their mean)"}
+
+
+@dataclass(frozen=True)
+class VerdictColours:
+    """How a verdict or an outcome is coloured, the one table the report and the console read."""
+
+    text: str            # the word in colour on white: a table's outcome, the report's banner behind white letters
+    banner: str          # the console's large verdict: its background
+    banner_text: str     # and its letters
+
+
+# No verdict (ABORTED, REFUSED, ERROR) is grey, never green.
+VERDICT_COLOURS: dict[Outcome | None, VerdictColours] = {
+    Outcome.PASS: VerdictColours("#1a7f37", "#2e7d32", "white"),
+    Outcome.FAIL: VerdictColours("#c62828", "#c62828", "white"),
+    Outcome.INCONCLUSIVE: VerdictColours("#b26a00", "#f9a825", "black"),
+    None: VerdictColours("#555555", "#9e9e9e", "white"),
+}
+
+
+def verdict_colours(outcome: Outcome | str | None) -> VerdictColours:
+    """The colours of an :class:`~rig.qc.judge.Outcome` (or its name, as a record stores
+    it); anything else has no verdict and is grey."""
+    known = outcome if outcome in set(Outcome) else None
+    return VERDICT_COLOURS[Outcome(known) if known is not None else None]
 
 
 @dataclass(frozen=True)

@@ -24,11 +24,10 @@ import numpy as np  # noqa: E402
 from identify.folding import fold  # noqa: E402
 from identify.notation import unit_text  # noqa: E402
 from rig.qc.evaluate import Evaluation  # noqa: E402
-from rig.qc.present import shown, sigma_note  # noqa: E402
+from rig.qc.present import shown, sigma_note, verdict_colours  # noqa: E402
 from rig.qc.records import QcRecord  # noqa: E402
 from rig.qc.spec import Spec  # noqa: E402
 
-COLOURS = {"PASS": "#1a7f37", "FAIL": "#c62828", "INCONCLUSIVE": "#b26a00", None: "#555555"}
 TOLERANCE_ZONE, CONFORMANCE_ZONE = "#f3d9a4", "#b7e1c1"
 
 
@@ -58,12 +57,12 @@ def band_figure(record: QcRecord, spec: Spec) -> str:
         ax.axvline(c.nominal, color="#444444", lw=1, ls="--", label="nominal")
         if c.value is not None and c.std is not None:
             ax.errorbar([c.value], [0.0], xerr=[[k * c.std], [k * c.std]], fmt="o", ms=7, capsize=6, lw=2,
-                        color=COLOURS.get(c.outcome, "#555555"))
+                        color=verdict_colours(c.outcome).text)
         ax.set_xlim(left, right)
         ax.set_ylim(-1, 1)
         ax.set_yticks([])
         ax.set_title(f"{c.title or c.name}: {c.outcome}", loc="left", fontsize=10,
-                     color=COLOURS.get(c.outcome, "#555555"))
+                     color=verdict_colours(c.outcome).text)
         ax.set_xlabel(f"{c.title or c.name} [{unit_text(c.unit)}]", fontsize=9, labelpad=1)
         ax.tick_params(axis="x", labelsize=9)
     handles, labels = axes[0, 0].get_legend_handles_labels()
@@ -112,7 +111,7 @@ def loops_figure(evaluation: Evaluation) -> str | None:
 def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -> str:
     e = html.escape
     verdict = record.verdict or f"no verdict ({record.status})"
-    colour = COLOURS.get(record.verdict, COLOURS[None])
+    colour = verdict_colours(record.verdict).text
     descriptions = {c.name: c.description for c in spec.characteristics}
     rows = []
     for c in record.characteristics:
@@ -122,7 +121,7 @@ def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -
             f"<code>{e(s.name)}</code></small></td>"
             f"<td class=num>{e(s.value)}</td><td class=num>{e(s.sigma)}<br><small>{e(s.basis)}</small></td>"
             f"<td class=num>{e(s.limits)}</td><td class=num>{e(s.acceptance)}</td>"
-            f"<td style='color:{COLOURS.get(c.outcome, '#555')};font-weight:bold'>{e(c.outcome)}</td></tr>")
+            f"<td style='color:{verdict_colours(c.outcome).text};font-weight:bold'>{e(c.outcome)}</td></tr>")
     sigma_notes = "".join(f"<li>{e(sigma_note(c))}</li>" for c in record.characteristics)
     findings = ""
     if record.reason:

@@ -28,7 +28,9 @@ from typing import Any
 
 from rich.console import Console
 
+from identify.exit_codes import EXIT_INTERRUPTED, EXIT_OK
 from identify.files import atomic_write_bytes
+from rig.drivers.shaker import MotionInterlock
 from rig.errors import BadInput
 from rig.events import Kind, Subscriber
 from rig.planning.prediction import NOT_MEASURED, predict_s
@@ -41,8 +43,6 @@ from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
 from rig.qc.trace import SessionTrace, now_utc, software_version, trace_session
 from rig.session.run import (
-    EXIT_INTERRUPTED,
-    EXIT_OK,
     Prepared,
     RunOptions,
     RunResult,
@@ -84,6 +84,7 @@ class QcSubscribers:
     attach: Callable[[SessionContext], Sequence[Subscriber]]    # the session's progress, once its time is predicted
     subscribers: Sequence[Subscriber] = ()                      # every session event from the first
     on_runner: Callable[[SessionRunner | None], object] | None = None
+    interlock: MotionInterlock | None = None                    # an E-STOP's latch, into the session's connect()
     before_session: Callable[[Prepared], object] | None = None  # checked, records open, nothing sent yet
     predicted: Callable[[Prediction], None] | None = None       # the time left, predicted again after an experiment
     after_session: Callable[[RunResult], object] | None = None  # the session over, its links closed; judging next
@@ -168,7 +169,7 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
 
         try:
             result = run_lifecycle(prep, Console(file=io.StringIO()), subscribers=to.subscribers, attach=to.attach,
-                                   on_runner=hand_over)
+                                   on_runner=hand_over, interlock=to.interlock)
         except BaseException as exc:
             # A session that started (its folder exists) is on record as ABORTED; one that
             # never started (no link, refused) has nothing to record.

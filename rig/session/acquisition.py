@@ -26,6 +26,7 @@ from identify.plans import ExperimentSpec
 from rig.config import CHANNELS, RigConfig, SteadyStateCriteria
 from rig.drivers.clock import WALL_CLOCK, Clock
 from rig.drivers.daq import Daq, Samples
+from rig.drivers.registers import ControllerState
 from rig.drivers.shaker import AlarmError, Shaker, ShakerTimeout
 from rig.errors import RigFault
 from rig.events import EventBus, Kind, Phase
@@ -114,6 +115,18 @@ class ExperimentRecord:
     @property
     def time_s(self) -> np.ndarray:
         return self.index / self.rate_hz
+
+
+@dataclass(frozen=True)
+class Settled:
+    """How settling ended: passed (or ``max_cycles``), after how many cycles, the sample
+    after its last block (where the capture starts), and its samples seen and lost."""
+
+    settled: bool
+    cycles: int
+    end: int
+    seen: int
+    missed: int
 
 
 class Recorder:
@@ -263,7 +276,7 @@ class Acquisition:
 
     def _enter(self, phase: Phase, label: str | None, **data: Any) -> None:
         self.phase = phase
-        self.bus.publish(Kind.PHASE, label, phase=phase.value, **data)
+        self.bus.publish(Kind.PHASE, label, phase=phase.value, clock_s=self.clock.monotonic(), **data)
 
     def _check_stop(self) -> None:
         if self.stop_requested.is_set():
@@ -290,9 +303,9 @@ class Acquisition:
         static, amp = spec.static_position_mm * 1e-3, spec.amplitude_mm * 1e-3
         self._enter(Phase.MOVING, label, target_mm=spec.static_position_mm)
         st = self.shaker.status()
-        if st.state == "ALARM":
+        if st.state is ControllerState.ALARM:
             raise AlarmError(st)
-        if st.state == "OFF":
+        if st.state is ControllerState.OFF:
             self.shaker.hydraulics(True)
         position = st.position_m
         lost0 = self.daq.counters.lost_samples   # the hold's stream and the experiment's
@@ -304,7 +317,7 @@ class Acquisition:
             position = hold.position_m
         else:
             self.shaker.move_to(static)
-        self._wait_state({"AT_STATIC"}, MOVE_TIMEOUT_S + 2 * move_duration_s(static - position))
+        self._wait_state({ControllerState.AT_STATIC}, MOVE_TIMEOUT_S + 2 * move_duration_s(static - position))
         self._check_stop()
 
         self._enter(Phase.SETTLING, label)
@@ -314,8 +327,15 @@ class Acquisition:
         self.shaker.run(static, amp, spec.frequency_hz, spec.waveform, ss.ramp_time_s)
         captured = False
         try:
-            record = (self._capture_from_run(spec, label, recorder) if transient else
-                      self._settle_and_capture(spec, label, recorder, time_constant_s))
+            if transient:
+                record = self._capture_from_run(spec, label, recorder)
+            else:
+                settled = self._settle(spec, label, recorder, time_constant_s)
+                self.bus.publish(Kind.LOG, label, message=(
+                    f"steady state after {settled.cycles} cycles" if settled.settled else
+                    f"no steady state within {ss.max_cycles} cycles: captured anyway, flagged"))
+                self._enter(Phase.CAPTURING, label, cycles=settled.cycles)
+                record = self._capture(spec, label, recorder, settled)
             captured = True
         finally:
             issued = self.daq.stop()
@@ -330,7 +350,7 @@ class Acquisition:
                                                f"stream, {record.lost_samples} in the captured window")
         self._enter(Phase.STOPPING, label)
         self.shaker.fade_out()
-        self._wait_state({"AT_STATIC"}, 30.0 + 2 * ss.ramp_time_s)
+        self._wait_state({ControllerState.AT_STATIC}, 30.0 + 2 * ss.ramp_time_s)
         self.shaker.stop()
         st = self.shaker.status()   # "At rest" is said from this reading, not from the STOP sent
         self._enter(Phase.IDLE, label, controller=st.state, alarm=st.alarm)
@@ -352,13 +372,8 @@ class Acquisition:
         # Said as what it is: the gas held compressed (or expanded) is far hotter (colder) than
         # during the experiment, and an operator who sees 15-25 °C on the trace afterwards must
         # not read the hold's target as a unit or sensor fault.
-        squeeze, after = ("compressed", "drops") if hold.position_m > then_m else ("expanded", "rises")
-        self.bus.publish(Kind.LOG, label, message=f"conditioning: holding at {hold.position_m * 1e3:.1f} mm (gas "
-                                               f"{squeeze} beyond the experiment's {then_m * 1e3:.1f} mm) until the "
-                                               f"measured gas temperature reaches {target_c:.2f} °C, the model's "
-                                               f"temperature from which the move on lands the gas in its "
-                                               f"periodic state (about {hold.duration_s:.0f} s); it {after} when the "
-                                               "move is made")
+        self.bus.publish(Kind.HOLD, label, position_mm=hold.position_m * 1e3, experiment_mm=then_m * 1e3,
+                         target_c=target_c, predicted_s=hold.duration_s, compressed=hold.position_m > then_m)
         rate = self.daq.rate_hz
         side = math.copysign(1.0, hold.arrival_temperature_k - hold.end_temperature_k)
         tail, step = round(HOLD_TEMPERATURE_FIT_S * rate), max(1, round(POLL_S * rate))
@@ -398,11 +413,8 @@ class Acquisition:
             self._count_stream(self.daq.stop(), streaming)
             self._recorder = None
         left_c = _line_at_end(values[:, gas], present)[1] if np.count_nonzero(present) > 1 else math.nan
-        self.bus.publish(Kind.LOG, label, message=f"conditioning: the gas was at {left_c:.2f} °C (wanted "
-                                               f"{target_c:.2f} °C) when the move on was commanded, after "
-                                               f"{(left - arrived) / rate:.1f} s at {hold.position_m * 1e3:.1f} mm, "
-                                               f"{lead * 1e3:.0f} ms ahead of the crossing (the stroke's delay on "
-                                               f"the move there)")
+        self.bus.publish(Kind.HOLD_END, label, gas_c=left_c, target_c=target_c, held_s=(left - arrived) / rate,
+                         predicted_s=hold.duration_s, lead_s=lead)
 
     def _wait_for_stroke(self, rec: Recorder, position_m: float, label: str, timeout_s: float) -> int:
         """Index of the first sample whose stroke is at ``position_m`` (within
@@ -459,16 +471,10 @@ class Acquisition:
         daq_s = start_s + stop_s
         self.answer_s = daq_s + HOLD_END_MODBUS_TRANSACTIONS * modbus_s
         self.overhead_s = POLL_S / 2 + STATUS_POLL_S + daq_s + EXPERIMENT_MODBUS_TRANSACTIONS * modbus_s
-        self.bus.publish(Kind.LOG, None, message=f"pace probe: {sum(samples)} samples taken, "
-                                              f"{self.daq.counters.lost_samples - lost0} lost in the stream ("
-                                              f"{len(paces)} probes of {PACE_PROBE_S * 1e3:.0f} ms, paces "
-                                              f"{min(paces):.3g}…{max(paces):.3g}); the links run {pace:.3g} rig "
-                                              f"seconds per second (the median); "
-                                              f"DAQ start {start_s * 1e3:.1f} ms, stop {stop_s * 1e3:.1f} ms, a status "
-                                              f"read {modbus_s * 1e3:.1f} ms: from a hold's end to RUN "
-                                              f"{self.answer_s * 1e3:.1f} ms, {self.answer_s * pace:.2f} s of "
-                                              f"the rig's time; an experiment's polls and commands "
-                                              f"{self.overhead_s * 1e3:.1f} ms, {self.overhead_s * pace:.2f} s")
+        self.bus.publish(Kind.PACE_PROBE, None, samples=sum(samples), lost=self.daq.counters.lost_samples - lost0,
+                         probes=len(paces), probe_s=PACE_PROBE_S, pace=pace, pace_min=min(paces), pace_max=max(paces),
+                         daq_start_s=start_s, daq_stop_s=stop_s, status_read_s=modbus_s, answer_s=self.answer_s,
+                         overhead_s=self.overhead_s)
         return pace
 
     def _count_stream(self, issued: int, since: float) -> None:
@@ -491,7 +497,7 @@ class Acquisition:
         return PaceReading(max(1.0, self._streamed_samples / self.daq.rate_hz / self._streamed_s),
                            f"{self._streamed_s:.0f} s of this session's streams that ended as planned")
 
-    def _wait_state(self, states: set[str], timeout_s: float) -> None:
+    def _wait_state(self, states: set[ControllerState], timeout_s: float) -> None:
         """Wait for a controller state in short slices, so that Ctrl-C is honoured."""
         deadline = self.clock.monotonic() + timeout_s
         while True:
@@ -504,8 +510,9 @@ class Acquisition:
                 if self.clock.monotonic() > deadline:
                     raise
 
-    def _settle_and_capture(self, spec: ExperimentSpec, label: str, rec: Recorder,
-                            time_constant_s: float | None) -> ExperimentRecord:
+    def _settle(self, spec: ExperimentSpec, label: str, rec: Recorder, time_constant_s: float | None) -> Settled:
+        """Compare the channel means of consecutive blocks of whole cycles until the
+        steady-state criterion passes (or ``max_cycles``)."""
         ss, rate = self.config.steady_state, self.daq.rate_hz
         spp = rate / spec.frequency_hz                       # samples per period
         start = first_block_sample(ss, rate)                 # after the fade-in (+ the actuator's lag)
@@ -514,10 +521,9 @@ class Acquisition:
         thresholds = np.array([ss.thresholds[c] for c in CHANNELS])
         fitted = [CHANNELS.index(c) for c in drift.noise] if drift is not None else []
         history: list[np.ndarray] = []                         # consecutive block means of the fitted channels
-        block, prev_means, settled, cycles = 0, None, False, 0
+        block, prev_means, cycles = 0, None, 0
         seen = missed = 0                                      # samples of the settling blocks, and lost of them
         while True:
-            # Settling: compare the channel means of consecutive blocks of whole cycles.
             a = start + int(round(block * m * spp))
             b = start + int(round((block + 1) * m * spp))
             self._wait_samples(rec, b, label)
@@ -532,7 +538,7 @@ class Acquisition:
                 # decay, whose cycles must follow each other).
                 history.clear()
                 self.bus.publish(Kind.LOG, label, message=f"settling block ending at cycle {cycles}: "
-                                                       f"{np.count_nonzero(~present)} samples lost, not compared")
+                                                          f"{np.count_nonzero(~present)} samples lost, not compared")
             elif drift is not None:
                 history = (history + [means[fitted]])[-drift.fit_cycles:]
                 if len(history) >= MIN_BLOCKS:
@@ -546,59 +552,58 @@ class Acquisition:
                                      cycles_left=drift_cycles_left(ss, cycles, fit.bias_sigma, fit.ratio),
                                      drift={c: float(x) for c, x in zip(drift.noise, fit.drift, strict=True)})
                     if drift_passes(ss, cycles, fit):
-                        settled = True
-                        break
+                        return Settled(True, cycles, b, seen, missed)
             elif prev_means is not None:
                 change = np.abs(means - prev_means)
                 self.bus.publish(Kind.PROGRESS, label, phase=Phase.SETTLING.value, cycles=cycles,
                                  change={c: float(x) for c, x in zip(CHANNELS, change, strict=True)})
                 if change_passes(ss, cycles, change, thresholds):
-                    settled = True
-                    break
+                    return Settled(True, cycles, b, seen, missed)
             if cycles >= ss.max_cycles:
-                break
+                return Settled(False, cycles, b, seen, missed)
             prev_means, block = means, block + 1
-        self.bus.publish(Kind.LOG, label, message=(f"steady state after {cycles} cycles" if settled else
-                                                f"no steady state within {ss.max_cycles} cycles: captured anyway, "
-                                                f"flagged"))
-        self._enter(Phase.CAPTURING, label, cycles=cycles)
-        n = int(math.ceil(spec.periods * spp))
-        best, attempts = None, 0
+
+    def _capture(self, spec: ExperimentSpec, label: str, rec: Recorder, settled: Settled) -> ExperimentRecord:
+        """The captured window: ``spec.periods`` whole periods right after the last
+        settling block, captured again (up to ``max_recaptures``) after a burst of lost
+        samples, the best kept."""
+        ss, rate = self.config.steady_state, self.daq.rate_hz
+        n = int(math.ceil(spec.periods * rate / spec.frequency_hz))
+        loss = settled.missed / settled.seen if settled.seen else 0.0    # the line's steady loss while settling
+        best: tuple[int, np.ndarray, np.ndarray, int, np.ndarray] | None = None
+        attempts, steady = 0, True
         for attempt in range(ss.max_recaptures + 1):
             attempts = attempt + 1
-            a = b + attempt * n  # windows follow the last settling block back to back
+            a = settled.end + attempt * n  # windows follow the last settling block back to back
             self._wait_samples(rec, a + n, label, capture=(a, n))
             values, present, over = rec.window(a, a + n)
             rec.forget_before(a + n)
             lost = int(np.count_nonzero(~present))
             if best is None or lost < best[3]:
-                best = (a, values, present, lost, over, attempt)
+                best = (a, values, present, lost, over)
             # A window is captured again for a burst (a stall, an overflow), not for the
             # line's steady loss, which the next window would lose as much of: at 1.6 %
             # every window of the 0.04 Hz experiment loses ~2400 samples, and two more
             # of them cost 150 s of rig time for nothing.
-            expected = missed / seen * n if seen else 0.0
+            expected = loss * n
             steady = lost <= expected + 3 * math.sqrt(expected)
-            if lost and steady:
-                self.bus.publish(Kind.LOG, label, message=f"capture window {attempt + 1} lost {lost} samples, as the "
-                                                       f"line's steady loss predicts ({missed / seen:.2%}): kept, "
-                                                       "the holes declared")
+            if lost:
+                self.bus.publish(Kind.CAPTURE_WINDOW, label, window=attempts, lost=lost, steady_loss=loss,
+                                 kept=steady, again=not steady and attempt < ss.max_recaptures)
             if lost == 0 or steady:
                 break
-            self.bus.publish(Kind.LOG, label, message=f"capture window {attempt + 1} lost {lost} samples"
-                                                   + ("; capturing again" if attempt < ss.max_recaptures else ""))
         assert best is not None  # the loop ran at least once
-        a, values, present, lost, over, attempt = best
+        a, values, present, lost, over = best
         flags = []
-        if not settled:
+        if not settled.settled:
             flags.append(f"steady state not reached within {ss.max_cycles} cycles")
         if lost and steady:
             flags.append(f"{lost} samples lost in the captured window (rows absent; the line's steady loss, "
-                         f"{missed / seen:.2%} while settling)")
+                         f"{loss:.2%} while settling)")
         elif lost:
             flags.append(f"{lost} samples lost in the captured window (rows absent; best of {attempts} windows)")
         index = a + np.flatnonzero(present)
-        return ExperimentRecord(spec, label, rate, index, values[present], cycles, settled, lost, 0,
+        return ExperimentRecord(spec, label, rate, index, values[present], settled.cycles, settled.settled, lost, 0,
                                 int(np.count_nonzero(over[present])), attempts - 1, flags)
 
     def _capture_from_run(self, spec: ExperimentSpec, label: str, rec: Recorder) -> ExperimentRecord:
@@ -629,7 +634,7 @@ class Acquisition:
             now = self.clock.monotonic()
             if now - last_status > 0.2:
                 st = self.shaker.status()
-                if st.state == "ALARM":
+                if st.state is ControllerState.ALARM:
                     raise AlarmError(st)
                 last_status = now
                 if capture:
@@ -654,11 +659,12 @@ class Acquisition:
             # quick try, so the record is written while the controller's watchdog takes over.
             patience = QUICK_RECONNECT_S
         veto = self.shaker.veto("fade out")
-        if st is not None and st.state == "RUNNING" and veto is not None:
+        if st is not None and st.state is ControllerState.RUNNING and veto is not None:
             self.bus.publish(Kind.LOG, None, message=f"safe stop: no fade ({veto})")
-        elif st is not None and st.state == "RUNNING":
+        elif st is not None and st.state is ControllerState.RUNNING:
             steps.append(("fade out", self.shaker.fade_out))
-            steps.append(("wait at static", lambda: self.shaker.wait_for({"AT_STATIC", "ALARM"}, 30.0)))
+            at_rest = {ControllerState.AT_STATIC, ControllerState.ALARM}
+            steps.append(("wait at static", lambda: self.shaker.wait_for(at_rest, 30.0)))
             done.append("faded out")
         steps += [("stop", self.shaker.stop), ("hydraulics off", lambda: self.shaker.hydraulics(False))]
         done += ["STOP", "hydraulics off"]

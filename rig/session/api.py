@@ -30,7 +30,7 @@ from identify.dataset import Experiment
 from identify.model import DEFAULT_ESTIMATE
 from rig.config import RigConfig, load_rig_config
 from rig.drivers.daq import Calibration
-from rig.drivers.registers import RegisterMap, load_register_map
+from rig.drivers.registers import ControllerState, RegisterMap, load_register_map
 from rig.drivers.shaker import ShakerStatus
 from rig.errors import BadInput, RigFault
 from rig.events import Event, EventBus, LinkNotice, Subscriber
@@ -175,7 +175,7 @@ class Rig:
         """Hydraulics on and move to a static position; returns once there."""
         shaker = self._links.shaker
         shaker.move_to(position_mm * 1e-3, switch_on=True)
-        return shaker.wait_for({"AT_STATIC"}, timeout_s=wait_s)
+        return shaker.wait_for({ControllerState.AT_STATIC}, timeout_s=wait_s)
 
     def plan(self, plan: str | Path = "standard", *, out: str | Path, experiments: Sequence[str] | None = None,
              periods: int | None = None, on_alarm: str = "abort", date: str | None = None, unit: str = "unknown",

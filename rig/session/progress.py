@@ -15,12 +15,14 @@ import math
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from rich.console import Console
 from rich.markup import escape
 
 from rig.events import Event, Kind, LinkCondition, Phase
 from rig.session.acquisition import PaceReading
+from rig.session.outcome import ExitStatus
 from rig.session.storage import read_log
 
 # How the settling change of each channel is said: its word, unit and decimals (the
@@ -71,6 +73,8 @@ def describe(e: Event) -> str:
         return f"Written to {d['file']}: {d['samples']} samples, {lost}{flags}."
     if e.kind == Kind.SESSION_END:
         return f"Session {d['message']}."
+    if e.kind in SAID_BY:
+        return _sentence(SAID_BY[e.kind](d))
     return _sentence(str(d.get("message", "")))
 
 
@@ -88,6 +92,52 @@ def at_rest_sentence(d: dict) -> str:
     why = f" ({d['unread']})" if d.get("unread") else ""
     return ("Not known to be at rest: the controller could not be read after the stop" + why
             + "; its watchdog stops the shaker once this program no longer feeds it.")
+
+
+def _pace_probe(d: dict[str, Any]) -> str:
+    pace = d["pace"]
+    return (f"pace probe: {d['samples']} samples taken, {d['lost']} lost in the stream ({d['probes']} probes of "
+            f"{d['probe_s'] * 1e3:.0f} ms, paces {d['pace_min']:.3g}…{d['pace_max']:.3g}); the links run {pace:.3g} "
+            f"rig seconds per second (the median); DAQ start {d['daq_start_s'] * 1e3:.1f} ms, stop "
+            f"{d['daq_stop_s'] * 1e3:.1f} ms, a status read {d['status_read_s'] * 1e3:.1f} ms: from a hold's end to "
+            f"RUN {d['answer_s'] * 1e3:.1f} ms, {d['answer_s'] * pace:.2f} s of the rig's time; an experiment's "
+            f"polls and commands {d['overhead_s'] * 1e3:.1f} ms, {d['overhead_s'] * pace:.2f} s")
+
+
+def _hold(d: dict[str, Any]) -> str:
+    # Said as what it is: the gas held compressed (or expanded) is far hotter (colder) than
+    # during the experiment, and an operator who sees 15-25 °C on the trace afterwards must
+    # not read the hold's target as a unit or sensor fault.
+    squeeze, after = ("compressed", "drops") if d["compressed"] else ("expanded", "rises")
+    return (f"conditioning: holding at {d['position_mm']:.1f} mm (gas {squeeze} beyond the experiment's "
+            f"{d['experiment_mm']:.1f} mm) until the measured gas temperature reaches {d['target_c']:.2f} °C, the "
+            f"model's temperature from which the move on lands the gas in its periodic state (about "
+            f"{d['predicted_s']:.0f} s); it {after} when the move is made")
+
+
+def _hold_end(d: dict[str, Any]) -> str:
+    gas = "—" if d["gas_c"] is None else f"{d['gas_c']:.2f}"
+    return (f"conditioning: the gas was at {gas} °C (wanted {d['target_c']:.2f} °C) when the move on was "
+            f"commanded, after {d['held_s']:.1f} s at the hold (predicted {d['predicted_s']:.0f} s), "
+            f"{d['lead_s'] * 1e3:.0f} ms ahead of the crossing (the stroke's delay on the move there)")
+
+
+def _capture_window(d: dict[str, Any]) -> str:
+    text = f"capture window {d['window']} lost {d['lost']} samples"
+    if d["kept"]:
+        return text + f", as the line's steady loss predicts ({d['steady_loss']:.2%}): kept, the holes declared"
+    return text + ("; capturing again" if d["again"] else "")
+
+
+def _phase_plan(d: dict[str, Any]) -> str:
+    hold = f", a hold of {d['hold_s']:.0f} s" if d["hold_s"] else ""
+    return (f"predicted: {d['total_s']:.0f} s of rig time (settling {d['settle_cycles']} cycles, "
+            f"{d['settle_s']:.0f} s{hold}).")
+
+
+SAID_BY: dict[Kind, Callable[[dict[str, Any]], str]] = {
+    Kind.PACE_PROBE: _pace_probe, Kind.HOLD: _hold, Kind.HOLD_END: _hold_end, Kind.CAPTURE_WINDOW: _capture_window,
+    Kind.PHASE_PLAN: _phase_plan}
 
 
 def _fixed(x: float | None, decimals: int) -> str:
@@ -209,8 +259,10 @@ class ConsoleProgress:
             else:
                 self.console.print(f"session took {_min_s(took)} min:s of rig time; announced {_min_s(announced)}",
                                    highlight=False)
-        elif e.kind in (Kind.LOG, Kind.LINK, Kind.ALARM, Kind.EXPERIMENT_FAILED):
-            say(describe(e), "dim" if e.kind == Kind.LOG else "red")
+        elif e.kind in (Kind.LOG, Kind.PACE_PROBE, Kind.HOLD, Kind.HOLD_END, Kind.CAPTURE_WINDOW):
+            say(describe(e), "dim")
+        elif e.kind in (Kind.LINK, Kind.ALARM, Kind.EXPERIMENT_FAILED):
+            say(describe(e), "red")
 
 
 class ProgressBar:
@@ -225,17 +277,17 @@ class ProgressBar:
                         bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} s of rig time")
 
     def __call__(self, e: Event) -> None:
-        if e.kind == "phase" and e.experiment:
+        if e.kind == Kind.PHASE and e.experiment:
             extra = f" {e.data['cycles']} cycles" if "cycles" in e.data else ""
             self.bar.set_description(f"{e.experiment} {e.data['phase']}{extra}")
-        elif e.kind in ("experiment-done", "experiment-failed"):
+        elif e.kind in (Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED):
             self.bar.update(round(self.estimates.get(e.experiment or "", 0.0)))
-        elif e.kind == "prediction":    # the rest predicted again: the bar's end moves with it
+        elif e.kind == Kind.PREDICTION:    # the rest predicted again: the bar's end moves with it
             self.bar.total = self.bar.n + round(e.data["rig_time_left_s"])
             self.bar.refresh()
-        elif e.kind == "session-end":
+        elif e.kind == Kind.SESSION_END:
             self.bar.set_description(str(e.data.get("message", "ended")))
-            if e.data.get("message") == "complete":
+            if e.data.get("exit_status") == ExitStatus.COMPLETE:
                 self.bar.update(self.bar.total - self.bar.n)
             self.bar.close()
 

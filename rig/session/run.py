@@ -10,10 +10,11 @@
 ``tear down``  the safe stop (fade if running, STOP, hydraulics off), the session's
                status written as it is, the links closed.
 
-The session's states form a small table, in the spirit of Bluesky's RunEngine::
-
-    idle → prepared → connected → running → stopping → complete | ended | aborted | interrupted
-                                          ↘ panicked (the safe stop itself failed; the watchdog is the last guard)
+How a session ended is data, :class:`~rig.session.outcome.RunResult` (in the spirit of
+Bluesky's ``RunEngineResult``): an :class:`~rig.session.outcome.ExitStatus` (complete,
+ended, aborted, failed, interrupted), whether the plan was cut short, the reason and the
+exception, and the safe stop's failures (``panicked``: the watchdog is the last guard).
+The status sentence of session.json is rendered from them, and stored beside them.
 
 Exit status: 0 every experiment captured (or skipped by ``--on-alarm skip``);
 1 identification did not converge; 2 bad input, refused before anything moved or
@@ -41,26 +42,21 @@ import numpy as np
 from rich.console import Console
 
 from identify.dataset import Experiment
-from identify.exit_codes import (
-    EXIT_ABORTED,
-    EXIT_INTERNAL,
-    EXIT_INTERRUPTED,
-    EXIT_NOT_CONVERGED,
-    EXIT_OK,
-)
+from identify.exit_codes import EXIT_NOT_CONVERGED, EXIT_OK
 from identify.files import atomic_write_bytes
 from identify.model import DEFAULT_ESTIMATE
 from rig.config import RigConfig, load_rig_config
 from rig.drivers.daq import Calibration, Daq, DaqError, check_daq_address
 from rig.drivers.peer_identity import Peers
 from rig.drivers.peers import wrong_peer_or
-from rig.drivers.registers import RegisterMap, load_register_map
-from rig.drivers.shaker import AlarmError, Shaker, ShakerAddress, ShakerError, ShakerLinkError
+from rig.drivers.registers import ControllerState, RegisterMap, load_register_map
+from rig.drivers.shaker import AlarmError, MotionInterlock, Shaker, ShakerAddress, ShakerError, ShakerLinkError
 from rig.errors import RigError, RigFault
 from rig.events import Event, EventBus, Kind, LinkNotice, Subscriber
 from rig.planning.plans import ExperimentDuration, Plan, PlanError, check_plan, load_plan
 from rig.planning.prediction import LinkTiming, measured, predict, remember
 from rig.session.acquisition import Acquisition, ExperimentRecord, Interrupted
+from rig.session.outcome import ExitStatus, RunResult, stored_exit_status
 from rig.session.progress import ConsoleProgress, describe
 from rig.session.storage import Session, SessionError, SessionLog
 
@@ -139,20 +135,6 @@ class Links:
     peers: Peers | None = None               # who answered on both links (session.json, QC records)
 
 
-@dataclass
-class RunResult:
-    """How a session ended (the record of it is ``session.json``)."""
-
-    status: str                              # complete, ended: …, aborted: …, interrupted (…)
-    exit_code: int
-    session: Session
-    captured: list[Experiment] = field(default_factory=list)
-    skipped: list[str] = field(default_factory=list)
-    safe_stop_failures: list[str] = field(default_factory=list)
-    error: BaseException | None = None       # a bug, re-raised by the caller after the record is written
-    decided: str | None = None               # why the session ended before its plan did (SessionRunner.decide)
-
-
 # ----- prepare: check everything, write nothing ----------------------------------------------------
 def prepare(opt: RunOptions) -> Prepared:
     config = load_rig_config(opt.rig_config)
@@ -161,7 +143,7 @@ def prepare(opt: RunOptions) -> Prepared:
     stored = None
     if opt.resume:
         stored = Session.load(opt.out)
-        if stored.meta.get("status") == "complete":
+        if stored_exit_status(stored.meta) is ExitStatus.COMPLETE:
             raise SessionError(f"{opt.out}: the session is complete; nothing to resume")
         meta = stored.meta
         if "identify" in meta and not opt.identify:   # asked for when the session began
@@ -206,17 +188,21 @@ def _check_identification(opt: RunOptions) -> None:
 
 
 # ----- connect: both links, and the controller's state ------------------------------------------------
-def connect(prep: Prepared, on_event: Callable[[LinkNotice], object]) -> Links:
-    """Open both links for a prepared session.  The caller closes them (:func:`close_links`)."""
+def connect(prep: Prepared, on_event: Callable[[LinkNotice], object],
+            interlock: MotionInterlock | None = None) -> Links:
+    """Open both links for a prepared session.  The caller closes them (:func:`close_links`).
+    ``interlock`` (an E-STOP's latch) vetoes every motion command from the first one on."""
     return open_links(prep.shaker_url, prep.daq_url, prep.config, prep.calibration, prep.register_map,
-                      reset_alarm=prep.options.reset_alarm, on_event=on_event)
+                      reset_alarm=prep.options.reset_alarm, on_event=on_event, interlock=interlock)
 
 
 def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Calibration,
-               register_map: RegisterMap, *, reset_alarm: bool, on_event: Callable[[LinkNotice], object]) -> Links:
+               register_map: RegisterMap, *, reset_alarm: bool, on_event: Callable[[LinkNotice], object],
+               interlock: MotionInterlock | None = None) -> Links:
     """Open the controller and the DAQ and read the controller's state; a latched alarm
     is refused unless ``reset_alarm``.  On any failure both links are closed again."""
-    shaker = Shaker(shaker_url, config.limits, register_map, reconnect_s=config.reconnect_s, on_event=on_event)
+    shaker = Shaker(shaker_url, config.limits, register_map, reconnect_s=config.reconnect_s, on_event=on_event,
+                    interlock=interlock)
     daq = Daq(daq_url, calibration, rate_hz=config.daq_rate_hz, reconnect_s=config.reconnect_s, on_event=on_event)
     links = Links(shaker, daq, "", None)
     try:
@@ -225,7 +211,7 @@ def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Ca
         links.peers = Peers(shaker.identify(), links.identity)
         status = shaker.status()
         links.start_position_m = status.position_m
-        if status.state == "ALARM":
+        if status.state is ControllerState.ALARM:
             if not reset_alarm:
                 raise AlarmLatched(
                     f"the controller at {shaker_url} holds a latched alarm: {status.alarm} (stroke "
@@ -233,7 +219,7 @@ def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Ca
                     f"'python -m rig stop --reset --shaker {shaker_url}' or run again with --reset-alarm")
             links.latched_alarm = status.alarm
             shaker.reset_alarm()
-            if shaker.status().state == "ALARM":
+            if shaker.status().state is ControllerState.ALARM:
                 raise AlarmLatched(f"the controller at {shaker_url} still holds the alarm {status.alarm} "
                                    "after a reset: the cause is still there")
     except (ShakerLinkError, DaqError) as exc:
@@ -287,16 +273,14 @@ class SessionRunner:
     """Runs a prepared plan on connected links; :meth:`run` always ends in the safe stop
     and an honest status."""
 
-    def __init__(self, prep: Prepared, links: Links, bus: EventBus, console: Console) -> None:
-        self.prep, self.links, self.bus, self.console = prep, links, bus, console
-        self.state = "connected"
+    def __init__(self, prep: Prepared, links: Links, bus: EventBus) -> None:
+        self.prep, self.links, self.bus = prep, links, bus
         self.pace: float | None = None     # rig seconds per second of the links (probe_pace)
         self._durations: list[ExperimentDuration] | None = None   # the plan's prediction (durations)
         self._timing: LinkTiming | None = None                     # the links', measured (timing)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="session-writer")
         self._writing: tuple[str, Future[None]] | None = None
         self.stop_reason: str | None = None   # the first request_stop's reason
-        self.signals: list[int] = []       # SIGINT, SIGTERM, SIGHUP received while the session ran
         # One time line for the rig: the acquisition waits on the shaker's clock (the wall
         # clock, or a simulated one when a test drives an in-process simulator).
         self.acquisition = Acquisition(links.shaker, links.daq, prep.config, bus, links.shaker.clock)
@@ -304,12 +288,6 @@ class SessionRunner:
         # end the session there (qc run: every characteristic is decided), or None; it
         # may publish a re-prediction of the rest (Kind.PREDICTION) on the runner's bus.
         self.decide: Callable[[RunResult], str | None] | None = None
-
-    def open_session(self) -> Session:
-        """The session folder, with the DAQ's journal attached (see :meth:`create_session`)."""
-        session = self.create_session()
-        self.links.daq.attach_journal(session.journal_path)
-        return session
 
     def create_session(self) -> Session:
         """The new session's folder (its ``session.json`` says ``running``), or the stored
@@ -364,6 +342,16 @@ class SessionRunner:
         """Rig time per experiment still to do, by label (see :meth:`durations`)."""
         return {session.label(d.letter): d.total_s for d in self.durations(session, start_position_m)}
 
+    def announce_prediction(self, session: Session) -> None:
+        """The predicted rig time of each experiment, phase by phase, into the session's
+        events (session.log: what :func:`rig.session.timing.log_times` compares with the
+        rig time each phase took)."""
+        for d in self.durations(session, self.links.start_position_m):
+            self.bus.publish(Kind.PHASE_PLAN, session.label(d.letter), move_s=d.move_s,
+                             hold_s=d.hold.duration_s if d.hold else 0.0, lead_in_s=d.lead_in_s,
+                             settle_cycles=d.settle_cycles, settle_s=d.settle_s, capture_s=d.capture_s,
+                             fade_s=d.fade_s, links_s=d.links_s, total_s=d.total_s)
+
     def probe_pace(self) -> float:
         """The links' rig seconds per second (measured once, with the session's log on)."""
         if self.pace is None:
@@ -380,92 +368,96 @@ class SessionRunner:
         self.acquisition.stop_requested.set()
 
     def run(self, session: Session) -> RunResult:
-        prep, bus, acq = self.prep, self.bus, self.acquisition
-        todo = [e for e in prep.plan.experiments if e.letter not in session.completed()]
-        result = RunResult("running", EXIT_OK, session)
+        """Every experiment still to do, then the safe stop and the record, whatever ends it."""
+        todo = [e for e in self.prep.plan.experiments if e.letter not in session.completed()]
+        result = RunResult(session, planned=len(todo))
+        try:
+            self._announce(session, todo)
+            with _interrupt_on_signals(self):
+                self._capture(session, todo, result)
+                self._stop_safely(result)
+        finally:
+            self._record(session, result)
+        return result
+
+    def _announce(self, session: Session, todo: list[Any]) -> None:
+        prep, bus = self.prep, self.bus
         bus.publish(Kind.SESSION_START, shaker=prep.shaker_url, daq=prep.daq_url, identity=self.links.identity)
         if self.links.latched_alarm:
             bus.publish(Kind.LOG, message=f"alarm latched before the session: {self.links.latched_alarm}; "
-                                       "cleared by --reset-alarm")
+                                          "cleared by --reset-alarm")
         if prep.stored is not None:
             kept = sorted(session.completed())
             plural = "s" if len(kept) != 1 else ""
             bus.publish(Kind.LOG, message=f"resuming: {len(kept)} experiment{plural} kept as captured "
-                                       f"({', '.join(kept) or 'none'}), {len(todo)} to do")
-        self.state = "running"
-        reason = "end of session"
+                                          f"({', '.join(kept) or 'none'}), {len(todo)} to do")
+
+    def _capture(self, session: Session, todo: list[Any], result: RunResult) -> None:
+        """Every experiment; what ended the capture goes into ``result`` (nothing escapes:
+        the safe stop comes next in any case)."""
+        try:
+            self._experiments(session, todo, result)
+        except Interrupted:
+            result.end(ExitStatus.INTERRUPTED, self.stop_reason or "SIGINT")
+        except RigError as exc:
+            self.bus.publish(Kind.LOG, message=f"aborting: {exc}")
+            result.end(ExitStatus.ABORTED, str(exc), exc)
+        except BaseException as exc:  # a bug: the rig is stopped all the same, then it is shown
+            self.bus.publish(Kind.LOG, message=f"aborting on an internal error: {type(exc).__name__}: {exc}")
+            result.end(ExitStatus.FAILED, f"internal error: {type(exc).__name__}: {exc}", exc)
+        else:
+            if result.decided:
+                result.end(ExitStatus.ENDED, result.decided)
+            elif result.skipped:
+                result.end(ExitStatus.ENDED, f"skipped after alarms: {', '.join(result.skipped)}")
+            else:
+                result.end(ExitStatus.COMPLETE)
+
+    def _experiments(self, session: Session, todo: list[Any], result: RunResult) -> None:
         planned = {d.letter: d for d in self.durations(session, self.links.start_position_m)}
         previous = ""
-        try:
-            with _interrupt_on_signals(acq.stop_requested, self.signals) as received:
-                try:
-                    for k, spec in enumerate(todo):
-                        # A hold is planned from the periodic state the experiment before
-                        # leaves: after one skipped on an alarm, the gas is elsewhere.
-                        after_skip = bool(result.skipped) and result.skipped[-1] == previous
-                        self._experiment(spec, session, result, planned[spec.letter], after_skip)
-                        previous = session.label(spec.letter)
-                        if self.decide is not None and k < len(todo) - 1:
-                            self._written(result)
-                            result.decided = self.decide(result)
-                            if result.decided:
-                                reason = result.decided
-                                bus.publish("log", message=f"ending the session before its plan: {reason}")
-                                break
-                    # The last experiment's data are waited for after the safe stop: the rig
-                    # is at rest, hydraulics off, while they are written (at 10x, the
-                    # seconds a CSV takes were tens of seconds of the rig's time, with the
-                    # hydraulics on and not in any prediction).
-                except Interrupted:
-                    name = signal.Signals(received[-1]).name if received else "SIGINT"
-                    reason = f"interrupted by the operator ({name})"
-                    result.status, result.exit_code = f"interrupted ({name})", EXIT_INTERRUPTED
-                except RigError as exc:
-                    reason = str(exc)
-                    bus.publish(Kind.LOG, message=f"aborting: {exc}")
-                    result.status, result.exit_code = f"aborted: {exc}", EXIT_ABORTED
-                except BaseException as exc:  # a bug: the rig is stopped all the same, then it is shown
-                    reason = f"internal error: {type(exc).__name__}: {exc}"
-                    bus.publish(Kind.LOG, message=f"aborting on an internal error: {type(exc).__name__}: {exc}")
-                    result.status, result.exit_code, result.error = f"aborted: {reason}", EXIT_INTERNAL, exc
+        for k, spec in enumerate(todo):
+            # A hold is planned from the periodic state the experiment before leaves:
+            # after one skipped on an alarm, the gas is elsewhere.
+            after_skip = bool(result.skipped) and result.skipped[-1] == previous
+            self._experiment(spec, session, result, planned[spec.letter], after_skip)
+            previous = session.label(spec.letter)
+            if self.decide is not None and k < len(todo) - 1:
+                self._written(result)
+                result.decided = self.decide(result)
+                if result.decided:
+                    self.bus.publish(Kind.LOG, message=f"ending the session before its plan: {result.decided}")
+                    break
+        # The last experiment's data are waited for after the safe stop: the rig is at
+        # rest, hydraulics off, while they are written (at 10x, the seconds a CSV takes
+        # were tens of seconds of the rig's time, with the hydraulics on and not in any
+        # prediction).
+
+    def _stop_safely(self, result: RunResult) -> None:
+        """The safe stop, then the experiment still being written (if any) waited for."""
+        result.safe_stop_failures = self.acquisition.safe_stop(_safe_stop_reason(result))
+        if self._writing is not None:     # an experiment captured before the session ended
+            label = self._writing[0]
+            try:
+                self._written(result)
+            except Exception as exc:  # noqa: BLE001 — the status says what was lost
+                if result.exit_code == EXIT_OK and isinstance(exc, RigError):   # not on disk
+                    self.bus.publish(Kind.LOG, message=f"aborting: {exc}")
+                    result.end(ExitStatus.ABORTED, str(exc), exc)
+                elif result.exit_code == EXIT_OK:   # a bug in the writer: shown by the caller
+                    result.end(ExitStatus.FAILED, f"internal error: {type(exc).__name__}: {exc}", exc)
                 else:
-                    if result.decided:
-                        result.status = (f"ended: {len(result.captured)} of {len(todo)} experiments captured, "
-                                         f"{result.decided}")
-                    elif result.skipped:
-                        result.status = (f"ended: {len(todo) - len(result.skipped)} of {len(todo)} experiments "
-                                         f"captured, skipped after alarms: {', '.join(result.skipped)}")
-                    else:
-                        result.status = "complete"
-                self.state = "stopping"
-                result.safe_stop_failures = acq.safe_stop(reason)
-                if self._writing is not None:     # an experiment captured before the session ended
-                    label = self._writing[0]
-                    try:
-                        self._written(result)
-                    except Exception as exc:  # noqa: BLE001 — the status says what was lost
-                        if result.exit_code == EXIT_OK and isinstance(exc, RigError):   # not on disk
-                            bus.publish(Kind.LOG, message=f"aborting: {exc}")
-                            result.status, result.exit_code = f"aborted: {exc}", EXIT_ABORTED
-                        elif result.exit_code == EXIT_OK:   # a bug in the writer: shown by the caller
-                            reason = f"internal error: {type(exc).__name__}: {exc}"
-                            result.status, result.exit_code, result.error = f"aborted: {reason}", EXIT_INTERNAL, exc
-                        else:
-                            result.status += f"; {label} was captured but could not be written ({exc})"
-        finally:
-            if result.status == "running":  # only a failure inside the safe stop itself gets here
-                result.status, result.exit_code = "aborted: the safe stop failed", EXIT_INTERNAL
-            if result.safe_stop_failures:
-                self.state = "panicked"
-                if result.status == "complete":
-                    result.status, result.exit_code = "aborted: the safe stop at the end failed", EXIT_ABORTED
-                result.status += ("; safe stop incomplete (" + "; ".join(result.safe_stop_failures)
-                                  + "): the controller's watchdog stops the shaker once this program has let go")
-            else:
-                self.state = result.status.split(":")[0].split(" ")[0]
-            session.finish(result.status)
-            bus.publish(Kind.SESSION_END, message=result.status, exit_code=result.exit_code)
-        return result
+                    result.unwritten = f"{label} was captured but could not be written ({exc})"
+
+    def _record(self, session: Session, result: RunResult) -> None:
+        """The outcome on record (session.json) and announced (``session-end``)."""
+        if result.exit_status is ExitStatus.RUNNING:   # the announcement or the safe stop itself raised
+            result.end(ExitStatus.FAILED, "the safe stop failed")
+        if result.panicked and result.exit_status is ExitStatus.COMPLETE:
+            result.end(ExitStatus.ABORTED, "the safe stop at the end failed")
+        session.finish(result.status, result.to_json())
+        self.bus.publish(Kind.SESSION_END, message=result.status, exit_code=result.exit_code,
+                         exit_status=result.exit_status.value)
 
     def _experiment(self, spec: Any, session: Session, result: RunResult, planned: ExperimentDuration,
                     after_skip: bool) -> None:
@@ -515,22 +507,30 @@ class SessionRunner:
             self._writing = None
 
 
+def _safe_stop_reason(result: RunResult) -> str:
+    """What the safe stop's log line says it was for."""
+    if result.exit_status is ExitStatus.INTERRUPTED:
+        return f"interrupted by the operator ({result.reason})"
+    if result.exit_status in (ExitStatus.ABORTED, ExitStatus.FAILED) or result.decided:
+        return result.reason
+    return "end of session"
+
+
 @contextmanager
-def _interrupt_on_signals(stop: threading.Event, received: list[int]) -> Iterator[list[int]]:
-    """SIGINT, SIGTERM and SIGHUP ask the acquisition to stop (it then takes the safe
-    stop); the signals received are appended to ``received``.  Outside the main thread
-    (a GUI's worker) the owner of the thread sets ``stop`` itself."""
+def _interrupt_on_signals(runner: SessionRunner) -> Iterator[None]:
+    """SIGINT, SIGTERM and SIGHUP are :meth:`SessionRunner.request_stop` with the
+    signal's name.  Outside the main thread (a GUI's worker) the owner of the thread
+    asks for the stop itself."""
     if threading.current_thread() is not threading.main_thread():
-        yield received
+        yield
         return
 
     def handler(signum: int, _frame: Any) -> None:
-        received.append(signum)
-        stop.set()
+        runner.request_stop(signal.Signals(signum).name)
 
     previous = {s: signal.signal(s, handler) for s in INTERRUPTING_SIGNALS}
     try:
-        yield received
+        yield
     finally:
         for s, h in previous.items():
             signal.signal(s, h)
@@ -620,7 +620,8 @@ class SessionContext:
         return self.runner.acquisition.current_pace
 
 
-def run_lifecycle(prep: Prepared, console: Console, *, links: Links | None = None, bus: EventBus | None = None,
+def run_lifecycle(prep: Prepared, console: Console | None = None, *, links: Links | None = None,
+                  bus: EventBus | None = None, interlock: MotionInterlock | None = None,
                   subscribers: Sequence[Subscriber] = (),
                   attach: Callable[[SessionContext], Sequence[Subscriber]] | None = None,
                   on_runner: Callable[[SessionRunner | None], object] | None = None) -> RunResult:
@@ -632,6 +633,10 @@ def run_lifecycle(prep: Prepared, console: Console, *, links: Links | None = Non
     caller's ``attach`` subscribers, built from them → every experiment → the safe stop
     → the honest status → the links (if opened here), the bus (if made here) and the
     log closed.
+
+    ``interlock`` (an E-STOP's latch) vetoes the session's motion commands from the first
+    one on.  ``console``: where a failure to close something at the end is said (the
+    logging module's ``rig.session.run`` logger without one).
 
     ``subscribers`` get every event from the first (queued: the acquisition never waits
     on them); ``on_runner`` is told the runner once it exists and None once it is gone
@@ -650,21 +655,24 @@ def run_lifecycle(prep: Prepared, console: Console, *, links: Links | None = Non
     moved = False
     try:
         if links is None:
-            links = connect(prep, on_event=bus.publish_link)
+            links = connect(prep, on_event=bus.publish_link, interlock=interlock)
         else:
             # Links held across sessions (a script's rig): the actuator may have moved since they connected.
             links.start_position_m = links.shaker.status().position_m
+            if interlock is not None:
+                links.shaker.interlock = interlock
         prep = _ordered(prep, bus)
-        runner = SessionRunner(prep, links, bus, console)
+        runner = SessionRunner(prep, links, bus)
         if on_runner is not None:
             on_runner(runner)
         session = runner.create_session()      # from here on, session.json says how the session ended
-        with _interrupt_on_signals(runner.acquisition.stop_requested, runner.signals):
+        with _interrupt_on_signals(runner):
             try:
                 links.daq.attach_journal(session.journal_path)
                 log = SessionLog(session.path / "session.log")
                 bus.subscribe(log, inline=True)
                 estimates = runner.estimates_s(session, links.start_position_m)   # the pace probe, then durations
+                runner.announce_prediction(session)
                 # On record, so that the estimate can be checked against what the session took.
                 session.meta["estimated_rig_time_s"] = round(sum(estimates.values()), 1)
                 for fn in attach(SessionContext(runner, session, estimates, runner.pace or 1.0)) if attach else ():
@@ -676,7 +684,7 @@ def run_lifecycle(prep: Prepared, console: Console, *, links: Links | None = Non
     finally:
         if on_runner is not None:
             on_runner(None)
-        _teardown(runner, links, own_links, bus if own_bus else None, log, disarm=not moved)
+        _teardown(runner, links, own_links, bus if own_bus else None, log, disarm=not moved, console=console)
 
 
 def _ordered(prep: Prepared, bus: EventBus) -> Prepared:
@@ -705,26 +713,24 @@ def _ordered(prep: Prepared, bus: EventBus) -> Prepared:
 
 
 def _ended_before_motion(runner: SessionRunner, session: Session, exc: BaseException) -> RunResult:
-    """The status of a session that failed between its folder and its first command
+    """The outcome of a session that failed between its folder and its first command
     (journal, log, pace probe, durations): the rig was not moved, so no safe stop."""
-    result = RunResult("running", EXIT_ABORTED, session)
+    result = RunResult(session, before_motion=True)
     if isinstance(exc, (Interrupted, KeyboardInterrupt)):
-        name = signal.Signals(runner.signals[-1]).name if runner.signals else "SIGINT"
-        result.status, result.exit_code = f"interrupted ({name}) before anything moved", EXIT_INTERRUPTED
+        result.end(ExitStatus.INTERRUPTED, runner.stop_reason or "SIGINT")
     elif isinstance(exc, RigError):
-        result.status = f"aborted: {exc} (before anything moved)"
+        result.end(ExitStatus.ABORTED, str(exc), exc)
     else:
-        reason = f"internal error: {type(exc).__name__}: {exc}"
-        result.status, result.exit_code, result.error = f"aborted: {reason} (before anything moved)", EXIT_INTERNAL, exc
-    runner.state = result.status.split(":")[0].split(" ")[0]
+        result.end(ExitStatus.FAILED, f"internal error: {type(exc).__name__}: {exc}", exc)
     runner.bus.publish(Kind.LOG, message=f"session {result.status}")
-    session.finish(result.status)
-    runner.bus.publish(Kind.SESSION_END, message=result.status, exit_code=result.exit_code)
+    session.finish(result.status, result.to_json())
+    runner.bus.publish(Kind.SESSION_END, message=result.status, exit_code=result.exit_code,
+                       exit_status=result.exit_status.value)
     return result
 
 
 def _teardown(runner: SessionRunner | None, links: Links | None, own_links: bool, bus: EventBus | None,
-              log: SessionLog | None, *, disarm: bool) -> None:
+              log: SessionLog | None, *, disarm: bool, console: Console | None) -> None:
     """The writer's thread, then the links (their threads publish to the log; a caller's
     links are kept open, their stream stopped and the session's journal let go), then
     the bus, then the log.  A failure here is said but changes nothing of the record
@@ -744,7 +750,10 @@ def _teardown(runner: SessionRunner | None, links: Links | None, own_links: bool
         try:
             close()
         except Exception as exc:  # noqa: BLE001 — the session's status is on record already
-            logging.getLogger(__name__).error("closing the %s failed: %s", what, exc)
+            if console is not None:
+                console.print(f"[yellow]closing the {what} failed:[/yellow] {exc}", highlight=False)
+            else:
+                logging.getLogger(__name__).error("closing the %s failed: %s", what, exc)
 
 
 def resume_command(session: Session, opt: RunOptions) -> str:

@@ -125,6 +125,7 @@ class Session:
         """Mark a loaded session as running again (the resume is on record, with who
         answered on the links this time)."""
         self.meta["status"] = "running"
+        self.meta.pop("outcome", None)     # the last run's; this run writes its own
         if peers:
             self.meta.setdefault("peers", []).append(peers)
             if _mark_simulated(self.manifest, peers):
@@ -170,8 +171,12 @@ class Session:
         exp.data = pd.read_csv(io.BytesIO(payload))
         return exp
 
-    def finish(self, status: str) -> None:
+    def finish(self, status: str, outcome: dict[str, Any] | None = None) -> None:
+        """How the session ended: the sentence people read (``status``) and, beside it,
+        the outcome as data (``outcome``: :meth:`rig.session.outcome.RunResult.to_json`)."""
         self.meta["status"] = status
+        if outcome is not None:
+            self.meta["outcome"] = outcome
         self.meta["finished"] = _dt.datetime.now().isoformat(timespec="seconds")
         self._save_meta()
 
