@@ -134,7 +134,7 @@ class Outbox:
 
     def __init__(self, folder: Path, records: Records, station: str | None, console: Console) -> None:
         self.queue, self.records, self.station, self.console = RecordQueue(folder), records, station, console
-        self.queued_because: str | None = None
+        self.queued_because: str | None = None     # why the last record is queued, not in the database
         self._run: Run | None = None
 
     @classmethod
@@ -173,10 +173,8 @@ class Outbox:
         try:
             self.records.add(record)
         except RecordsError as exc:
-            self.queued_because = _why(exc)
             what = "database unreachable" if isinstance(exc, Unreachable) else "the database refused it"
-            print(f"record queued ({what}: {self.queued_because}); python -m rig qc sync --out "
-                  f"{self.queue.root.parent} sends it")
+            self.queued_because = f"{what}: {_why(exc)}"
             return
         self.queued_because = None
         self.queue.mark_sent(path)
@@ -244,6 +242,10 @@ class Outbox:
         return found
 
     def close(self) -> None:
+        """The run's end: said last, under the verdict's summary, if its record is queued."""
+        if self.queued_because is not None:
+            print(f"record queued ({self.queued_because}); python -m rig qc sync --out {self.queue.root.parent} "
+                  "sends it")
         try:
             if self._run is not None:
                 self._run.end()
