@@ -115,6 +115,7 @@ class StationLoop:
     units: int
     spec: str
     extra: tuple[str, ...] = ()
+    progress: bool = False           # a line per unit on stderr (benchmarks)
     exits: list[int] = field(default_factory=list)
     wall_s: list[float] = field(default_factory=list)
     errors: list[str] = field(default_factory=list)
@@ -133,6 +134,9 @@ class StationLoop:
             self.exits.append(r.returncode)
             if r.returncode not in (0, 1, 4):
                 self.errors.append(f"{self.serial(i)}: exit {r.returncode}: {r.stderr[-1500:]}")
+            if self.progress:
+                print(f"  {self.serial(i)}: exit {r.returncode}, {self.wall_s[-1]:.0f} s wall", file=sys.stderr,
+                      flush=True)
 
 
 def run_stations(loops: list[StationLoop]) -> None:

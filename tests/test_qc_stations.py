@@ -15,6 +15,7 @@ server:
 
 from __future__ import annotations
 
+import io
 import json
 import os
 import signal
@@ -24,8 +25,11 @@ import time
 from pathlib import Path
 
 import pytest
+from rich.console import Console
 
-from rig.qc.records import Records
+from rig.qc.queue import Outbox, RecordQueue
+from rig.qc.records import QcRecord, Records
+from rig.qc.spec import load_spec
 from tests.pgserver import pg_server  # noqa: F401 — the fixture
 from tests.stations import Lines, StationLoop, make_station, read_controller, run_stations, wait_controller
 from tests.test_qc_run import qc_cmd, short_spec
@@ -45,6 +49,31 @@ def history_json(out: Path, *args: str, env: dict[str, str] | None = None) -> li
     r = rig_qc("history", "--out", str(out), "--json", "--all", *args, env=env)
     assert r.returncode == 0, r.stderr
     return json.loads(r.stdout)
+
+
+def test_a_record_reads_back_from_the_station_journal_as_it_was_written(tmp_path):
+    from tests.test_qc_records import record
+
+    written = record("SN-0001", "journal-1")
+    path = RecordQueue(tmp_path).put(written)
+    assert path.parent.name == "pending" and not list(path.parent.glob(".*"))   # no temporary left
+    assert QcRecord.from_journal(json.loads(path.read_text())) == written
+
+
+def test_only_a_run_whose_process_is_gone_is_taken_for_abandoned(tmp_path):
+    console = Console(file=io.StringIO(), soft_wrap=True)
+    identity = {"serial": "SN-0001", "operator": "op", "rig": "r", "started": "2026-11-26T10:00:00+00:00"}
+    alive = Outbox.open(tmp_path, None, console)
+    alive.begin(tmp_path / "SN-0001-x", load_spec("default"), identity)
+    other = Outbox.open(tmp_path, None, console)       # a second process of the station: the run is locked
+    assert other.recover() == [] and len(list(alive.queue.running_dir.glob("*.json"))) == 1
+    assert alive._run is not None
+    alive._run._handle.close()                          # as the kernel does when its process dies
+    assert other.recover() == []                        # its session never began: nothing to record …
+    assert not list(alive.queue.running_dir.glob("*.json"))   # … and it is not found again
+    assert "ended before its session began" in console.file.getvalue()
+    other.close()
+    alive.records.close()
 
 
 def test_a_url_with_a_password_is_refused_in_one_line_that_says_what_to_do(tmp_path):
