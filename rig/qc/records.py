@@ -261,20 +261,20 @@ def parse_url(url: str) -> URL:
     except ArgumentError:
         raise RecordsError(f"--db {_mask_raw(url)}: not a database URL (sqlite:///FILE or "
                            "postgresql://USER@HOST:PORT/DB)") from None
+    backend = parsed.get_backend_name()
+    if backend not in ("sqlite", "postgresql", "postgres"):
+        raise RecordsError(f"--db {safe_url(parsed)}: unsupported database {backend!r} (sqlite or postgresql)")
     if parsed.password is not None or "password" in parsed.query:
         raise RecordsError(f"--db {safe_url(parsed)}: a URL must not carry the password (every user of the "
                            f"machine reads it in the process list); {PASSWORD_ADVICE}")
-    backend = parsed.get_backend_name()
     if backend == "sqlite":
         if not parsed.database or parsed.database == ":memory:":
             raise RecordsError(f"--db {safe_url(parsed)}: an SQLite URL needs a file (sqlite:///FILE)")
         return parsed.set(drivername="sqlite")
-    if backend in ("postgresql", "postgres"):
-        if not parsed.database and "service" not in parsed.query:
-            raise RecordsError(f"--db {safe_url(parsed)}: a PostgreSQL URL needs a database name (…/DB) "
-                               "or a service (?service=NAME)")
-        return parsed.set(drivername="postgresql+psycopg")
-    raise RecordsError(f"--db {safe_url(parsed)}: unsupported database {backend!r} (sqlite or postgresql)")
+    if not parsed.database and "service" not in parsed.query:
+        raise RecordsError(f"--db {safe_url(parsed)}: a PostgreSQL URL needs a database name (…/DB) "
+                           "or a service (?service=NAME)")
+    return parsed.set(drivername="postgresql+psycopg")
 
 
 def safe_url(url: URL | str) -> str:
