@@ -15,7 +15,12 @@
    for the interpreter lock (whose holder, a worker thread, may itself be waiting for a
    CPU on a loaded machine).
 
-    python benchmarks/bench_gui.py [--seconds 10]
+3. ``--qc``: the same probe while the console tests a unit (QC through the session
+   lifecycle, 20x, a worn-orifice unit): its identification and judging run in the
+   console's process, on the session's thread, as ``rig qc run`` runs them; the delays
+   during the session and during the judging after it are printed apart.
+
+    python benchmarks/bench_gui.py [--seconds 10] [--qc]
 
 The last line reads ``render: N fps, event-loop p99 M ms``.
 """
@@ -150,7 +155,8 @@ def run_queue_s() -> float:
 def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.ndarray, float, float]:
     from identify.plans import STANDARD_SET
     from rig.events import Message
-    from rig.gui.station import FitDone, IdentifySettings
+    from rig.gui.fitting import IdentifySettings
+    from rig.gui.messages import FitDone
     from simulator.generate import generate
     from simulator.truth import load_truth
 
@@ -171,14 +177,14 @@ def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.n
             # The load is the fit running, one after the other; showing each result (once, at
             # the end of a real fit) is not part of it.
             fits["done"] += 1
-            window.station.refit(dataset, IdentifySettings())
+            window.station.fits.refit(dataset, IdentifySettings())
             return
         original(item)
     window._handle = handle  # type: ignore[method-assign]
     window.plan.identify.setChecked(False)
     window.run_plan()
     if fit:
-        window.station.refit(dataset, IdentifySettings())
+        window.station.fits.refit(dataset, IdentifySettings())
     late: list[float] = []
     waited: list[float] = []                 # run-queue time of the GUI thread within each delay
     period_ms = 10
@@ -204,8 +210,8 @@ def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.n
 
     def check_done() -> None:
         checks["all"] += 1
-        checks["fitting"] += window.station.fitting
-        if not window.station.session_running and window.plan.progress and time.monotonic() - t0 > seconds_min:
+        checks["fitting"] += window.station.fits.busy
+        if not window.station.sessions.running and window.plan.progress and time.monotonic() - t0 > seconds_min:
             loop.quit()
     check.timeout.connect(check_done)
     check.start(100)
@@ -223,13 +229,73 @@ def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.n
     return np.array(late) * 1e3, np.array(waited) * 1e3, fitting, wall
 
 
+def qc_latency() -> None:
+    """The 10 ms probe while the console tests a unit: during its session, and during
+    the identification and judging that follow it in the console's process."""
+    from rig.events import Event, Kind, Message
+    from rig.gui.qc import QcDone
+
+    window = MainWindow.from_args(["--simulate", "--speed", "20", "--unit", "worn-orifice", "--out",
+                                   tempfile.mkdtemp()])
+    window.show()
+    app = application()
+    while window.status is None:
+        app.processEvents()
+        time.sleep(0.01)
+    phase = {"now": "session"}
+    late: dict[str, list[float]] = {"session": [], "judging": []}
+    original = window._handle
+    loop = QtCore.QEventLoop()
+
+    def handle(item: Message) -> None:
+        original(item)
+        if isinstance(item, Event) and item.kind == Kind.SESSION_END:
+            phase["now"] = "judging"
+        elif isinstance(item, QcDone):
+            phase["now"] = "done"
+            loop.quit()
+    window._handle = handle  # type: ignore[method-assign]
+    probe = QtCore.QTimer()
+    probe.setSingleShot(True)
+    probe.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
+    due = [time.monotonic() + 0.01]
+
+    def tick() -> None:
+        now = time.monotonic()
+        if phase["now"] in late:
+            late[phase["now"]].append((now - due[0]) * 1e3)
+        due[0] = now + 0.01
+        probe.start(10)
+    probe.timeout.connect(tick)
+    window.qc.serial.setText("SN-0042")
+    window.qc.test_button.click()
+    probe.start(10)
+    t0 = time.monotonic()
+    loop.exec()
+    probe.stop()
+    print(f"QC test in the console at 20x ({window.qc.last.shown if window.qc.last else '?'}, "
+          f"{time.monotonic() - t0:.1f} s):")
+    for name, values in late.items():
+        if values:
+            p50, p99, worst = np.percentile(values, [50, 99, 100])
+            print(f"  event loop during the {name} ({len(values)} samples): late by p50 {p50:.1f} ms, "
+                  f"p99 {p99:.1f} ms, max {worst:.1f} ms")
+    window.close()
+    while window.isVisible():
+        app.processEvents(QtCore.QEventLoop.ProcessEventsFlag.WaitForMoreEvents, 50)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--no-fit", action="store_true", help="the session alone (to tell what costs the latency)")
     parser.add_argument("--latency-only", action="store_true")
+    parser.add_argument("--qc", action="store_true", help="only the event loop's delays during a QC test")
     args = parser.parse_args()
     application()
+    if args.qc:
+        qc_latency()
+        return 0
     fps, cpu = render_rate(args.seconds)[:2] if not args.latency_only else (float("nan"), float("nan"))
     print(f"render: {fps:.1f} redraws/s of 4 x 10 s at 2 kHz + loops; GUI process CPU {100 * cpu:.0f} % of one core")
     if not args.latency_only:

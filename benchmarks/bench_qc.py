@@ -18,7 +18,7 @@ Printed:
     0 false rejects, 0 false accepts; a unit on a limit never PASS).
 
   * with ``--served``: every unit (``--units`` good and ``--units`` faulty ones) tested as
-    a station does it: ``python -m rig qc run`` with the default spec against its own
+    a station does it: ``python -m rig qc run`` with the spec (``--spec``) against its own
     ``python -m simulator serve --unit KIND --speed 10`` over Modbus TCP and the DAQ's
     socket, with the run's early stop when decided: the rig-time distribution (from the
     simulator's log: first hydraulics on to last off) and the decision table (exit status
@@ -56,6 +56,7 @@ from tests.virtual_rig_inprocess import DAQ_URL, SHAKER_URL, InProcessRig  # noq
 
 FAULT_OF = {"gas-leak": "gas_precharge_bar", "worn-seal": "friction_10bar_N", "worn-orifice": "damping_force_0.3_N"}
 PHYSICAL = set(FAULT_OF.values())
+SPEC = "default"  # --spec: the QC spec whose plan runs (forked workers inherit it)
 
 
 def rig_session(spec, out: Path, truth: Damper | None = None, seed: int = 0) -> tuple[float, str]:
@@ -80,7 +81,7 @@ def limit_units() -> dict[str, Damper]:
     gas pre-charge through the gas amount θ5 and its heat capacity θ15, the damping
     through θ3, the friction at 10 bar through θ8)."""
     base = load_truth().theta
-    spec = load_spec("default")
+    spec = load_spec(SPEC)
     out = {}
     for c in spec.characteristics:
         for side, limit in (("low", c.low), ("high", c.high)):
@@ -104,7 +105,7 @@ def judged_session(job: tuple[str, int, Damper | None]) -> tuple[str, int, float
     """One unit through the spec's plan on the in-process rig, judged on its session:
     (kind, seed, rig seconds, session status, verdict, failed characteristics)."""
     kind, seed, truth = job
-    spec = load_spec("default")
+    spec = load_spec(SPEC)
     with tempfile.TemporaryDirectory() as tmp:
         rig_s, status = rig_session(spec, Path(tmp) / "session", truth, seed)
         if status != "complete":
@@ -168,9 +169,9 @@ def served_unit(job: tuple[str, int, float]) -> tuple[str, int, float, float, st
     kind, seed, speed = job
     with tempfile.TemporaryDirectory() as tmp, VirtualRig(speed=speed, unit=kind, unit_seed=seed, seed=seed) as sim:
         t0 = time.perf_counter()
-        r = subprocess.run([sys.executable, "-m", "rig", "qc", "run", "--serial", f"SN-{seed:04d}", "--shaker",
-                            sim.modbus_url, "--daq", sim.daq_url, "--out", tmp], capture_output=True, text=True,
-                           cwd=ROOT)
+        r = subprocess.run([sys.executable, "-m", "rig", "qc", "run", "--spec", SPEC, "--serial", f"SN-{seed:04d}",
+                            "--shaker", sim.modbus_url, "--daq", sim.daq_url, "--out", tmp], capture_output=True,
+                           text=True, cwd=ROOT)
         wall = time.perf_counter() - t0
         sim.stop()
         verdict = EXIT_VERDICT.get(r.returncode, f"exit {r.returncode}")
@@ -237,12 +238,16 @@ def main() -> int:
                         help="test every unit with qc run against its own served simulator (rig time, decisions)")
     parser.add_argument("--speed", type=float, default=10.0, help="--served: the simulators' speed (default 10x)")
     parser.add_argument("--jobs", type=int, default=1, help="--sessions, --served: units run at once")
+    parser.add_argument("--spec", default="default", help="QC spec (default, transient: captured from RUN on, or a "
+                                                          "file)")
     args = parser.parse_args()
+    global SPEC
+    SPEC = args.spec
     if args.served:
         return served(args.units, args.jobs, args.speed)
     if args.sessions:
         return sessions(args.units, args.jobs)
-    spec = load_spec("default")
+    spec = load_spec(SPEC)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
         rig_s, status = rig_session(spec, Path(tmp) / "session")
@@ -250,7 +255,7 @@ def main() -> int:
         ev = evaluate(spec, Path(tmp) / "session")
         plan = ", ".join(f"{e.letter} {e.static_position_mm:g}±{e.amplitude_mm:g} mm {e.frequency_hz:g} Hz "
                          f"x{e.periods}" for e in spec.plan.experiments)
-        print(f"default spec {spec.version}: {len(spec.plan.experiments)} experiments ({plan})")
+        print(f"{spec.name} spec {spec.version}: {len(spec.plan.experiments)} experiments ({plan})")
         print(f"  rig time per unit: {rig_s:6.1f} s = {rig_s / 60:.1f} min at 1x (session {status}; simulated in "
               f"{wall:.0f} s; target <= 6 min: {'met' if rig_s <= 360 else 'NOT met'})")
         print(f"  fit time (identification + characteristics): {ev.fit_s:.1f} s; verdict on the nominal damper: "
@@ -274,7 +279,8 @@ def main() -> int:
         for i, kind in enumerate(kinds):
             seed = 1000 + i
             out = generate(Path(tmp) / f"{kind}-{seed}", list(spec.plan.experiments),
-                           load_truth(None, "2dof", kind, seed), periods=None, seed=seed, date="261122")
+                           load_truth(None, "2dof", kind, seed), periods=None, seed=seed, date="261122",
+                           ramp_s=spec.steady_state.ramp_time_s)
             ev = evaluate(spec, out)
             fit_times.append(ev.fit_s)
             table[("good" if kind == "good" else "faulty", ev.judgement.verdict.value)] += 1

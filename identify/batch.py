@@ -36,7 +36,7 @@ import time
 import traceback
 import uuid
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 from importlib.util import find_spec
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -50,7 +50,7 @@ from identify.fit import DEFAULT_POINTS, fit_experiments
 from identify.model import load_model
 from identify.parameters import Parameters
 from identify.preparation import model_columns, resolve_outputs
-from identify.sinks import Delivery, ResultSink, Task
+from identify.sinks import Delivery, ResultSink, SessionOutcome, Task
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -106,33 +106,6 @@ class FitSettings:
                "estimate": sorted(self.estimate), "n": self.n, "scheme": self.scheme,
                "max_iterations": self.max_iterations, "oversample": self.oversample}
         return hashlib.sha256(json.dumps(doc, sort_keys=True).encode()).hexdigest()
-
-
-@dataclass(frozen=True)
-class SessionOutcome:
-    """One row of the summary: what became of one session in this run."""
-
-    session: str  # the folder name, which is also the result's file name
-    path: str
-    status: str  # "ok", "failed: <reason>" or "skipped" (converged in an earlier run)
-    serial: str = ""
-    converged: bool = False
-    fit_s: float | None = None
-    values: dict[str, float] = field(default_factory=dict)
-    stds: dict[str, float | None] = field(default_factory=dict)  # the σ to quote (see residual_std)
-    # The stds are the residual-based ones: the residuals exceed the measurement noise
-    # (model error), and the noise's σ would understate the uncertainty.
-    residual_std: bool = False
-    delivery: Delivery | None = None  # what the result sink did with it (with a sink, for a converged result)
-
-    @property
-    def failed(self) -> bool:
-        return self.status.startswith("failed")
-
-    @property
-    def state(self) -> str:
-        """``ok``, ``failed`` or ``skipped``: the status without its reason."""
-        return self.status.split(":", 1)[0]
 
 
 # ------------------------------------------------------------------------------------------

@@ -34,6 +34,7 @@ from identify.parameters import Parameters, load_document
 from identify.periodic import PeriodicSolver
 from identify.preparation import model_columns, prepare_periodic, resolve_outputs
 from identify.result import FitResult
+from identify.trajectory import is_transient
 from identify.transient import drop_test
 
 if TYPE_CHECKING:
@@ -141,6 +142,15 @@ def run_fit(args: argparse.Namespace) -> int:
                   f"({grid.scheme}, n = {grid.n})", highlight=False)
     for note in [taken] * bool(taken) + choice.notes + [f"warning: {w}" for w in choice.warnings]:
         console.print(f"  {note}", highlight=False)
+    transient = {"auto": None, "steady": False, "transient": True}[args.capture]
+    if args.transient_oversample < 1:
+        raise UsageError(f"--transient-oversample {args.transient_oversample}: must be 1 or more")
+    as_transient = [e.label for e in ds.select(labels) if (is_transient(e) if transient is None else transient)]
+    if as_transient:
+        console.print(f"  fitted as transient records (from a fitted initial state, sample by sample"
+                      f"{', ' if args.capture == 'auto' else ''}"
+                      f"{'as the dataset says' if args.capture == 'auto' else ''}): {', '.join(as_transient)}",
+                      highlight=False)
     if args.time_limit is not None and not args.time_limit > 0:
         raise UsageError(f"--time-limit {args.time_limit:g}: must be a positive number of seconds")
     results: list[tuple[str, FitResult]] = []
@@ -158,7 +168,8 @@ def run_fit(args: argparse.Namespace) -> int:
             result = fit_experiments(model, group, params, estimate, n=n, scheme=choice.scheme, outputs=outputs,
                                      max_iterations=args.max_iterations, progress=progress, fixed=fixed,
                                      stability=args.stability, oversample=oversample, time_limit_s=args.time_limit,
-                                     announce=lambda text: console.print(f"  {text}", highlight=False))
+                                     announce=lambda text: console.print(f"  {text}", highlight=False),
+                                     transient=transient, transient_oversample=args.transient_oversample)
         except EstimationError as exc:
             console.print(f"[red]fit failed:[/red] {exc}", highlight=False)
             _write_failed(args.output, model, params, str(exc))
@@ -180,7 +191,7 @@ def run_fit(args: argparse.Namespace) -> int:
             atomic_write_bytes(Path(args.report), "".join(f"=== experiment {label} ===\n{r.fit_report()}\n"
                                                           for label, r in results).encode())
         for label, r in results if args.figures else []:  # a folder per experiment: the same file names in each
-            _write_figures(r, Path(args.figures) / label, console)
+            _write_figures(r, Path(args.figures) / label, console, bool(model.input_derivatives))
         for label, r in results:
             for w in r.warnings:
                 print(f"warning ({label}): {w}")
@@ -195,14 +206,14 @@ def run_fit(args: argparse.Namespace) -> int:
     if args.report:
         atomic_write_bytes(Path(args.report), (report + "\n").encode())
     if args.figures:
-        _write_figures(result, Path(args.figures), console)
+        _write_figures(result, Path(args.figures), console, bool(model.input_derivatives))
     return EXIT_INTERRUPTED if interrupted else EXIT_OK if result.converged else EXIT_NOT_CONVERGED
 
 
-def _write_figures(result: FitResult, folder: Path, console: Console) -> None:
+def _write_figures(result: FitResult, folder: Path, console: Console, loops: bool) -> None:
     from identify.figures import write_figures
 
-    for path in write_figures(result, folder):
+    for path in write_figures(result, folder, loops):
         console.print(f"figure {path}", highlight=False, soft_wrap=True)  # a path whole, to copy
 
 
@@ -279,6 +290,9 @@ def run_predict(args: argparse.Namespace) -> int:
         for i, name in enumerate(model.output_names):
             if name not in cols:
                 cols[name] = d.outputs[name].from_si(grid.interpolate(y[i], phase))
+    elif model.input_derivatives:
+        raise InputError(f"experiment {label!r} is a {exp.kind} record, and model {model.name!r} takes its inputs' "
+                         f"derivatives, which identify takes on a periodic record's grid only")
     else:
         mass = float(exp.meta["drop_mass_kg"])
         v0 = float(exp.meta.get("drop_velocity_m_s", 0.0))
@@ -524,6 +538,13 @@ def build_parser() -> argparse.ArgumentParser:
     fit.add_argument("--figures", help="folder for PNG figures (measured vs predicted, residual bands; multisine "
                                                     "records: frequency response at the excited lines)")
     fit.add_argument("--quiet", action="store_true", help="no iteration progress")
+    fit.add_argument("--capture", choices=("auto", "steady", "transient"), default="auto",
+                     help="fit records as steady states folded onto a period, or as transients sample by sample "
+                          "from a fitted initial state (default auto: transient where dataset.json says "
+                          "capture = \"transient\")")
+    fit.add_argument("--transient-oversample", type=int, default=1, metavar="K",
+                     help="solve a transient record's model on K points per sample step (default 1; more for "
+                          "content near the sampling rate, e.g. 8 for Silverbox)")
     fit.add_argument("--friction", help="FRICTION.json: fixed per-experiment theta8, theta9, theta10")
     fit.add_argument("--stability", action="store_true",
                      help="Floquet multipliers of each periodic solution (warns about unstable orbits)")

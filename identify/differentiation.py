@@ -330,3 +330,16 @@ class Grid:
         tau = np.append(np.arange(size) / size, 1.0)
         closed = np.concatenate([values, values[..., :1]], axis=-1)
         return CubicSpline(tau, closed, axis=-1, bc_type="periodic")(phase)
+
+
+def periodic_derivative(x: np.ndarray, frequency_hz: float, order: int, axis: int = -1,
+                        transposed: bool = False) -> np.ndarray:
+    """The order-th time derivative of one period's samples along ``axis``, spectrally
+    (exact for a band-limited periodic signal on its own grid); ``transposed``: the
+    operator's transpose (conjugate multipliers), for adjoints."""
+    n = x.shape[axis]
+    s = _spectral_symbols(n)[order - 1] * frequency_hz**order
+    shape = [1] * x.ndim
+    shape[axis] = s.size
+    s = (np.conj(s) if transposed else s).reshape(shape)
+    return np.fft.irfft(np.fft.rfft(x, axis=axis) * s, n=n, axis=axis)

@@ -16,10 +16,13 @@ def axis_label(column: str) -> str:
     return f"{name.replace('_', ' ')} [{'°C' if unit == 'C' else unit}]" if name else column
 
 
-def write_figures(result: FitResult, folder: Path) -> list[Path]:
+def write_figures(result: FitResult, folder: Path, loops: bool = False) -> list[Path]:
     """Write ``fit_<output>.png`` (measured vs predicted over the phase of each experiment),
-    ``residuals.png`` (mean ± 2σ of each fitted output per experiment) and, for
-    multisine records, ``frf_<output>.png`` (frequency response at the excited lines)."""
+    ``residuals.png`` (mean ± 2σ of each fitted output per experiment), for
+    multisine records ``frf_<output>.png`` (frequency response at the excited lines) and,
+    with ``loops`` (a model driven by an input's derivative: a damper whose displacement
+    is imposed), ``loop_<output>.png``: each output against the input's rate, the
+    force–velocity loop a damper test is judged by."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -51,6 +54,8 @@ def write_figures(result: FitResult, folder: Path) -> list[Path]:
     broadband = [e for e in exps if _broadband(e)]
     for out in result.outputs if broadband else []:
         written.append(_frf_figure(result, out, broadband, folder / f"frf_{out}.png"))
+    for out in result.outputs if loops and exps and all(e.inputs for e in exps) else []:
+        written.append(_loop_figure(result, out, folder / f"loop_{out}.png"))
     outputs = result.outputs
     fig, axes = plt.subplots(len(outputs), 1, figsize=(max(4, 0.5 * len(exps) + 2), 0.4 + 2.6 * len(outputs)),
                              sharex=True, squeeze=False)
@@ -68,6 +73,35 @@ def write_figures(result: FitResult, folder: Path) -> list[Path]:
     plt.close(fig)
     written.append(path)
     return written
+
+
+def _loop_figure(result: FitResult, out: str, path: Path) -> Path:
+    """Measured and model output against the first input's rate (its spectral time
+    derivative on the grid), all records in one panel, each in its colour."""
+    import matplotlib.pyplot as plt
+
+    from identify.differentiation import periodic_derivative
+
+    column = next(iter(result.experiments[0].inputs))
+    name, _, unit = column.rpartition("_")
+    fig, ax = plt.subplots(figsize=(6.4, 4.8))
+    for i, e in enumerate(result.experiments):
+        rate = periodic_derivative(e.inputs[column], e.frequency_hz, 1)
+        colour = f"C{i % 10}"
+        ax.plot(rate, e.measured[out], ".", ms=2.5, color=colour)
+        # In grid order, closed at the period's end: the loop as the damper runs it.
+        ax.plot(np.append(rate, rate[0]), np.append(e.predicted[out], e.predicted[out][0]), "-", lw=1,
+                color=colour, label=f"{e.label} ({e.frequency_hz:.3g} Hz)")
+    ax.set_xlabel(f"{(name or column).replace('_', ' ')} rate [{unit or '-'}/s]", fontsize=9)
+    ax.set_ylabel(_label(out, result.units), fontsize=9)
+    ax.set_title(f"{result.model}: {_label(out, result.units)} against the imposed rate\n"
+                 f"dots measured (folded), lines the fitted model", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, ncol=2, frameon=False)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
 
 
 WINDOW_PERIODS = 5  # of a multisine's dominant line: what a time plot of it can show readably

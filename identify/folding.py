@@ -22,6 +22,20 @@ picks up interpolation error where the signal is sharp.  Samples the rig lost le
 holes; pairs are then found by each sample's index on the sample grid, not by its row.
 Taken by row, or from the scatter, a 0.04 Hz record with 1.6 % of its samples lost read
 a stroke noise 22 times the real one, and the fit's σ grew with it.
+
+A column whose mean drifts (a test machine's table creeping by millimetres over a
+record) is not periodic, and folding it would lie: where the samples per period are
+nearly whole (87.0, 95.0), each bin collects samples of a few neighbouring periods only,
+different bins different ones, and the folded curve zig-zags by the drift (read as
+signal up to harmonic 62 and as input noise the size of the signal's derivative).
+Where a period holds a whole number of samples, every bin sees every period alike and
+a drift only raises the scatter: such records are folded as measured.  Otherwise a
+drift is removed before folding: the one-period moving mean of the column (a
+sliding average over exactly one period, fractional ends interpolated, which cancels
+the periodic part whatever it is) is fitted by a cubic in time over the record, and its
+departure from the record's mean subtracted.  The removed range is kept per column
+(``drift``), and the fit names it.  A column whose moving mean stays within
+DRIFT_FRACTION of its range keeps its samples as measured.
 """
 
 from __future__ import annotations
@@ -29,6 +43,9 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+
+DRIFT_FRACTION = 0.005  # a moving mean whose range is below this fraction of the column's range is no drift
+DRIFT_DEGREE = 3  # the polynomial in time the one-period moving mean is fitted by
 
 
 @dataclass
@@ -45,6 +62,7 @@ class FoldedRecord:
     samples: int
     interp_bins: np.ndarray  # (2, n) the two filled bins (indices into the filled ones) each grid value comes from
     interp_weights: np.ndarray  # (2, n) their interpolation weights
+    drift: dict[str, float]  # column -> range of the drift removed before folding (0: none), column units
 
     @property
     def filled_counts(self) -> np.ndarray:
@@ -94,6 +112,27 @@ def _period_pairs(t: np.ndarray, frequency_hz: float, sample_rate_hz: float) -> 
     return i, j[i]
 
 
+def detrend(t: np.ndarray, v: np.ndarray, frequency_hz: float) -> tuple[np.ndarray, float]:
+    """The column without its drift and the drift's range (module docstring); the column
+    unchanged and 0 where it does not drift or spans less than three periods."""
+    period = 1.0 / frequency_hz
+    if t[-1] - t[0] < 3 * period or v.size < 8:
+        return v, 0.0
+    # Trapezoidal cumulative integral: the mean over [t - T/2, t + T/2] from its values.
+    c = np.concatenate(([0.0], np.cumsum(0.5 * (v[1:] + v[:-1]) * np.diff(t))))
+    inside = (t - t[0] >= period / 2) & (t[-1] - t >= period / 2)
+    ti = t[inside]
+    moving = (np.interp(ti + period / 2, t, c) - np.interp(ti - period / 2, t, c)) / period
+    scale = (t - t.mean()) / max(t[-1] - t[0], 1e-300)
+    coeffs = np.polynomial.polynomial.polyfit(scale[inside], moving, DRIFT_DEGREE)
+    trend = np.polynomial.polynomial.polyval(scale, coeffs)
+    trend -= trend.mean()
+    span = float(np.ptp(trend))
+    if span <= DRIFT_FRACTION * float(np.ptp(v)):
+        return v, 0.0
+    return v - trend, span
+
+
 def _interpolation(xp: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
     """Periodic linear interpolation from increasing points xp in [-0.5, n - 0.5) to the
     grid 0…n-1, as the two source indices and weights per grid point (np.interp's rule)."""
@@ -126,8 +165,12 @@ def fold(label: str, time_s: np.ndarray, columns: dict[str, np.ndarray], frequen
     dof = len(t) - int(filled.sum())
     pairs = _period_pairs(t, frequency_hz, rate)
     mu = np.arange(n, dtype=float)
+    drift: dict[str, float] = {}
     for name, v in columns.items():
         v = np.asarray(v, dtype=float)
+        # With whole samples per period every bin sees every period alike: a drift only
+        # raises the scatter there, and such records are folded as measured.
+        v, drift[name] = (v, 0.0) if pairs is not None else detrend(t, v, frequency_hz)
         fp = np.bincount(b, weights=v, minlength=n)[filled] / counts[filled]
         grid = weights[0] * fp[bins[0]] + weights[1] * fp[bins[1]]
         values[name] = grid
@@ -140,4 +183,4 @@ def fold(label: str, time_s: np.ndarray, columns: dict[str, np.ndarray], frequen
             noise[name] = float("nan")
     duration = t[-1] - t[0] + 1.0 / rate
     return FoldedRecord(label, float(frequency_hz), n, values, noise, counts, duration * frequency_hz, len(t),
-                        bins, weights)
+                        bins, weights, drift)

@@ -24,10 +24,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from identify.differentiation import periodic_derivative
 from identify.errors import InputError
 from identify.files import atomic_write_bytes
 
-GENERATOR_VERSION = "6"
+GENERATOR_VERSION = "7"
 
 
 @dataclass(frozen=True)
@@ -131,6 +132,9 @@ class CompiledModel:
         self.parameter_specs: tuple[ParameterSpec, ...] = tuple(d.parameters)
         self.parameter_names: tuple[str, ...] = tuple(p.name for p in d.parameters)
         self.orders: tuple[int, ...] = tuple(self.module.ORDERS)
+        # (input index, order) of each input derivative the equations use: rows of U after the inputs
+        self.input_derivatives: tuple[tuple[int, int], ...] = tuple(
+            (int(j), int(o)) for j, o in self.module.INPUT_DERIVATIVES)
         # Residuals with kinks or jumps (|x|, sign, max, ...): their periodic solutions
         # converge only at second order in the grid step, whatever the scheme.
         self.nonsmooth: bool = bool(self.module.NONSMOOTH)
@@ -147,6 +151,29 @@ class CompiledModel:
     @property
     def n_states(self) -> int:
         return len(self.state_names)
+
+    def expand_inputs(self, inputs: np.ndarray, frequency_hz: float, axis: int = -1) -> np.ndarray:
+        """The inputs (n_inputs, …) of one period on its grid with the input derivatives
+        the equations use appended as rows (computed spectrally along ``axis``, the
+        phase grid): what every generated function takes as U.  Linear, so it maps an
+        input perturbation (noise draws) the same way."""
+        if not self.input_derivatives:
+            return inputs
+        rows = [periodic_derivative(inputs[j], frequency_hz, order, axis=axis if axis < 0 else axis - 1)
+                for j, order in self.input_derivatives]
+        return np.concatenate([inputs, np.stack(rows)], axis=0)
+
+    def collapse_inputs(self, adjoint: np.ndarray, frequency_hz: float, axis: int = -1) -> np.ndarray:
+        """The transpose of :meth:`expand_inputs`: weights on the expanded rows
+        (n_inputs + derivatives, …) back onto the inputs' own rows."""
+        if not self.input_derivatives:
+            return adjoint
+        n_in = len(self.input_names)
+        out = adjoint[:n_in].copy()
+        for r, (j, order) in enumerate(self.input_derivatives):
+            out[j] += periodic_derivative(adjoint[n_in + r], frequency_hz, order,
+                                          axis=axis if axis < 0 else axis - 1, transposed=True)
+        return out
 
     def parameter_index(self, name_or_alias: str) -> int:
         for i, p in enumerate(self.parameter_specs):
@@ -179,7 +206,7 @@ def _symbols(decl: ModelDeclaration):
     import sympy as sp
 
     s = SimpleNamespace()
-    xs, dxs, ddxs, us, ps = [], [], [], [], []
+    xs, dxs, ddxs, us, dus, ps = [], [], [], [], [], []
     for st in decl.states:
         x, dx, ddx = sp.symbols(f"{st.name} {st.name}_t {st.name}_tt", real=True)
         setattr(s, st.name, x)
@@ -192,13 +219,18 @@ def _symbols(decl: ModelDeclaration):
         u = sp.Symbol(name, real=True)
         setattr(s, name, u)
         us.append(u)
+    for name in decl.inputs:  # an input's time derivatives: rows after the inputs where used
+        for suffix in ("_t", "_tt"):
+            d = sp.Symbol(f"{name}{suffix}", real=True)
+            setattr(s, f"{name}{suffix}", d)
+            dus.append(d)
     for p in decl.parameters:
         sym = sp.Symbol(p.name, real=True)
         setattr(s, p.name, sym)
         if p.alias and p.alias != p.name:
             setattr(s, p.alias, sym)
         ps.append(sym)
-    return s, xs, dxs, ddxs, us, ps
+    return s, xs, dxs, ddxs, us, dus, ps
 
 
 def _function_source(name: str, entries: list[tuple[tuple[int, ...], Any]], shapes: list[tuple[int, ...]],
@@ -234,8 +266,10 @@ def generate_source(decl: ModelDeclaration) -> str:
     import sympy as sp
     from sympy.printing.numpy import NumPyPrinter
 
-    s, xs, dxs, ddxs, us, ps = _symbols(decl)
-    syms = (xs, dxs, ddxs, us, ps)
+    if not decl.states:
+        raise ModelError(f"model {decl.name!r} declares no state: identify solves periodic equations for states; "
+                         f"a force that is a function of the imposed motion alone is a regression, not such a model")
+    s, xs, dxs, ddxs, us, dus, ps = _symbols(decl)
     g = [sp.sympify(e) for e in decl.residuals(s)]
     if len(g) != len(xs):
         raise ModelError(f"model {decl.name!r}: {len(g)} residual equations for {len(xs)} states")
@@ -245,11 +279,17 @@ def generate_source(decl: ModelDeclaration) -> str:
     missing = set(out_names) ^ set(decl.outputs)
     if missing:
         raise ModelError(f"model {decl.name!r}: outputs and output equations differ in {sorted(missing)}")
-    allowed = set(xs) | set(dxs) | set(ddxs) | set(us) | set(ps)
+    allowed = set(xs) | set(dxs) | set(ddxs) | set(us) | set(dus) | set(ps)
     for e in g + h:
         stray = e.free_symbols - allowed
         if stray:
             raise ModelError(f"model {decl.name!r}: unknown symbols {sorted(map(str, stray))} in {e}")
+    # Input derivatives the equations use become extra input rows, computed from the
+    # folded input on the periodic grid (CompiledModel.expand_inputs).
+    every = set().union(*(e.free_symbols for e in g + h))
+    derived = [(j, order) for j in range(len(us)) for order in (1, 2) if dus[2 * j + order - 1] in every]
+    us = us + [dus[2 * j + order - 1] for j, order in derived]
+    syms = (xs, dxs, ddxs, us, ps)
 
     kinks = (sp.Abs, sp.sign, sp.Heaviside, sp.Max, sp.Min, sp.Piecewise, sp.floor, sp.ceiling)
     used = set().union(*(e.free_symbols for e in g))
@@ -285,6 +325,7 @@ def generate_source(decl: ModelDeclaration) -> str:
         f"ORDERS = {orders!r}\n",
         f"NONSMOOTH = {any(e.has(*kinks) for e in g)!r}\n",
         f"OUTPUT_NAMES = {out_names!r}\n",
+        f"INPUT_DERIVATIVES = {derived!r}\n",
         _function_source("residual", [((0, i), e) for i, e in enumerate(g)], [(neq,)], syms, printer),
         _function_source("residual_jacobian", jac_entries(g, [xs, dxs, ddxs]), [(neq, ns)] * 3, syms, printer),
         _function_source("residual_dtheta", jac_entries(g, [ps]), [(neq, npar)], syms, printer),

@@ -11,7 +11,6 @@ the cost of back-substitutions only.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.linalg import LinAlgWarning
@@ -19,6 +18,7 @@ from scipy.linalg import LinAlgWarning
 from identify.differentiation import BDF2_D1, BDF2_D2, Factorization, Grid
 from identify.errors import ComputationError, InputError
 from identify.model import CompiledModel
+from identify.solution import PeriodicSolution
 from identify.start import STARTS, Measured, StartError, rest_state, solve_from_rest
 
 CHORD_SIZE = 1e4  # a full Newton step at most this many tolerances long is confirmed by a chord step
@@ -33,22 +33,6 @@ class ConvergenceError(ComputationError):
         self.label = label
         self.iterations = iterations
         self.residual = residual
-
-
-@dataclass
-class PeriodicSolution:
-    """A converged periodic solution on the grid (SI units, time derivatives)."""
-
-    label: str
-    frequency_hz: float
-    inputs: np.ndarray  # (n_inputs, n)
-    states: np.ndarray  # (n_states, n)
-    dstates: np.ndarray
-    ddstates: np.ndarray
-    iterations: int
-    residual_norm: float  # scaled RMS of the residual equations at the solution
-    factorization: Factorization = field(repr=False)
-    start: str = "given"  # where Newton started: a name of identify.start.STARTS, or "given" (warm start)
 
 
 class PeriodicSolver:
@@ -258,9 +242,9 @@ class PeriodicSolver:
                        du: np.ndarray) -> np.ndarray:
         """Output perturbations (len(outputs), n, k) caused by input perturbations du
         (n_inputs, n, k), data grid: dŷ/du applied to k vectors (how input noise reaches
-        the outputs)."""
+        the outputs).  An input's derivatives that the model uses move with it."""
         m, grid = self.model, self.grid
-        du = grid.refine(du, axis=1)
+        du = grid.refine(m.expand_inputs(du, sol.frequency_hz, axis=1), axis=1)
         args = (sol.states, sol.dstates, sol.ddstates, sol.inputs, theta)
         gu = m.residual_dinput(*args)  # (neq, nin, n): each input sample enters its own equations
         rhs = np.einsum("ijn,jnk->ink", gu, du)
@@ -288,7 +272,7 @@ class PeriodicSolver:
         gu = m.residual_dinput(*args)
         hu = m.output_dinput(*args)[outputs]
         adjoint = -np.einsum("ijn,ink->jnk", gu, mu) + np.einsum("ojn,onk->jnk", hu, w)
-        return self.grid.refine_transposed(adjoint, axis=1)
+        return m.collapse_inputs(self.grid.refine_transposed(adjoint, axis=1), f, axis=1)
 
     def _output_response(self, sol: PeriodicSolution, theta: np.ndarray, dX: np.ndarray,
                          outputs: list[int]) -> np.ndarray:

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 from identify.errors import InputError
 
+CAPTURES = ("steady", "transient")
+
 
 class PlanError(InputError):
     """A plan that names an experiment it does not have."""
@@ -22,6 +24,9 @@ class ExperimentSpec:
     frequency_hz: float
     waveform: str = "sine"
     periods: int = 3
+    # "steady": captured once settled (the periodic method); "transient": captured from RUN
+    # on, the amplitude ramp and the gas heating included, fitted by identify.trajectory.
+    capture: str = "steady"
 
     @property
     def period_s(self) -> float:
@@ -29,9 +34,12 @@ class ExperimentSpec:
 
     def metadata(self) -> dict:
         """The dataset.json keys of this experiment (``label``/``file`` added by the writer)."""
-        return {"kind": "periodic", "frequency_Hz": self.frequency_hz,
+        meta = {"kind": "periodic", "frequency_Hz": self.frequency_hz,
                 "static_position_mm": self.static_position_mm, "amplitude_mm": self.amplitude_mm,
                 "waveform": self.waveform, "group": self.group}
+        if self.capture != "steady":
+            meta["capture"] = self.capture
+        return meta
 
 
 STANDARD_SET: tuple[ExperimentSpec, ...] = (

@@ -73,7 +73,8 @@ def prepare_periodic(model: CompiledModel, experiments: list[Experiment], n: int
                 raise DatasetError(f"{exp.file}: column {ch.column!r}: missing (model {model.name!r} needs it)")
             cols[ch.column] = exp.column(ch.column)
         folded = fold(exp.label, exp.time_s, cols, exp.frequency_hz, n, exp.sample_rate_hz)
-        inputs = np.vstack([ch.to_si(folded.values[ch.column]) for ch in d.inputs.values()])
+        inputs = model.expand_inputs(np.vstack([ch.to_si(folded.values[ch.column]) for ch in d.inputs.values()]),
+                                     exp.frequency_hz)
         measured = np.array([d.outputs[o].to_si(folded.values[d.outputs[o].column]) for o in outputs]).reshape(-1, n)
         yvar = np.array([(folded.noise_std[d.outputs[o].column] * d.outputs[o].scale) ** 2 for o in outputs])
         uvar = np.array([(folded.noise_std[ch.column] * ch.scale) ** 2 for ch in d.inputs.values()])
@@ -104,6 +105,11 @@ def _fold_own(exp: Experiment, columns: list[str]) -> tuple[FoldedRecord, int, b
                 exp.sample_rate_hz), size, whole
 
 
+def fewest_samples(experiments: list[Experiment]) -> tuple[float, str]:
+    """The fewest samples per period of any record, and that record's label."""
+    return min(((exp.sample_rate_hz / exp.frequency_hz, exp.label) for exp in experiments), key=lambda p: p[0])
+
+
 def choose_points(model: CompiledModel, experiments: list[Experiment], outputs: list[str]) -> tuple[int, str]:
     """Grid points per period for the spectral scheme, from the data, and a sentence
     saying why: the smallest power of two with SIGNAL_MARGIN to spare above twice the
@@ -114,11 +120,12 @@ def choose_points(model: CompiledModel, experiments: list[Experiment], outputs: 
     the points of its sibling levels)."""
     d = model.declaration
     columns = [ch.column for ch in d.inputs.values()] + [d.outputs[o].column for o in outputs]
-    best, why, sizes, finest = 0, "", set(), None
+    best, why, sizes = 0, "", set()
+    fewest, fewest_label = fewest_samples(experiments)
+    finest = int(np.floor(fewest + 1e-6 * fewest))  # a grid point per sample at most, never between them
     for exp in experiments:
         folded, size, whole = _fold_own(exp, columns)
         sizes.add(size if whole else 0)
-        finest = size if finest is None else min(finest, size)
         for c in columns:
             spectrum = np.abs(np.fft.rfft(folded.values[c] - folded.values[c].mean()))
             noise = folded.noise_std[c] ** 2 * folded.grid_factor
@@ -132,8 +139,10 @@ def choose_points(model: CompiledModel, experiments: list[Experiment], outputs: 
     if own and needed <= own <= OWN_SAMPLES_FACTOR * needed:
         return own, (f"n = {own}, the records' samples per period (the highest harmonic with signal is {best}, "
                      f"in {why}: {needed} points would resolve it)")
-    if finest is not None and needed > finest:
-        return finest, (f"n = {finest}, the records' samples per period: 2 x {SIGNAL_MARGIN:g} x the highest "
+    if needed > finest:
+        whose = ("the records' samples per period" if own else
+                 f"the fewest samples per period of the records ({fewest:.1f}, in {fewest_label})")
+        return finest, (f"n = {finest}, {whose}: 2 x {SIGNAL_MARGIN:g} x the highest "
                         f"harmonic with signal ({best}, in {why}) would ask for {needed}, more points than were "
                         f"sampled")
     return needed, (f"n = {needed}, the power of two above 2 x {SIGNAL_MARGIN:g} x the highest harmonic with signal "

@@ -20,6 +20,7 @@ if TYPE_CHECKING:
     import pandas as pd
 
 RELATIVE_STD_WARNING = 0.10  # a parameter known to worse than 10 % is flagged
+UNDETERMINED = 100.0  # a σ this many times the value: a flat direction, printed without digits that mean nothing
 # Monte-Carlo calibration of the reported σ, written by benchmarks/bench_sigma.py --record.
 CALIBRATION_FILE = Path(__file__).with_name("calibration.json")
 CONDITION_WARNING = 1e6  # of the weighted, parameter-scaled sensitivity matrix
@@ -48,6 +49,9 @@ class ExperimentFit:
     floquet: np.ndarray | None = None  # multipliers, largest magnitude first (when asked for)
     start: str = ""  # where the first periodic solve started (identify.start: static, transient, ...)
     inputs: dict[str, np.ndarray] = field(default_factory=dict)  # the model's inputs on the grid, column units
+    # "steady": folded onto one period (measured/predicted on its grid); "transient": fitted
+    # sample by sample from its fitted initial state (measured/predicted per sample).
+    capture: str = "steady"
 
     def residual(self, column: str) -> np.ndarray:
         return self.measured[column] - self.predicted[column]
@@ -142,7 +146,11 @@ class FitResult:
         for nm in self.estimated:
             value = self.params[nm].value
             s = self.honest_std(nm)
-            if value != 0 and s / abs(value) > RELATIVE_STD_WARNING:
+            if value == 0 or s / abs(value) > UNDETERMINED:
+                out.append(f"{nm} ({self.params[nm].alias}) is not determined by these experiments: its σ "
+                           f"({notation.significant(s)}) is more than {UNDETERMINED:g} times its value; a flat "
+                           f"direction of the fit, so its estimate is no result")
+            elif s / abs(value) > RELATIVE_STD_WARNING:
                 out.append(f"{nm} ({self.params[nm].alias}) is poorly identifiable from these experiments: "
                            f"±{100 * s / abs(value):.0f} %"
                            + (" (residual-based σ)" if self.std_residual is not None else ""))
@@ -227,6 +235,8 @@ class FitResult:
             }
             if e.start:
                 experiments[e.label]["start"] = e.start
+            if e.capture != "steady":
+                experiments[e.label]["capture"] = e.capture
             if e.floquet is not None:
                 experiments[e.label]["floquet_max_multiplier"] = float(np.abs(e.floquet[0]))
                 experiments[e.label]["stable"] = bool(np.abs(e.floquet[0]) < 1.0)
@@ -271,6 +281,8 @@ class FitResult:
             f"    scheme, n          = {self.scheme}, {self.n_grid} points per period"
             + (f" (model on {self.n_grid * self.oversample})" if self.oversample > 1 else ""),
             f"    experiments        = {len(self.experiments)} ({', '.join(e.label for e in self.experiments)})",
+            *([f"    fitted as transient = {', '.join(transient)} (sample by sample from a fitted initial state)"]
+              if (transient := [e.label for e in self.experiments if e.capture == "transient"]) else []),
             f"    fitted outputs     = {', '.join(self.outputs)}",
             f"    data points        = {n_points}",
             f"    variables          = {len(self.estimated)}",
@@ -291,10 +303,10 @@ class FitResult:
                 residual = ""
                 if self.std_residual is not None:
                     sr = self.std_residual[p.name]
-                    residual = f"   [{notation.plus_minus(p.value, sr)}{_relative(p.value, sr)} *]"
+                    residual = f"   [{_with_std(p.value, sr)}{_relative(p.value, sr)} *]"
                 side = p.at_bound()
                 bound = f"   [AT {side.upper()}, see warnings]" if side else ""
-                lines.append(f"    {p.name:8s} {p.alias:18s} {notation.plus_minus(p.value, s, unit)}"
+                lines.append(f"    {p.name:8s} {p.alias:18s} {_with_std(p.value, s, unit)}"
                              f"{_relative(p.value, s)} {init_s}, {prior_s}" + residual + bound)
         if self.std_residual is not None:
             E = float(len(self.experiments))
@@ -310,6 +322,10 @@ class FitResult:
                          f"±{100 / math.sqrt(2 * max(effective - len(self.estimated), 1)):.0f} %, "
                          f"and does not cover a bias the model error may cause")
         calibration = _calibration_line(self.model)
+        if any(e.capture == "transient" for e in self.experiments):
+            # That calibration is of periodic fits; the transient fit's σ has its own check.
+            calibration = ("    σ of a transient fit: its Monte-Carlo check is benchmarks/bench_transient.py "
+                           "(docs/identify.md)")
         if calibration:
             lines.append(calibration)
         fixed = [p for p in self.params if p.name not in self.estimated]
@@ -343,8 +359,18 @@ class FitResult:
         return "\n".join(ln for ln in lines if ln != "")
 
 
+def _with_std(value: float, std: float, unit: str = "") -> str:
+    """value ± σ, or the value alone where σ dwarfs it (a flat direction: "(0.0 ± 2.8)×10¹⁶"
+    carries no digit that means anything)."""
+    if not value or std > UNDETERMINED * abs(value):
+        return notation.plus_minus(value, None, unit)
+    return notation.plus_minus(value, std, unit)
+
+
 def _relative(value: float, std: float) -> str:
-    return f" ({100 * std / abs(value):.2g} %)" if value else ""
+    if not value or std > UNDETERMINED * abs(value):
+        return " (not determined, see warnings)"
+    return f" ({100 * std / abs(value):.2g} %)"
 
 
 def _calibration_line(model: str) -> str | None:
@@ -355,8 +381,10 @@ def _calibration_line(model: str) -> str | None:
         seeds, calibrated = int(doc["seeds"]), str(doc["model"])
     except (OSError, ValueError, KeyError, TypeError):
         return None
-    scope = "" if calibrated == model else f" (for model {calibrated}, not {model})"
-    return (f"    σ validated by Monte-Carlo{scope}, {seeds} seeds per case: spread/σ {lo:.2f}–{hi:.2f} "
+    if calibrated != model:
+        return (f"    σ not validated by Monte-Carlo for model {model} (the calibration on record is for model "
+                f"{calibrated}: benchmarks/bench_sigma.py, docs/uncertainty.md)")
+    return (f"    σ validated by Monte-Carlo, {seeds} seeds per case: spread/σ {lo:.2f}–{hi:.2f} "
             f"({', '.join(doc.get('estimated', []))}; benchmarks/bench_sigma.py, docs/uncertainty.md)")
 
 

@@ -19,14 +19,11 @@ value it gives to :meth:`ResultSink.finish`, on the client again.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from importlib.metadata import entry_points
-from typing import TYPE_CHECKING, Any, Literal, Protocol
+from typing import Any, Literal, Protocol
 
 from identify.errors import InputError
-
-if TYPE_CHECKING:
-    from identify.batch import SessionOutcome
 
 GROUP = "identify.result_sinks"
 
@@ -49,6 +46,33 @@ class Delivery:
 
     state: Literal["written", "present", "passed", "failed"]
     text: str = ""
+
+
+@dataclass(frozen=True)
+class SessionOutcome:
+    """One row of the summary: what became of one session in this run."""
+
+    session: str  # the folder name, which is also the result's file name
+    path: str
+    status: str  # "ok", "failed: <reason>" or "skipped" (converged in an earlier run)
+    serial: str = ""
+    converged: bool = False
+    fit_s: float | None = None
+    values: dict[str, float] = field(default_factory=dict)
+    stds: dict[str, float | None] = field(default_factory=dict)  # the σ to quote (see residual_std)
+    # The stds are the residual-based ones: the residuals exceed the measurement noise
+    # (model error), and the noise's σ would understate the uncertainty.
+    residual_std: bool = False
+    delivery: Delivery | None = None  # what the result sink did with it (with a sink, for a converged result)
+
+    @property
+    def failed(self) -> bool:
+        return self.status.startswith("failed")
+
+    @property
+    def state(self) -> str:
+        """``ok``, ``failed`` or ``skipped``: the status without its reason."""
+        return self.status.split(":", 1)[0]
 
 
 @dataclass(frozen=True)

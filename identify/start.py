@@ -34,16 +34,13 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from identify.differentiation import BDF2_D1, BDF2_D2, Grid
 from identify.errors import ComputationError
 from identify.model import CompiledModel
-
-if TYPE_CHECKING:
-    from identify.periodic import PeriodicSolution
+from identify.solution import PeriodicSolution
 
 STARTS = ("measured", "static", "transient", "linear", "continuation")
 RANK_TOLERANCE = 1e-12  # singular values of the scaled static Jacobian below this (relative) span a continuum
@@ -195,6 +192,7 @@ def measured_start(model: CompiledModel, grid: Grid, inputs: np.ndarray, theta: 
     m, n = model, grid.points
     spectrum = np.fft.rfft(grid.refine(measured.values), axis=1)
     keep = max(MEASURED_HARMONICS, int(excited_lines(inputs).max(initial=0)))
+    inputs = grid.refine(inputs)  # data grid -> model grid, where the states are (an oversampled grid)
     spectrum[:, keep + 1:] = 0.0
     target = np.fft.irfft(spectrum, n=n, axis=1)
     # Outputs in their own sizes (m beside Pa) and states in theirs: the rank test and the
@@ -230,7 +228,7 @@ def measured_start(model: CompiledModel, grid: Grid, inputs: np.ndarray, theta: 
     raise StartError(f"the measured outputs could not be mapped to states in {INVERSION_ITERATIONS} iterations")
 
 
-Newton = Callable[..., "PeriodicSolution"]  # (inputs, start states[, most iterations]) -> solution
+Newton = Callable[..., PeriodicSolution]  # (inputs, start states[, most iterations]) -> solution
 
 
 def continuation(newton: Newton, inputs: np.ndarray,

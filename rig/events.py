@@ -73,7 +73,7 @@ class LinkCondition(StrEnum):
 
 class Message:
     """A record that one thread hands to another's queue: the bus's :class:`Event` and the
-    console's own records (rig.gui.station, rig.gui.qc, rig.drivers.estop).  Each is a frozen
+    console's own records (rig.gui.messages, rig.gui.qc, rig.drivers.estop).  Each is a frozen
     dataclass with named fields; a receiver dispatches on its type and reads the fields,
     never a sentence."""
 

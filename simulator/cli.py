@@ -24,6 +24,8 @@ from identify.plans import STANDARD_SET, ExperimentSpec, select
 from simulator.errors import SimulatorError, UsageError
 from simulator.faults import parse_fault
 from simulator.generate import generate
+from simulator.physics import Damper
+from simulator.plant import PlantDamper, load_plant
 from simulator.truth import load_truth
 from simulator.units import UNITS
 
@@ -51,17 +53,39 @@ def run_generate(args: argparse.Namespace) -> int:
         raise UsageError(f"--periods {args.periods}: at least one whole period")
     if args.rate <= 0:
         raise UsageError(f"--rate {args.rate:g}: must be positive")
+    if args.ramp < 0:
+        raise UsageError(f"--ramp {args.ramp:g}: must be 0 or more seconds")
+    if args.capture == "transient" and args.model != "2dof":
+        raise UsageError("--capture transient: the record from rest needs --model 2dof (the gas temperature state)")
+    if args.capture == "transient" and args.physics != "model":
+        raise UsageError("--capture transient: recorded from RUN with the model's physics only (--physics model)")
     letters = [x.strip() for x in args.experiments.split(",")] if args.experiments else None
     plan = select(read_plan(args.plan), letters)
     if not plan:
         raise UsageError(f"--plan {args.plan}: no [[experiment]] tables")
     t0 = time.perf_counter()
-    truth = load_truth(args.params, args.model, args.unit, args.unit_seed)
+    truth = _truth(args)
     out = generate(args.out, plan, truth, periods=args.periods, rate_hz=args.rate, seed=args.seed, drop=args.drop,
-                   date=args.date, noise_scale=args.noise_scale, serial=args.serial)
-    print(f"wrote {out} ({len(plan)} experiments{' + drop test' if args.drop else ''}, "
+                   date=args.date, noise_scale=args.noise_scale, serial=args.serial,
+                   capture=args.capture, ramp_s=args.ramp)
+    print(f"wrote {out} ({len(plan)} experiments{' + drop test' if args.drop else ''}, {args.physics} physics, "
           f"{time.perf_counter() - t0:.1f} s)")
     return 0
+
+
+def _truth(args: argparse.Namespace) -> Damper | PlantDamper:
+    """The damper of the chosen physics tier: the model's θ (``--params``, ``--model``)
+    or the plant truth (``--plant-constants``); a production unit in either."""
+    if args.physics == "model":
+        if args.plant_constants:
+            raise UsageError("--plant-constants: only with --physics plant (the model tier takes --params)")
+        return load_truth(args.params, args.model, args.unit, args.unit_seed)
+    if args.params:
+        raise UsageError(f"--params {args.params}: the plant truth has no θ; give its constants with "
+                         "--plant-constants FILE.toml (see simulator/plant/constants.toml)")
+    if args.model != "2dof":
+        raise UsageError(f"--model {args.model}: only with --physics model (the plant is no identification model)")
+    return load_plant(args.unit, args.unit_seed, args.plant_constants)
 
 
 @dataclass(frozen=True)
@@ -143,7 +167,7 @@ def run_serve(args: argparse.Namespace) -> int:
 
     if args.speed <= 0:
         raise UsageError(f"--speed {args.speed}: must be positive")
-    damper = load_truth(args.params, args.model, args.unit, args.unit_seed)  # refused before any endpoint opens
+    damper = _truth(args)  # refused before any endpoint opens
     faults = [parse_fault(f) for f in args.fault]
     modbus, daq = parse_modbus(args.modbus), parse_daq(args.daq)
     if daq.tcp is None and any(f.kind == "disconnect" for f in faults):
@@ -203,6 +227,13 @@ def run_serve(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="python -m simulator", description="virtual shaker rig")
     sub = parser.add_subparsers(dest="command", required=True)
+    def physics_options(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--physics", choices=("model", "plant"), default="model",
+                       help="model: the identification model's own equations with the θ of --params (default); "
+                            "plant: the plant truth, richer than any identification model (docs/plant.md)")
+        p.add_argument("--plant-constants", metavar="FILE.toml",
+                       help="the plant's constants (--physics plant; default simulator/plant/constants.toml)")
+
     def unit_options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--unit", choices=UNITS,
                        help="a production unit: the nominal damper with a seeded production scatter (good) or a "
@@ -213,6 +244,7 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--plan", default="standard", help="standard, or a plan TOML (a QC spec too)")
     gen.add_argument("--params", help="true parameters (START.json format; default: nominal)")
     gen.add_argument("--model", choices=("2dof", "1dof"), default="2dof")
+    physics_options(gen)
     unit_options(gen)
     gen.add_argument("--serial", default="SIM-0001", help="the unit's serial number in dataset.json")
     gen.add_argument("--out", required=True, help="dataset folder to write")
@@ -223,6 +255,10 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--drop", action="store_true", help="add the drop test (350 kg, v0 = 0)")
     gen.add_argument("--date", help="label date yymmdd (default: today)")
     gen.add_argument("--noise-scale", type=float, default=1.0, help="multiplies the transducer noise")
+    gen.add_argument("--capture", choices=("steady", "transient"), default="steady",
+                     help="record the periodic steady state (default), or from RUN on, started at rest with the "
+                          "amplitude ramped over --ramp seconds (no waiting)")
+    gen.add_argument("--ramp", type=float, default=2.0, help="amplitude ramp of a transient capture, s (default 2)")
     gen.set_defaults(func=run_generate)
 
     serve = sub.add_parser("serve", help="run the rig behind its Modbus controller and serial DAQ",
@@ -238,6 +274,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--speed", type=float, default=1.0, help="simulated seconds per wall second")
     serve.add_argument("--params", help="true parameters (START.json format; default: nominal)")
     serve.add_argument("--model", choices=("2dof", "1dof"), default="2dof")
+    physics_options(serve)
     unit_options(serve)
     serve.add_argument("--seed", type=int, default=0)
     serve.add_argument("--rig", choices=("shaker", "drop"), default="shaker",

@@ -21,8 +21,10 @@ from simulator.controller import Alarm, ShakerController
 from simulator.daq import DaqDevice, Port
 from simulator.faults import Fault, FaultLog
 from simulator.modbus import ModbusEndpoint
-from simulator.physics import Actuator, Damper, SteadyState, StreamingPlant, drop_test
+from simulator.physics import Actuator, Damper
+from simulator.plant.damper import PlantDamper
 from simulator.sensors import SensorSet
+from simulator.tiers import DropTrack, make_tier, rest_stroke
 
 PHYSICS_RATE_HZ = 10_000.0
 BLOCK_S = 0.1  # at most; at 1x a wall tick is a couple of milliseconds of simulated time
@@ -39,9 +41,11 @@ class _Scheduled:
 
 @dataclass
 class VirtualRig:
-    """The simulated rig: damper + actuator + controller + sensors + DAQ (+ Modbus)."""
+    """The simulated rig: damper + actuator + controller + sensors + DAQ (+ Modbus).
+    ``damper``: the model tier's :class:`Damper` or the plant truth's
+    :class:`PlantDamper` (:mod:`simulator.tiers`)."""
 
-    damper: Damper
+    damper: Damper | PlantDamper
     daq_port: Port
     speed: float = 1.0
     seed: int = 0
@@ -59,9 +63,9 @@ class VirtualRig:
         self._dt = 1.0 / PHYSICS_RATE_HZ
         # The controller's position transducer reads the measured stroke; a drop rig holds
         # the damper at q = 0 until the release.
-        rest_m = float(self.damper.measured_stroke(0.0)) if self.rig_type == "drop" else 0.0
+        rest_m = rest_stroke(self.damper) if self.rig_type == "drop" else 0.0
         self.controller = ShakerController(initial_position_m=rest_m, on_event=lambda m: self.log.record(self.t, m))
-        self.plant = StreamingPlant(self.damper, self.actuator, self._dt, self.controller.position_m)
+        self.tier = make_tier(self.damper, self.actuator, self._dt, self.controller.position_m)
         self.sensors = SensorSet(seed=self.seed)
         self.daq = DaqDevice(self.daq_port, now=lambda: self.t, log=self.log, speed=self.speed, seed=self.seed)
         self.modbus = ModbusEndpoint(self.controller, host=self.modbus_host, port=self.modbus_port,
@@ -74,12 +78,12 @@ class VirtualRig:
         self._after_run = [f for f in self.faults if f.after_run]
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="rig-engine", daemon=True)
-        self._drop: SteadyState | None = None
+        self._drop: DropTrack | None = None
         self._released_at: float | None = None
         if self.rig_type == "drop":
             # The whole drop (released at q = 0, v0 = 0, gas at ambient) is integrated once,
             # stiffly and tightly; the stream samples it from the moment of release.
-            self._drop = drop_test(self.damper, self.drop_mass_kg, 0.0, np.arange(0.0, DROP_RECORD_S, 1e-3))
+            self._drop = self.tier.drop(self.drop_mass_kg, DROP_RECORD_S)
         elif self.rig_type != "shaker":
             raise ValueError(f"rig type {self.rig_type!r}: shaker or drop")
 
@@ -110,8 +114,8 @@ class VirtualRig:
             n = int(min(BLOCK_S, t_target - self.t) / self._dt + 0.5)
             self._block(max(n, 1))
 
-    def _states_at_rest(self) -> tuple[float, float, float, float]:
-        return (self.controller.position_m, 0.0, 0.0, self.plant.temperature_k)
+    def _states_at_rest(self) -> tuple[float, float, float, np.ndarray]:
+        return (self.controller.position_m, 0.0, 0.0, self.tier.rest())
 
     def _block(self, n: int) -> None:
         if self._drop is not None:
@@ -122,17 +126,17 @@ class VirtualRig:
         if self._servo_drift is not None:
             t0, rate = self._servo_drift
             u = u + rate * np.maximum(t - t0, 0.0)
-        stroke, v, a, T = self.plant.advance(u)
-        force = self.damper.axle_force(self.damper.internal_stroke(stroke), v, a, T)
+        stroke, v, a, X = self.tier.advance(u)
+        force = self.tier.axle_force(stroke, v, a, X)
         trip = self.controller.trip_index(stroke, force) if self.controller.hydraulics_on else None
         if trip is not None and trip[0] + 1 < n:
             n = trip[0] + 1
             t, u, force = t[:n], u[:n], force[:n]
-            stroke, v, a, T = self.plant.advance(u)
-        self.plant.commit(n)
-        self._sample(t, stroke, v, a, T)
+            stroke, v, a, X = self.tier.advance(u)
+        self.tier.commit(n, X)
+        self._sample(t, stroke, v, a, X)
         t_end = float(t[-1])
-        self._last = (float(stroke[-1]), float(v[-1]), float(a[-1]), float(T[-1]))
+        self._last = (float(stroke[-1]), float(v[-1]), float(a[-1]), X[:, -1].copy())
         self.t = t_end
         if trip is not None:
             i, alarm = trip
@@ -142,7 +146,7 @@ class VirtualRig:
         self.controller.update(t_end, float(stroke[-1]), float(v[-1]), float(force[-1]))
         self._fire_faults()
 
-    def _drop_block(self, n: int, rec: SteadyState) -> None:
+    def _drop_block(self, n: int, rec: DropTrack) -> None:
         """Drop rig: RUN releases the mass; the load cell under the axle reads the damper force.
         ``rec`` is the whole drop, integrated once."""
         t = self.t + self._dt * np.arange(1, n + 1)
@@ -153,33 +157,27 @@ class VirtualRig:
         ts = self.daq.due_times(float(t[-1]))
         if len(ts):
             since = ts - self._released_at if self._released_at is not None else np.full(len(ts), -1.0)
-            d = self.damper
-            inside = np.clip(since, 0.0, rec.t[-1])
-            q = np.where(since >= 0, np.interp(inside, rec.t, rec.q), 0.0)
-            v = np.where(since >= 0, np.interp(inside, rec.t, rec.velocity), 0.0)
-            T = np.where(since >= 0, np.interp(inside, rec.t, rec.temperature), d.ambient_k)
-            si = np.vstack([d.measured_stroke(q), d.damper_force(q, v, T), d.pressure(q, T), T])
-            counts, over = self.sensors.counts(si, ts)
+            counts, over = self.sensors.counts(rec.channels(since), ts)
             self.daq.emit(counts, over)
         released = self._released_at is not None
         tt = float(t[-1]) - (self._released_at or 0.0)
-        q_m = float(np.interp(min(tt, rec.t[-1]), rec.t, rec.q)) if released else 0.0
-        if released and tt > rec.t[-1] and c.holding["mode"] == 2:
+        stroke_m = rec.stroke(tt) if released else rec.stroke(-1.0)
+        if released and tt > rec.duration_s and c.holding["mode"] == 2:
             c.write_holding(0, [0])  # the drop is over: IDLE, the mass resting on the damper (one drop per run)
         self.t = float(t[-1])
-        c.update(self.t, float(self.damper.measured_stroke(q_m)), 0.0, 0.0)
+        c.update(self.t, stroke_m, 0.0, 0.0)
         self._fire_faults()
 
-    def _sample(self, t: np.ndarray, stroke: np.ndarray, v: np.ndarray, a: np.ndarray, T: np.ndarray) -> None:
+    def _sample(self, t: np.ndarray, stroke: np.ndarray, v: np.ndarray, a: np.ndarray, X: np.ndarray) -> None:
         ts = self.daq.due_times(float(t[-1]))
         if not len(ts):
             return
         grid = np.concatenate(([self.t], t))
-        states = [np.interp(ts, grid, np.concatenate(([last], x)))
-                  for last, x in zip(self._last, (stroke, v, a, T), strict=True)]
-        strokes, vs, as_, Ts = states
-        qs = self.damper.internal_stroke(strokes)
-        si = np.vstack([strokes, self.damper.axle_force(qs, vs, as_, Ts), self.damper.pressure(qs, Ts), Ts])
+        last_stroke, last_v, last_a, last_X = self._last
+        strokes, vs, as_ = (np.interp(ts, grid, np.concatenate(([last], x)))
+                            for last, x in ((last_stroke, stroke), (last_v, v), (last_a, a)))
+        Xs = np.vstack([np.interp(ts, grid, np.concatenate(([last], x))) for last, x in zip(last_X, X, strict=True)])
+        si = self.tier.channels(strokes, vs, as_, Xs)
         counts, over = self.sensors.counts(si, ts)
         self.daq.emit(counts, over)
 

@@ -225,6 +225,30 @@ def periodic_steady_state(damper: Damper, actuator: Actuator, spec: ExperimentSp
     return SteadyState(t, q, stroke, v, a, T, damper.pressure(q, T), damper.axle_force(q, v, a, T))
 
 
+def run_from_rest(damper: Damper, actuator: Actuator, spec: ExperimentSpec, t: np.ndarray,
+                  ramp_s: float) -> SteadyState:
+    """Signals at times ``t`` (uniform, from RUN at t[0]) of an experiment started at
+    rest: the damper held at its static position with the gas at ambient temperature,
+    the commanded amplitude ramped up linearly over ``ramp_s`` (the controller's ramp
+    time), no waiting for the steady state.  The actuator and gas are those of the
+    served rig (:class:`StreamingPlant`)."""
+    if damper.model != "2dof":
+        raise ValueError("a record from rest needs the 2-dof model's gas temperature")
+    dt = float(t[1] - t[0])
+    position = spec.static_position_mm * 1e-3
+    plant = StreamingPlant(damper, actuator, dt, position)
+    k, b = waveform_harmonics(spec.waveform)
+    tau = t - t[0]
+    envelope = np.clip(tau / max(ramp_s, 1e-9), 0.0, 1.0)
+    shape = np.sin(np.outer(tau, 2 * np.pi * spec.frequency_hz * k)) @ b
+    stroke, v, a, T = plant.advance(position + spec.amplitude_mm * 1e-3 * envelope * shape)
+    if np.max(np.abs(v)) > actuator.velocity_limit_m_s:
+        raise ValueError(f"experiment {spec.letter}: peak velocity {np.max(np.abs(v)):.3f} m/s exceeds the "
+                         f"actuator's limit {actuator.velocity_limit_m_s} m/s")
+    q = damper.internal_stroke(stroke)
+    return SteadyState(t, q, stroke, v, a, T, damper.pressure(q, T), damper.axle_force(q, v, a, T))
+
+
 def drop_test(damper: Damper, mass_kg: float, velocity_m_s: float, t: np.ndarray) -> SteadyState:
     """Drop test of docs/models.md: θ1 = M, θ2 = −g, Fe = 0, released at q = 0, T = ambient;
     the stroke channel reads q + θ12.
@@ -245,6 +269,34 @@ def drop_test(damper: Damper, mass_kg: float, velocity_m_s: float, t: np.ndarray
     return SteadyState(t, q, d.measured_stroke(q), v, a, T, d.pressure(q, T), d.damper_force(q, v, T))
 
 
+class ActuatorTrack:
+    """The servo-hydraulic actuator's response to a setpoint sampled every ``dt_s``,
+    discretised exactly for a first-order hold (so that the acceleration is continuous),
+    advanced block by block; both physics tiers drive their damper with it."""
+
+    def __init__(self, actuator: Actuator, dt_s: float, position_m: float) -> None:
+        wa, zeta = 2 * np.pi * actuator.bandwidth_hz, actuator.damping_ratio
+        self._wa, self._zeta = wa, zeta
+        den = [1.0, 2 * zeta * wa, wa**2]
+        bq, aq, _ = cont2discrete(([wa**2], den), dt_s, method="foh")
+        bv, av, _ = cont2discrete(([wa**2, 0.0], den), dt_s, method="foh")
+        self._q_filter = (np.ravel(bq), np.ravel(aq))
+        self._v_filter = (np.ravel(bv), np.ravel(av))
+        self._zq = lfilter_zi(*self._q_filter) * position_m
+        self._zv = lfilter_zi(*self._v_filter) * position_m
+
+    def track(self, setpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple]:
+        """Stroke, velocity, acceleration at the setpoint's steps, and the filter state
+        after them (for :meth:`keep`)."""
+        stroke, zq = lfilter(*self._q_filter, setpoint, zi=self._zq)
+        v, zv = lfilter(*self._v_filter, setpoint, zi=self._zv)
+        a = self._wa**2 * (setpoint - stroke) - 2 * self._zeta * self._wa * v
+        return stroke, v, a, (zq, zv)
+
+    def keep(self, state: tuple) -> None:
+        self._zq, self._zv = state
+
+
 class StreamingPlant:
     """The actuator and damper advanced block by block in simulated time.
 
@@ -260,36 +312,27 @@ class StreamingPlant:
 
     def __init__(self, damper: Damper, actuator: Actuator, dt_s: float, position_m: float) -> None:
         self.damper, self.actuator, self.dt = damper, actuator, dt_s
-        wa, zeta = 2 * np.pi * actuator.bandwidth_hz, actuator.damping_ratio
-        self._wa, self._zeta = wa, zeta
-        den = [1.0, 2 * zeta * wa, wa**2]
-        bq, aq, _ = cont2discrete(([wa**2], den), dt_s, method="foh")
-        bv, av, _ = cont2discrete(([wa**2, 0.0], den), dt_s, method="foh")
-        self._q_filter = (np.ravel(bq), np.ravel(aq))
-        self._v_filter = (np.ravel(bv), np.ravel(av))
-        self._zq = lfilter_zi(*self._q_filter) * position_m
-        self._zv = lfilter_zi(*self._v_filter) * position_m
+        self._track = ActuatorTrack(actuator, dt_s, position_m)
         self.temperature_k = damper.ambient_k
         self._last = (position_m, 0.0)  # measured stroke and velocity at the last step taken
-        self._pending: tuple = (0, None, None, None, None, None)
+        self._pending: tuple = (0, None, None, None, None)
 
     def advance(self, setpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Measured stroke, velocity, acceleration and temperature at the next
         ``len(setpoint)`` steps, the setpoint being sampled at those steps.  Nothing is
         committed until :meth:`commit` (a block cut short by a trip is recomputed)."""
-        stroke, zq = lfilter(*self._q_filter, setpoint, zi=self._zq)
-        v, zv = lfilter(*self._v_filter, setpoint, zi=self._zv)
-        a = self._wa**2 * (setpoint - stroke) - 2 * self._zeta * self._wa * v
+        stroke, v, a, filters = self._track.track(setpoint)
         T = self._temperature(stroke, v)
-        self._pending = (len(setpoint), zq, zv, stroke, v, T)
+        self._pending = (len(setpoint), filters, stroke, v, T)
         return stroke, v, a, T
 
     def commit(self, n: int) -> None:
         """Keep the first ``n`` steps of the last :meth:`advance`."""
-        length, zq, zv, stroke, v, T = self._pending
+        length, filters, stroke, v, T = self._pending
         if n != length:
             raise ValueError("commit a whole block; recompute a shorter one with advance()")
-        self._zq, self._zv, self.temperature_k = zq, zv, float(T[-1])
+        self._track.keep(filters)
+        self.temperature_k = float(T[-1])
         self._last = (float(stroke[-1]), float(v[-1]))
 
     def _temperature(self, stroke: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -22,7 +22,8 @@ from rig.config import DEFAULT_RIG_CONFIG
 from rig.drivers.estop import BUDGET_S, EStop, EStopLatched, LatchChanged, MotionLatch
 from rig.drivers.registers import load_register_map
 from rig.drivers.shaker import Shaker
-from rig.gui.station import Notice, Station
+from rig.gui.messages import Notice
+from rig.gui.station import Station
 from rig.session.acquisition import Acquisition
 from rig.session.run import RunOptions
 from tests.conftest import HANG_S
@@ -224,19 +225,20 @@ def test_the_console_refuses_motion_and_sessions_while_latched_and_not_after_the
     posted: list[object] = []
     station = Station(None, None, posted.append)
     try:
-        station.estop()
+        station.emergency.press()
         assert station.emergency.wait(HANG_S) is not None
         assert station.emergency.latched
-        (refusal,) = station.hydraulics(True, None)
+        (refusal,) = station.manual.hydraulics(True, None)
         assert refusal.startswith("E-STOP pressed at") and refusal.endswith("confirm the reset first")
-        assert station.hydraulics(False, None) == ["not connected"]       # switching off is never vetoed
-        assert station.run_plan(RunOptions(plan="standard", shaker=None, daq=None, out=tmp_path / "s"), None) is False
+        assert station.manual.hydraulics(False, None) == ["not connected"]       # switching off is never vetoed
+        assert station.sessions.run_plan(RunOptions(plan="standard", shaker=None, daq=None, out=tmp_path / "s"),
+                                        False) is False
         assert not (tmp_path / "s").exists()
         assert any(isinstance(p, Notice) and p.text.startswith("session refused, nothing sent: E-STOP")
                    for p in posted)
         assert [p.latched for p in posted if isinstance(p, LatchChanged)] == [True]
         station.emergency.confirm_reset()
-        assert station.hydraulics(True, None) == ["not connected"]
+        assert station.manual.hydraulics(True, None) == ["not connected"]
         assert [p.latched for p in posted if isinstance(p, LatchChanged)] == [True, False]
     finally:
         station.close()

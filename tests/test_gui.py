@@ -24,7 +24,8 @@ from rig.drivers.estop import EstopDone, LatchChanged  # noqa: E402
 from rig.events import Event, Kind, Message  # noqa: E402
 from rig.gui import MainWindow  # noqa: E402
 from rig.gui.live import LiveView  # noqa: E402
-from rig.gui.station import LinkState, SessionClosed, SessionOpened, Snapshot  # noqa: E402
+from rig.gui.messages import LinkState, SessionClosed, SessionOpened, Snapshot  # noqa: E402
+from rig.gui.qc import QcProgress  # noqa: E402
 from tests.conftest import HANG_S  # noqa: E402
 
 STATE_OFF, STATE_MOVING, STATE_RUNNING = 0, 2, 4
@@ -54,7 +55,7 @@ def open_window(qtbot, *argv: str) -> MainWindow:
 
 
 def connected(qtbot, window: MainWindow) -> None:
-    qtbot.waitUntil(lambda: window.station.shaker is not None and window.status is not None, timeout=HANG_MS)
+    qtbot.waitUntil(lambda: window.station.manual.shaker is not None and window.status is not None, timeout=HANG_MS)
 
 
 def find(window: MainWindow, kind: type, name: str):
@@ -185,7 +186,7 @@ def test_estop_during_settling_stops_motion_and_hydraulics_within_0_3_s(qtbot, t
         assert (state, hydraulics) == (STATE_OFF, False)
         assert not done.failures and done.line == "E-STOP line"
         qtbot.waitUntil(lambda: "E-STOP" in find(window, QtWidgets.QLabel, "alarmBanner").text(), timeout=HANG_MS)
-        qtbot.waitUntil(lambda: not window.station.session_running, timeout=HANG_MS)
+        qtbot.waitUntil(lambda: not window.station.sessions.running, timeout=HANG_MS)
         # Held, not moving: the same position across two of the console's status reads (the
         # actuator's own deceleration right after STOP is over by the end of the safe stop).
         position = client.read_input_registers(2, count=1).registers[0]
@@ -197,7 +198,7 @@ def test_estop_during_settling_stops_motion_and_hydraulics_within_0_3_s(qtbot, t
         button = find(window, QtWidgets.QPushButton, "hydraulicsOnButton")
         qtbot.waitUntil(lambda: not button.isEnabled(), timeout=HANG_MS)
         assert "E-STOP pressed at" in button.toolTip()
-        window.manual._do(window.station.hydraulics(True, window.status))
+        window.manual._do(window.station.manual.hydraulics(True, window.status))
         assert "E-STOP pressed at" in find(window, QtWidgets.QLabel, "refusalLabel").text()
         status_reads(qtbot, window, 2)
         assert client.read_coils(0, count=1).bits[0] is False
@@ -211,7 +212,7 @@ def test_estop_during_settling_stops_motion_and_hydraulics_within_0_3_s(qtbot, t
 def test_estop_shortcut(qtbot, tmp_path):
     window = open_window(qtbot, "--out", str(tmp_path))
     fired = []
-    window.station.estop = lambda: fired.append(True)     # no rig here: only that the key reaches the E-STOP
+    window.station.emergency.press = lambda: fired.append(True)   # no rig here: only that the key reaches it
     with qtbot.waitActive(window):
         window.activateWindow()
     qtbot.keyClick(window.shaker_edit, QtCore.Qt.Key.Key_Escape)
@@ -309,9 +310,31 @@ def test_closing_mid_run_is_a_safe_stop_and_the_session_resumes(qtbot, tmp_path,
 
 
 def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path):
-    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--unit", "worn-orifice", "--out", str(tmp_path))
+    """A unit's test through the console's own session lifecycle: throughout it, the
+    controller panel, the strip and the DAQ line say what the status poll reads from the
+    session's links (never "not read", never a rate not measured), and the verdict,
+    record and report are those of rig qc run."""
+    window = open_window(qtbot, "--simulate", "--speed", "20", "--unit", "worn-orifice", "--out", str(tmp_path))
     connected(qtbot, window)
     verdict = find(window, QtWidgets.QLabel, "verdictLabel")
+    panel_state = find(window, QtWidgets.QLabel, "controller_state")
+    seen: dict[str, list[Any]] = {"snapshots": [], "health": [], "progress": []}
+    handle = window._handle
+
+    def spy(item: Message) -> None:
+        handle(item)
+        testing = window.station.sessions.running and window.qc.last is None and verdict.text() == "TESTING…"
+        if isinstance(item, Snapshot) and testing and item.session:
+            seen["snapshots"].append(item)
+            # What the window shows, right after handling this read: all of it from this read.
+            assert item.status is not None and item.error is None, item
+            assert panel_state.text() == item.status.state, (panel_state.text(), item.status)
+            assert window.rig_state().strip_text().startswith(item.status.state), window.rig_state().strip_text()
+            assert "not streaming" not in window.live.placeholder_reason or not item.streaming
+            seen["health"].append((item.streaming, window.live.health.text()))
+        elif isinstance(item, QcProgress):
+            seen["progress"].append(item)
+    window._handle = spy
     window.qc.serial.setText("SN-4242")
     qtbot.mouseClick(find(window, QtWidgets.QPushButton, "qcTestButton"), QtCore.Qt.MouseButton.LeftButton)
     qtbot.waitUntil(lambda: verdict.text() == "TESTING…", timeout=HANG_MS)
@@ -319,8 +342,15 @@ def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path
     qtbot.waitUntil(lambda: window.qc.last is not None, timeout=HANG_MS)
     done = window.qc.last
     assert done.shown == "FAIL", (done, window.simulated.log()[-500:])       # a worn orifice: --unit reached the rig
+    # Live throughout: the controller read on the session's links in every phase it went through ...
+    states = {snap.status.state for snap in seen["snapshots"]}
+    assert {"RUNNING", "AT_STATIC"} <= states and len(states) >= 3, states
+    # ... and the DAQ's rate measured on its stream, said with its clock, whenever it streamed 2 s and more.
+    measured = [text for streaming, text in seen["health"] if streaming and "× real time" in text]
+    assert measured and all("samples per wall-clock second" in t for t in measured), seen["health"][-5:]
+    assert not any("measuring" in text for streaming, text in seen["health"] if not streaming)
+    assert seen["progress"] and seen["progress"][-1].fraction > 0                 # the progress bar moved
     assert verdict.text().startswith(done.shown) and "SIMULATED" in verdict.text()     # the big box says it too
-    assert window.qc.progress.value() > 0                                    # the progress bar moved while it ran
     # The table as the report shows it (every number with its unit), the likely cause in full.
     table = window.qc.table
     rows = [[table.item(i, j).text() for j in range(table.columnCount())] for i in range(table.rowCount())]
@@ -332,15 +362,15 @@ def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path
     record = json.loads((done.report.parent / "qc-record.json").read_text())
     assert record["verdict"] == "FAIL" and record["simulated"] is True
     assert record["serial"] == "SN-4242" and record["status"] == "COMPLETE"
-    assert done.report.parent.parent == (tmp_path / "qc").resolve() and done.report.is_file()
+    assert done.report.parent.parent == (tmp_path / "qc") and done.report.is_file()
     assert done.report.resolve().as_uri() in find(window, QtWidgets.QLabel, "qcReportLink").text()
     assert json.loads((done.report.parent / "session.json").read_text())["status"] == "complete"
     # The verdict stays until the next unit; a refused unit (a serial not in the spec's format) is said, nothing runs.
-    qtbot.waitUntil(lambda: window.station.shaker is not None, timeout=HANG_MS)     # the console's links back
+    qtbot.waitUntil(lambda: window.station.manual.shaker is not None, timeout=HANG_MS)     # the console's links back
     window.qc.serial.setText("4243")                                                # not the spec's format
     qtbot.mouseClick(find(window, QtWidgets.QPushButton, "qcTestButton"), QtCore.Qt.MouseButton.LeftButton)
     assert verdict.text() == "REFUSED" and "format of spec" in find(window, QtWidgets.QLabel, "qcReason").text()
-    assert not window.station.session_running and window.station.shaker is not None
+    assert not window.station.sessions.running and window.station.manual.shaker is not None
     closed(qtbot, window)
 
 
@@ -439,12 +469,12 @@ def test_the_counters_agree_within_one_cycle_in_the_same_frame(qtbot, tmp_path, 
         else:
             return False
         # the time left in the table is the one the session line gives for this experiment
-        assert f"{row.label}: wall {shown['left']} m:s" in str(shown["eta"]), shown
+        assert f"{row.label}: rig time {shown['left']} m:s" in str(shown["eta"]), shown
         seen[row.status] += 1
         return seen["settling"] >= 3 and seen["capturing"] >= 1
 
     qtbot.waitUntil(check, timeout=180_000)
-    qtbot.waitUntil(lambda: not window.station.session_running, timeout=120_000)
+    qtbot.waitUntil(lambda: not window.station.sessions.running, timeout=120_000)
     closed(qtbot, window)
 
 
@@ -490,18 +520,26 @@ def test_a_rig_reached_by_address_that_says_it_is_a_simulator_gets_the_banner(qt
     closed(qtbot, window)
 
 
-def test_the_daq_line_gives_the_rig_rate_and_a_steady_pace(qtbot):
-    """Frames arriving in bursts from a 20x simulator: the line says the rig's 2000 samples/s
-    and a pace near 20x, not a frames-per-wall-second figure jumping with each burst."""
-    view = LiveView(2000.0)
+def test_the_daq_line_gives_the_measured_pace_with_its_clock(qtbot):
+    """Frames arriving in bursts from a 20x simulator: the line says the frames counted per
+    wall-clock second and their pace against the rig's 2000 samples/s, near 20x, not a figure
+    jumping with each burst; a stream that is not running says so, and a new one is measured afresh."""
+    view = LiveView(2000.0, asked_pace=20.0)
     qtbot.addWidget(view)
     paces = []
     for i in range(40):                    # every 0.25 s, 10 000 frames ± a 3 000-frame burst
-        view.show_health(Snapshot(None, None, received=i * 10_000 + (3_000 if i % 2 else 0), time=100 + i / 4))
+        view.show_health(Snapshot(None, None, received=i * 10_000 + (3_000 if i % 2 else 0), time=100 + i / 4,
+                                  streaming=True))
         text = view.health.text()
         if i >= 9:
-            assert "2000 samples/s (rig time)" in text, text
-            paces.append(float(re.search(r"at ([\d.]+)× real time", text).group(1)))
+            assert "samples per wall-clock second" in text and "at 2000 samples/s of rig time" in text, text
+            assert "asked for" not in text, text           # the measured pace is the one asked for
+            paces.append(float(re.search(r"([\d.]+)× real time", text).group(1)))
     assert min(paces) >= 19 and max(paces) <= 21, paces
-    view.show_health(Snapshot(None, None, received=5, time=111))      # a new stream: measured afresh
-    assert "measuring" in view.health.text()
+    view.show_health(Snapshot(None, None, received=5, time=111, streaming=True))    # a new stream: measured afresh
+    assert "measuring over 2 s of wall clock" in view.health.text()
+    view.show_health(Snapshot(None, None, received=5, time=112, streaming=False, session=True))
+    assert "not streaming (the session streams while it holds, settles and captures)" in view.health.text()
+    for i in range(12):                    # a simulator that keeps up with 1.3x only: said beside the 20x asked
+        view.show_health(Snapshot(None, None, received=i * 650, time=200 + i / 4, streaming=True))
+    assert "1.3× real time" in view.health.text() and "asked for 20×" in view.health.text()

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from identify.exit_codes import EXIT_INTERRUPTED
 from rig.config import load_rig_config
@@ -79,11 +80,12 @@ def test_peak_decimation_keeps_the_extremes_in_time_order():
 
 def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     """Under the drift criterion the bias bound is the deciding line and the cycles left
-    come from its decay; the changes stay, grey, for information (they were coloured as
-    failing thresholds that did not apply).  Under the change criterion, as before."""
+    come from its decay; the changes stay, pale, for information (they were coloured as
+    failing thresholds that did not apply), saying under or over their threshold.  Under the
+    change criterion, as before."""
     from identify.notation import significant
     from rig.config import DEFAULT_RIG_CONFIG
-    from rig.gui.plan_panel import SteadyStateView
+    from rig.gui.plan_panel import INFO_OVER, INFO_UNDER, SteadyStateView
     from rig.gui.plan_state import ExperimentRow
 
     config = load_rig_config(DEFAULT_RIG_CONFIG)
@@ -100,7 +102,9 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     view.show_count(row)
     assert f"up to {significant(2 * fraction)} σ; captures below {fraction:g} σ" in view.bound.text()
     assert "predicted cycles left: 10" in view.cycles.text()     # halves every 10 cycles: 10 more
-    assert view.bars[3].property("colour") == "#9e9e9e"          # 13x its change threshold: no verdict
+    # 13x its change threshold: pale orange (over, for information), not the change criterion's orange,
+    # and not a grey that does not say over or under; the stroke's change, under its threshold, pale green
+    assert view.bars[3].property("colour") == INFO_OVER and view.bars[0].property("colour") == INFO_UNDER
 
     from dataclasses import replace
 
@@ -110,6 +114,14 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     assert plain.title() == "Steady state (change criterion)"
     plain.show_row(row)
     assert plain.bars[3].property("colour") == "#fb8c00"
+    # A QC spec's session brings its own criterion: the view takes it (the drift bound's
+    # field is absent from its reports; the cycles left come from the changes).
+    view.configure(change_config)
+    assert view.title() == "Steady state (change criterion)" and not view.bound.isVisibleTo(view)
+    row.settling = [(40, dict(change)), (50, {k: v / 2 for k, v in change.items()})]
+    view.show_row(row)
+    view.show_count(row)
+    assert "predicted cycles left:" in view.cycles.text() and view.bars[3].property("colour") == "#fb8c00"
 
 
 def test_a_new_excitation_starts_the_loops_afresh():
@@ -132,3 +144,29 @@ def test_a_new_excitation_starts_the_loops_afresh():
     daq.ring.append(np.arange(20), np.ones((20, 4)))          # a new stream
     history.update(daq)
     assert history.n == 20 and history.since_mark() == 20
+
+
+def test_the_time_left_and_the_settling_view_count_the_same_cycles(qtbot):
+    """Under the drift criterion the table's rig time left for the settling experiment
+    comes from the cycles its bias bound's decay predicts, as the settling view says them
+    (it came from the change thresholds, already met: '0:02' beside '257 cycles left')."""
+    from dataclasses import replace
+
+    from rig.config import DEFAULT_RIG_CONFIG
+    from rig.gui.plan_panel import SteadyStateView
+    from rig.gui.plan_state import PlanProgress
+
+    config = load_rig_config(DEFAULT_RIG_CONFIG)
+    fraction = config.steady_state.drift.fraction
+    plan = load_plan("standard")
+    progress = PlanProgress(replace(plan, experiments=plan.experiments[:1]), config, "261124")
+    (row,) = progress.rows
+    change = {"stroke_mm": 1e-5, "force_N": 0.01, "pressure_bar": 1e-5, "gas_temperature_C": 1e-4}   # all met
+    row.settling = [(40, change | {"bias_sigma": 4 * fraction}), (50, change | {"bias_sigma": 2 * fraction})]
+    row.status, row.cycles, row.started = "settling", 50, 0.0
+    view = SteadyStateView(config)
+    qtbot.addWidget(view)
+    view.show_count(row)
+    assert "predicted cycles left: 10" in view.cycles.text()
+    ss, f = config.steady_state, row.spec.frequency_hz
+    assert progress.rig_left_s(row) == pytest.approx((10 + row.spec.periods) / f + ss.ramp_time_s)

@@ -21,12 +21,14 @@ from rig.config import load_rig_config
 from rig.drivers.daq import Calibration, Daq
 from rig.drivers.peer_identity import Peers
 from rig.drivers.shaker import Shaker
-from rig.gui.qc import ProgressReader, QcRequest, outcome
+from rig.events import Event, Kind
+from rig.gui.qc import QcProgress, QcRequest, QcTracker, done_from
 from rig.qc.evaluate import _for_the_verdict
 from rig.qc.history import MIN_CAPABILITY_N, capability, imr_limits, index
 from rig.qc.judge import Outcome
 from rig.qc.present import limits_text, shown, sigma_note
 from rig.qc.records import ADDED_IN_2, ADDED_IN_3, CharacteristicRecord, QcRecord, Records, RecordStatus
+from rig.qc.run import Prediction, QcOutcome
 from rig.qc.spec import load_spec
 from simulator.generate import generate
 from simulator.truth import load_truth
@@ -249,32 +251,48 @@ def test_the_report_has_titles_acceptance_limits_units_and_a_sigma_note_per_char
     assert "Which σ the verdict used" in page
 
 
-# ----- the console's QC panel, from the run's own output ----------------------------------------------
-def test_the_console_reads_progress_and_rig_time_left_from_the_run():
-    reader = ProgressReader()
-    assert reader.feed("QC default 1.2.0 on unit SN-1: records in sqlite:///x") is None
-    start = reader.feed("session: 3 experiments, about 4:36 min:s of rig time")
-    assert start is not None and start.fraction == 0 and start.rig_left_s == 276
-    reader.feed("[1/3] 261126l  Moving to the static position 40.0 mm.")
-    half = reader.feed("[1/3] 261126l  Captured 50 % of the window.")
-    assert half is not None and half.fraction == pytest.approx(0.5 / 3) and "capturing" in half.text
-    reader.feed("[2/3] 261126v  Moving to the static position 133.0 mm.")    # begun before l's file is written
-    done = reader.feed("[1/3] 261126l  Written to 261126l.csv: 6000 samples, none lost in the window.")
-    assert done is not None and done.fraction == pytest.approx(1 / 3) and done.rig_left_s == pytest.approx(184)
-    assert "experiment 2 of 3" in done.text
+# ----- the console's QC panel, from the session's events and the stored record -------------------------
+def test_the_console_progress_follows_the_session_and_its_re_prediction():
+    posted: list[QcProgress] = []
+    now = [0.0]                               # the session's clock [s]; the links at 10x
+    tracker = QcTracker({"261126l": 100.0, "261126v": 200.0}, posted.append, lambda: now[0], lambda: 10.0)
+    assert posted[-1].fraction == 0 and posted[-1].rig_left_s == 300 and not posted[-1].predicted_after
+    tracker(Event(Kind.PHASE, "261126l", {"phase": "moving", "target_mm": 40.0}))
+    assert posted[-1].text == "experiment 1 of 2 (261126l): moving"
+    now[0] = 5.0                              # 50 rig seconds into l
+    tracker(Event(Kind.PROGRESS, "261126l", {"phase": "settling", "cycles": 3, "change": {}}))
+    assert posted[-1].fraction == pytest.approx(50 / 300) and posted[-1].rig_left_s == pytest.approx(250)
+    assert "settling" in posted[-1].text
+    now[0] = 30.0                             # longer than its estimate: at most 95 % of it until written
+    tracker(Event(Kind.PROGRESS, "261126l", {"phase": "capturing", "fraction": 0.5}))
+    assert posted[-1].fraction == pytest.approx(95 / 300) and "capturing" in posted[-1].text
+    tracker(Event(Kind.PHASE, "261126v", {"phase": "moving", "target_mm": 133.0}))   # begun before l is written
+    assert posted[-1].fraction == pytest.approx(95 / 300)                           # l still counts
+    tracker(Event(Kind.EXPERIMENT_DONE, "261126l", {"file": "l.csv", "samples": 1, "lost": 0, "flags": []}))
+    assert posted[-1].fraction == pytest.approx(1 / 3) and posted[-1].rig_left_s == pytest.approx(200)
+    assert "experiment 2 of 2" in posted[-1].text
+    # A faulty unit: the rest of the plan predicted again from the parameters identified so far.
+    tracker.predicted(Prediction(("261126l",), ("damping_force_N",), 450.0))
+    assert posted[-1].rig_left_s == pytest.approx(450) and posted[-1].predicted_after == "261126l"
+    assert posted[-1].fraction == pytest.approx(100 / 550)
+    tracker(Event(Kind.LOG, None, {"message": "anything"}))      # nothing the panel shows
+    assert len(posted) == 7
 
 
-def test_the_console_table_comes_from_the_summary_the_run_prints():
-    stdout = ("SN-0042: FAIL  (spec default 1.2.0; value ± 2σ)  SIMULATED (not a production record)\n"
-              "  FAIL         | Damping force at 0.3 m/s | 344.1 ± 4.0 N | limits 450 N ± 10 % | "
-              "accept 409.0 … 491.0 N | σ 2.0 N residual-based\n"
-              "  likely cause: Damping force at 0.3 m/s too low: orifice wear or wrong oil\n"
-              "report /tmp/x/qc-report.html; record abc in sqlite:///x\n")
-    done = outcome(QcRequest("SN-0042"), 1, stdout, [])
+def test_the_console_table_comes_from_the_stored_record():
+    stored = replace(record("SN-0042", "abc"), k=2.0, simulated=True,
+                     diagnosis=("Gas precharge too low: a gas leak",))
+    outcome = QcOutcome(1, stored, Path("/tmp/x/qc-report.html"), 2.0, "sqlite:///x")
+    done = done_from(QcRequest("SN-0042"), outcome, retest_periods=12)
     (row,) = done.rows
+    cells = shown(stored, stored.characteristics[0], 2.0)
     assert (row.title, row.value, row.limits, row.acceptance, row.outcome) == (
-        "Damping force at 0.3 m/s", "344.1 ± 4.0 N", "450 N ± 10 %", "409.0 … 491.0 N", "FAIL")
-    assert done.causes == ["Damping force at 0.3 m/s too low: orifice wear or wrong oil"] and done.simulated
+        cells.title, cells.value, cells.limits, cells.acceptance, "FAIL")
+    assert done.shown == "FAIL" and done.simulated and done.causes == ["Gas precharge too low: a gas leak"]
+    assert done.retest_periods is None and done.report == Path("/tmp/x/qc-report.html")
+    aborted = replace(stored, verdict=None, status="ABORTED", characteristics=(), reason="session interrupted")
+    done = done_from(QcRequest("SN-0042"), QcOutcome(130, aborted, outcome.report, 2.0, "x"), retest_periods=12)
+    assert (done.shown, done.exit_code, done.reason, done.rows) == ("ABORTED", 130, "session interrupted", [])
 
 
 def test_gui_unit_and_fault_go_to_the_simulated_rig_only(capsys):

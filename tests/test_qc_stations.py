@@ -163,7 +163,8 @@ def test_a_record_made_while_the_database_is_down_reaches_it_once_when_it_is_bac
         verdict = {0: "PASS", 1: "FAIL", 4: "INCONCLUSIVE"}.get(proc.returncode)
         assert verdict is not None, err[-3000:]
         assert out.startswith(f"SN-0101: {verdict}")          # the verdict, on screen and in the exit status
-        (queued,) = [line for line in out.splitlines() if line.startswith("record queued")]
+        (queued,) = [line for line in err.splitlines() if line.startswith("record queued")]   # the last word
+        assert err.rstrip().endswith("sends it")
         assert queued.startswith("record queued (database unreachable: ") and "qc sync --out" in queued
         (pending,) = (station / "qc-queue" / "pending").iterdir()
         assert json.loads(pending.read_text())["verdict"] == verdict

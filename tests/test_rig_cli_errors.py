@@ -14,7 +14,8 @@ import pytest
 
 from rig.config import DEFAULT_RIG_CONFIG
 from rig.drivers.daq import probe_daq
-from rig.gui.station import Notice, Station
+from rig.gui.messages import Notice
+from rig.gui.station import Station
 from tests.conftest import HANG_S
 
 CALIBRATION = Path(__file__).resolve().parents[1] / "rig" / "config" / "daq-calibration-datasheet.toml"

@@ -341,6 +341,11 @@ class Daq:
         return None
 
     # ----- streaming ---------------------------------------------------------------------
+    @property
+    def streaming(self) -> bool:
+        """START answered and the stream not stopped since (the console's DAQ line says it)."""
+        return self._streaming.is_set()
+
     def start(self) -> None:
         """START the stream; samples are indexed from 0 at this START."""
         self.parser.reset()

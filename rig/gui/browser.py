@@ -16,8 +16,8 @@ from PySide6 import QtCore, QtWidgets
 from identify.dataset import read_manifest
 from identify.model import DEFAULT_ESTIMATE
 from rig.gui.fit_view import fill_parameter_table, parameter_table
+from rig.gui.fitting import IdentifySettings
 from rig.gui.plotting import labelled
-from rig.gui.station import IdentifySettings
 from rig.session.progress import log_text
 
 EXPERIMENT_COLUMNS = ("experiment", "f [Hz]", "static [mm]", "amplitude [mm]", "periods", "settle cycles",

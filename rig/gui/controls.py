@@ -1,6 +1,6 @@
 """The controller's state as last read, and manual control: hydraulics, a static
 position, a manual sine and a (fading) stop.  Every command is checked against the
-rig's limits by :class:`~rig.gui.station.Station` before anything is written; a refusal
+rig's limits by :class:`~rig.gui.manual.ManualControl` before anything is written; a refusal
 is shown here with its reasons and nothing is sent."""
 
 from __future__ import annotations
@@ -10,7 +10,8 @@ from collections.abc import Callable
 from PySide6 import QtWidgets
 
 from rig.drivers.shaker import ShakerStatus
-from rig.gui.station import Snapshot, Station
+from rig.gui.manual import ManualControl
+from rig.gui.messages import Snapshot
 
 STATE_COLOURS = {"OFF": "#666666", "IDLE": "#1f77b4", "MOVING": "#ff7f0e", "AT_STATIC": "#1f77b4",
                  "RUNNING": "#2ca02c", "ALARM": "#b00020"}
@@ -43,6 +44,10 @@ class ControllerPanel(QtWidgets.QGroupBox):
         if st is None:
             f["state"].setText(f"no answer ({snap.error})" if snap.error else "not connected")
             f["state"].setStyleSheet("color: #b00020; font-weight: bold" if snap.error else "")
+            # Nothing read: no number from an older read is shown beside it as if it were now.
+            for key in ("position", "alarm", "force", "cycles", "supply", "watchdog"):
+                f[key].setText("–")
+                f[key].setStyleSheet("")
             return
         f["state"].setText(st.state)
         f["state"].setStyleSheet(f"color: {STATE_COLOURS.get(st.state, '#000')}; font-weight: bold")
@@ -52,7 +57,9 @@ class ControllerPanel(QtWidgets.QGroupBox):
         f["force"].setText(f"{st.force_n / 1e3:.2f} kN")
         f["cycles"].setText(f"{st.cycles} since RUN" if st.state == "RUNNING" else str(st.cycles))
         f["supply"].setText(f"{st.hydraulic_pressure_pa / 1e5:.0f} bar")
-        f["watchdog"].setText(f"{self.watchdog_s:g} s, fed by this program" if snap.heartbeat_ok
+        # Who feeds it, from which links were read: the session's while one runs, else the console's.
+        feeder = "the session's link" if snap.session else "the console's link"
+        f["watchdog"].setText(f"{self.watchdog_s:g} s, fed by {feeder}" if snap.heartbeat_ok
                               else "HEARTBEAT FAILING: the controller will trip")
         f["watchdog"].setStyleSheet("" if snap.heartbeat_ok else "color: #b00020; font-weight: bold")
 
@@ -84,11 +91,11 @@ def _spin(low: float, high: float, value: float, suffix: str, decimals: int = 2)
 
 
 class ManualPanel(QtWidgets.QGroupBox):
-    def __init__(self, station: Station, status: Callable[[], ShakerStatus | None],
+    def __init__(self, control: ManualControl, status: Callable[[], ShakerStatus | None],
                  parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__("Manual control", parent)
-        self.station, self.status = station, status
-        lim = station.config.limits
+        self.control, self.status = control, status
+        lim = control.config.limits
         layout = QtWidgets.QVBoxLayout(self)
 
         hyd = QtWidgets.QHBoxLayout()
@@ -96,8 +103,8 @@ class ManualPanel(QtWidgets.QGroupBox):
         self.hyd_on.setObjectName("hydraulicsOnButton")
         self.hyd_off = QtWidgets.QPushButton("Hydraulics OFF")
         self.hyd_off.setObjectName("hydraulicsOffButton")
-        self.hyd_on.clicked.connect(lambda: self._do(station.hydraulics(True, self.status())))
-        self.hyd_off.clicked.connect(lambda: self._do(station.hydraulics(False, self.status())))
+        self.hyd_on.clicked.connect(lambda: self._do(control.hydraulics(True, self.status())))
+        self.hyd_off.clicked.connect(lambda: self._do(control.hydraulics(False, self.status())))
         hyd.addWidget(self.hyd_on)
         hyd.addWidget(self.hyd_off)
         layout.addLayout(hyd)
@@ -133,7 +140,7 @@ class ManualPanel(QtWidgets.QGroupBox):
 
         self.stop_button = QtWidgets.QPushButton("Stop (fade out)")
         self.stop_button.setObjectName("stopButton")
-        self.stop_button.clicked.connect(lambda: self._do(station.fade_stop(self.status())))
+        self.stop_button.clicked.connect(lambda: self._do(control.fade_stop(self.status())))
         layout.addWidget(self.stop_button)
         self.refusal = QtWidgets.QLabel("")
         self.refusal.setObjectName("refusalLabel")
@@ -142,10 +149,10 @@ class ManualPanel(QtWidgets.QGroupBox):
         layout.addWidget(self.refusal)
 
     def request_move(self) -> None:
-        self._do(self.station.move(self.position.value() * 1e-3, self.status()))
+        self._do(self.control.move(self.position.value() * 1e-3, self.status()))
 
     def request_sine(self) -> None:
-        self._do(self.station.sine(self.sine_static.value() * 1e-3, self.sine_amplitude.value() * 1e-3,
+        self._do(self.control.sine(self.sine_static.value() * 1e-3, self.sine_amplitude.value() * 1e-3,
                                    self.sine_frequency.value(), self.status()))
 
     def _do(self, problems: list[str]) -> None:

@@ -24,8 +24,8 @@ from PySide6 import QtGui, QtWidgets
 from rig.config import CHANNELS
 from rig.drivers.daq import Daq
 from rig.gui import analysis
+from rig.gui.messages import Snapshot
 from rig.gui.plotting import labelled
-from rig.gui.station import Snapshot
 
 WINDOWS_S = (2.0, 10.0, 60.0)
 HISTORY_S = 60.0
@@ -156,14 +156,16 @@ def _curve(plot: pg.PlotItem, colour: str) -> pg.PlotDataItem:
 
 
 class LiveView(QtWidgets.QWidget):
-    def __init__(self, rate_hz: float, min_span: dict[str, float] | None = None,
+    def __init__(self, rate_hz: float, min_span: dict[str, float] | None = None, asked_pace: float = 1.0,
                  parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
         self.rate_hz = rate_hz
+        self.asked_pace = asked_pace          # the simulator's --speed (1 on hardware): said beside the measured one
         spans = min_span or {}
         # in the axes' units (force in kN)
         self.min_span = [spans.get(c, 0.0) * scale for c, (_, _, scale, _) in zip(CHANNELS, TRACES, strict=True)]
         self._excitation: object = None
+        self.why_none = "no excitation running"
         self.history = LiveHistory(rate_hz)
         self.frequency_hz: float | None = None     # the excitation's, for the loops (None: not known)
         self.window_s = 10.0
@@ -247,18 +249,23 @@ class LiveView(QtWidgets.QWidget):
         self.window_s = float(self.window_box.currentData())
         self.traces[0].getViewBox().setXRange(-self.window_s, 0, padding=0)
 
-    def set_excitation(self, key: object, frequency_hz: float | None) -> None:
-        """The excitation running now (``key`` None: none); a new key clears the loops."""
+    def set_excitation(self, key: object, frequency_hz: float | None, why_none: str = "no excitation running") -> None:
+        """The excitation running now (``key`` None: none, for the reason ``why_none``); a new
+        key clears the loops."""
         if key != self._excitation:
             self._excitation = key
             self.history.set_mark()
         self.frequency_hz = frequency_hz if key is not None else None
+        self.why_none = why_none
 
     def refresh(self, daq: Daq | None) -> bool:
         """Take new samples and redraw; False when there was nothing new."""
         if not self.history.update(daq):
             if self.history.n == 0:
-                self._show_placeholders("no samples: the DAQ is not streaming to the console")
+                for curve in self.traces:           # no samples of this link: no old trace drawn as if live
+                    curve.setData([], [])
+                self._show_placeholders("no DAQ link" if daq is None else "no samples yet: the DAQ is not streaming"
+                                        if not daq.streaming else "no samples yet")
             return False
         t, v = self.history.latest(self.window_s)
         for curve, plot, span, (_, _, scale, _), column in zip(self.traces, self.trace_plots, self.min_span, TRACES,
@@ -288,7 +295,7 @@ class LiveView(QtWidgets.QWidget):
     def _refresh_loops(self) -> None:
         f = self.frequency_hz
         if not f:
-            self._show_placeholders("no excitation running")
+            self._show_placeholders(self.why_none)
             return
         n = analysis.last_cycles(self.history.since_mark(), self.rate_hz, f, self.cycles_box.value())
         _, v = self.history.latest(n / self.rate_hz)
@@ -327,15 +334,26 @@ class LiveView(QtWidgets.QWidget):
         counts.append((snap.time, snap.received))
         while len(counts) > 2 and snap.time - counts[1][0] >= RATE_WINDOW_S:
             counts.popleft()
-        (t0, n0), (t1, n1) = counts[0], counts[-1]
-        if t1 - t0 < RATE_WINDOW_S:
-            pace = "rate: measuring" if n1 > n0 or len(counts) == 1 else "not streaming"
-        elif n1 == n0:
-            pace = "not streaming"
-        else:
-            pace = f"{self.rate_hz:g} samples/s (rig time) at {(n1 - n0) / (t1 - t0) / self.rate_hz:.1f}× real time"
-        self.health.setText(f"DAQ {pace} · lost {snap.lost} · CRC errors {snap.crc_errors} · "
+        self.health.setText(f"DAQ {self._pace(snap)} · lost {snap.lost} · CRC errors {snap.crc_errors} · "
                             f"over range {snap.over_range} · overflow flags {snap.overflow_flags}")
         style = "color: #b00020; font-weight: bold" if snap.lost or snap.crc_errors or snap.over_range else ""
         self.health.setStyleSheet(style)
 
+    def _pace(self, snap: Snapshot) -> str:
+        """What the DAQ does, from this stream's counts only: not streaming, being measured,
+        or the frames counted per second of the wall clock over the last 2 s, and what
+        that is against the rig's own rate (frames are samples of rig time)."""
+        if not snap.streaming:
+            # a session streams while it holds, settles and captures, not while it moves or stops
+            return "not streaming" + (" (the session streams while it holds, settles and captures)"
+                                      if snap.session else "")
+        (t0, n0), (t1, n1) = self._counts[0], self._counts[-1]
+        if t1 - t0 < RATE_WINDOW_S:
+            return f"rate: measuring over {RATE_WINDOW_S:g} s of wall clock"
+        per_s = (n1 - n0) / (t1 - t0)
+        if per_s == 0:
+            return f"streaming, but no frame in the last {t1 - t0:.1f} s of wall clock"
+        pace = per_s / self.rate_hz
+        asked = f"; asked for {self.asked_pace:g}×" if abs(pace / self.asked_pace - 1) > 0.2 else ""
+        return (f"{per_s:,.0f} samples per wall-clock second (last {t1 - t0:.1f} s): {pace:.1f}× real time "
+                f"at {self.rate_hz:g} samples/s of rig time{asked}").replace(",", " ")

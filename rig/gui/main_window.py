@@ -22,7 +22,7 @@ from typing import Any
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from identify.exit_codes import EXIT_BAD_INPUT
+from identify.exit_codes import EXIT_INTERRUPTED
 from rig.drivers.daq import check_daq_address
 from rig.drivers.estop import EstopDone, LatchChanged
 from rig.drivers.shaker import ShakerAddress, ShakerStatus
@@ -31,26 +31,24 @@ from rig.events import Event, Kind, Message
 from rig.gui.browser import SessionBrowser
 from rig.gui.controls import ControllerPanel, ManualPanel
 from rig.gui.fit_view import FitView
+from rig.gui.fitting import IdentifySettings
 from rig.gui.live import LiveView
-from rig.gui.options import ConsoleOptions
-from rig.gui.plan_panel import PlanPanel
-from rig.gui.qc import QcDone, QcProgress, QcRequest
-from rig.gui.qc_panel import QcPanel
-from rig.gui.state_strip import RigState, StateStrip, hydraulics_on
-from rig.gui.station import (
+from rig.gui.messages import (
     ComparisonDone,
     FitDone,
     FitProgress,
-    IdentifySettings,
     LinkState,
     Notice,
-    QcStarted,
     SessionClosed,
     SessionOpened,
     Snapshot,
-    Station,
-    session_options,
 )
+from rig.gui.options import ConsoleOptions
+from rig.gui.plan_panel import PlanPanel
+from rig.gui.qc import QcDone, QcProgress, QcRequest, QcStarted, refused
+from rig.gui.qc_panel import QcPanel
+from rig.gui.state_strip import COLOURS, RigState, StateStrip, hydraulics_on
+from rig.gui.station import Station, session_options
 from rig.planning.plans import comma_list, load_plan
 from rig.qc.spec import load_spec
 from rig.session.progress import describe
@@ -58,6 +56,7 @@ from rig.session.run import RunOptions
 from rig.virtual import VirtualRig
 
 REDRAW_HZ = 30
+BANNER_ALARM, BANNER_NO_ANSWER, BANNER_CLEAR = COLOURS["ALARM"], "#e65100", "#2e7d32"
 DRAIN_MAX = 5000                 # records taken from the queue per tick, so a flood cannot freeze the window
 LOGGED_EVENTS = (Kind.SESSION_START, Kind.PHASE, Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED, Kind.ALARM, Kind.LOG,
                  Kind.LINK, Kind.SESSION_END)
@@ -121,6 +120,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.estop_text: str | None = None          # latched until the operator resets
         self.alarm_latched: str | None = None       # an alarm seen, latched here until the operator resets
         self.link_error: str | None = None
+        self.interrupted_by: int | None = None      # SIGINT or SIGTERM closed the window (exit 130)
         self._closing = False
         self._last_redraw = 0.0
         self._last_table = 0.0
@@ -180,7 +180,8 @@ class MainWindow(QtWidgets.QMainWindow):
         banner_row.addWidget(self.reset_button)
         unit = f", unit {args.unit}" if args.unit else ""
         self.sim_label = QtWidgets.QLabel(
-            f"SIMULATED RIG (python -m simulator serve at {args.speed:g}x{unit}, not hardware)" if self.simulated
+            f"SIMULATED RIG (python -m simulator serve, asked for {args.speed:g}× real time{unit}; not hardware)"
+            if self.simulated
             else "")
         self.sim_label.setObjectName("simulatedLabel")
         self.sim_label.setStyleSheet("background: #fff3cd; color: #7a5200; font-weight: bold; padding: 3px")
@@ -202,7 +203,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.plan.runRequested.connect(self.run_plan)
         self.plan.abortRequested.connect(self.abort)
         self.plan.resumeRequested.connect(self.resume)
-        self.manual = ManualPanel(st, lambda: self.status)
+        self.manual = ManualPanel(st.manual, lambda: self.status)
         self.left_tabs = QtWidgets.QTabWidget()
         self.left_tabs.addTab(self.plan, "Plan")
         manual_page = QtWidgets.QWidget()
@@ -220,7 +221,7 @@ class MainWindow(QtWidgets.QMainWindow):
         left_layout.addWidget(self.controller)
         left_layout.addWidget(self.left_tabs, 1)
 
-        self.live = LiveView(st.config.daq_rate_hz, st.config.min_span)
+        self.live = LiveView(st.config.daq_rate_hz, st.config.min_span, args.speed if self.simulated else 1.0)
         self.fit_view = FitView()
         self.fit_view.compareRequested.connect(self.compare)
         self.browser = SessionBrowser(Path(args.out))
@@ -264,13 +265,13 @@ class MainWindow(QtWidgets.QMainWindow):
         self.station.connect(self.shaker_edit.text().strip() or None, self.daq_edit.text().strip() or None)
 
     def _toggle_connection(self) -> None:
-        if self.station.shaker is not None:
-            self.station.disconnect()
+        if self.station.manual.shaker is not None:
+            self.station.manual.disconnect()
         else:
             self.connect_rig()
 
     def estop(self) -> None:
-        self.station.estop()
+        self.station.emergency.press()
         self.estop_text = f"E-STOP at {_dt.datetime.now():%H:%M:%S}: STOP and hydraulics off sent"
         self._say("E-STOP pressed", "error")
         self._show_banner()
@@ -280,8 +281,9 @@ class MainWindow(QtWidgets.QMainWindow):
         # the controls show it, and an alarm seen, until the operator confirms the reset.
         latch = self.station.emergency.latch
         trip = latch.reason if latch.latched else "E-STOP" if self.estop_text else self.alarm_latched
-        return RigState(self.status, trip, self.link_error, self.station.shaker is not None,
-                        self.station.session_running)
+        running = self.station.sessions.running
+        return RigState(self.status, trip, self.link_error, self.station.manual.shaker is not None or running,
+                        running)
 
     def _show_state(self) -> None:
         """The strip and which motion controls are allowed, from the same state."""
@@ -297,6 +299,8 @@ class MainWindow(QtWidgets.QMainWindow):
             elif button.toolTip() != self._tooltips[name] or not button.isEnabled():
                 button.setEnabled(True)
                 button.setToolTip(self._tooltips[name])
+        # A session holds the links until its safe stop: the console's own are taken back after it.
+        self.connect_button.setEnabled(not state.session_running)
         self.browser.resume_button.setEnabled(self.browser.resumable and "resume" not in blocked)
         self.browser.resume_button.setToolTip(f"Disabled: {blocked['resume']}" if "resume" in blocked else "")
 
@@ -310,24 +314,23 @@ class MainWindow(QtWidgets.QMainWindow):
         self.estop_text = self.alarm_latched = None
         self.station.emergency.confirm_reset()
         if self.status is not None and self.status.state == "ALARM":
-            self.manual._do(self.station.reset_alarm())
+            self.manual._do(self.station.manual.reset_alarm())
         self._show_banner()
 
     def run_plan(self) -> None:
         identify = IdentifySettings() if self.plan.identify.isChecked() else None
-        opt = session_options(self.plan.plan.text().strip() or "standard", self.station.shaker_url,
-                              self.station.daq_url, self.plan.run_folder(), self.plan.letters(),
-                              self.station, identify)
+        opt = session_options(self.plan.plan.text().strip() or "standard", *self.station.urls,
+                              self.plan.run_folder(), self.plan.letters(), self.station, identify)
         self._start(opt, identify)
 
     def resume(self, folder: str) -> None:
         identify = IdentifySettings() if self.plan.identify.isChecked() else None
-        opt = session_options("standard", self.station.shaker_url, self.station.daq_url, Path(folder), None,
-                              self.station, identify, resume=True)
+        opt = session_options("standard", *self.station.urls, Path(folder), None, self.station, identify,
+                              resume=True)
         self._start(opt, identify)
 
     def _start(self, opt: RunOptions, identify: IdentifySettings | None) -> None:
-        if self.station.run_plan(opt, identify):
+        if self.station.sessions.run_plan(opt, identify is not None):
             self.plan.set_running(True)
             self._say(f"session {'resumed' if opt.resume else 'starting'}: {opt.out}")
 
@@ -338,11 +341,12 @@ class MainWindow(QtWidgets.QMainWindow):
                 raise BadInput("enter the unit's serial number first")
             load_spec(request.spec).check_serial(request.serial)
         except BadInput as exc:
-            self.qc.show_done(QcDone(request.serial, EXIT_BAD_INPUT, "REFUSED", reason=str(exc)))
+            self.qc.show_done(refused(request, str(exc)))
             return
-        if self.station.run_qc(request):
+        if self.station.sessions.run_qc(request):
             self.plan.set_running(True)
-            self._say(f"QC of unit {request.serial} starting (python -m rig qc run, spec {request.spec})")
+            self._say(f"QC of unit {request.serial} starting (spec {request.spec}; the same test as "
+                      "python -m rig qc run)")
 
     def abort(self) -> None:
         self.station.abort()
@@ -350,7 +354,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def refit(self, folder: Path, settings: IdentifySettings) -> None:
         self.fit_view.progress.setText(f"re-fitting {settings.model}…")
-        self.station.refit(folder, settings)
+        self.station.fits.refit(folder, settings)
         self.tabs.setCurrentWidget(self.fit_view)
 
     def compare(self) -> None:
@@ -359,7 +363,7 @@ class MainWindow(QtWidgets.QMainWindow):
             return
         estimate = result.estimated if result is not None and result.model == "2dof" else IdentifySettings().estimate
         self.fit_view.progress.setText("fitting 1-dof and 2-dof to the stroke…")
-        self.station.compare(folder, IdentifySettings("2dof", None, list(estimate)))
+        self.station.fits.compare(folder, IdentifySettings("2dof", None, list(estimate)))
 
     # ----- what the rig says -----------------------------------------------------------------------
     def _tick(self) -> None:
@@ -379,18 +383,24 @@ class MainWindow(QtWidgets.QMainWindow):
             self._last_table = now
             self.plan.refresh()
 
-    def _excitation(self) -> tuple[object, float | None]:
+    def _excitation(self) -> tuple[object, float | None, str]:
         """The excitation running now, as (a key that changes when a new one starts, its
-        frequency); (None, None) when the rig is not excited (moving, at rest, tripped)."""
+        frequency, why there is none); (None, None, why) when the controller was not read
+        running (moving, at rest, tripped, not answering)."""
+        if self.status is None:
+            return None, None, "the controller's state is not read" if self.link_error else "no excitation running"
+        if self.status.state != "RUNNING":
+            return None, None, "no excitation running"
         progress = self.plan.progress
-        current = progress.current if progress is not None and self.station.session_running else None
+        current = progress.current if progress is not None and self.station.sessions.running else None
         if current is not None:
             if current.status in ("settling", "capturing"):
-                return current.label, current.spec.frequency_hz
-            return None, None
-        if self.status is not None and self.status.state == "RUNNING" and self.station.manual_frequency_hz:
-            return ("manual", self.station.manual_runs), self.station.manual_frequency_hz
-        return None, None
+                return current.label, current.spec.frequency_hz, ""
+            return None, None, "no excitation running"
+        manual = self.station.manual
+        if manual.frequency_hz:
+            return ("manual", manual.runs), manual.frequency_hz, ""
+        return None, None, "no excitation running"
 
     def _handle(self, item: Message) -> None:
         # One dispatch on the record's type: a type without a handler is a bug, raised here.
@@ -409,9 +419,13 @@ class MainWindow(QtWidgets.QMainWindow):
             # A trip outside a session (a manual sine) has no acquisition event to log it.
             self._say(f"controller tripped: {item.status.alarm}", "error")
             self.alarm_latched = item.status.alarm
-        if self.plan.progress is not None and self.station.session_running:
-            # The stream's sample count read with the status drives every count shown, in this frame.
-            if self.plan.progress.observe(item.samples, item.time) is not None:
+        if self.plan.progress is not None and self.station.sessions.running:
+            # The stream's sample count read with the status drives every count shown, in this
+            # frame, as long as the controller was read running (cycles are not counted on a
+            # stream whose excitation nobody has read).
+            running = item.status is not None and item.status.state == "RUNNING"
+            self.plan.progress.unread = item.error
+            if running and self.plan.progress.observe(item.samples, item.time) is not None:
                 self.plan.refresh()
         self.controller.show_snapshot(item)
         self.live.show_health(item)
@@ -429,15 +443,20 @@ class MainWindow(QtWidgets.QMainWindow):
             self.setWindowTitle("Damper rig — operator console — SIMULATED RIG")
         self.connect_button.setText("Disconnect" if item.connected else "Connect")
         if not item.connected:
-            self.status = None
+            # Nothing read any more on these links: the panel and the DAQ line must not go on
+            # showing their last reading as if it were live.
+            self.status, self.link_error = None, None
+            self.controller.show_snapshot(Snapshot(None, None))
+            self.live.show_health(Snapshot(None, None))
         self._show_banner()
 
     def _on_session_opened(self, item: SessionOpened) -> None:
+        # A QC test's experiments fill the plan table too (the QC tab stays in front).
         self.plan.show_progress(item.progress)
         self.plan.set_running(True)
         self.qc.test_button.setEnabled(False)
         self.tabs.setCurrentWidget(self.live)
-        self._say(f"session folder {item.path}")
+        self._say(f"{'QC ' if item.qc else ''}session folder {item.path}")
 
     def _on_session_closed(self, item: SessionClosed) -> None:
         self.plan.set_running(False)
@@ -474,8 +493,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self._show_state()      # the strip and the motion controls follow the latch
 
     def _on_qc_started(self, item: QcStarted) -> None:
-        # The QC run reads the controller on its own links: the console's last read is stale.
-        self.status, self.link_error = None, "QC run in progress: the controller is read by `rig qc run`"
+        # The status poll reads the QC session's own links from here on: the strip, the
+        # panel and the live view go on showing the rig as read.
         self.qc.show_started(item.request)
         self.left_tabs.setCurrentWidget(self.qc)
 
@@ -483,7 +502,6 @@ class MainWindow(QtWidgets.QMainWindow):
         self.qc.show_progress(item)
 
     def _on_qc_done(self, item: QcDone) -> None:
-        self.link_error = None
         self.qc.show_done(item)
         self.plan.set_running(False)
         self._say(f"QC of unit {item.serial}: {item.shown}" + (f" ({item.reason})" if item.reason else "")
@@ -491,24 +509,29 @@ class MainWindow(QtWidgets.QMainWindow):
                   "info" if item.shown in ("PASS", "FAIL", "RETEST") else "error")
 
     def _show_banner(self, link_error: str | None = None) -> None:
-        st = self.status
+        st, link_error = self.status, link_error or self.link_error
         # What the actuator does now, from the registers: held only with pressure behind it.
         bar = f"{st.hydraulic_pressure_pa / 1e5:.0f} bar" if st is not None else ""
         held = (f"hydraulics OFF ({bar}): the actuator is not held" if st is not None and not hydraulics_on(st)
                 else f"the controller holds the position ({bar})" if st is not None
                 else "the controller's state is not known (no answer)")
+        # alarm: from the readings (the controller's state register) and the console's latch
+        alarm_read = st is not None and st.state == "ALARM"
+        alarm = bool(self.estop_text) or alarm_read or self.alarm_latched is not None
         if self.estop_text:
-            text, colour = f"{self.estop_text} — {held}. Reset… once the rig is safe", "#d50000"
-        elif st is not None and st.state == "ALARM" or self.alarm_latched:
-            which = st.alarm if st is not None and st.state == "ALARM" else \
+            text = f"{self.estop_text} — {held}. Reset… once the rig is safe"
+        elif alarm:
+            which = st.alarm if st is not None and alarm_read else \
                 f"{self.alarm_latched}, latched here (the controller reads {st.state if st else '?'})"
-            text, colour = f"ALARM: {which} — {held}; find the cause, then Reset…", "#d50000"
+            text = f"ALARM: {which} — {held}; find the cause, then Reset…"
         elif link_error:
-            text, colour = f"Controller not answering: {link_error}", "#e65100"
+            text = f"Controller not answering: {link_error}"
+        elif st is None:
+            text = "No alarm known: the controller is not read (not connected)"
         else:
-            text, colour = "No alarm", "#2e7d32"
+            text = "No alarm"
+        colour = BANNER_ALARM if alarm else BANNER_NO_ANSWER if st is None else BANNER_CLEAR
         self.banner.setText(text)
-        alarm = colour == "#d50000"
         self.banner.setStyleSheet(f"background: {colour if alarm else 'transparent'}; color: "
                                   f"{'white' if alarm else colour}; font-size: {'14pt' if alarm else '10pt'}; "
                                   "font-weight: bold; padding: 4px")
@@ -527,11 +550,11 @@ class MainWindow(QtWidgets.QMainWindow):
 
     # ----- closing: a safe stop first --------------------------------------------------------------
     def closeEvent(self, event: QtGui.QCloseEvent) -> None:
-        if self.station.session_running:
+        if self.station.sessions.running:
             event.ignore()
             if not self._closing:
                 self._closing = True
-                self.station.closing = True
+                self.station.sessions.closing = True
                 self.station.abort("the window was closed")
                 self._say("closing: safe stop of the running session first; the window closes after it")
             return
@@ -551,8 +574,17 @@ def run_gui(args: ConsoleOptions) -> int:
     app = application()
     window = MainWindow(args)
     # Ctrl-C or SIGTERM in the terminal close the window, which is a safe stop; the
-    # window's timer gives Python the chance to run the handler.
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(sig, lambda *_: window.close())
-    window.show()
-    return app.exec()
+    # window's timer gives Python the chance to run the handler.  The exit status then
+    # says so (130, as README's exit table and `rig run` have it).
+    def interrupted(signum: int, _frame: object) -> None:
+        window.interrupted_by = signum
+        window.close()
+
+    previous = {sig: signal.signal(sig, interrupted) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        window.show()
+        code = app.exec()
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return EXIT_INTERRUPTED if window.interrupted_by is not None else code

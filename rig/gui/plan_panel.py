@@ -18,14 +18,17 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from identify.notation import at_place, significant
 from rig.config import CHANNELS, RigConfig
 from rig.events import Event
-from rig.gui.plan_state import ExperimentRow, PlanProgress
+from rig.gui.plan_state import ExperimentRow, PlanProgress, deciding
 from rig.planning.criterion import DAQ_LAG_S
 from rig.planning.plans import Plan, comma_list, load_plan
 
 STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "skipped": "#ffe0b2", "interrupted": "#ffe0b2",
                   "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb", "stopping": "#e3f2fd"}
 UNITS = {"stroke_mm": "mm", "force_N": "N", "pressure_bar": "bar", "gas_temperature_C": "°C"}
-TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "left\n[wall m:s]")
+TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "left\n[rig m:s]")
+# Under the drift criterion the changes are for information: pale, but still saying under or over the threshold.
+INFO_UNDER, INFO_OVER = "#a5d6a7", "#ffb74d"
+ENDED_CHARS = 160                 # of a session's end status under the table
 
 
 def _clock(seconds: float) -> str:
@@ -63,10 +66,7 @@ class SteadyStateView(QtWidgets.QGroupBox):
     passing)."""
 
     def __init__(self, config: RigConfig, parent: QtWidgets.QWidget | None = None) -> None:
-        self.drift = config.steady_state.drift if config.steady_state.criterion == "drift" else None
-        super().__init__("Steady state (drift criterion decides; changes for information)" if self.drift
-                         else "Steady state (change criterion)", parent)
-        self.config = config
+        super().__init__(parent)
         layout = QtWidgets.QVBoxLayout(self)
         self.table = QtWidgets.QTableWidget(len(CHANNELS), 3)
         self.table.setObjectName("steadyStateTable")
@@ -76,10 +76,9 @@ class SteadyStateView(QtWidgets.QGroupBox):
         self.table.setEditTriggers(QtWidgets.QAbstractItemView.EditTrigger.NoEditTriggers)
         self.table.setFixedHeight(150)
         self.bars: list[QtWidgets.QProgressBar] = []
-        ss = config.steady_state
-        for i, c in enumerate(CHANNELS):
+        for i in range(len(CHANNELS)):
             self.table.setItem(i, 0, QtWidgets.QTableWidgetItem("–"))
-            self.table.setItem(i, 1, QtWidgets.QTableWidgetItem(f"{ss.thresholds[c]:g} {UNITS[c]}"))
+            self.table.setItem(i, 1, QtWidgets.QTableWidgetItem(""))
             bar = QtWidgets.QProgressBar()
             bar.setRange(0, 300)              # change ÷ threshold up to 3, in hundredths
             bar.setFormat("–")
@@ -90,12 +89,24 @@ class SteadyStateView(QtWidgets.QGroupBox):
         self.bound = QtWidgets.QLabel("")
         self.bound.setObjectName("driftBound")
         self.bound.setWordWrap(True)
-        if self.drift:
-            layout.addWidget(self.bound)
+        layout.addWidget(self.bound)
         self.cycles = QtWidgets.QLabel("Settling: –")
         self.cycles.setWordWrap(True)
         self.cycles.setObjectName("settleCycles")
         layout.addWidget(self.cycles)
+        self.configure(config)
+
+    def configure(self, config: RigConfig) -> None:
+        """The criterion and thresholds of the session shown (a QC spec brings its own)."""
+        self.config = config
+        ss = config.steady_state
+        self.drift = ss.drift if ss.criterion == "drift" else None
+        self.setTitle("Steady state (drift criterion decides; changes for information)" if self.drift
+                      else "Steady state (change criterion)")
+        for i, c in enumerate(CHANNELS):
+            _item(self.table, i, 1).setText(f"{ss.thresholds[c]:g} {UNITS[c]}")
+        self.bound.setText("")
+        self.bound.setVisible(self.drift is not None)
 
     def show_row(self, row: ExperimentRow | None) -> None:
         """The changes against their thresholds at the row's last settling report."""
@@ -112,7 +123,10 @@ class SteadyStateView(QtWidgets.QGroupBox):
             bar = self.bars[i]
             bar.setValue(int(min(ratio, 3.0) * 100))
             bar.setFormat(significant(ratio))
-            colour = "#9e9e9e" if self.drift else "#43a047" if ratio < 1 else "#fb8c00"
+            if self.drift:
+                colour = INFO_UNDER if ratio < 1 else INFO_OVER
+            else:
+                colour = "#43a047" if ratio < 1 else "#fb8c00"
             if bar.property("colour") != colour:     # a style sheet is costly to apply: only on a change
                 bar.setProperty("colour", colour)
                 bar.setStyleSheet(f"QProgressBar::chunk {{ background: {colour}; }}")
@@ -133,8 +147,7 @@ class SteadyStateView(QtWidgets.QGroupBox):
         if row.status == "capturing":
             self.cycles.setText(f"{row.label}: settled after {row.cycles} cycles; {capture_text(row)}")
             return
-        deciding = {"bias_sigma": self.drift.fraction} if self.drift else ss.thresholds
-        left = row.cycles_left(deciding, ss.min_cycles, ss.max_cycles)
+        left = row.cycles_left(deciding(self.config), ss.min_cycles, ss.max_cycles)
         after_run = ss.ramp_time_s + DAQ_LAG_S
         self.cycles.setText(f"{row.label}: settling {row.cycles} cycles, counted from {after_run:g} s after RUN "
                             f"(min {ss.min_cycles}, max {ss.max_cycles}); "
@@ -216,6 +229,8 @@ class PlanPanel(QtWidgets.QWidget):
         self.capture.setStyleSheet("QProgressBar { font-weight: bold; min-height: 24px } "
                                    "QProgressBar::chunk { background: #64b5f6; }")
         self.steady = SteadyStateView(config)
+        # Its own height always: a long status line above takes it from the table, never from it.
+        self.steady.setSizePolicy(QtWidgets.QSizePolicy.Policy.Preferred, QtWidgets.QSizePolicy.Policy.Fixed)
 
         layout = QtWidgets.QVBoxLayout(self)
         layout.setContentsMargins(0, 0, 0, 0)
@@ -292,7 +307,6 @@ class PlanPanel(QtWidgets.QWidget):
             return          # a later edit, or a session started meanwhile
         self.show_progress(progress)
         self.progress = None
-        self._time_column("rig")            # nothing runs yet: the plan's own time
         self.eta.setText(f"{len(plan.experiments)} experiments, about "
                          f"{clock_text(sum(r.estimate_s for r in self._rows), 'rig time')}")
 
@@ -304,12 +318,9 @@ class PlanPanel(QtWidgets.QWidget):
         for w in (self.plan, self.experiments, self.folder, self.identify):
             w.setEnabled(not running)
 
-    def _time_column(self, clock: str) -> None:
-        self.table.setHorizontalHeaderItem(5, QtWidgets.QTableWidgetItem(f"left\n[{clock} m:s]"))
-
     def show_progress(self, progress: PlanProgress) -> None:
         self.progress = progress
-        self._time_column("wall")
+        self.steady.configure(progress.config)
         self._rows = progress.rows
         self.table.setRowCount(len(progress.rows))
         for i, r in enumerate(progress.rows):
@@ -340,9 +351,10 @@ class PlanPanel(QtWidgets.QWidget):
             return
         for i, r in enumerate(progress.rows):
             status = _item(self.table, i, 4)
-            status.setText(r.status_text())
+            unread = progress.unread is not None and r.status in ("moving", "settling", "capturing", "stopping")
+            status.setText(r.status_text() + (" — the controller is not answering" if unread else ""))
             status.setBackground(QtGui.QColor(STATUS_COLOURS.get(r.status, "#ffffff")))
-            _item(self.table, i, 5).setText(_clock(progress.left_s(r)) if r.status != "done" else "")
+            _item(self.table, i, 5).setText(_clock(progress.rig_left_s(r)) if r.status != "done" else "")
         current = progress.current
         self.steady.show_count(current)
         capturing = current is not None and current.status == "capturing"
@@ -351,10 +363,15 @@ class PlanPanel(QtWidgets.QWidget):
             self.capture.setValue(int(round(100 * current.fraction)))
             self.capture.setFormat(f"{current.label}: {capture_text(current)}")
         if progress.ended is not None:
-            self.eta.setText(f"Session {progress.ended}")
+            # A status can run to several sentences (a safe stop's failures): its head here, the
+            # whole of it in the tooltip and the log below, so the settling view keeps its height.
+            whole = f"Session {progress.ended}"
+            self.eta.setText(whole if len(whole) <= ENDED_CHARS else
+                             f"{whole[:ENDED_CHARS].rsplit(' ', 1)[0]} … (the whole status: the log below)")
+            self.eta.setToolTip(whole)
         else:
             wall = progress.session_left_s()
             self.eta.setText(f"Session: about {clock_text(wall, 'wall')} left "
                              f"({clock_text(wall / progress.wall_per_rig_s(), 'rig time')})"
-                             + (f"; {current.label}: {clock_text(progress.left_s(current), 'wall')}"
+                             + (f"; {current.label}: {clock_text(progress.rig_left_s(current), 'rig time')}"
                                 if current else ""))

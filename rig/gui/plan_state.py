@@ -25,6 +25,16 @@ from rig.planning.plans import Plan, estimate_duration_s
 ACTIVE = ("moving", "settling", "capturing", "stopping")
 
 
+def deciding(config: RigConfig) -> dict[str, float]:
+    """What decides the capture, as the settling reports carry it: the drift criterion's
+    bias bound, or each channel's change threshold (the settling view's cycles left and
+    the table's time left come from the same)."""
+    ss = config.steady_state
+    if ss.criterion == "drift" and ss.drift is not None:
+        return {"bias_sigma": ss.drift.fraction}
+    return dict(ss.thresholds)
+
+
 @dataclass
 class ExperimentRow:
     spec: ExperimentSpec
@@ -87,6 +97,7 @@ class PlanProgress:
                 row.status, row.note = "done", "earlier"
         self.by_label = {r.label: r for r in self.rows}
         self.ended: str | None = None
+        self.unread: str | None = None     # why the controller's last status read failed (None: it answered)
 
     @property
     def current(self) -> ExperimentRow | None:
@@ -167,6 +178,10 @@ class PlanProgress:
             return max(row.estimate_s * scale - (self.clock() - row.started), 0.0)
         return 0.0 if row.status == "done" else math.nan
 
+    def rig_left_s(self, row: ExperimentRow) -> float:
+        """Rig seconds left for one experiment (the plan table's column: one clock throughout)."""
+        return self.left_s(row) / self.wall_per_rig_s()
+
     def _rig_s_left(self, row: ExperimentRow) -> float | None:
         """Rig time left from where the experiment is: the settling prediction (or the
         capture's fraction), the capture, the fade out; None when not known."""
@@ -174,7 +189,7 @@ class PlanProgress:
         if row.status == "capturing":
             return (1 - row.fraction) * periods / f + ss.ramp_time_s
         if row.status == "settling" and row.settling:
-            left = row.cycles_left(ss.thresholds, ss.min_cycles, ss.max_cycles)
+            left = row.cycles_left(deciding(self.config), ss.min_cycles, ss.max_cycles)
             return None if left is None else (left + periods) / f + ss.ramp_time_s
         return None
 

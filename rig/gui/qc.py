@@ -1,35 +1,30 @@
-"""QC mode's rig side (no Qt here): one unit's test is ``python -m rig qc run`` itself, as a
-child process, so that the console's verdict is the command line's to the byte (the same
-checks, session, identification, judgement, record and report) and the identification,
-which holds Python's interpreter lock for seconds, never stalls the window.
+"""QC mode's rig side (no Qt here): one unit's test is :func:`rig.qc.run.test_unit`, the
+function ``rig qc run`` calls, run by the console's session worker with the window's
+subscribers (rig.gui.session_worker): the same checks, session, identification,
+judgement, record, report and exit status, through the one session lifecycle.
 
-The verdict comes from the child's exit status (:data:`rig.qc.run.EXIT_BY_VERDICT`); the
-report's path and the characteristics from the summary it prints (one row per
-characteristic, cells separated by " | ", as rig.qc.present formats them); the progress
-from its session lines (the announced rig time, each experiment's phases and capture).
+What the QC panel shows comes from typed data only: its progress from the session's
+events and the re-prediction of the time left (:class:`QcTracker`), its verdict and
+table from the stored record (:func:`done_from`).
 """
 
 from __future__ import annotations
 
-import re
-import sys
+import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERRUPTED
-from rig.events import Message, Phase
+from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERNAL
+from rig.events import Event, Kind, Message
 from rig.qc.judge import Outcome
-from rig.qc.run import EXIT_BY_VERDICT
+from rig.qc.present import shown
+from rig.qc.run import EXIT_BY_VERDICT, Prediction, QcOptions, QcOutcome
 
-VERDICT_BY_EXIT = {code: outcome for outcome, code in EXIT_BY_VERDICT.items()}
 # What the operator is told to do: an INCONCLUSIVE unit is neither passed nor failed, it is tested again.
 SHOWN = {Outcome.PASS: "PASS", Outcome.FAIL: "FAIL", Outcome.INCONCLUSIVE: "RETEST"}
-_REPORT = re.compile(r"^report (?P<report>.+); record (?P<uid>\S+) in (?P<db>.+)$")
-_ANNOUNCED = re.compile(r"^session: (?P<n>\d+) experiments?, about (?P<m>\d+):(?P<s>\d\d) min:s of rig time")
-_STEP = re.compile(r"^\[\s*(?P<i>\d+)/(?P<n>\d+)\]\s+(?P<label>\S+)\s+(?P<what>.*)$")
-_CAPTURED = re.compile(r"[Cc]aptured (?P<pct>\d+) %")
-PHASES = {p.value for p in Phase}
-_PERIODS = re.compile(r"--periods (\d+)")
+VERDICT_BY_EXIT = {code: outcome for outcome, code in EXIT_BY_VERDICT.items()}
+RUNNING_SHARE = 0.95     # of its estimate, the most a running experiment counts as done before it is written
 
 
 @dataclass(frozen=True)
@@ -39,6 +34,17 @@ class QcRequest:
     out: Path = Path("qc")             # the station's folder: a session folder per unit, and the records
     operator: str | None = None
     periods: int | None = None         # a retest's: more than the spec's
+
+    def options(self, shaker: str, daq: str, config_files: dict[str, str | None]) -> QcOptions:
+        """What ``rig qc run`` would be given for the same unit on the same rig."""
+        return QcOptions(spec=self.spec, serial=self.serial, shaker=shaker, daq=daq, out=Path(self.out),
+                         operator=self.operator, periods=self.periods, rig_config=config_files.get("rig_config"),
+                         calibration=config_files.get("calibration"), register_map=config_files.get("register_map"))
+
+
+@dataclass(frozen=True)
+class QcStarted(Message):
+    request: QcRequest
 
 
 @dataclass(frozen=True)
@@ -59,51 +65,8 @@ class QcProgress(Message):
 
     fraction: float
     rig_left_s: float | None
-    text: str            # what it does now: "experiment 2 of 3 (v): settling"
-
-
-class ProgressReader:
-    """Reads the QC run's session lines (stderr) into :class:`QcProgress`: the rig time
-    announced at the start, the experiments begun (by label: a file is written after the
-    next experiment has begun), those captured, the running one's capture."""
-
-    def __init__(self) -> None:
-        self.total_s: float | None = None
-        self.count = 0
-        self.begun: list[str] = []
-        self.done = 0
-        self.current = 0.0     # the running experiment's captured fraction
-
-    def feed(self, line: str) -> QcProgress | None:
-        line = line.strip()
-        if m := _ANNOUNCED.match(line):
-            self.total_s, self.count = int(m["m"]) * 60.0 + int(m["s"]), int(m["n"])
-            return self._progress("session started: the first experiment")
-        m = _STEP.match(line)
-        if m is None or not self.count:
-            return None
-        label, what = m["label"], m["what"].strip()
-        if what.startswith("Written to ") or (what.startswith("captured ") and not _CAPTURED.search(what)):
-            self.done = min(self.done + 1, self.count)
-            return self._progress(f"experiment {len(self.begun)} of {self.count} ({self.begun[-1]})"
-                                  if self.begun else "")
-        words = what.lower().rstrip(".").split()
-        phase = next((w for w in words[:2] if w in PHASES), "")
-        if not phase and not _CAPTURED.search(what):
-            return None
-        if label not in self.begun:
-            self.begun.append(label)
-            self.current = 0.0
-        if pct := _CAPTURED.search(what):
-            self.current = int(pct["pct"]) / 100
-            phase = "capturing"
-        return self._progress(f"experiment {len(self.begun)} of {self.count} ({label}): {phase}")
-
-    def _progress(self, text: str) -> QcProgress:
-        running = max(len(self.begun) - 1, 0) + self.current
-        fraction = min(max(self.done, running) / self.count, 1.0) if self.count else 0.0
-        left = None if self.total_s is None else self.total_s * (1.0 - fraction)
-        return QcProgress(fraction, left, text)
+    text: str                          # what it does now: "experiment 2 of 3 (v): settling"
+    predicted_after: str = ""          # the experiments after which the time left was predicted again ("": not yet)
 
 
 @dataclass(frozen=True)
@@ -114,7 +77,6 @@ class QcDone(Message):
     exit_code: int
     shown: str                         # PASS, FAIL, RETEST, ABORTED, REFUSED or ERROR
     report: Path | None = None
-    summary: list[str] = field(default_factory=list)    # the characteristics, likely causes, remedy
     rows: list[QcRow] = field(default_factory=list)
     causes: list[str] = field(default_factory=list)     # likely causes, in full
     remedy: str = ""
@@ -123,49 +85,96 @@ class QcDone(Message):
     retest_periods: int | None = None  # RETEST: the periods of the retest
 
 
-def qc_command(request: QcRequest, shaker: str, daq: str, config_files: dict[str, str | None]) -> list[str]:
-    cmd = [sys.executable, "-m", "rig", "qc", "run", "--spec", request.spec, "--serial", request.serial,
-           "--shaker", shaker, "--daq", daq, "--out", str(request.out)]
-    if request.operator:
-        cmd += ["--operator", request.operator]
-    if request.periods:
-        cmd += ["--periods", str(request.periods)]
-    for option, path in config_files.items():
-        if path:
-            cmd += ["--" + option.replace("_", "-"), path]
-    return cmd
+def done_from(request: QcRequest, outcome: QcOutcome, retest_periods: int) -> QcDone:
+    """The panel's verdict, table and causes from the record the test stored."""
+    record = outcome.record
+    verdict = VERDICT_BY_EXIT.get(outcome.exit_code) if record.verdict is not None else None
+    if verdict is None:
+        return QcDone(request.serial, outcome.exit_code, "ABORTED", outcome.report, simulated=record.simulated,
+                      reason=record.reason or f"exit status {outcome.exit_code}")
+    rows = []
+    for c in record.characteristics:
+        s = shown(record, c, outcome.k)
+        rows.append(QcRow(s.outcome, s.title, s.value, s.limits, s.acceptance, f"{s.sigma} {s.basis}".strip()))
+    return QcDone(request.serial, outcome.exit_code, SHOWN[verdict], outcome.report, rows=rows,
+                  causes=list(record.diagnosis), remedy=record.remedy or "", simulated=record.simulated,
+                  retest_periods=retest_periods if verdict is Outcome.INCONCLUSIVE else None)
 
 
-def outcome(request: QcRequest, exit_code: int, stdout: str, stderr_tail: list[str]) -> QcDone:
-    lines = [line for line in stdout.splitlines() if line.strip()]
-    report = None
-    for line in lines:
-        if match := _REPORT.match(line):
-            report = Path(match["report"])
-    verdict = VERDICT_BY_EXIT.get(exit_code)
-    if verdict is not None and report is not None:
-        summary = [line.strip() for line in lines[1:] if not _REPORT.match(line)]
-        periods = _PERIODS.search(" ".join(summary)) if verdict is Outcome.INCONCLUSIVE else None
-        rows = []
-        for line in summary:
-            cells = [c.strip() for c in line.split(" | ")]
-            if len(cells) == 6:
-                rows.append(QcRow(cells[0], cells[1], cells[2], cells[3].removeprefix("limits "),
-                                  cells[4].removeprefix("accept "), cells[5].removeprefix("σ ")))
-        causes = [line.removeprefix("likely cause: ") for line in summary if line.startswith("likely cause: ")]
-        remedy = next((line.removeprefix("remedy: ") for line in summary if line.startswith("remedy: ")), "")
-        return QcDone(request.serial, exit_code, SHOWN[verdict], report, summary,
-                      retest_periods=int(periods[1]) if periods else None, rows=rows, causes=causes, remedy=remedy,
-                      simulated="SIMULATED" in lines[0])
-    last = next((line for line in reversed(stderr_tail) if line.strip()), f"exit status {exit_code}")
-    if exit_code == EXIT_BAD_INPUT:
-        return QcDone(request.serial, exit_code, "REFUSED", reason=last)
-    if exit_code in (EXIT_ABORTED, EXIT_INTERRUPTED):
-        return QcDone(request.serial, exit_code, "ABORTED", _latest_report(request), reason=last)
-    return QcDone(request.serial, exit_code, "ERROR", _latest_report(request), reason=last)
+def refused(request: QcRequest, reason: str) -> QcDone:
+    return QcDone(request.serial, EXIT_BAD_INPUT, "REFUSED", reason=reason)
 
 
-def _latest_report(request: QcRequest) -> Path | None:
-    """An aborted or failed run's report (it says why there is no verdict): the unit's newest session's."""
-    reports = sorted(Path(request.out).glob(f"{request.serial}-*/qc-report.html"), key=lambda p: p.parent.name)
-    return reports[-1] if reports else None
+def ended(request: QcRequest, reason: str, report: Path | None, bug: bool) -> QcDone:
+    """A test that ended on an error after its checks: the rig not reached or failing
+    (ABORTED, exit 3), or a bug (ERROR, exit 70); the report where the run wrote one."""
+    if bug:
+        return QcDone(request.serial, EXIT_INTERNAL, "ERROR", report, reason=reason)
+    return QcDone(request.serial, EXIT_ABORTED, "ABORTED", report, reason=reason)
+
+
+class QcTracker:
+    """A queued subscriber of the unit's session: its progress as :class:`QcProgress`,
+    from the rig time predicted per experiment (the session's own estimates, on record
+    in session.json), the events and the rig time the running experiment has taken so
+    far (the session's clock at its measured pace, at most 95 % of its estimate until it
+    is written); after each captured experiment the time left is predicted again from the
+    parameters identified so far (:meth:`predicted`)."""
+
+    def __init__(self, estimates_s: dict[str, float], post: Callable[[Message], None],
+                 clock: Callable[[], float], pace: Callable[[], float]) -> None:
+        self.estimates = dict(estimates_s)
+        self.order = list(estimates_s)
+        self.post, self.clock, self.pace = post, clock, pace
+        self.done: set[str] = set()
+        self.current: str | None = None
+        self.started: dict[str, float] = {}    # each experiment's first event, on the session's clock
+        self.phase = ""
+        self.after = ""
+        self._lock = threading.Lock()  # the bus's thread and the session's (predicted) both call in
+        self._emit("session started: the first experiment")
+
+    def __call__(self, e: Event) -> None:
+        with self._lock:
+            if e.experiment is not None and e.experiment in self.estimates:
+                if e.kind in (Kind.PHASE, Kind.PROGRESS):
+                    self.started.setdefault(e.experiment, self.clock())
+                    self.current, self.phase = e.experiment, str(e.data["phase"])
+                elif e.kind in (Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED):
+                    self.done.add(e.experiment)
+                else:
+                    return
+            elif e.kind != Kind.SESSION_END:
+                return
+            if e.kind == Kind.SESSION_END:
+                judging = "; identifying and judging the unit" if e.data["exit_code"] == 0 else ""
+                self._emit(f"session {e.data['message']}{judging}")
+            else:
+                self._emit(self._doing())
+
+    def predicted(self, prediction: Prediction) -> None:
+        """The rest of the plan re-predicted (rig.qc.run.decider): its estimates scaled to it."""
+        with self._lock:
+            rest = [label for label in self.order if label not in prediction.after]
+            total = sum(self.estimates[label] for label in rest)
+            if total > 0:
+                for label in rest:
+                    self.estimates[label] *= prediction.rig_left_s / total
+            self.after = ", ".join(prediction.after)
+            self._emit(self._doing())
+
+    def _doing(self) -> str:
+        if self.current is None:
+            return "session started: the first experiment"
+        number = self.order.index(self.current) + 1
+        return f"experiment {number} of {len(self.order)} ({self.current}): {self.phase}"
+
+    def _emit(self, text: str) -> None:
+        total = sum(self.estimates.values())
+        done = sum(self.estimates[label] for label in self.done)
+        # begun, not yet written (an experiment's file is written while the next one moves)
+        now, pace = self.clock(), self.pace()
+        running = sum(min((now - t0) * pace, RUNNING_SHARE * self.estimates[label])
+                      for label, t0 in self.started.items() if label not in self.done)
+        fraction = min((done + running) / total, 1.0) if total > 0 else 0.0
+        self.post(QcProgress(fraction, max(total - done - running, 0.0), text, self.after))

@@ -140,7 +140,8 @@ class QcPanel(QtWidgets.QWidget):
         self.unit.setText(f"Unit {request.serial}" + (f" — retest, {request.periods} periods" if request.periods
                                                       else ""))
         self._paint("TESTING…", COLOURS["testing"], size_pt=36)
-        self.reason.setText("The spec's plan runs, then identification and judging (python -m rig qc run).")
+        self.reason.setText("The spec's plan runs, then identification and judging: the same test as "
+                            "python -m rig qc run, in this console's session.")
         self.report.setText("")
         self.causes.setText("")
         self.table.setRowCount(0)
@@ -154,7 +155,9 @@ class QcPanel(QtWidgets.QWidget):
         self.progress.setValue(round(1000 * progress.fraction))
         left = "" if progress.rig_left_s is None else \
             f" — about {int(progress.rig_left_s // 60)}:{int(progress.rig_left_s % 60):02d} min:s of rig time left"
-        self.step.setText(f"{progress.text}{left}")
+        basis = (f" (predicted again after {progress.predicted_after} from the parameters identified so far)"
+                 if progress.predicted_after else " (the session's prediction for a nominal unit)" if left else "")
+        self.step.setText(f"{progress.text}{left}{basis}")
 
     def show_done(self, done: QcDone) -> None:
         self.last = done

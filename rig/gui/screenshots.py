@@ -1,10 +1,12 @@
 """``make screenshots``: the console's main views as PNG files, from a real session on the
 simulated rig (offscreen): idle (connected, at rest), settling, a capture in progress, the
 fit view with the 1-dof/2-dof comparison, the session browser, an alarm (an e-stop trip
-during a manual sine), the console's E-STOP during a manual sine, and QC mode at 1280 px
-(a worn-orifice unit under test, then its FAIL).
+during a manual sine), the console's E-STOP during a manual sine, a link lost mid-run (the
+controller gone during an experiment, then the session's end), and QC mode at 1280 px (a
+worn-orifice unit under test, then its FAIL).
 
-    python -m rig.gui.screenshots [--out out/screenshots] [--speed 20] [--readme docs/gui.png] [--only-qc]
+    python -m rig.gui.screenshots [--out out/screenshots] [--speed 20] [--readme docs/gui.png]
+                                  [--only session,alarm,estop,lost-link,qc]
 """
 
 from __future__ import annotations
@@ -79,8 +81,8 @@ def closed(window: MainWindow) -> None:
 
 
 def qc_view(speed: float, out: Path, sessions: Path) -> None:
-    """QC mode at 1280 × 1024 px: a unit with a worn orifice through python -m rig qc run, the
-    progress bar while it runs, then its FAIL with the table and the likely cause."""
+    """QC mode at 1280 × 1024 px: a unit with a worn orifice tested as rig qc run tests it, while
+    it settles, then its FAIL with the table and the likely cause."""
     qc = MainWindow.from_args(["--simulate", "--speed", f"{speed:g}", "--unit", "worn-orifice", "--out",
                                str(sessions)])
     qc.resize(1280, 1024)
@@ -88,11 +90,15 @@ def qc_view(speed: float, out: Path, sessions: Path) -> None:
     wait("the connection", lambda: qc.status is not None)
     qc.qc.serial.setText("SN-0042")
     qc.qc.test_button.click()
-    wait("the QC run's progress", lambda: qc.qc.progress.value() > 0, 600)
-    settle_view(0.5)
+    # While the unit settles (its capture is a fraction of a second at 20x): the loops drawn,
+    # the DAQ's rate measured on the session's stream.
+    wait("the QC run's settling", lambda: "settling" in qc.qc.step.text() and "× real time" in qc.live.health.text()
+         and not any(t.isVisible() for t in qc.live.placeholders), 600)
+    settle_view(0.2)                       # the loops' axes laid out; a second more is the next phase
     shoot(qc, out / "qc-testing.png")
     wait("the QC verdict", lambda: qc.qc.last is not None, 900)
-    wait("the console's links back", lambda: qc.station.shaker is not None and qc.status is not None, 60)
+    wait("the console's links back", lambda: qc.station.manual.shaker is not None and qc.status is not None, 60)
+    wait("the console's DAQ rate measured", lambda: "× real time" in qc.live.health.text(), 60)
     settle_view(1.0)
     shoot(qc, out / "qc-verdict.png")
     closed(qc)
@@ -103,21 +109,30 @@ def main() -> int:
     parser.add_argument("--out", default="out/screenshots")
     parser.add_argument("--speed", type=float, default=20.0)
     parser.add_argument("--readme", help="also write a 1200-px-wide copy of the settling view here")
-    parser.add_argument("--only-qc", action="store_true", help="only the QC views (qc-testing.png, qc-verdict.png)")
+    parser.add_argument("--only", help=f"only these scenes, comma-separated ({', '.join(SCENES)})")
     args = parser.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     sessions = Path(tempfile.mkdtemp(prefix="gui-screenshots-"))
-    if args.only_qc:
-        qc_view(args.speed, out, sessions)
-        return 0
+    scenes = args.only.split(",") if args.only else list(SCENES)
+    unknown = sorted(set(scenes) - set(SCENES))
+    if unknown:
+        parser.error(f"--only: no scene {', '.join(unknown)} (the scenes: {', '.join(SCENES)})")
     application()
+    for name in scenes:
+        SCENES[name](args, out, sessions)
+    print(f"sessions of this run: {sessions}")
+    return 0
 
+
+def session_views(args: argparse.Namespace, out: Path, sessions: Path) -> None:
+    """idle, settling, capturing, fit and browser, from one session of j and g."""
     window = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--experiments", "j,g",
                                    "--out", str(sessions)])
     window.show()
     wait("the connection", lambda: window.status is not None)
-    settle_view(1.5)
+    wait("the DAQ's rate measured", lambda: "× real time" in window.live.health.text(), 60)
+    settle_view(0.5)
     shoot(window, out / "idle.png")
     folder = Path(window.plan.folder.text())
     window.run_plan()
@@ -139,8 +154,11 @@ def main() -> int:
     settle_view(0.5)
     shoot(window, out / "browser.png")
     closed(window)
+    print(f"first view {settling}")
 
-    # An alarm: the e-stop trips 10 s (simulated) into a manual sine.
+
+def alarm_view(args: argparse.Namespace, out: Path, sessions: Path) -> None:
+    """An alarm: the e-stop trips 10 s (simulated) into a manual sine."""
     alarm = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--fault", "estop@run+10",
                                   "--out", str(sessions)])
     alarm.show()
@@ -150,7 +168,9 @@ def main() -> int:
     shoot(alarm, out / "alarm.png")
     closed(alarm)
 
-    # The console's E-STOP pressed during a manual sine: STOP and hydraulics off, latched.
+
+def estop_view(args: argparse.Namespace, out: Path, sessions: Path) -> None:
+    """The console's E-STOP pressed during a manual sine: STOP and hydraulics off, latched."""
     estop = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--out", str(sessions)])
     estop.show()
     manual_sine(estop)
@@ -163,9 +183,32 @@ def main() -> int:
     shoot(estop, out / "alarm-after-estop.png")
     closed(estop)
 
-    qc_view(args.speed, out, sessions)
-    print(f"sessions of this run: {sessions}; first view {settling}")
-    return 0
+
+def lost_link_view(args: argparse.Namespace, out: Path, sessions: Path) -> None:
+    """A link lost mid-run: the controller's Modbus server goes away 20 s (rig time) into
+    the experiment's run and does not come back; lost-link.png while the session waits for
+    it, lost-link-ended.png after the session has ended (aborted, the safe stop incomplete)."""
+    window = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--experiments", "j",
+                                   "--fault", "modbus-down@run+20=100000", "--out", str(sessions)])
+    window.show()
+    wait("the connection", lambda: window.status is not None)
+    window.plan.identify.setChecked(False)
+    window.run_plan()
+    wait("the link lost", lambda: window.station.sessions.running and window.status is None
+         and window.link_error is not None, 300)
+    settle_view(1.5)
+    shoot(window, out / "lost-link.png")
+    wait("the session's end", lambda: not window.station.sessions.running, 300)
+    wait("the console's reconnect tried", lambda: "not connected" in window.link_label.text(), 120)
+    settle_view(1.0)
+    shoot(window, out / "lost-link-ended.png")
+    closed(window)
+
+
+SCENES: dict[str, Callable[[argparse.Namespace, Path, Path], None]] = {
+    "session": session_views, "alarm": alarm_view, "estop": estop_view, "lost-link": lost_link_view,
+    # At most 10x: at 20x the unit's settling is over before the DAQ line has measured its stream.
+    "qc": lambda args, out, sessions: qc_view(min(args.speed, 10.0), out, sessions)}
 
 
 if __name__ == "__main__":

@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from identify.parameters import Parameters
-from identify.plans import STANDARD_SET, ExperimentSpec
+from identify.plans import CAPTURES, STANDARD_SET, ExperimentSpec
 from rig.config import RigConfig
 from rig.drivers.shaker import check_waveform
 from rig.errors import BadInput
@@ -23,8 +23,8 @@ from rig.planning.ordering import thermal_order
 from rig.planning.settling import DRIFT_DRAWS, PAUSE_S, Conditioning, Hold, move_duration_s, predict_settling
 from rig.tomlfile import read_toml
 
-EXPERIMENT_KEYS = {"label", "group", "static_mm", "amplitude_mm", "frequency_Hz", "waveform", "periods"}
-PLAN_KEYS = {"name", "periods", "order", "experiment"}
+EXPERIMENT_KEYS = {"label", "group", "static_mm", "amplitude_mm", "frequency_Hz", "waveform", "periods", "capture"}
+PLAN_KEYS = {"name", "periods", "order", "experiment", "capture"}
 
 
 class PlanError(BadInput):
@@ -108,11 +108,14 @@ def load_plan(source: str) -> Plan:
         try:
             spec = ExperimentSpec(str(e["label"]), str(e.get("group", "")), float(e["static_mm"]),
                                   float(e["amplitude_mm"]), float(e["frequency_Hz"]), str(e.get("waveform", "sine")),
-                                  int(e.get("periods", doc.get("periods", 3))))
+                                  int(e.get("periods", doc.get("periods", 3))),
+                                  str(e.get("capture", doc.get("capture", "steady"))))
         except KeyError as exc:
             raise PlanError(f"{where}: missing key {exc.args[0]!r}") from None
         except (TypeError, ValueError) as exc:
             raise PlanError(f"{where}: {exc}") from None
+        if spec.capture not in CAPTURES:
+            raise PlanError(f"{where}: capture {spec.capture!r} is not one of {', '.join(CAPTURES)}")
         if spec.letter in seen:
             raise PlanError(f"{where}: label {spec.letter!r} used twice")
         seen.add(spec.letter)
@@ -209,12 +212,24 @@ def estimate_experiment_durations(plan: Plan, config: RigConfig, start_position_
         # Blocks and the capture are whole samples, as the acquisition cuts them.
         move_s = (move_duration_s(s.hold.position_m - position) + move_duration_s(static - s.hold.position_m)
                   if s.hold else move_duration_s(static - position))
+        if e.capture == "transient":  # no hold, no settling: the capture starts at RUN, the ramp included
+            out.append(ExperimentDuration(e.letter, float(pause), move_duration_s(static - position), 0.0, 0, 0.0,
+                                          transient_capture_s(e, ss.ramp_time_s, rate), ss.ramp_time_s, None,
+                                          s.time_constant_s, pace * overhead_s))
+            position = static
+            continue
         out.append(ExperimentDuration(e.letter, float(pause), move_s,
                                       first_block_s(ss, rate), s.cycles, round(s.cycles * samples_per_period) / rate,
                                       math.ceil(e.periods * samples_per_period) / rate, ss.ramp_time_s, s.hold,
                                       s.time_constant_s, pace * (overhead_s + (answer_s if s.hold else 0.0))))
         position = static
     return out
+
+
+def transient_capture_s(e: ExperimentSpec, ramp_time_s: float, rate_hz: float) -> float:
+    """Rig seconds a transient capture records: from RUN, the amplitude ramp, then the
+    plan's periods at full amplitude (whole samples, as the acquisition cuts them)."""
+    return math.ceil(ramp_time_s * rate_hz + e.periods * rate_hz / e.frequency_hz) / rate_hz
 
 
 def estimate_duration_s(plan: Plan, config: RigConfig, start_position_m: float = 0.0,

@@ -81,7 +81,8 @@ def cmd_sync(args: argparse.Namespace) -> int:
     from rig.qc.queue import Outbox
 
     console = Console(stderr=True, soft_wrap=True)
-    outbox = Outbox.open(Path(args.out), args.db, console)     # recovers killed runs, sends the queue
+    outbox = Outbox.open(Path(args.out), args.db, lambda text: console.print(text, highlight=False))
+    # (it recorded the runs a killed process left and sent the queue)
     try:
         left = len(outbox.queue.pending())
     finally:

@@ -22,11 +22,10 @@ import json
 import os
 import socket
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
-
-from rich.console import Console
 
 from rig.qc.records import QcRecord, Records, RecordsError, RecordStatus, Unreachable, default_url
 from rig.qc.station import load_station_config
@@ -132,24 +131,24 @@ class Run:
 class Outbox:
     """A QC run's way to the records: the station's journal first, then the database."""
 
-    def __init__(self, folder: Path, records: Records, station: str | None, console: Console) -> None:
-        self.queue, self.records, self.station, self.console = RecordQueue(folder), records, station, console
+    def __init__(self, folder: Path, records: Records, station: str | None, say: Callable[[str], None]) -> None:
+        """``say``: how the operator is told (a sentence, rich markup allowed): the terminal or the console."""
+        self.queue, self.records, self.station, self.say = RecordQueue(folder), records, station, say
         self.queued_because: str | None = None     # why the last record is queued, not in the database
         self._run: Run | None = None
 
     @classmethod
-    def open(cls, folder: Path, db: str | None, console: Console) -> Outbox:
+    def open(cls, folder: Path, db: str | None, say: Callable[[str], None]) -> Outbox:
         """The station at ``folder``: its configuration, its database (``db`` overrides the
         configuration's), and — before anything moves — runs a killed process left on
         the rig recorded as ABORTED, and what is queued sent."""
         config = load_station_config(folder)
         records = Records.open(db or config.db or default_url(folder), create=True, defer=True,
                                password=config.password, reach_later=True)
-        outbox = cls(folder, records, config.name, console)
+        outbox = cls(folder, records, config.name, say)
         if records.unreachable:
-            console.print(f"[yellow]records database {records.name} unreachable ({records.unreachable}): the "
-                          f"records of this station are queued in {outbox.queue.pending_dir}[/yellow]",
-                          highlight=False)
+            say(f"[yellow]records database {records.name} unreachable ({records.unreachable}): the records of this "
+                f"station are queued in {outbox.queue.pending_dir}[/yellow]")
         try:
             outbox.recover()
             outbox.send()
@@ -183,12 +182,11 @@ class Outbox:
         """What is queued, to the database; the operator is told what was sent and what is left."""
         result = self.queue.send(self.records)
         if result.sent or result.present:
-            self.console.print(f"{result.sent} queued record{'s' * (result.sent != 1)} sent to {self.records.name}"
-                               + (f" ({result.present} were there already)" if result.present else ""),
-                               highlight=False)
+            self.say(f"{result.sent} queued record{'s' * (result.sent != 1)} sent to {self.records.name}"
+                     + (f" ({result.present} were there already)" if result.present else ""))
         if result.left:
-            self.console.print(f"[yellow]{result.left} record{'s' * (result.left != 1)} still queued in "
-                               f"{self.queue.pending_dir} ({result.why})[/yellow]", highlight=False)
+            self.say(f"[yellow]{result.left} record{'s' * (result.left != 1)} still queued in "
+                     f"{self.queue.pending_dir} ({result.why})[/yellow]")
         return result
 
     # ----- runs on the rig ------------------------------------------------------------------------------------
@@ -227,15 +225,14 @@ class Outbox:
                 entry = json.loads(handle.read())
                 record = abandoned_record(entry)
                 if record is None:
-                    self.console.print(f"[yellow]unit {entry['serial']}: a run started {entry['started']} ended "
-                                       f"before its session began (process {entry['pid']} is gone); nothing moved, "
-                                       "nothing is recorded[/yellow]", highlight=False)
+                    self.say(f"[yellow]unit {entry['serial']}: a run started {entry['started']} ended before its "
+                             f"session began (process {entry['pid']} is gone); nothing moved, nothing is "
+                             "recorded[/yellow]")
                 else:
                     self.queue.put(record)
-                    self.console.print(f"[red]unit {record.serial}: the run started {entry['started']} "
-                                       f"({record.session}) was left by a process that is gone ({record.reason}); "
-                                       f"recorded as ABORTED ({record.uid}). Check the rig and the unit before "
-                                       "the next test.[/red]", highlight=False)
+                    self.say(f"[red]unit {record.serial}: the run started {entry['started']} ({record.session}) was "
+                             f"left by a process that is gone ({record.reason}); recorded as ABORTED ({record.uid}). "
+                             "Check the rig and the unit before the next test.[/red]")
                     found.append(record)
                 path.unlink()
                 _sync_dir(path.parent)
@@ -244,8 +241,8 @@ class Outbox:
     def close(self) -> None:
         """The run's end: said last, under the verdict's summary, if its record is queued."""
         if self.queued_because is not None:
-            print(f"record queued ({self.queued_because}); python -m rig qc sync --out {self.queue.root.parent} "
-                  "sends it")
+            self.say(f"[yellow]record queued ({self.queued_because}); python -m rig qc sync --out "
+                     f"{self.queue.root.parent} sends it[/yellow]")
         try:
             if self._run is not None:
                 self._run.end()

@@ -82,14 +82,21 @@ def loops_figure(evaluation: Evaluation) -> str | None:
     fits = {e.label: e for e in evaluation.fit.experiments} if evaluation.fit else {}
     n = evaluation.fit.n_grid if evaluation.fit else 800
     for ax, e in zip(axes[0], exps, strict=True):
-        folded = fold(e.label, e.time_s, {"stroke_mm": e.column("stroke_mm"), "force_N": e.column("force_N")},
-                      e.frequency_hz, n, e.sample_rate_hz)
-        force_kn = np.append(folded.values["force_N"], folded.values["force_N"][0]) / 1e3
-        stroke = np.append(folded.values["stroke_mm"], folded.values["stroke_mm"][0])
-        ax.plot(stroke, force_kn, color="#8fb3e8", lw=4.0, label="measured")
         fit = fits.get(e.label)
-        if fit is not None:      # the model's stroke under the measured force: drawn over the measurement
-            model = np.append(fit.predicted["stroke_mm"], fit.predicted["stroke_mm"][0])
+        model: np.ndarray | None
+        if fit is not None and fit.capture == "transient":
+            # A record from RUN on is not folded: its loops as they grew, sample by sample.
+            force_kn, stroke = e.column("force_N") / 1e3, e.column("stroke_mm")
+            model = fit.predicted["stroke_mm"]
+        else:
+            folded = fold(e.label, e.time_s, {"stroke_mm": e.column("stroke_mm"), "force_N": e.column("force_N")},
+                          e.frequency_hz, n, e.sample_rate_hz)
+            force_kn = np.append(folded.values["force_N"], folded.values["force_N"][0]) / 1e3
+            stroke = np.append(folded.values["stroke_mm"], folded.values["stroke_mm"][0])
+            model = None if fit is None else np.append(fit.predicted["stroke_mm"], fit.predicted["stroke_mm"][0])
+        ax.plot(stroke, force_kn, color="#8fb3e8", lw=4.0 if fit is None or fit.capture != "transient" else 1.5,
+                label="measured")
+        if model is not None:      # the model's stroke under the measured force: drawn over the measurement
             ax.plot(model, force_kn, color="#b34700", lw=1.1, ls="--", label="identified model")
         ax.set_title(f"{e.label}: {e.meta.get('static_position_mm', '?')} ± {e.meta.get('amplitude_mm', '?')} mm, "
                      f"{e.frequency_hz:g} Hz", fontsize=10)

@@ -18,11 +18,12 @@ from __future__ import annotations
 
 import datetime as _dt
 import getpass
+import io
 import json
 import shlex
 import socket
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
@@ -31,6 +32,7 @@ from rich.console import Console
 
 from identify.files import atomic_write_bytes
 from rig.errors import BadInput
+from rig.events import Subscriber
 from rig.planning.plans import estimate_experiment_durations
 from rig.qc.characteristics import check_model
 from rig.qc.evaluate import Evaluation, evaluate
@@ -41,7 +43,18 @@ from rig.qc.records import CharacteristicRecord, QcRecord, Records, RecordStatus
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
 from rig.qc.trace import SessionTrace, now_utc, software_version, trace_session
-from rig.session.run import EXIT_INTERRUPTED, EXIT_OK, Prepared, RunOptions, RunResult, execute, prepare
+from rig.session.run import (
+    EXIT_INTERRUPTED,
+    EXIT_OK,
+    Prepared,
+    RunOptions,
+    RunResult,
+    SessionContext,
+    SessionRunner,
+    prepare,
+    run_lifecycle,
+    terminal_progress,
+)
 
 EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
 
@@ -63,7 +76,68 @@ class QcOptions:
     register_map: str | None = None
 
 
+@dataclass
+class QcSubscribers:
+    """Who hears of one unit's test, and how: the command line's terminal
+    (:func:`terminal`) or the console's window (rig.gui.session_worker).  Everything
+    else (the checks, the session, the judgement, the record, the report, the exit
+    status) is :func:`test_unit`'s, the same for both."""
+
+    say: Callable[[str], None]                                  # a sentence for people (markup allowed)
+    attach: Callable[[SessionContext], Sequence[Subscriber]]    # the session's progress, once its time is predicted
+    subscribers: Sequence[Subscriber] = ()                      # every session event from the first
+    on_runner: Callable[[SessionRunner | None], object] | None = None
+    before_session: Callable[[Prepared], object] | None = None  # checked, records open, nothing sent yet
+    predicted: Callable[[Prediction], None] | None = None       # the time left, predicted again after an experiment
+    after_session: Callable[[RunResult], object] | None = None  # the session over, its links closed; judging next
+    concluded: Callable[[QcRecord, float, Path, str], None] | None = None   # a verdict: record, k, report, database
+
+
+@dataclass(frozen=True)
+class Prediction:
+    """After a captured experiment: what is not decided yet and the rig time the rest of
+    the plan takes, predicted from the parameters identified so far."""
+
+    after: tuple[str, ...]          # the experiments captured
+    undecided: tuple[str, ...]      # the characteristics still INCONCLUSIVE
+    rig_left_s: float
+
+    def sentence(self) -> str:
+        return (f"after {', '.join(self.after)}: {', '.join(self.undecided)} not yet decided; the rest of the plan, "
+                f"predicted from the parameters identified so far: {self.rig_left_s:.0f} s")
+
+
+@dataclass(frozen=True)
+class QcOutcome:
+    """How one unit's test ended: its exit status (:data:`EXIT_BY_VERDICT`, or the
+    session's), the record stored (judged or not) and where its report is."""
+
+    exit_code: int
+    record: QcRecord
+    report: Path
+    k: float
+    database: str
+
+
+def terminal(console: Console) -> QcSubscribers:
+    """``rig qc run``'s subscribers: the session's lines and the summary in the terminal."""
+    return QcSubscribers(say=lambda text: console.print(text, highlight=False), attach=terminal_progress(console),
+                         predicted=lambda p: console.print(p.sentence(), highlight=False),
+                         concluded=lambda record, k, report, database: _print_summary(record, k, report, database))
+
+
 def qc_run(opt: QcOptions, console: Console) -> int:
+    """``rig qc run``: :func:`test_unit` with the terminal as its subscriber."""
+    return test_unit(opt, terminal(console)).exit_code
+
+
+def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
+    """One unit's test, the one way ``rig qc run`` and the console run it: the spec's
+    checks, the records opened, the session (:func:`rig.session.run.run_lifecycle`),
+    the judgement, the record, the report.  A failure before the session folder exists
+    is raised with nothing recorded; after it, it is recorded (ABORTED, ERROR) and then
+    raised; a session that ended without its data (aborted, interrupted) is recorded
+    ABORTED and returned with the session's exit status."""
     spec = load_spec(opt.spec)
     spec.check_serial(opt.serial)
     check_model(spec)
@@ -79,15 +153,26 @@ def qc_run(opt: QcOptions, console: Console) -> int:
     # Opened before the rig moves (a bad URL or password costs no rig time; runs a killed
     # process left are recorded, queued records sent); a new SQLite file is made only with
     # the first record: a run that never starts leaves none.
-    records = Outbox.open(opt.out, opt.db, console)
+    records = Outbox.open(opt.out, opt.db, to.say)
     try:
-        console.print(f"QC {spec.name} {spec.version} on unit {opt.serial}: records in {records.name}", highlight=False)
+        to.say(f"QC {spec.name} {spec.version} on unit {opt.serial}: records in {records.name}")
+        if to.before_session is not None:
+            to.before_session(prep)
         started = now_utc()
         identity: dict[str, Any] = dict(serial=opt.serial, operator=operator, rig=rig_id, started=started,
                                         station=records.station or rig_id)
         records.begin(run_options.out, spec, identity)   # in the station's journal until it ends
+        decide = decider(spec, prep, to.predicted)
+
+        def hand_over(runner: SessionRunner | None) -> None:
+            if runner is not None:
+                runner.decide = decide
+            if to.on_runner is not None:
+                to.on_runner(runner)
+
         try:
-            result = execute(prep, console, decide=decider(spec, prep, console))
+            result = run_lifecycle(prep, Console(file=io.StringIO()), subscribers=to.subscribers, attach=to.attach,
+                                   on_runner=hand_over)
         except BaseException as exc:
             # A session that started (its folder exists) is on record as ABORTED; one that
             # never started (no link, refused) has nothing to record.
@@ -98,23 +183,25 @@ def qc_run(opt: QcOptions, console: Console) -> int:
             raise
         finished = now_utc()
         session = result.session.path
+        if to.after_session is not None:
+            to.after_session(result)
         if result.error is not None:
             _store(records, _unjudged(spec, session, RecordStatus.ERROR, f"internal error: {result.error!r}",
                                       finished=finished, **identity), spec)
             raise result.error
         if result.exit_code != EXIT_OK:
-            _store(records, _unjudged(spec, session, RecordStatus.ABORTED, f"session {result.status}",
-                                      finished=finished, **identity), spec)
-            console.print(f"[red]QC run ABORTED: session {result.status}; no verdict[/red]", highlight=False)
-            return result.exit_code
+            record = _store(records, _unjudged(spec, session, RecordStatus.ABORTED, f"session {result.status}",
+                                               finished=finished, **identity), spec)
+            to.say(f"[red]QC run ABORTED: session {result.status}; no verdict[/red]")
+            return QcOutcome(result.exit_code, record, session / "qc-report.html", spec.k, records.name)
         try:
             evaluation = evaluate(spec, session)
         except BaseException as exc:
             status = RecordStatus.ABORTED if isinstance(exc, KeyboardInterrupt) else RecordStatus.ERROR
-            _store(records, _unjudged(spec, session, status, f"judging ended: {exc!r}", finished=finished,
-                                      **identity), spec)
+            record = _store(records, _unjudged(spec, session, status, f"judging ended: {exc!r}", finished=finished,
+                                               **identity), spec)
             if isinstance(exc, KeyboardInterrupt):
-                return EXIT_INTERRUPTED
+                return QcOutcome(EXIT_INTERRUPTED, record, session / "qc-report.html", spec.k, records.name)
             raise
         retest = shlex.join(["python", "-m", "rig", "qc", "run", "--spec", opt.spec, "--serial", opt.serial,
                              "--shaker", opt.shaker, "--daq", opt.daq, "--out", str(opt.out),
@@ -122,12 +209,15 @@ def qc_run(opt: QcOptions, console: Console) -> int:
         evaluation.notes.append(stopping_note(result, prep))
         record = judged_record(spec, trace_session(session), evaluation, retest, rejudges=None, finished=finished,
                                **identity)
-        return _conclude(records, record, spec, evaluation, session / "qc-report.html", session / "qc-record.json")
+        report = session / "qc-report.html"
+        code = _conclude(records, record, spec, evaluation, report, session / "qc-record.json", to.concluded)
+        return QcOutcome(code, record, report, spec.k, records.name)
     finally:
         records.close()
 
 
-def decider(spec: Spec, prep: Prepared, console: Console) -> Callable[[RunResult], str | None]:
+def decider(spec: Spec, prep: Prepared,
+            predicted: Callable[[Prediction], None] | None) -> Callable[[RunResult], str | None]:
     """After each captured experiment but the last: fit and judge what there is, and end
     the session as soon as every characteristic is decided under the guard band (PASS,
     or FAIL at k·σ); otherwise say how much longer the rest of the plan will take,
@@ -141,13 +231,12 @@ def decider(spec: Spec, prep: Prepared, console: Console) -> Callable[[RunResult
             return f"every characteristic decided after {labels} ({evaluation.judgement.verdict.value})"
         done = {e.label for e in result.captured}
         rest = tuple(e for e in prep.plan.experiments if result.session.label(e.letter) not in done)
-        if evaluation.fit is not None and evaluation.fit.converged and rest:
+        if evaluation.fit is not None and evaluation.fit.converged and rest and predicted is not None:
             last = prep.plan.experiments[len(prep.plan.experiments) - len(rest) - 1]
             eta = sum(d.total_s for d in estimate_experiment_durations(
                 replace(prep.plan, experiments=rest), prep.config, last.static_position_mm * 1e-3,
                 evaluation.fit.params))
-            console.print(f"after {labels}: {', '.join(open_)} not yet decided; the rest of the plan, predicted "
-                          f"from the parameters identified so far: {eta:.0f} s", highlight=False)
+            predicted(Prediction(tuple(e.label for e in result.captured), tuple(open_), eta))
         return None
 
     return decide
@@ -185,20 +274,21 @@ def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str 
                                station=first.station if first else None)
         tag = f"{record.judged.replace(':', '').replace('-', '')[:15]}-{record.uid[:8]}"
         return _conclude(records, record, spec, evaluation, session / f"qc-report-{tag}.html",
-                         session / f"qc-record-{tag}.json")
+                         session / f"qc-record-{tag}.json", _print_summary)
     finally:
         records.close()
 
 
 def _conclude(records: Records | Outbox, record: QcRecord, spec: Spec, evaluation: Evaluation, report: Path,
-              record_file: Path) -> int:
+              record_file: Path, concluded: Callable[[QcRecord, float, Path, str], None] | None) -> int:
     """The report rendered first (a failure there costs no record), then the record
     stored, then the files: a killed process leaves a verdict in the database or nowhere."""
     html = render_report(record, spec, evaluation)
     records.add(record)
     atomic_write_bytes(report, html.encode())
     atomic_write_bytes(record_file, (json.dumps(_document(record), indent=2) + "\n").encode())
-    _print_summary(record, spec.k, report, records.name)
+    if concluded is not None:
+        concluded(record, spec.k, report, records.name)
     assert record.verdict is not None  # a judged record
     return EXIT_BY_VERDICT[record.verdict]
 
@@ -211,12 +301,13 @@ def _document(record: QcRecord) -> dict:
     return doc
 
 
-def _store(records: Records | Outbox, record: QcRecord, spec: Spec) -> None:
+def _store(records: Records | Outbox, record: QcRecord, spec: Spec) -> QcRecord:
     """A run without a verdict: on record all the same, with a report that says why."""
     records.add(record)
     atomic_write_bytes(Path(record.session) / "qc-report.html", render_report(record, spec, None).encode())
     atomic_write_bytes(Path(record.session) / "qc-record.json",
                        (json.dumps(_document(record), indent=2) + "\n").encode())
+    return record
 
 
 def rejudge_remedy(spec: Spec) -> str:
@@ -262,8 +353,8 @@ def judged_record(spec: Spec, trace: SessionTrace, evaluation: Evaluation, retes
 
 
 def _print_summary(record: QcRecord, k: float, report: Path, database: str) -> None:
-    """The terminal summary: the console's QC panel reads it (rig.gui.qc), so its lines
-    are the panel's rows — one per characteristic, fields separated by ' | '."""
+    """The terminal summary: one line per characteristic, fields separated by ' | ' (the
+    console's QC panel shows the same cells from the record, rig.qc.present.shown)."""
     simulated = "  SIMULATED (not a production record)" if record.simulated else ""
     print(f"{record.serial}: {record.verdict}  (spec {record.spec_name} {record.spec_version}; "
           f"value ± {k:g}σ){simulated}")

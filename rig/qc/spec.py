@@ -43,7 +43,7 @@ OPTIONAL: dict[str, tuple[str, ...]] = {
     "loop_energy": ("static_mm", "amplitude_mm", "frequency_Hz"),
 }
 COMMON_KEYS = ("name", "kind", "unit", "nominal", "low", "high", "tolerance_percent", "u_cal", "description", "title")
-TOP_KEYS = ("name", "version", "title", "serial_pattern", "k", "periods", "identification", "steady_state",
+TOP_KEYS = ("name", "version", "title", "serial_pattern", "k", "periods", "capture", "identification", "steady_state",
             "experiment", "characteristic", "diagnosis")
 DIRECTIONS = ("low", "high")
 

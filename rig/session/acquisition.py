@@ -37,6 +37,7 @@ from rig.planning.criterion import (
     drift_passes,
     first_block_sample,
 )
+from rig.planning.plans import transient_capture_s
 from rig.planning.settling import Hold, move_duration_s
 
 POLL_S = 0.05
@@ -266,6 +267,9 @@ class Acquisition:
             self.shaker.hydraulics(True)
         position = st.position_m
         lost0 = self.daq.counters.lost_samples   # the hold's stream and the experiment's
+        transient = spec.capture == "transient"
+        if transient:
+            hold = None  # nothing to condition: the transient from RUN is what is captured
         if hold is not None:
             self._hold(hold, label, position, static)
             position = hold.position_m
@@ -280,7 +284,8 @@ class Acquisition:
         self.daq.start()
         self.shaker.run(static, amp, spec.frequency_hz, spec.waveform, ss.ramp_time_s)
         try:
-            record = self._settle_and_capture(spec, label, recorder, time_constant_s)
+            record = (self._capture_from_run(spec, label, recorder) if transient else
+                      self._settle_and_capture(spec, label, recorder, time_constant_s))
         finally:
             issued = self.daq.stop()
             self._recorder = None
@@ -552,6 +557,24 @@ class Acquisition:
         index = a + np.flatnonzero(present)
         return ExperimentRecord(spec, label, rate, index, values[present], cycles, settled, lost, 0,
                                 int(np.count_nonzero(over[present])), attempts - 1, flags)
+
+    def _capture_from_run(self, spec: ExperimentSpec, label: str, rec: Recorder) -> ExperimentRecord:
+        """The plan's ``capture = "transient"``: no settling, every sample from RUN (the
+        DAQ's start, just before it) on, the amplitude ramp and the plan's periods at full
+        amplitude.  Samples lost here cannot be captured again (the transient is gone):
+        their rows are absent and declared, and a transient fit refuses the record."""
+        rate = self.daq.rate_hz
+        n = int(round(transient_capture_s(spec, self.config.steady_state.ramp_time_s, rate) * rate))
+        self._enter(Phase.CAPTURING, label, cycles=0)
+        self.bus.publish(Kind.LOG, label, message=f"transient capture: {n / rate:.2f} s from RUN, no settling")
+        self._wait_samples(rec, n, label, capture=(0, n))
+        values, present, over = rec.window(0, n)
+        rec.forget_before(n)
+        lost = int(np.count_nonzero(~present))
+        flags = [f"{lost} samples lost in the transient capture (rows absent; it cannot be fitted as a transient)"
+                 ] if lost else []
+        return ExperimentRecord(spec, label, rate, np.flatnonzero(present), values[present], 0, False, lost, 0,
+                                int(np.count_nonzero(over[present])), 0, flags)
 
     def _wait_samples(self, rec: Recorder, end: int, label: str, capture: tuple[int, int] | None = None) -> None:
         """Wait until the DAQ index reaches ``end``, watching the controller for alarms."""

@@ -265,6 +265,7 @@ class SessionRunner:
         self._durations: list[ExperimentDuration] | None = None   # the plan's prediction (durations)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="session-writer")
         self._writing: tuple[str, Future[None]] | None = None
+        self.stop_reason: str | None = None   # the first request_stop's reason
         self.signals: list[int] = []       # SIGINT, SIGTERM, SIGHUP received while the session ran
         # One time line for the rig: the acquisition waits on the shaker's clock (the wall
         # clock, or a simulated one when a test drives an in-process simulator).
@@ -330,6 +331,15 @@ class SessionRunner:
         if self.pace is None:
             self.pace = self.acquisition.measure_pace()
         return self.pace
+
+    def request_stop(self, reason: str) -> None:
+        """Ask the session to stop, the one way to do it (the console's Abort and E-STOP,
+        SIGINT/SIGTERM/SIGHUP): the acquisition sees it at its next poll, the safe stop
+        follows, and the session ends ``interrupted (reason)``.  The first reason asked
+        is the one on record.  Safe from a signal handler: no lock is taken."""
+        if self.stop_reason is None:
+            self.stop_reason = reason
+        self.acquisition.stop_requested.set()
 
     def run(self, session: Session) -> RunResult:
         prep, bus, acq = self.prep, self.bus, self.acquisition
@@ -496,21 +506,23 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
     return EXIT_OK
 
 
-def execute(prep: Prepared, console: Console, decide: Callable[[RunResult], str | None] | None = None) -> RunResult:
-    """``rig run`` and ``rig qc run``: the lifecycle with the terminal's progress lines.
-    ``decide``: see :attr:`SessionRunner.decide`."""
+def execute(prep: Prepared, console: Console) -> RunResult:
+    """``rig run``: the lifecycle with the terminal's progress lines."""
+    return run_lifecycle(prep, console, attach=terminal_progress(console))
+
+
+def terminal_progress(console: Console) -> Callable[[SessionContext], list[Subscriber]]:
+    """The terminal's subscribers of a session (``rig run``, ``rig qc run``): the pace
+    where the links run faster than the rig, then a line per phase and the ETA."""
     def progress(ctx: SessionContext) -> list[Subscriber]:
+        config = ctx.runner.prep.config
         if ctx.pace > 1.0:   # a simulator faster than the rig's own time
             console.print(f"the links run {ctx.pace:.3g} rig seconds per second: conditioning holds shorter "
-                          f"than {prep.config.min_hold_s * ctx.pace:.0f} s are not planned (session.log has "
+                          f"than {config.min_hold_s * ctx.pace:.0f} s are not planned (session.log has "
                           "the pace probe)", style="dim", highlight=False)
         return [ConsoleProgress(console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock)]
 
-    def hand_over(runner: SessionRunner | None) -> None:
-        if runner is not None:
-            runner.decide = decide
-
-    return run_lifecycle(prep, console, attach=progress, on_runner=hand_over)
+    return progress
 
 
 # ----- the one lifecycle ------------------------------------------------------------------------------
