@@ -62,6 +62,13 @@ class Lines:
             if marker in line:
                 return line
 
+    def stdout(self) -> str:
+        """The child's whole stdout, once it has ended (stderr stays this reader's)."""
+        assert self.proc.stdout is not None
+        out = self.proc.stdout.read()
+        self.proc.wait(timeout=HANG_S)
+        return out
+
     def rest(self) -> str:
         while (line := self._q.get(timeout=HANG_S)) is not None:
             self.seen.append(line)
