@@ -6,7 +6,15 @@ below half a core (issue 3).  Baseline: the same stream read by a plain pyserial
 that only checks the sync word and CRC frame by frame in Python (what a first
 driver would do), measured on the same stream for a few seconds.
 
+With ``--line-baud 921600``: the DAQ at the line limit of its fastest serial setting,
+end to end (the simulator's device, the pseudo-terminal, the rig's reader): 921,600 Bd
+8N1 carries 92,160 bytes/s, 5,760 frames of 16 bytes; the device streams at its top rate
+(5 kHz) with the simulator at 5760/5000 = 1.152x, so that the frames arrive at exactly
+the line's capacity (a pseudo-terminal has no baud rate of its own: the device paces
+them).  Target: 0 frames lost, every frame's sequence number in order.
+
     python benchmarks/bench_daq_stream.py [--seconds 60]
+    python benchmarks/bench_daq_stream.py --line-baud 921600 [--seconds 60]
 """
 
 from __future__ import annotations
@@ -44,8 +52,13 @@ def start_simulator(speed: float) -> tuple[subprocess.Popen, str]:
     return proc, urls["daq"]
 
 
-def rig_reader(url: str, seconds: float) -> dict[str, float]:
-    daq = Daq(url, rate_hz=2000)
+FRAME_BYTES = 16
+BITS_PER_CHAR = 10                 # 8N1: start, 8 data, stop
+DAQ_MAX_RATE_HZ = 5000             # the DAQ's top sample rate (RATE 100..5000)
+
+
+def rig_reader(url: str, seconds: float, rate_hz: int = 2000) -> dict[str, float]:
+    daq = Daq(url, rate_hz=rate_hz)
     daq.open()
     c0, w0 = time.process_time(), time.monotonic()
     daq.start()
@@ -89,11 +102,36 @@ def naive_reader(url: str, seconds: float) -> dict[str, float]:
     return {"received": frames, "lost": lost, "frames_per_s": frames / wall, "cpu": cpu / wall}
 
 
+def at_line_limit(baud: float, seconds: float) -> int:
+    frames_per_s = baud / BITS_PER_CHAR / FRAME_BYTES
+    speed = frames_per_s / DAQ_MAX_RATE_HZ
+    proc, url = start_simulator(speed)
+    try:
+        s0, w0 = cpu_seconds(proc.pid), time.monotonic()
+        rig = rig_reader(url, seconds, DAQ_MAX_RATE_HZ)
+        sim_cpu = (cpu_seconds(proc.pid) - s0) / (time.monotonic() - w0)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+    print(f"DAQ at the line limit of {baud:g} Bd 8N1: {baud / BITS_PER_CHAR:.0f} bytes/s = {frames_per_s:.0f} "
+          f"frames/s of {FRAME_BYTES} bytes; the device at {DAQ_MAX_RATE_HZ} Hz x {speed:.3f} over a pty, "
+          f"{seconds:g} s wall")
+    print(f"  frames issued {rig['issued']}, received {rig['received']}, lost {rig['lost']}, CRC errors "
+          f"{rig['crc']}; {rig['frames_per_s']:.0f} frames/s = {rig['frames_per_s'] / frames_per_s:.1%} of the line")
+    print(f"  reader CPU {rig['cpu']:.0%} of a core, simulator {sim_cpu:.0%}")
+    met = rig["lost"] == 0 and rig["crc"] == 0 and rig["received"] >= rig["issued"] > 0
+    print(f"target: 0 frames lost end to end at the line's limit -> {'met' if met else 'NOT met'}")
+    return 0 if met else 1
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seconds", type=float, default=60.0, help="wall seconds of streaming (default 60)")
     parser.add_argument("--baseline-seconds", type=float, default=5.0)
+    parser.add_argument("--line-baud", type=float, help="stream at this serial line's limit (e.g. 921600)")
     args = parser.parse_args()
+    if args.line_baud:
+        return at_line_limit(args.line_baud, args.seconds)
 
     proc, url = start_simulator(20.0)
     try:

@@ -17,12 +17,21 @@ Printed:
     distribution (target: median <= 45 s, none over 90 s) and the decision table (target
     0 false rejects, 0 false accepts; a unit on a limit never PASS).
 
-    python benchmarks/bench_qc.py [--units 20] [--sessions [--jobs 2]]
+  * with ``--served``: every unit (``--units`` good and ``--units`` faulty ones) tested as
+    a station does it: ``python -m rig qc run`` with the spec (``--spec``) against its own
+    ``python -m simulator serve --unit KIND --speed 10`` over Modbus TCP and the DAQ's
+    socket, with the run's early stop when decided: the rig-time distribution (from the
+    simulator's log: first hydraulics on to last off) and the decision table (exit status
+    and the record's failed characteristics).
+
+    python benchmarks/bench_qc.py [--units 20] [--sessions [--jobs 2]] [--served [--speed 10] [--jobs 2]]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import subprocess
 import sys
 import tempfile
 import time
@@ -145,17 +154,93 @@ def sessions(units: int, jobs: int) -> int:
     return int(bool(false_rejects or false_accepts or np.median(taken) > 45 or taken.max() > 90))
 
 
+EXIT_VERDICT = {0: "PASS", 1: "FAIL", 4: "INCONCLUSIVE"}
+
+
+def served_unit(job: tuple[str, int, float]) -> tuple[str, int, float, float, str, list[str], str]:
+    """One unit as a station tests it: qc run against a served simulator of that unit.
+    (kind, seed, rig seconds, wall seconds, verdict, failed characteristics, why no verdict)."""
+    from rig.virtual import VirtualRig
+
+    kind, seed, speed = job
+    with tempfile.TemporaryDirectory() as tmp, VirtualRig(speed=speed, unit=kind, unit_seed=seed, seed=seed) as sim:
+        t0 = time.perf_counter()
+        r = subprocess.run([sys.executable, "-m", "rig", "qc", "run", "--spec", SPEC, "--serial", f"SN-{seed:04d}",
+                            "--shaker", sim.modbus_url, "--daq", sim.daq_url, "--out", tmp], capture_output=True,
+                           text=True, cwd=ROOT)
+        wall = time.perf_counter() - t0
+        sim.stop()
+        verdict = EXIT_VERDICT.get(r.returncode, f"exit {r.returncode}")
+        failed: list[str] = []
+        records = list(Path(tmp).glob("*/qc-record.json"))
+        if records:
+            doc = json.loads(records[0].read_text())
+            failed = [k for k, c in doc["characteristics"].items() if c["outcome"] == "FAIL"]
+        why = "" if r.returncode in EXIT_VERDICT else (r.stderr.strip().splitlines() or ["?"])[-1]
+        return kind, seed, sim.rig_time_s(), wall, verdict, failed, why
+
+
+def served(units: int, jobs: int, speed: float) -> int:
+    """Rig-time distribution and decision table over units tested by qc run on served simulators."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    import numpy as np
+
+    todo = []
+    for i in range(units):
+        todo += [("good", 1000 + i, speed), (list(FAULT_OF)[i % 3], 2000 + i, speed)]
+    rows = []
+    t0 = time.perf_counter()
+    with ThreadPoolExecutor(jobs) as pool:
+        for row in pool.map(served_unit, todo):
+            rows.append(row)
+            kind, seed, rig_s, wall, verdict, failed, why = row
+            print(f"  {kind:<13} seed {seed}: {rig_s:6.1f} s rig time, {wall:5.1f} s wall, {verdict} "
+                  f"{' '.join(failed)}{why}", flush=True)
+    taken = np.array([r[2] for r in rows])
+    walls = np.array([r[3] for r in rows])
+    print(f"\n{len(rows)} units, each qc run against its own served simulator at {speed:g}x (Modbus TCP, DAQ "
+          f"socket), {jobs} at a time, {time.perf_counter() - t0:.0f} s wall")
+    print(f"  rig time per unit: median {np.median(taken):.1f} s (target <= 45 s), 90th percentile "
+          f"{np.percentile(taken, 90):.1f} s, max {taken.max():.1f} s (target none over 90 s); "
+          f"{'met' if np.median(taken) <= 45 and taken.max() <= 90 else 'NOT met'}")
+    print(f"  wall per unit (process start, links, run, fit, record): median {np.median(walls):.1f} s, "
+          f"max {walls.max():.1f} s")
+    print(f"  {'unit':<8} {'n':>4} {'PASS':>6} {'FAIL':>6} {'INCONCLUSIVE':>13} {'no verdict':>11} "
+          f"{'rig time median':>16}")
+    for group in ("good", "faulty"):
+        sel = [r for r in rows if (r[0] == "good") == (group == "good")]
+        counts = Counter(r[4] for r in sel)
+        print(f"  {group:<8} {len(sel):>4} {counts['PASS']:>6} {counts['FAIL']:>6} {counts['INCONCLUSIVE']:>13} "
+              f"{len(sel) - sum(counts[v] for v in EXIT_VERDICT.values()):>11} "
+              f"{np.median([r[2] for r in sel]):>14.1f} s")
+    false_rejects = sum(1 for r in rows if r[0] == "good" and r[4] == "FAIL")
+    false_accepts = sum(1 for r in rows if r[0] != "good" and r[4] == "PASS")
+    wrong = [f"{r[0]} seed {r[1]}: failed {sorted(set(r[5]) & PHYSICAL)}" for r in rows
+             if r[0] != "good" and r[4] == "FAIL" and set(r[5]) & PHYSICAL != {FAULT_OF[r[0]]}]
+    print(f"  false rejects {false_rejects} (target 0), false accepts {false_accepts} (target 0), faulty units "
+          f"failed on another characteristic than their fault's: {len(wrong)}")
+    for line in wrong:
+        print(f"    {line}")
+    return int(bool(false_rejects or false_accepts))
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--units", type=int, default=20, help="good units, and faulty units, each (default 20)")
     parser.add_argument("--sessions", action="store_true",
                         help="run every unit through the plan on the in-process rig (rig-time distribution)")
-    parser.add_argument("--jobs", type=int, default=1, help="--sessions: units run at once")
+    parser.add_argument("--served", action="store_true",
+                        help="test every unit with qc run against its own served simulator (rig time, decisions)")
+    parser.add_argument("--speed", type=float, default=10.0, help="--served: the simulators' speed (default 10x)")
+    parser.add_argument("--jobs", type=int, default=1, help="--sessions, --served: units run at once")
     parser.add_argument("--spec", default="default", help="QC spec (default, transient: captured from RUN on, or a "
                                                           "file)")
     args = parser.parse_args()
     global SPEC
     SPEC = args.spec
+    if args.served:
+        return served(args.units, args.jobs, args.speed)
     if args.sessions:
         return sessions(args.units, args.jobs)
     spec = load_spec(SPEC)

@@ -4,6 +4,11 @@ conditioning holds (rig/planning/settling.py) in the order of least predicted ri
 (rig/planning/ordering.py), the same as listed (``--order fixed``), and the shipped default with
 lost samples on the line.
 
+Every Modbus transaction and DAQ command takes the time of an RTU line at 115,200 Bd
+(``--line-baud``; 11 bits a character, 3.5 characters of silence after each frame, from
+each frame's bytes), spent on the simulated clock as the rig's own waits are: the rig
+time printed is at 1x with a serial line's latency, not an ideal link's.
+
 Runs on the in-process virtual rig on simulated time (tests/virtual_rig_inprocess.py:
 the rig package's drivers against the simulator, nominal truth, its fixed seed), which
 gives the same rig time as ``simulator serve`` at any speed and takes a few minutes of
@@ -12,6 +17,7 @@ on a busy machine.  Each case runs in its own process, so that its peak RSS is i
 
     python benchmarks/bench_session.py                 # the four cases, side by side
     python benchmarks/bench_session.py --hold 60       # and a held 0.04 Hz experiment (memory)
+    python benchmarks/bench_session.py --line-baud 0               # links without latency
     python benchmarks/bench_session.py --seeds 6 --cases today,new --jobs 2
                                     # the same over six draws of the simulator's noise
 
@@ -55,7 +61,7 @@ START = ROOT / "examples" / "start-2dof.json"
 
 
 def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tuple[str, ...] = (),
-             plan: str = "standard") -> dict:
+             plan: str = "standard", line_baud: float = 115200.0) -> dict:
     """One session in this process; returns its figures (JSON-able)."""
     from rig.config import DEFAULT_RIG_CONFIG
     from rig.session.outcome import ExitStatus
@@ -78,7 +84,7 @@ def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tu
             sys.exit(f"--set {setting}: no key {key!r} in {DEFAULT_RIG_CONFIG.name}")
     config = out / "rig.toml"
     config.write_text(text)
-    rig = InProcessRig(config, seed=seed)
+    rig = InProcessRig(config, seed=seed, line_baud=line_baud or None)
     rig.connect()
     try:
         for fault in faults:
@@ -113,12 +119,15 @@ def run_case(name: str, hold_cycles: int, out: Path, seed: int = 0, settings: tu
         rig.close()
     return {"case": name, "status": result.status, "order": [e.letter for e in prep.plan.experiments],
             "per": per, "taken_s": taken, "eta_s": eta, "fit": fit,
-            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024}
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "line": ({"transactions": rig.line_time.transactions, "seconds": rig.line_time.seconds}
+                     if rig.line_time else None)}
 
 
-def _run(name: str, hold: int, seed: int, settings: list[str], plan: str = "standard") -> dict:
+def _run(name: str, hold: int, seed: int, settings: list[str], plan: str = "standard",
+         line_baud: float = 115200.0) -> dict:
     proc = subprocess.run([sys.executable, __file__, "--case", name, "--hold", str(hold), "--seed", str(seed),
-                           "--plan", plan] + [f"--set={s}" for s in settings],
+                           "--plan", plan, "--line-baud", str(line_baud)] + [f"--set={s}" for s in settings],
                           capture_output=True, text=True, cwd=ROOT)
     if proc.returncode:
         sys.exit(f"{name} (seed {seed}): {proc.stderr[-2000:]}")
@@ -136,6 +145,10 @@ def print_side_by_side(results: dict, shown: list[str], hold: int) -> None:
     print(f"{'ETA/taken':10}" + "".join(f"{results[n]['eta_s'] / results[n]['taken_s'] - 1:>+18.1%}" for n in shown))
     print(f"{'order':6}" + "".join(f"{''.join(results[n]['order']):>22}" for n in shown))
     print(f"{'RSS MB':6}" + "".join(f"{results[n]['peak_rss_mb']:>22.0f}" for n in shown))
+    if results[shown[0]].get("line"):
+        lines = [results[n]["line"] for n in shown]
+        print(f"{'line':6}" + "".join(f"{x['transactions']:>9} tx {x['seconds']:>6.1f} s" for x in lines)
+              + "  (Modbus transactions + DAQ commands, their line time)")
     from simulator.truth import load_truth
 
     truth = load_truth().theta
@@ -196,6 +209,9 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=1, help="cases run at once (rig time is simulated: unaffected)")
     ap.add_argument("--plan", default="standard",
                     help="the plan every case runs: standard or PLAN.toml (e.g. one rig design wrote)")
+    ap.add_argument("--line-baud", type=float, default=115200.0,
+                    help="each Modbus transaction and DAQ command takes an RTU line's time at this rate "
+                         "(default 115200; 0: no latency)")
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="override a key of rig-default.toml in every case (e.g. drift_sigma_fraction=3.0)")
     args = ap.parse_args()
@@ -203,15 +219,17 @@ def main() -> None:
         with tempfile.TemporaryDirectory() as tmp:
             print(json.dumps(run_case(args.case, args.hold if args.case == "hold" else 0, Path(tmp), args.seed,
                                       tuple(args.set), str(Path(args.plan).resolve()) if args.plan != "standard"
-                                      else "standard")))
+                                      else "standard", args.line_baud)))
         return
     shown = args.cases.split(",")
     seeds = list(range(args.seeds))
     jobs = [(n, s) for s in seeds for n in shown] + ([("hold", 0)] if args.hold else [])
     with ThreadPoolExecutor(max(1, args.jobs)) as pool:
-        done = dict(zip(jobs, pool.map(lambda job: _run(job[0], args.hold, job[1], args.set, args.plan), jobs),
-                        strict=True))
-    print(f"plan: {args.plan}")
+        done = dict(zip(jobs, pool.map(lambda job: _run(job[0], args.hold, job[1], args.set, args.plan,
+                                                        args.line_baud), jobs), strict=True))
+    print(f"plan: {args.plan}; links: " + (f"RTU line time at {args.line_baud:g} Bd per Modbus transaction and DAQ "
+                                          "command (11 bits a character, 3.5-character gap per frame)"
+                                          if args.line_baud else "no latency"))
     if len(seeds) == 1:
         print_side_by_side({n: r for (n, _), r in done.items()}, shown, args.hold)
     else:

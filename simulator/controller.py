@@ -399,8 +399,12 @@ class ShakerController:
             self.trip(Alarm.LOW_HYDRAULIC_PRESSURE, t, f"supply {self.supply_pressure_pa / 1e5:.0f} bar")
             return
         timeout = self.holding["watchdog_timeout"] * 0.1
-        if timeout > 0 and self.wall_clock() - self._heartbeat_wall > timeout:
-            self.trip(Alarm.WATCHDOG, t, f"no heartbeat for {timeout:g} s")
+        silent = self.wall_clock() - self._heartbeat_wall
+        if timeout > 0 and silent > timeout:
+            self.trip(Alarm.WATCHDOG, t, f"no heartbeat for {silent:.2f} s, timeout {timeout:g} s")
+            # The program that fed it is gone, and with it the safe stop: the controller
+            # switches the pump and the servo valve off itself.
+            self._set_hydraulics(False)
 
     def emergency_stop(self, t: float) -> None:
         """The e-stop button: latch alarm 5 and switch the hydraulics off."""

@@ -63,9 +63,13 @@ class PgServer:
         self._run(f"{self.bin}/initdb", "-D", str(self.data), "-U", self.user, "--pwfile", str(pwfile),
                   "--auth", "scram-sha-256", "-E", "UTF8", "--no-sync")
         pwfile.unlink()
+        self.resume()
+        return self
+
+    def resume(self) -> None:
+        """Start the stopped server again (same folder, same port)."""
         self._run(f"{self.bin}/pg_ctl", "-D", str(self.data), "-l", str(self.root / "server.log"), "-w", "-t", "60",
                   "-o", f"-p {self.port} -k {self.sockets} -c listen_addresses=127.0.0.1 -c fsync=off", "start")
-        return self
 
     def stop(self) -> None:
         if (self.data / "postmaster.pid").exists():

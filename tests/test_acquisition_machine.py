@@ -349,7 +349,7 @@ def test_a_modbus_link_gone_for_good_aborts_and_the_watchdog_stops_the_shaker(vr
     assert idle[-1].data["controller"] is None and LINK_STILL_GONE.split(" (")[0] in idle[-1].data["unread"]
     assert not vrig.sim.daq.streaming                  # the DAQ, on its own link, was stopped
     c = vrig.sim.controller
-    assert (c.state, c.alarm) == (State.ALARM, Alarm.WATCHDOG)   # no heartbeat got through
+    assert (c.state, c.alarm, c.hydraulics_on) == (State.ALARM, Alarm.WATCHDOG, False)   # no heartbeat got through
     assert session_meta(tmp_path / "s")[0]["status"] == result.status
 
 

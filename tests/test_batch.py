@@ -368,7 +368,9 @@ def test_bad_input_is_one_line_and_exit_2(args, message, tmp_path, capsys):
     ("sqlite:///{tmp}/missing.sqlite", "does not exist (qc run creates it"),
     ("{tmp}/plain.sqlite", "--db: sqlite:///{tmp}/plain.sqlite is not a QC records database (no qc_schema table)"),
     ("mysql://qe@db.plant/qc", "unsupported database 'mysql' (sqlite or postgresql)"),
-    ("postgresql://qe:s3cret@127.0.0.1:{port}/qc", "records database postgresql+psycopg://qe:***@127.0.0.1"),
+    ("postgresql://qe:s3cret@127.0.0.1:{port}/qc", "--db postgresql://qe:***@127.0.0.1"),
+    ("postgresql://qe:s3cret@127.0.0.1:{port}/qc", "must not carry the password"),
+    ("postgresql://qe@127.0.0.1:{port}/qc", "--db: records database postgresql+psycopg://qe@127.0.0.1"),
 ])
 def test_a_database_that_is_not_there_is_one_line_and_exit_2_before_any_fit(db, message, tmp_path, capsys):
     sqlite3.connect(tmp_path / "plain.sqlite").close()    # an SQLite file, but no one's QC records

@@ -25,8 +25,9 @@ from rig.events import Event, Kind
 from rig.gui.qc import QcProgress, QcRequest, QcTracker, done_from
 from rig.qc.evaluate import _for_the_verdict
 from rig.qc.history import MIN_CAPABILITY_N, capability, imr_limits, index
+from rig.qc.judge import Outcome
 from rig.qc.present import limits_text, shown, sigma_note
-from rig.qc.records import ADDED_IN_2, CharacteristicRecord, QcRecord, Records
+from rig.qc.records import ADDED_IN_2, ADDED_IN_3, CharacteristicRecord, QcRecord, Records, RecordStatus
 from rig.qc.run import Prediction, QcOutcome
 from rig.qc.spec import load_spec
 from simulator.generate import generate
@@ -106,14 +107,14 @@ def test_a_simulated_record_stays_simulated_and_is_marked_everywhere(generated, 
     assert all(r.simulated for r in Records.open(str(db)).find())
 
 
-def characteristic(value: float, outcome: str = "PASS") -> CharacteristicRecord:
+def characteristic(value: float, outcome: Outcome = Outcome.PASS) -> CharacteristicRecord:
     return CharacteristicRecord("damping_force_0.3_N", "N", value, 2.0, 1.0, 1.7, 405.0, 495.0, 450.0, outcome,
                                 "Damping force at 0.3 m/s", "residual")
 
 
-def unit(i: int, value: float, *, simulated: bool = False, status: str = "COMPLETE") -> QcRecord:
+def unit(i: int, value: float, *, simulated: bool = False, status: RecordStatus = RecordStatus.COMPLETE) -> QcRecord:
     base = record(f"SN-{i:04d}", f"u{i}")
-    verdict = ("PASS" if 405 < value < 495 else "FAIL") if status == "COMPLETE" else None
+    verdict = (Outcome.PASS if 405 < value < 495 else Outcome.FAIL) if status is RecordStatus.COMPLETE else None
     chars = (characteristic(value, verdict),) if verdict else ()
     return replace(base, verdict=verdict, status=status, simulated=simulated,
                    characteristics=chars, k=2.0)
@@ -121,7 +122,7 @@ def unit(i: int, value: float, *, simulated: bool = False, status: str = "COMPLE
 
 def test_statistics_leave_simulated_and_aborted_runs_out_unless_asked(tmp_path, capsys):
     records = [unit(i, 450.0 + (i % 3)) for i in range(5)] + [unit(5, 300.0, simulated=True),
-                                                                unit(6, 0.0, status="ABORTED")]
+                                                                unit(6, 0.0, status=RecordStatus.ABORTED)]
     (cap,) = capability(records)
     assert (cap.n_units, cap.passed, cap.failed) == (5, 5, 0)
     (cap,) = capability(records, include_simulated=True)
@@ -214,8 +215,8 @@ def test_history_prints_n_and_marks_capability_from_few_units(tmp_path, capsys):
 # ----- presentation by the uncertainty ---------------------------------------------------------------
 def test_a_characteristic_is_shown_by_its_uncertainty_with_units():
     rec = replace(record("SN-0001", "p"), k=2.0)
-    c = CharacteristicRecord("dissipated_energy_J", "J", 65.61234, 0.5123, 0.2, 0.5, 67.4645, 91.2755, 79.37, "FAIL",
-                             "Energy dissipated per cycle", "scatter")
+    c = CharacteristicRecord("dissipated_energy_J", "J", 65.61234, 0.5123, 0.2, 0.5, 67.4645, 91.2755, 79.37,
+                             Outcome.FAIL, "Energy dissipated per cycle", "scatter")
     s = shown(rec, c)
     # k·σ is k times the σ shown (2 × 0.51), both at σ's place: 65.6 ± 1.0 beside 0.51 read as a slip
     assert s.value == "65.61 ± 1.02 J" and s.sigma == "0.51 J" and s.basis == "period scatter"
@@ -226,7 +227,7 @@ def test_a_characteristic_is_shown_by_its_uncertainty_with_units():
 
 
 def test_the_report_states_which_sigma_the_verdict_used_and_never_contradicts_it():
-    residual = CharacteristicRecord("gas_precharge_bar", "bar", 6.0, 0.02, 0.005, 0.02, 5.7, 6.3, 6.0, "PASS",
+    residual = CharacteristicRecord("gas_precharge_bar", "bar", 6.0, 0.02, 0.005, 0.02, 5.7, 6.3, 6.0, Outcome.PASS,
                                     "Gas pre-charge", "residual")
     assert "residual-based" in sigma_note(residual) and "u_cal 0.02 bar" in sigma_note(residual)
     assert "noise only" in sigma_note(replace(residual, sigma_basis="noise"))
@@ -337,13 +338,16 @@ def test_a_version_1_database_is_upgraded_without_changing_a_record(tmp_path):
     db.add(unit(1, 450.0))
     db.close()
     with sqlite3.connect(path) as conn:         # back to version 1: its columns, its one version row
-        for table, columns in ADDED_IN_2.items():
-            for column in columns:
-                conn.execute(f"ALTER TABLE {table} DROP COLUMN {column}")
+        conn.execute("DROP INDEX ix_qc_record_station")
+        for added in (ADDED_IN_2, ADDED_IN_3):
+            for table, columns in added.items():
+                for column in columns:
+                    conn.execute(f"ALTER TABLE {table} DROP COLUMN {column}")
         conn.execute("DROP TRIGGER qc_schema_no_update")
         conn.execute("UPDATE qc_schema SET version = 1")
     (r,) = Records.open(str(path)).find()
-    assert (r.serial, r.verdict, r.simulated, r.controller, r.daq) == ("SN-0001", "PASS", False, None, None)
+    assert (r.serial, r.verdict, r.simulated, r.controller, r.daq, r.station) == \
+        ("SN-0001", Outcome.PASS, False, None, None, None)
     assert r.characteristics[0].value == 450.0 and r.characteristics[0].title is None
     with sqlite3.connect(path) as conn:
-        assert sorted(v for (v,) in conn.execute("SELECT version FROM qc_schema")) == [1, 2]
+        assert sorted(v for (v,) in conn.execute("SELECT version FROM qc_schema")) == [1, 2, 3]

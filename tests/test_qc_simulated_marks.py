@@ -10,6 +10,7 @@ from dataclasses import replace
 
 from rig.qc.cli import EXIT_NOTHING_CHARTED
 from rig.qc.history import control_charts, left_out
+from rig.qc.judge import Outcome
 from rig.qc.records import CharacteristicRecord, Records
 from tests.test_qc_records import qc, record
 
@@ -20,9 +21,9 @@ def simulated_db(tmp_path, simulated=(True, True, True)) -> str:
     for i, (value, sim) in enumerate(zip((5.95, 6.05, 6.00), simulated, strict=True)):
         base = record(f"SN-{i:04d}", f"u{i}")
         c = base.characteristics[0]
-        records.add(replace(base, verdict="PASS", simulated=sim, characteristics=(
+        records.add(replace(base, verdict=Outcome.PASS, simulated=sim, characteristics=(
             CharacteristicRecord(c.name, c.unit, value, c.std, c.std_fit, c.u_cal, c.low, c.high, c.nominal,
-                                 "PASS"),)))
+                                 Outcome.PASS),)))
     records.close()
     return url
 

@@ -93,7 +93,7 @@ class Rejudgements:
         if earlier is not None:
             return self._count(outcome, Delivery("present", _verdict(earlier)))
         identity = {"serial": first.serial, "operator": first.operator, "rig": first.rig,
-                    "simulated": first.simulated}
+                    "station": first.station, "simulated": first.simulated}
         return Task(judge_result, (spec, trace, result, first.uid, uid, identity))
 
     def finish(self, outcome: SessionOutcome, task: Task, value: Any) -> Delivery:

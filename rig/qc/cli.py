@@ -6,12 +6,19 @@
              the first
 ``history``  the records, capability (n, mean, std, Cp, Cpk, pass/fail counts) per
              characteristic, individuals control charts
+``sync``     a station's queued records to the database (and runs a killed process
+             left on the rig recorded as ABORTED)
 
 Exit status: 0 PASS, 1 FAIL, 4 INCONCLUSIVE (retest with more periods), 2 bad input,
 3 aborted after the safe stop (no verdict), 130 interrupted after the safe stop,
-70 an internal error.  ``history``: 0; 1 when ``--chart DIR`` wrote no chart (every
-record left out, the line says which and why: simulated, aborted); 2 for bad input.  ``history`` and ``judge``
-open an existing records database only (2 when there is none); ``run`` creates its own.
+70 an internal error; a record the database did not take is queued in the station's
+folder, and the exit status is the verdict's all the same.  ``history``: 0; 1 when
+``--chart DIR`` wrote no chart (every record left out, the line says which and why:
+simulated, aborted); 2 for bad input.  ``sync``: 0 when nothing is left queued, 3 when
+records stay queued (the database unreachable), 2 for bad input.  ``history`` and
+``judge`` open an existing records database only (2 when there is none); ``run`` creates
+its own.  A database URL never carries a password (refused, 2): see docs/qc.md,
+"Station set-up".
 """
 
 from __future__ import annotations
@@ -72,20 +79,65 @@ def latest_only(records: list, superseded: dict[str, str]) -> list:
     return [r for r in records if r.uid not in superseded]
 
 
+def cmd_sync(args: argparse.Namespace) -> int:
+    from rich.console import Console
+
+    from rig.qc.queue import Outbox
+
+    console = Console(stderr=True, soft_wrap=True)
+    outbox = Outbox.open(Path(args.out), args.db, lambda text: console.print(text, highlight=False))
+    # (it recorded the runs a killed process left and sent the queue)
+    try:
+        left = len(outbox.queue.pending())
+    finally:
+        outbox.close()
+    print(f"{left} record{'s' * (left != 1)} queued in {outbox.queue.pending_dir}" if left else
+          f"nothing queued: every record of {args.out} is in {outbox.records.name}")
+    return 3 if left else 0
+
+
+def _queue_warning(args: argparse.Namespace, url: str) -> str | None:
+    """A warning when the station folder (``--out``, or an SQLite database's own folder)
+    holds records not yet in the database."""
+    from rig.qc.queue import pending_count
+    from rig.qc.records import parse_url
+
+    parsed = parse_url(url)
+    folders = [Path(args.out)] if args.out else []
+    if parsed.get_backend_name() == "sqlite":
+        folders.append(Path(str(parsed.database)).parent)
+    for folder in dict.fromkeys(f.resolve() for f in folders):
+        n = pending_count(folder)
+        if n:
+            return (f"warning: {n} record{'s' * (n != 1)} of station {folder} queued, not yet in this database "
+                    f"(python -m rig qc sync --out {folder} sends them)")
+    return None
+
+
 def cmd_history(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
     from rig.qc.history import MIN_CAPABILITY_N, capability, control_charts, index, left_out, stat
+    from rig.qc.judge import Outcome
     from rig.qc.present import limits_text
-    from rig.qc.records import Records, superseded
+    from rig.qc.records import Records, default_url, superseded
+    from rig.qc.station import load_station_config
 
     since = _since(args.since)
-    records = Records.open(args.db)      # never created here: a mistyped path is refused
+    config = load_station_config(Path(args.out)) if args.out else None
+    url = args.db or (config.db if config else None) or (default_url(Path(args.out)) if args.out else None)
+    if url is None:
+        raise BadInput("qc history: give --db URL or --out STATION_DIR")
+    # never created here: a mistyped path is refused
+    records = Records.open(url, password=config.password if config else None)
     try:
-        everything = records.find(serial=args.serial, since=since)
+        everything = records.find(serial=args.serial, since=since, station=args.station)
     finally:
         records.close()
+    warning = _queue_warning(args, url)
+    if warning:
+        print(warning, file=sys.stderr)
     later = superseded(everything)
     found = everything if args.all else latest_only(everything, later)
     if args.json:
@@ -96,16 +148,17 @@ def cmd_history(args: argparse.Namespace) -> int:
             console = Console(soft_wrap=True, width=200)   # a pipe or a file: whole rows, not 80 columns
         which = "every record" if args.all else "each test's latest judgement; --all: every record"
         table = Table(title=f"QC records in {records.name} ({len(found)}: {which})")
-        for col in ("serial", "measured (UTC)", "verdict", "status", "spec", "failed", "operator", "rig", "record"):
+        for col in ("serial", "measured (UTC)", "verdict", "status", "spec", "failed", "operator", "station", "rig",
+                    "record"):
             table.add_column(col)
         for r in found:
-            failed = ", ".join(c.title or c.name for c in r.characteristics if c.outcome == "FAIL")
+            failed = ", ".join(c.title or c.name for c in r.characteristics if c.outcome == Outcome.FAIL)
             verdict = (r.verdict or "—") + (" SIMULATED" if r.simulated else "")
             spec = f"{r.spec_name} {r.spec_version}" + (" (re-judged)" if r.rejudges else "")
             if r.uid in later:
                 spec += f" (superseded by {later[r.uid][:8]})"
             table.add_row(r.serial, (r.started or "—")[:19], verdict, r.status + (f": {r.reason}" if r.reason else ""),
-                          spec, failed, r.operator, r.rig, r.uid[:8])
+                          spec, failed, r.operator, r.station or "—", r.rig, r.uid[:8])
         console.print(table)
         counted = "simulated included" if args.include_simulated else "simulated left out (--include-simulated)"
         caps = Table(title=f"Capability: the latest judgement of each complete run, {counted}; I-MR limits "
@@ -158,8 +211,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--shaker", required=True, help="tcp://HOST:PORT or rtu:///dev/DEVICE")
     run.add_argument("--daq", required=True, help="device path, socket://HOST:PORT or any pyserial URL")
     run.add_argument("--out", required=True, help="the station's folder: a session folder per unit goes in it")
-    run.add_argument("--db", help="records database URL: sqlite:///FILE or postgresql://USER@HOST:PORT/DB "
-                                  "(default: OUT/qc-records.sqlite)")
+    run.add_argument("--db", help="records database URL without a password: sqlite:///FILE or "
+                                  "postgresql://USER@HOST:PORT/DB (default: OUT/station.toml's, else "
+                                  "OUT/qc-records.sqlite)")
     run.add_argument("--operator", help="who runs the test (default: the login name)")
     run.add_argument("--rig-id", help="this rig's name in the records (default: the host name)")
     run.add_argument("--periods", type=_positive_int, help="periods per experiment (the retest of an INCONCLUSIVE)")
@@ -179,8 +233,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     judge.set_defaults(func=cmd_judge)
 
     history = qsub.add_parser("history", help="records, capability per characteristic, control charts")
-    history.add_argument("--db", required=True, help="records database URL (or an SQLite file)")
+    history.add_argument("--db", help="records database URL (or an SQLite file); default: the station's (--out)")
+    history.add_argument("--out", metavar="STATION_DIR",
+                         help="a station's folder: its station.toml's database, and a warning if records are queued")
     history.add_argument("--serial", help="one unit only")
+    history.add_argument("--station", help="one station's records only (capability and charts too)")
     history.add_argument("--since", help="measured on or after this ISO date or time")
     history.add_argument("--json", action="store_true", help="print the records as a JSON list")
     history.add_argument("--all", action="store_true",
@@ -191,3 +248,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
                          help="control limits from the first N units (default: every unit)")
     history.add_argument("--chart", metavar="DIR", help="write an individuals control chart (PNG) per characteristic")
     history.set_defaults(func=cmd_history)
+
+    sync = qsub.add_parser("sync", help="send a station's queued records to the database")
+    sync.add_argument("--out", required=True, metavar="STATION_DIR", help="the station's folder (qc run's --out)")
+    sync.add_argument("--db", help="records database URL (default: the station's station.toml, else "
+                                   "STATION_DIR/qc-records.sqlite)")
+    sync.set_defaults(func=cmd_sync)

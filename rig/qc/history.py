@@ -32,8 +32,9 @@ import matplotlib.pyplot as plt  # noqa: E402 — after the backend is chosen
 import numpy as np  # noqa: E402
 
 from identify.notation import at_place, decimal_place, unit_text  # noqa: E402
+from rig.qc.judge import Outcome  # noqa: E402
 from rig.qc.present import limits_text  # noqa: E402
-from rig.qc.records import QcRecord  # noqa: E402
+from rig.qc.records import QcRecord, RecordStatus  # noqa: E402
 
 D2 = 1.128          # E[range of 2] / σ
 D4 = 3.267          # moving-range chart's upper limit factor (D3 = 0)
@@ -74,7 +75,7 @@ def latest_judgements(records: list[QcRecord], include_simulated: bool = False) 
     simulated ones only when asked."""
     latest: dict[str, QcRecord] = {}
     for r in records:
-        if r.status == "COMPLETE" and (include_simulated or not r.simulated):
+        if r.status == RecordStatus.COMPLETE and (include_simulated or not r.simulated):
             latest.pop(r.data_sha256, None)   # re-inserted: ordered by the latest judgement's position
             latest[r.data_sha256] = r
     return list(latest.values())
@@ -120,7 +121,7 @@ def capability(records: list[QcRecord], include_simulated: bool = False,
         chars = [c for r in judged for c in r.characteristics if c.name == name]
         _, x = series(judged, name)
         last = chars[-1]                       # the limits in force: those of the latest judgement
-        count = {o: sum(c.outcome == o for c in chars) for o in ("PASS", "FAIL", "INCONCLUSIVE")}
+        count = {o: sum(c.outcome == o for c in chars) for o in Outcome}
         keep, mean, mr_bar = imr_limits(x, baseline) if len(x) else (np.zeros(0, bool), None, None)
         kept = x[keep]
         within = mr_bar / D2 if mr_bar else None
@@ -136,7 +137,8 @@ def capability(records: list[QcRecord], include_simulated: bool = False,
                 cp = (last.high - last.low) / (6 * within)
             flagged = tuple(int(i) for i in np.flatnonzero((x > ucl) | (x < lcl)))
         out.append(Capability(name, title, unit, int(keep.sum()), len(x), mean, std, within, cp, cpk, last.low,
-                              last.high, last.nominal, count["PASS"], count["FAIL"], count["INCONCLUSIVE"],
+                              last.high, last.nominal, count[Outcome.PASS], count[Outcome.FAIL],
+                              count[Outcome.INCONCLUSIVE],
                               lcl, ucl, mr_ucl, flagged))
     return out
 
@@ -162,7 +164,7 @@ def left_out(records: list[QcRecord], include_simulated: bool = False) -> str | 
     the capability table say it rather than showing nothing."""
     latest = latest_judgements(records, include_simulated=True)
     simulated = sum(r.simulated for r in latest) if not include_simulated else 0
-    unjudged = sum(r.status != "COMPLETE" for r in records)
+    unjudged = sum(r.status != RecordStatus.COMPLETE for r in records)
     parts = []
     if simulated:
         parts.append(f"{simulated} simulated (measured on the simulator; --include-simulated counts them)")

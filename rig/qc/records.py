@@ -7,13 +7,20 @@ changed: the tool has no update or delete, and triggers in the database refuse b
 nothing: SQLite transactions take the write lock when they begin (``BEGIN IMMEDIATE``)
 and wait for it; PostgreSQL serialises the schema's creation with an advisory lock.
 
-Credentials never leak: a database is only ever named by :func:`safe_url`, and every
-message from the driver is stripped of the password given in the URL, in PGPASSWORD or
-in the .pgpass file before anyone sees it.
+Credentials never leak: a URL that carries a password is refused (it would show in the
+process list and the shell history); the password comes from libpq's own places (a
+pgpass file, a service file, PGPASSWORD) or from the station's configuration file
+(rig.qc.station), and is handed to the driver as a connection argument, never in a
+URL or an argv.  A database is only ever named by :func:`safe_url`, and every message
+from the driver is stripped of every password it may have used before anyone sees it.
 
 Readers never create: ``qc history`` and ``qc judge`` open an existing database only.
 ``qc run`` creates its database, but only when it has a record to write (a run that
 never started leaves no empty file behind).
+
+A record is added at most once: its uid is unique, and :meth:`Records.add` of a uid the
+database holds already is a no-op that says so (the station's queue may send a record
+again after a crash between the database's commit and the queue's note of it).
 
 A record says where it was measured: the controller's device identification and the
 DAQ's ``*IDN?``, and ``simulated`` when either named itself a simulator; that flag is part
@@ -27,7 +34,8 @@ import json
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
+from enum import StrEnum
 from pathlib import Path
 from typing import Any
 from urllib.parse import quote, quote_plus
@@ -51,15 +59,18 @@ from sqlalchemy import (
     select,
     text,
 )
+from sqlalchemy.dialects import postgresql, sqlite
 from sqlalchemy.engine import URL, make_url
-from sqlalchemy.exc import ArgumentError, SQLAlchemyError
+from sqlalchemy.exc import ArgumentError, DBAPIError, SQLAlchemyError
 
 from rig.errors import BadInput
+from rig.qc.judge import Outcome
 
-SCHEMA_VERSION = 2            # 2: where measured (simulated, controller, daq), reason, k, details; titles
+SCHEMA_VERSION = 3            # 2: where measured (simulated, controller, daq), reason, k, details; titles; 3: station
 DEFAULT_FILE = "qc-records.sqlite"
 SQLITE_WAIT_S = 60.0          # a writer waits this long for another one's transaction
 PG_SCHEMA_LOCK = 0x5143_5245  # advisory lock key ("QCRE") held while the schema is created
+PG_CONNECT_TIMEOUT_S = 10     # a server that does not answer within this is unreachable: the record is queued
 
 metadata = MetaData()
 schema_table = Table("qc_schema", metadata, Column("version", Integer, primary_key=True))
@@ -94,6 +105,7 @@ record_table = Table(
     Column("reason", Text),                       # why there is no verdict (ABORTED, ERROR)
     Column("k", Float(precision=53)),             # the guard band's coverage factor of the verdict
     Column("details", Text),                      # JSON object: further facts about the run
+    Column("station", String(128), index=True),   # the station that measured (several share a database)
 )
 characteristic_table = Table(
     "qc_characteristic", metadata,
@@ -113,13 +125,33 @@ characteristic_table = Table(
     Column("sigma_basis", String(16)),            # noise, residual or scatter: which σ the verdict used
 )
 # Columns schema version 2 added to version 1's tables (a version 1 database is upgraded on open).
-ADDED_IN_2 = {"qc_record": ("simulated", "controller", "daq", "reason", "k", "details"),
+ADDED_IN_2: dict[str, tuple[str, ...]] = {"qc_record": ("simulated", "controller", "daq", "reason", "k", "details"),
               "qc_characteristic": ("title", "sigma_basis")}
+ADDED_IN_3: dict[str, tuple[str, ...]] = {"qc_record": ("station",)}
+ADDED = {2: ADDED_IN_2, 3: ADDED_IN_3}
 IMMUTABLE = ("qc_record", "qc_characteristic", "qc_schema")
+PASSWORD_ADVICE = ("name the database without one (postgresql://USER@HOST:PORT/DB) and keep the password in "
+                   "~/.pgpass (mode 0600), a pg_service.conf service (postgresql:///?service=NAME), PGPASSWORD, "
+                   "or the station's station.toml readable by its owner only (docs/qc.md, \"Station set-up\")")
+
+
+class RecordStatus(StrEnum):
+    """How the run a record is about ended: judged (COMPLETE, with a verdict), or not."""
+    COMPLETE = "COMPLETE"     # judged: the record has a verdict
+    ABORTED = "ABORTED"       # the safe stop, an interruption, a lost link, a killed process: no verdict
+    ERROR = "ERROR"           # an internal error: no verdict
 
 
 class RecordsError(BadInput):
     """A records database that cannot be opened or written (named without credentials)."""
+
+
+class Unreachable(RecordsError):
+    """The database server did not answer (down, network lost): the station queues its records."""
+
+    def __init__(self, message: str, why: str) -> None:
+        super().__init__(message)
+        self.why = why          # the driver's own words, redacted: "connection refused" …
 
 
 @dataclass(frozen=True)
@@ -133,7 +165,7 @@ class CharacteristicRecord:
     low: float | None
     high: float | None
     nominal: float
-    outcome: str
+    outcome: Outcome
     title: str | None = None          # the spec's readable name; ``name`` is the identifier
     sigma_basis: str | None = None    # noise, residual or scatter (rig.qc.characteristics)
 
@@ -156,8 +188,8 @@ class QcRecord:
     spec_sha256: str
     calibration_sha256: str | None
     register_map_sha256: str | None
-    verdict: str | None
-    status: str                       # COMPLETE, ABORTED or ERROR
+    verdict: Outcome | None
+    status: RecordStatus
     session: str
     data_sha256: str                  # fingerprint of the measured data: a re-judgement finds its first record by it
     files: dict[str, str]
@@ -172,6 +204,7 @@ class QcRecord:
     reason: str | None = None         # why there is no verdict
     k: float | None = None            # the guard band's coverage factor
     details: dict[str, Any] = field(default_factory=dict)   # further facts about the run
+    station: str | None = None        # the station that measured; None: written before stations were named
 
     def acceptance(self, c: CharacteristicRecord) -> tuple[float | None, float | None]:
         """The acceptance limits of ISO 14253-1: the spec's limits moved in by k·σ."""
@@ -194,9 +227,23 @@ class QcRecord:
                                          "acceptance": list(self.acceptance(c)), "unit": c.unit,
                                          "outcome": c.outcome} for c in self.characteristics},
             "started": self.started, "finished": self.finished, "operator": self.operator, "rig": self.rig,
-            "measured_on": {"controller": self.controller, "daq": self.daq},
+            "station": self.station, "measured_on": {"controller": self.controller, "daq": self.daq},
             "details": self.details, "session": self.session, "data_sha256": self.data_sha256,
         }
+
+    def to_journal(self) -> dict[str, Any]:
+        """Every field, as the station's queue keeps it (JSON); :meth:`from_journal` reads it back."""
+        return asdict(self)
+
+    @classmethod
+    def from_journal(cls, doc: dict[str, Any]) -> QcRecord:
+        fields = dict(doc)
+        fields["characteristics"] = tuple(CharacteristicRecord(**{**c, "outcome": Outcome(c["outcome"])})
+                                          for c in doc["characteristics"])
+        fields["verdict"] = None if doc["verdict"] is None else Outcome(doc["verdict"])
+        fields["status"] = RecordStatus(doc["status"])
+        fields["diagnosis"], fields["notes"] = tuple(doc["diagnosis"]), tuple(doc["notes"])
+        return cls(**fields)
 
 
 # ----- URLs and secrets ----------------------------------------------------------------------------------
@@ -206,7 +253,7 @@ def default_url(directory: Path) -> str:
 
 def parse_url(url: str) -> URL:
     """A database URL (a bare path means an SQLite file); refused with one line that
-    does not repeat a password."""
+    does not repeat a password, and refused when it carries one."""
     if "://" not in url:
         url = f"sqlite:///{Path(url).resolve()}"
     try:
@@ -215,15 +262,19 @@ def parse_url(url: str) -> URL:
         raise RecordsError(f"--db {_mask_raw(url)}: not a database URL (sqlite:///FILE or "
                            "postgresql://USER@HOST:PORT/DB)") from None
     backend = parsed.get_backend_name()
+    if backend not in ("sqlite", "postgresql", "postgres"):
+        raise RecordsError(f"--db {safe_url(parsed)}: unsupported database {backend!r} (sqlite or postgresql)")
+    if parsed.password is not None or "password" in parsed.query:
+        raise RecordsError(f"--db {safe_url(parsed)}: a URL must not carry the password (every user of the "
+                           f"machine reads it in the process list); {PASSWORD_ADVICE}")
     if backend == "sqlite":
         if not parsed.database or parsed.database == ":memory:":
             raise RecordsError(f"--db {safe_url(parsed)}: an SQLite URL needs a file (sqlite:///FILE)")
         return parsed.set(drivername="sqlite")
-    if backend in ("postgresql", "postgres"):
-        if not parsed.database:
-            raise RecordsError(f"--db {safe_url(parsed)}: a PostgreSQL URL needs a database name (…/DB)")
-        return parsed.set(drivername="postgresql+psycopg")
-    raise RecordsError(f"--db {safe_url(parsed)}: unsupported database {backend!r} (sqlite or postgresql)")
+    if not parsed.database and "service" not in parsed.query:
+        raise RecordsError(f"--db {safe_url(parsed)}: a PostgreSQL URL needs a database name (…/DB) "
+                           "or a service (?service=NAME)")
+    return parsed.set(drivername="postgresql+psycopg")
 
 
 def safe_url(url: URL | str) -> str:
@@ -247,10 +298,11 @@ def _mask_raw(text: str) -> str:
     return text
 
 
-def secrets_for(url: URL) -> list[str]:
-    """Every password the driver may use for this URL: in the URL, its query, PGPASSWORD
-    and the .pgpass file (PGPASSFILE or ~/.pgpass)."""
-    found = [url.password, url.query.get("password"), os.environ.get("PGPASSWORD")]
+def secrets_for(url: URL, password: str | None = None) -> list[str]:
+    """Every password the driver may use for this URL: the station's (``password``),
+    PGPASSWORD, the pgpass file (PGPASSFILE or ~/.pgpass) and, should one ever get
+    there, one in the URL or its query."""
+    found = [password, url.password, url.query.get("password"), os.environ.get("PGPASSWORD")]
     passfile = Path(os.environ.get("PGPASSFILE") or Path.home() / ".pgpass")
     try:
         for line in passfile.read_text().splitlines():
@@ -279,18 +331,23 @@ def redact(message: str, secrets: list[str]) -> str:
 class Records:
     """An open records database.  :meth:`add` is the only way in; nothing changes or deletes."""
 
-    def __init__(self, engine: Engine, url: URL) -> None:
+    def __init__(self, engine: Engine, url: URL, password: str | None = None) -> None:
         self.engine, self.url = engine, url
         self.name = safe_url(url)
-        self._secrets = secrets_for(url)
-        self._pending = False    # an SQLite file to be made with the first record
+        self._secrets = secrets_for(url, password)
+        self._pending = False    # the schema to be checked (made) with the first record
+        self.unreachable: str | None = None   # why the server did not answer when opened (``reach_later``)
 
     @classmethod
-    def open(cls, url: str, create: bool = False, defer: bool = False) -> Records:
+    def open(cls, url: str, create: bool = False, defer: bool = False, *, password: str | None = None,
+             reach_later: bool = False) -> Records:
         """The records database at ``url``.  Without ``create`` only an existing one is
         opened (readers, ``identify batch --db``: a mistyped path must not start an empty
         one); with it a new one is made, and with ``defer`` too a new SQLite file is made
-        only when the first record is added (a run that never started leaves nothing)."""
+        only when the first record is added (a run that never started leaves nothing).
+        ``password``: the station's, given to the driver as a connection argument.
+        ``reach_later``: a server that does not answer is no error (``unreachable`` says
+        why; the schema is checked with the first record), a refused login still is."""
         parsed = parse_url(url)
         pending = False
         if parsed.get_backend_name() == "sqlite":
@@ -312,13 +369,22 @@ class Records:
             event.listen(engine, "connect", _sqlite_connect)
             event.listen(engine, "begin", lambda conn: conn.exec_driver_sql("BEGIN IMMEDIATE"))
         else:
-            engine = create_engine(parsed, pool_pre_ping=True)
-        records = cls(engine, parsed)
+            # The password is a connection argument: it is in no URL, no argv, no message.
+            connect_args: dict[str, Any] = {"connect_timeout": PG_CONNECT_TIMEOUT_S}
+            if password:
+                connect_args["password"] = password
+            engine = create_engine(parsed, pool_pre_ping=True, connect_args=connect_args)
+        records = cls(engine, parsed, password)
         records._pending = pending
         if not pending:
             try:
                 with records._errors("cannot be opened"):
                     records._ensure_schema(create)
+            except Unreachable as exc:
+                if not reach_later:
+                    records.close()
+                    raise
+                records._pending, records.unreachable = True, exc.why
             except RecordsError:
                 records.close()
                 raise
@@ -333,8 +399,11 @@ class Records:
             yield
         except SQLAlchemyError as exc:
             reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()
-            first = reason[0] if reason else type(exc).__name__
-            raise RecordsError(redact(f"records database {self.name} {what}: {first}", self._secrets)) from None
+            first = redact(reason[0] if reason else type(exc).__name__, self._secrets)
+            message = redact(f"records database {self.name} {what}: {first}", self._secrets)
+            if _unreachable(exc):
+                raise Unreachable(message, first) from None
+            raise RecordsError(message) from None
 
     def _ensure_schema(self, create: bool) -> None:
         with self.engine.begin() as conn:
@@ -348,19 +417,21 @@ class Records:
                 conn.execute(schema_table.insert().values(version=SCHEMA_VERSION))
                 return
             versions = conn.execute(select(schema_table.c.version)).scalars().all()
-            if versions == [1]:
-                _upgrade_from_1(conn)
+            if versions and max(versions) < SCHEMA_VERSION and set(versions) <= set(range(1, SCHEMA_VERSION)):
+                _upgrade(conn, max(versions))
                 return
-        if set(versions) not in ({SCHEMA_VERSION}, {1, SCHEMA_VERSION}):   # {1, 2}: upgraded from 1
+        if not versions or max(versions) != SCHEMA_VERSION:   # {1, 2, 3}: upgraded from 1 to 2 and 3
             raise RecordsError(f"records database {self.name} has schema version "
                                f"{', '.join(map(str, versions)) or 'none'}; this program reads and writes "
                                f"version {SCHEMA_VERSION}")
 
-    def add(self, record: QcRecord) -> None:
-        """The record and its characteristics, in one transaction."""
+    def add(self, record: QcRecord) -> bool:
+        """The record and its characteristics, in one transaction; False (and nothing
+        written) when the database holds a record of this uid already."""
         if self._pending:
             with self._errors("cannot be created"):
-                Path(str(self.url.database)).parent.mkdir(parents=True, exist_ok=True)
+                if self.url.get_backend_name() == "sqlite":
+                    Path(str(self.url.database)).parent.mkdir(parents=True, exist_ok=True)
                 self._ensure_schema(create=True)
             self._pending = False
         with self._errors("refused the record"), self.engine.begin() as conn:
@@ -370,22 +441,29 @@ class Records:
             row["details"] = json.dumps(record.details, sort_keys=True)
             row["diagnosis"] = json.dumps(list(record.diagnosis))
             row["notes"] = json.dumps(list(record.notes))
-            key = conn.execute(record_table.insert().values(**row)).inserted_primary_key
-            assert key is not None  # an INSERT of one row
-            record_id = key[0]
+            # ON CONFLICT DO NOTHING: a second sender of the same record (a queue sent again,
+            # two stations' syncs of one shared queue) waits for the first one's commit and adds nothing.
+            insert = (postgresql.insert if conn.dialect.name == "postgresql" else sqlite.insert)(record_table)
+            key = conn.execute(insert.values(**row).on_conflict_do_nothing(index_elements=["uid"])
+                               .returning(record_table.c.id)).scalar()
+            if key is None:
+                return False
             if record.characteristics:
                 conn.execute(characteristic_table.insert(), [
-                    {"record_id": record_id, "position": i, **c.__dict__}
+                    {"record_id": key, "position": i, **c.__dict__}
                     for i, c in enumerate(record.characteristics)])
+        return True
 
-    def find(self, serial: str | None = None, since: str | None = None) -> list[QcRecord]:
-        """Records in the order they were written, optionally of one serial number and
-        measured on or after ``since`` (an ISO date or time, UTC)."""
+    def find(self, serial: str | None = None, since: str | None = None, station: str | None = None) -> list[QcRecord]:
+        """Records in the order they were written, optionally of one serial number, of
+        one station and measured on or after ``since`` (an ISO date or time, UTC)."""
         if self._pending:
             return []     # no file yet: no records
         query = select(record_table).order_by(record_table.c.id)
         if serial is not None:
             query = query.where(record_table.c.serial == serial)
+        if station is not None:
+            query = query.where(record_table.c.station == station)
         if since is not None:
             query = query.where(record_table.c.started >= since)
         with self._errors("cannot be read"), self.engine.connect() as conn:
@@ -398,7 +476,8 @@ class Records:
                                       .order_by(characteristic_table.c.record_id,
                                                 characteristic_table.c.position)).mappings():
                     chars.setdefault(c["record_id"], []).append(CharacteristicRecord(
-                        **{k: c[k] for k in CharacteristicRecord.__dataclass_fields__}))
+                        **{k: c[k] for k in CharacteristicRecord.__dataclass_fields__ if k != "outcome"},
+                        outcome=Outcome(c["outcome"])))
         return [_record(r, tuple(chars.get(r["id"], []))) for r in rows]
 
     def first_for_data(self, data_sha256: str) -> QcRecord | None:
@@ -427,6 +506,8 @@ def _record(row: Any, characteristics: tuple[CharacteristicRecord, ...]) -> QcRe
     fields["controller"] = json.loads(row["controller"]) if row["controller"] else None
     fields["details"] = json.loads(row["details"]) if row["details"] else {}
     fields["simulated"] = bool(row["simulated"])
+    fields["verdict"] = None if row["verdict"] is None else Outcome(row["verdict"])
+    fields["status"] = RecordStatus(row["status"])
     return QcRecord(characteristics=characteristics, **{k: v for k, v in fields.items() if k != "characteristics"})
 
 
@@ -442,16 +523,37 @@ def superseded(records: list[QcRecord]) -> dict[str, str]:
     return out
 
 
-def _upgrade_from_1(conn: Connection) -> None:
-    """Version 1 → 2: new nullable columns (records judged before say nothing of where they
-    were measured), no row changed; the version goes in as a second row (rows are immutable)."""
-    for table, columns in ADDED_IN_2.items():
-        for name in columns:
-            column = metadata.tables[table].c[name]
-            default = " DEFAULT FALSE NOT NULL" if name == "simulated" else ""
-            conn.exec_driver_sql(f"ALTER TABLE {table} ADD COLUMN {name} "
-                                 f"{column.type.compile(dialect=conn.dialect)}{default}")
-    conn.execute(schema_table.insert().values(version=SCHEMA_VERSION))
+def _upgrade(conn: Connection, version: int) -> None:
+    """From ``version`` to this one: new nullable columns (records judged before say nothing
+    of where they were measured, or which station), no row changed; each version goes in as
+    a row of its own (rows are immutable)."""
+    for added in range(version + 1, SCHEMA_VERSION + 1):
+        for table, columns in ADDED[added].items():
+            for name in columns:
+                column = metadata.tables[table].c[name]
+                default = " DEFAULT FALSE NOT NULL" if name == "simulated" else ""
+                conn.exec_driver_sql(f"ALTER TABLE {table} ADD COLUMN {name} "
+                                     f"{column.type.compile(dialect=conn.dialect)}{default}")
+                for index in metadata.tables[table].indexes:
+                    if name in index.columns:
+                        index.create(conn)
+        conn.execute(schema_table.insert().values(version=added))
+
+
+def _unreachable(exc: SQLAlchemyError) -> bool:
+    """The PostgreSQL server did not answer (refused, timed out, gone mid-transaction), as
+    against a login or a statement it refused: psycopg's OperationalError without an
+    SQLSTATE (the connection failed before the server said anything), class 08 (connection
+    exception) or 57P01-57P03 (shut down, cannot connect now)."""
+    if isinstance(exc, DBAPIError) and exc.connection_invalidated:
+        return True
+    orig = getattr(exc, "orig", None)
+    if orig is None or not type(orig).__module__.startswith("psycopg"):
+        return False
+    state = getattr(orig, "sqlstate", None)
+    if state is None:
+        return any(t.__name__ == "OperationalError" for t in type(orig).__mro__)
+    return str(state).startswith("08") or state in ("57P01", "57P02", "57P03")
 
 
 def _sqlite_connect(dbapi_connection: Any, _record: Any) -> None:

@@ -7,9 +7,11 @@ Exit status: 0 PASS, 1 FAIL, 4 INCONCLUSIVE (retest with more periods), 2 bad in
 verdict), 130 interrupted after the safe stop (ABORTED too), 70 an internal error after
 the safe stop (status ERROR, no verdict; traceback shown).
 
-The verdict is written once, at the end, in one transaction: a run killed on the way
-leaves no verdict behind.  The database is opened before the rig moves, so a bad URL or
-a wrong password costs no rig time.
+The verdict is written once, at the end: first into the station's journal (rig.qc.queue),
+then in one transaction into the database; a database that does not answer leaves it
+queued, and the run still ends with its verdict and exit status.  A run killed on the way
+leaves no verdict behind, and the station's next start records it as ABORTED.  The
+database is opened before the rig moves, so a bad URL or a wrong password costs no rig time.
 """
 
 from __future__ import annotations
@@ -38,7 +40,8 @@ from rig.qc.characteristics import check_model
 from rig.qc.evaluate import Evaluation, evaluate
 from rig.qc.judge import Outcome
 from rig.qc.present import shown
-from rig.qc.records import CharacteristicRecord, QcRecord, Records, default_url
+from rig.qc.queue import Outbox
+from rig.qc.records import CharacteristicRecord, QcRecord, Records, RecordStatus, default_url
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
 from rig.qc.trace import SessionTrace, now_utc, software_version, trace_session
@@ -148,15 +151,18 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
     prep = prepare(run_options)
     config = replace(prep.config, steady_state=spec.steady_state)
     prep = replace(prep, config=config).ordered()   # the order the spec's criterion favours
-    # Opened before the rig moves (a bad URL or password costs no rig time); a new SQLite
-    # file is made only with the first record: a run that never starts leaves none.
-    records = Records.open(opt.db or default_url(opt.out), create=True, defer=True)
+    # Opened before the rig moves (a bad URL or password costs no rig time; runs a killed
+    # process left are recorded, queued records sent); a new SQLite file is made only with
+    # the first record: a run that never starts leaves none.
+    records = Outbox.open(opt.out, opt.db, to.say)
     try:
         to.say(f"QC {spec.name} {spec.version} on unit {opt.serial}: records in {records.name}")
         if to.before_session is not None:
             to.before_session(prep)
         started = now_utc()
-        identity: dict[str, Any] = dict(serial=opt.serial, operator=operator, rig=rig_id, started=started)
+        identity: dict[str, Any] = dict(serial=opt.serial, operator=operator, rig=rig_id, started=started,
+                                        station=records.station or rig_id)
+        records.begin(run_options.out, spec, identity)   # in the station's journal until it ends
         running: list[SessionRunner] = []   # the session's runner: its links' timing and its bus
         decide = decider(spec, prep, to.predicted, lambda: running[0] if running else None)
 
@@ -175,26 +181,26 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
             # never started (no link, refused) has nothing to record.
             if (run_options.out / "session.json").is_file():
                 reason = "interrupted by the operator" if isinstance(exc, KeyboardInterrupt) else str(exc)
-                _store(records, _unjudged(spec, run_options.out, "ABORTED", reason, finished=now_utc(), **identity),
-                       spec)
+                _store(records, _unjudged(spec, run_options.out, RecordStatus.ABORTED, reason, finished=now_utc(),
+                                          **identity), spec)
             raise
         finished = now_utc()
         session = result.session.path
         if to.after_session is not None:
             to.after_session(result)
         if result.error is not None:
-            _store(records, _unjudged(spec, session, "ERROR", f"internal error: {result.error!r}", finished=finished,
-                                      **identity), spec)
+            _store(records, _unjudged(spec, session, RecordStatus.ERROR, f"internal error: {result.error!r}",
+                                      finished=finished, **identity), spec)
             raise result.error
         if result.exit_code != EXIT_OK:
-            record = _store(records, _unjudged(spec, session, "ABORTED", f"session {result.status}",
+            record = _store(records, _unjudged(spec, session, RecordStatus.ABORTED, f"session {result.status}",
                                                finished=finished, **identity), spec)
             to.say(f"[red]QC run ABORTED: session {result.status}; no verdict[/red]")
             return QcOutcome(result.exit_code, record, session / "qc-report.html", spec.k, records.name)
         try:
             evaluation = evaluate(spec, session)
         except BaseException as exc:
-            status = "ABORTED" if isinstance(exc, KeyboardInterrupt) else "ERROR"
+            status = RecordStatus.ABORTED if isinstance(exc, KeyboardInterrupt) else RecordStatus.ERROR
             record = _store(records, _unjudged(spec, session, status, f"judging ended: {exc!r}", finished=finished,
                                                **identity), spec)
             if isinstance(exc, KeyboardInterrupt):
@@ -281,7 +287,8 @@ def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str 
                                simulated=bool(first and first.simulated), serial=serial,
                                operator=first.operator if first else operator or getpass.getuser(),
                                rig=rig, started=first.started if first else trace.started,
-                               finished=first.finished if first else trace.finished)
+                               finished=first.finished if first else trace.finished,
+                               station=first.station if first else None)
         tag = f"{record.judged.replace(':', '').replace('-', '')[:15]}-{record.uid[:8]}"
         return _conclude(records, record, spec, evaluation, session / f"qc-report-{tag}.html",
                          session / f"qc-record-{tag}.json", _print_summary)
@@ -296,7 +303,7 @@ def rejudgement_note(first: QcRecord) -> str:
             "record and its report are kept unchanged")
 
 
-def _conclude(records: Records, record: QcRecord, spec: Spec, evaluation: Evaluation, report: Path,
+def _conclude(records: Records | Outbox, record: QcRecord, spec: Spec, evaluation: Evaluation, report: Path,
               record_file: Path, concluded: Callable[[QcRecord, float, Path, str], None] | None) -> int:
     """The report rendered first (a failure there costs no record), then the record
     stored, then the files: a killed process leaves a verdict in the database or nowhere."""
@@ -307,7 +314,7 @@ def _conclude(records: Records, record: QcRecord, spec: Spec, evaluation: Evalua
     if concluded is not None:
         concluded(record, spec.k, report, records.name)
     assert record.verdict is not None  # a judged record
-    return EXIT_BY_VERDICT[Outcome(record.verdict)]
+    return EXIT_BY_VERDICT[record.verdict]
 
 
 def _document(record: QcRecord) -> dict:
@@ -318,7 +325,7 @@ def _document(record: QcRecord) -> dict:
     return doc
 
 
-def _store(records: Records, record: QcRecord, spec: Spec) -> QcRecord:
+def _store(records: Records | Outbox, record: QcRecord, spec: Spec) -> QcRecord:
     """A run without a verdict: on record all the same, with a report that says why."""
     records.add(record)
     atomic_write_bytes(Path(record.session) / "qc-report.html", render_report(record, spec, None).encode())
@@ -347,7 +354,7 @@ def _base(spec: Spec, trace: SessionTrace, uid: str | None = None, *, simulated:
                 daq=peers.get("daq"), k=spec.k, details=details, **identity)
 
 
-def _unjudged(spec: Spec, session: Path, status: str, reason: str, **identity: Any) -> QcRecord:
+def _unjudged(spec: Spec, session: Path, status: RecordStatus, reason: str, **identity: Any) -> QcRecord:
     """A run without a verdict (ABORTED, ERROR): status, reason, no characteristics."""
     return QcRecord(**_base(spec, trace_session(session), **identity), verdict=None, status=status,
                     characteristics=(), reason=reason, notes=(reason,))
@@ -360,11 +367,11 @@ def judged_record(spec: Spec, trace: SessionTrace, evaluation: Evaluation, retes
     titles = {c.name: c.title for c in spec.characteristics}
     characteristics = tuple(
         CharacteristicRecord(c.name, c.measured.unit, c.measured.value, c.measured.std, c.measured.std_fit,
-                             c.measured.u_cal, c.low, c.high, c.nominal, c.outcome.value, titles.get(c.name) or None,
+                             c.measured.u_cal, c.low, c.high, c.nominal, c.outcome, titles.get(c.name) or None,
                              c.measured.basis)
         for c in j.characteristics)
-    return QcRecord(**_base(spec, trace, uid, simulated=simulated, **identity), verdict=j.verdict.value,
-                    status="COMPLETE", characteristics=characteristics, diagnosis=tuple(j.diagnosis),
+    return QcRecord(**_base(spec, trace, uid, simulated=simulated, **identity), verdict=j.verdict,
+                    status=RecordStatus.COMPLETE, characteristics=characteristics, diagnosis=tuple(j.diagnosis),
                     remedy=retest if j.verdict is Outcome.INCONCLUSIVE else None, notes=tuple(evaluation.notes),
                     rejudges=rejudges)
 
