@@ -5,6 +5,10 @@ of the acquisition with no subprocess, no socket, no engine thread and no real s
     rig.drivers.daq    ── SerialLine.host ══ SerialLine.device ──▶ simulator.daq.DaqDevice
     every wait of the rig (rig.drivers.clock.Clock) ── SimClock.sleep(dt) ──▶ VirtualRig.step_to(t + dt)
 
+With ``line_baud``, each Modbus transaction and each DAQ command takes the time an RTU
+line at that rate needs for its frames (11 bits a character, 3.5 characters of silence
+after each frame): the driving thread spends it on the simulated clock.
+
 Only the thread that drives the session (the test's) moves simulated time.  After each
 step the clock waits until the DAQ device has put on the line what it emitted and the
 rig's DAQ reader has consumed it and waits for more: when the acquisition looks at its
@@ -41,6 +45,7 @@ from simulator.engine import PHYSICS_RATE_HZ, VirtualRig
 from simulator.faults import FaultLog, parse_fault
 from simulator.modbus import ControllerContext
 from simulator.physics import Damper
+from simulator.plant.damper import PlantDamper
 from simulator.truth import load_truth
 
 # Steady-state criteria loose enough that j settles after about half a minute of simulated
@@ -79,6 +84,7 @@ class SerialLine:
         self._to_host = bytearray()
         self._to_device = bytearray()
         self._host_waiting = 0          # host reads blocked on an empty line
+        self.charge: Callable[[bytes | None, bytes | None], None] | None = None   # (command, answer): line time
         self.host = _HostEnd(self)
         self.device = _DeviceEnd(self)
 
@@ -109,6 +115,8 @@ class _HostEnd:
         return data
 
     def write(self, data: bytes) -> int:
+        if self._line.charge is not None:
+            self._line.charge(data, None)
         with self._line._cond:
             self._line._to_device += data
             self._line._cond.notify_all()
@@ -135,6 +143,8 @@ class _DeviceEnd:
         return data
 
     def write(self, data: bytes) -> None:
+        if self._line.charge is not None:
+            self._line.charge(None, data)
         with self._line._cond:
             self._line._to_host += data
             self._line._cond.notify_all()
@@ -176,6 +186,32 @@ def _complete(coroutine: Coroutine[Any, Any, Any]) -> Any:
     raise RuntimeError("ControllerContext awaited: it no longer answers synchronously")
 
 
+BITS_PER_CHAR = 11          # RTU: start, 8 data, parity (or a second stop), stop
+RTU_GAP_CHARS = 3.5         # the silence that ends an RTU frame
+
+
+@dataclass
+class LineTime:
+    """What an RTU line at ``baud`` costs: each frame's characters and its end gap."""
+
+    baud: float
+    transactions: int = 0
+    seconds: float = 0.0
+
+    def frames(self, *sizes: int) -> float:
+        """The line time of one transaction made of frames of these sizes (bytes)."""
+        t = sum(n + RTU_GAP_CHARS for n in sizes) * BITS_PER_CHAR / self.baud
+        self.transactions += 1
+        self.seconds += t
+        return t
+
+
+def _device_id_answer_bytes(objects: dict[str, str]) -> int:
+    """Read Device Identification's answer: unit, function, MEI type, read code, conformity,
+    more follows, next object, object count, (id, length, text) per object, CRC."""
+    return 8 + sum(2 + len(text.encode()) for text in objects.values()) + 2
+
+
 class InProcessModbusClient:
     """The calls rig.drivers.shaker makes of a pymodbus client, answered in the caller's thread by
     the simulator's own server context (the same tables and exceptions as ``simulator
@@ -184,10 +220,15 @@ class InProcessModbusClient:
     :meth:`cut` takes the link away for a while of simulated time: every request then
     raises ``ConnectionResetError``, as a client on a dead TCP peer does."""
 
-    def __init__(self, controller: ShakerController, clock: SimClock) -> None:
+    def __init__(self, controller: ShakerController, clock: SimClock, line: LineTime | None = None) -> None:
         self._context = ControllerContext(controller)
         self._clock = clock
         self._outages: list[tuple[float, float]] = []
+        self.line = line
+
+    def _on_line(self, request_bytes: int, answer_bytes: int) -> None:
+        if self.line is not None:
+            self._clock.spend(self.line.frames(request_bytes, answer_bytes))
 
     def cut(self, duration_s: float) -> None:
         """No answer from now on for ``duration_s`` of simulated time."""
@@ -205,21 +246,27 @@ class InProcessModbusClient:
     def close(self) -> None:
         pass
 
+    # Frame sizes (Modbus over serial line, RTU): unit id, function, the PDU, CRC (2).
     def read_input_registers(self, address: int, *, count: int = 1, device_id: int = 1) -> ModbusResponse:
+        self._on_line(8, 5 + 2 * count)
         return self._read(4, address, count, device_id)
 
     def read_holding_registers(self, address: int, *, count: int = 1, device_id: int = 1) -> ModbusResponse:
+        self._on_line(8, 5 + 2 * count)
         return self._read(3, address, count, device_id)
 
     def write_registers(self, address: int, values: Sequence[int], *, device_id: int = 1) -> ModbusResponse:
+        self._on_line(9 + 2 * len(values), 8)
         return self._write(16, address, list(values), device_id)
 
     def write_coil(self, address: int, value: bool, *, device_id: int = 1) -> ModbusResponse:
+        self._on_line(8, 8)
         return self._write(5, address, [value], device_id)
 
     def read_device_information(self, *, read_code: int | None = None, object_id: int = 0,
                                 device_id: int = 1) -> ModbusResponse:
         """What ``simulator serve`` answers (0x2B/0x0E): the basic and regular objects."""
+        self._on_line(7, _device_id_answer_bytes(DEVICE_IDENTIFICATION))
         self._check_link()
         return ModbusResponse(information={OBJECT_IDS[name]: text.encode()
                                            for name, text in DEVICE_IDENTIFICATION.items()})
@@ -257,6 +304,18 @@ class SimClock:
         self._owner = threading.current_thread()
         self._actions: list[tuple[float, int, Callable[[], None]]] = []
         self._order = itertools.count()     # actions due at the same time run in the order given
+        self._debt_s = 0.0                  # line time spent where time cannot move: paid by the next sleep
+        self._sleeping = False              # inside sleep (a timed action, the device's writes): time cannot move
+        self._debt_lock = threading.Lock()
+
+    def spend(self, seconds: float) -> None:
+        """Time a link takes (a line's frames): slept at once by the driving thread, or,
+        from another thread or inside a sleep (a timed action), added to the next sleep."""
+        if threading.current_thread() is self._owner and not self._sleeping:
+            self.sleep(seconds)
+        else:
+            with self._debt_lock:
+                self._debt_s += seconds
 
     def monotonic(self) -> float:
         return self.sim.t
@@ -279,14 +338,22 @@ class SimClock:
         if threading.current_thread() is not self._owner:
             raise RuntimeError(f"{threading.current_thread().name} slept on the simulated clock: only the thread "
                                "driving the session may move simulated time")
-        target = self.sim.t + seconds
+        outer, self._sleeping = self._sleeping, True
+        try:
+            self._sleep(self.sim.t + seconds)
+        finally:
+            self._sleeping = outer
+
+    def _sleep(self, target: float) -> None:
         while True:
+            with self._debt_lock:
+                target, self._debt_s = target + self._debt_s, 0.0
             due = min(target, self.sim.t + MAX_STEP_S, self._actions[0][0] if self._actions else math.inf)
             self.sim.step_to(due)
             self._catch_up()
             while self._actions and self._actions[0][0] <= self.sim.t + _HALF_STEP_S:
                 heapq.heappop(self._actions)[2]()
-            if self.sim.t + _HALF_STEP_S >= target:
+            if self.sim.t + _HALF_STEP_S >= target and not self._debt_s:
                 return
 
     def _catch_up(self) -> None:
@@ -307,16 +374,21 @@ class InProcessRig:
     heartbeat rig.drivers.shaker's thread would send (that thread waits on the wall clock), and
     the heartbeat gets through only while the Modbus link is up."""
 
-    def __init__(self, rig_config: Path, seed: int = 0, truth: Damper | None = None) -> None:
-        """``truth``: the simulated damper (default: the nominal one)."""
+    def __init__(self, rig_config: Path, seed: int = 0, truth: Damper | PlantDamper | None = None,
+                 line_baud: float | None = None) -> None:
+        """``truth``: the simulated damper, either tier (default: the nominal model); ``line_baud``: each
+        Modbus transaction and DAQ command takes an RTU line's time at this rate."""
         self.rig_config = rig_config
         self.config = load_rig_config(rig_config)
         self.fault_log = FaultLog(sink=lambda line: None)
+        self.line_time = LineTime(line_baud) if line_baud else None
         self.line = SerialLine()
         self.sim = VirtualRig(truth or load_truth(), self.line.device, seed=seed, log=self.fault_log)
         self.clock = SimClock(self.sim, self.line)
+        if self.line_time is not None:
+            self.line.charge = self._charge_daq
         self.sim.controller.wall_clock = self.clock.monotonic
-        self.client = InProcessModbusClient(self.sim.controller, self.clock)
+        self.client = InProcessModbusClient(self.sim.controller, self.clock, self.line_time)
         self.bus = EventBus()
         self.events: list[tuple[float, Event]] = []
         self.bus.subscribe(lambda e: self.events.append((self.clock.monotonic(), e)), inline=True)
@@ -329,6 +401,14 @@ class InProcessRig:
         self._beat = 0
         self._session_log: SessionLog | None = None
 
+
+    def _charge_daq(self, command: bytes | None, answer: bytes | None) -> None:
+        """A DAQ command line (host to device) or its answer line (device to host, while
+        not streaming) on the line: its characters and an end gap, as a frame."""
+        assert self.line_time is not None
+        if answer is not None and self.sim.daq.streaming:
+            return                                  # frames of the stream: their own line, paced by the device
+        self.clock.spend(self.line_time.frames(len(command or answer or b"")))
 
     def connect(self) -> None:
         """What rig.session.run.connect does, with the heartbeat on simulated time."""
