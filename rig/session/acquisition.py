@@ -47,6 +47,10 @@ POLL_S = 0.05
 HARMONICS_IN_BLOCK_MEAN = 12
 MAX_LOST_IN_BLOCK = 0.2
 QUICK_RECONNECT_S = 0.5
+# Seconds of a transient record (from RUN) at which qc run judges it as it grows: past the
+# 1 s ramp, then each half second; the capture ends at the first that decides every
+# characteristic.  Each judgement is a fit of the record so far.
+JUDGED_AT_S = (1.5, 2.0, 2.5)
 MOVE_TIMEOUT_S = 30.0           # beyond twice the move profile's duration: the controller is stuck
 # A hold ends on the gas temperature of a line fitted through this much of the stream,
 # or at the model's duration times this factor plus the margin, whichever comes first.
@@ -224,6 +228,10 @@ class Acquisition:
         self.overhead_s = 0.0  # and an experiment's polls and commands beyond the rig's own motion
         self.probed_pace = 1.0  # rig seconds per second of this clock, by the probe (measure_pace)
         self._streamed_samples, self._streamed_s = 0, 0.0   # the session's streams so far (current_pace)
+        # A transient capture judged as it grows (qc run's stop-when-decided): called with the
+        # record so far at each of JUDGED_AT_S; a reason ends the capture there.
+        self.judge_partial: Callable[[ExperimentRecord], str | None] | None = None
+        self.decided_within: str | None = None     # why the last transient capture ended early
         self._recorder: Recorder | None = None
         daq.subscribe(self._on_samples)
 
@@ -567,9 +575,30 @@ class Acquisition:
         n = int(round(transient_capture_s(spec, self.config.steady_state.ramp_time_s, rate) * rate))
         self._enter(Phase.CAPTURING, label, cycles=0)
         self.bus.publish(Kind.LOG, label, message=f"transient capture: {n / rate:.2f} s from RUN, no settling")
-        self._wait_samples(rec, n, label, capture=(0, n))
-        values, present, over = rec.window(0, n)
-        rec.forget_before(n)
+        self.decided_within = None
+        end, judge = n, self.judge_partial
+        for at in [round(s * rate) for s in JUDGED_AT_S if round(s * rate) < n]:
+            if judge is None:
+                break
+            self._wait_samples(rec, at, label, capture=(0, n))
+            reason = judge(self._from_run(spec, label, rec, at, rate))
+            if reason:
+                # Every sample the DAQ has delivered by now is kept (the judging took time
+                # while the rig ran on); the verdict is made again on the whole record.
+                end = min(max(rec.end, at), n)
+                self.decided_within = f"{reason} after {at / rate:g} s of the record"
+                self.bus.publish(Kind.LOG, label, message=f"transient capture ended at {end / rate:.2f} s of "
+                                                          f"{n / rate:.2f} s: {self.decided_within}")
+                break
+        self._wait_samples(rec, end, label, capture=(0, n))
+        record = self._from_run(spec, label, rec, end, rate)
+        rec.forget_before(end)
+        return record
+
+    @staticmethod
+    def _from_run(spec: ExperimentSpec, label: str, rec: Recorder, end: int, rate: int) -> ExperimentRecord:
+        """The samples from RUN to ``end`` as a transient capture's record."""
+        values, present, over = rec.window(0, end)
         lost = int(np.count_nonzero(~present))
         flags = [f"{lost} samples lost in the transient capture (rows absent; it cannot be fitted as a transient)"
                  ] if lost else []

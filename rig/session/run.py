@@ -367,6 +367,10 @@ class SessionRunner:
                         after_skip = bool(result.skipped) and result.skipped[-1] == previous
                         self._experiment(spec, session, result, planned[spec.letter], after_skip)
                         previous = session.label(spec.letter)
+                        if acq.decided_within:
+                            result.decided = reason = acq.decided_within
+                            bus.publish("log", message=f"ending the session before its plan: {reason}")
+                            break
                         if self.decide is not None and k < len(todo) - 1:
                             self._written(result)
                             result.decided = self.decide(result)
