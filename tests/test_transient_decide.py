@@ -29,7 +29,7 @@ def _run(tmp_path, judge):
         prep = replace(prep, config=replace(prep.config, steady_state=spec.steady_state))
         runner = SessionRunner(prep, Links(rig.shaker, rig.daq, rig.identity, None), rig.bus,
                                Console(file=io.StringIO()))
-        runner.acquisition.judge_partial = judge
+        runner.acquisition.judge_partial = judge(rig) if getattr(judge, "needs_rig", False) else judge
         t0 = rig.sim.t
         result = runner.run(runner.open_session())
         return result, rig.sim.t - t0, pd.read_csv(tmp_path / "s" / "261126a.csv")
@@ -67,3 +67,20 @@ def test_a_decided_record_ends_the_capture_and_the_session_keeping_every_sample(
     assert t[0] == 0.0 and JUDGED_AT_S[0] - (t[1] - t[0]) - 1e-9 <= t[-1] < 3.0
     assert np.allclose(np.diff(t), t[1] - t[0])
     assert rig_s < whole - 1.0
+
+
+def test_a_judgement_slower_than_the_rest_of_the_record_is_not_repeated(tmp_path):
+    """The rig runs on while a fit runs: once the record is whole, nothing more is judged."""
+    seen: list[float] = []
+
+    def slow(rig):
+        def judge(record):
+            seen.append(len(record.index) / record.rate_hz)
+            rig.clock.spend(2.0)   # a fit that takes 2 s of the rig's time
+            return None
+        return judge
+
+    slow.needs_rig = True
+    result, rig_s, data = _run(tmp_path, slow)
+    assert seen == pytest.approx([JUDGED_AT_S[0]], abs=1e-9) and result.status == "complete"
+    assert data["time_s"].iloc[-1] == pytest.approx(3.0, abs=2e-3)

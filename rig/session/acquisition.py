@@ -577,9 +577,15 @@ class Acquisition:
         self.bus.publish(Kind.LOG, label, message=f"transient capture: {n / rate:.2f} s from RUN, no settling")
         self.decided_within = None
         end, judge = n, self.judge_partial
-        for at in [round(s * rate) for s in JUDGED_AT_S if round(s * rate) < n]:
-            if judge is None:
+        points = [round(s * rate) for s in JUDGED_AT_S if round(s * rate) < n]
+        for i, at in enumerate(points):
+            # Judging takes time while the rig runs on: a point the record has passed
+            # before the last judgement ended is skipped for the next (which sees more),
+            # and nothing is judged once the record is whole.
+            if judge is None or rec.end >= n:
                 break
+            if i + 1 < len(points) and rec.end >= points[i + 1]:
+                continue
             self._wait_samples(rec, at, label, capture=(0, n))
             reason = judge(self._from_run(spec, label, rec, at, rate))
             if reason:
