@@ -77,18 +77,20 @@ def rig_session(spec, out: Path, truth: Damper | PlantDamper | None = None, seed
         runner = SessionRunner(prep, Links(rig.shaker, rig.daq, rig.identity, None), rig.bus,
                                Console(file=io.StringIO()))
         if DECIDE:
-            # As qc run: judged between experiments and as a transient record grows; each
-            # judgement's fit takes its CPU seconds of the rig's time (the rig runs on
-            # meanwhile), so a decision counts only if it comes before the record's end.
+            # As qc run: judged between experiments and as a transient record grows (on a
+            # thread of its own while the capture goes on).  A judgement's answer counts
+            # from when the fit would have ended on the rig: its CPU seconds of the rig's
+            # time after it began (the simulated clock runs as fast as it is driven).
             runner.decide = decider(spec, prep, None)
             judge = partial_judge(spec, out)
 
             def charged(record):
-                c0 = time.process_time()
-                try:
-                    return judge(record)
-                finally:
-                    rig.clock.spend(time.process_time() - c0)
+                began, c0 = rig.clock.monotonic(), time.thread_time()
+                answer = judge(record)
+                due, wall = began + time.thread_time() - c0, time.monotonic()
+                while rig.clock.monotonic() < due and time.monotonic() - wall < 60.0:
+                    time.sleep(0.002)
+                return answer
 
             runner.acquisition.judge_partial = charged
         t0 = rig.sim.t
@@ -242,7 +244,8 @@ def main() -> int:
     parser.add_argument("--jobs", type=int, default=1, help="--sessions: units run at once")
     parser.add_argument("--line-baud", type=float, help="--sessions: an RTU line's latency at this rate (115200)")
     parser.add_argument("--decide", action="store_true",
-                        help="--sessions: stop when decided, between experiments and within a transient capture")
+                        help="--sessions: stop when decided, between experiments and within a transient "
+                             "capture (each fit's CPU time counted as rig time)")
     parser.add_argument("--world", choices=("model", "plant"), default="model",
                         help="--sessions: the units' physics (default model)")
     parser.add_argument("--spec", default="default", help="QC spec (default, transient: captured from RUN on, or a "

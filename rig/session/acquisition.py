@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -576,30 +577,45 @@ class Acquisition:
         self._enter(Phase.CAPTURING, label, cycles=0)
         self.bus.publish(Kind.LOG, label, message=f"transient capture: {n / rate:.2f} s from RUN, no settling")
         self.decided_within = None
-        end, judge = n, self.judge_partial
-        points = [round(s * rate) for s in JUDGED_AT_S if round(s * rate) < n]
-        for i, at in enumerate(points):
-            # Judging takes time while the rig runs on: a point the record has passed
-            # before the last judgement ended is skipped for the next (which sees more),
-            # and nothing is judged once the record is whole.
-            if judge is None or rec.end >= n:
-                break
-            if i + 1 < len(points) and rec.end >= points[i + 1]:
-                continue
-            self._wait_samples(rec, at, label, capture=(0, n))
-            reason = judge(self._from_run(spec, label, rec, at, rate))
-            if reason:
-                # Every sample the DAQ has delivered by now is kept (the judging took time
-                # while the rig ran on); the verdict is made again on the whole record.
-                end = min(max(rec.end, at), n)
-                self.decided_within = f"{reason} after {at / rate:g} s of the record"
-                self.bus.publish(Kind.LOG, label, message=f"transient capture ended at {end / rate:.2f} s of "
-                                                          f"{n / rate:.2f} s: {self.decided_within}")
-                break
+        end = self._judged_while_capturing(spec, label, rec, n, rate) if self.judge_partial else n
         self._wait_samples(rec, end, label, capture=(0, n))
         record = self._from_run(spec, label, rec, end, rate)
         rec.forget_before(end)
         return record
+
+    def _judged_while_capturing(self, spec: ExperimentSpec, label: str, rec: Recorder, n: int, rate: int) -> int:
+        """Capture while the record so far is judged beside it (one judgement at a time,
+        on its own thread: a fit never holds the rig up), each from the first point of
+        :data:`JUDGED_AT_S` the record has reached since the last; the sample count at
+        which the capture ends: ``n``, or what the DAQ had delivered when a judgement
+        decided (every sample kept; the verdict is made again on the whole record).  A
+        judgement still running when the record is whole is left to finish unheard."""
+        judge = self.judge_partial
+        assert judge is not None
+        points = [round(s * rate) for s in JUDGED_AT_S if round(s * rate) < n]
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="judge-partial")
+        running: tuple[int, Future[str | None]] | None = None
+        try:
+            while rec.end < n:
+                if running is not None and running[1].done():
+                    at, future = running
+                    running = None
+                    reason = future.result()
+                    if reason:
+                        end = min(max(rec.end, at), n)
+                        self.decided_within = f"{reason} after {at / rate:g} s of the record"
+                        self.bus.publish(Kind.LOG, label, message=f"transient capture ended at {end / rate:.2f} s "
+                                                                  f"of {n / rate:.2f} s: {self.decided_within}")
+                        return end
+                reached = [p for p in points if p <= rec.end]
+                if running is None and reached:
+                    at = reached[-1]
+                    points = [p for p in points if p > at]
+                    running = (at, pool.submit(judge, self._from_run(spec, label, rec, at, rate)))
+                self._wait_samples(rec, min(rec.end + max(int(POLL_S * rate), 1), n), label, capture=(0, n))
+            return n
+        finally:
+            pool.shutdown(wait=False, cancel_futures=True)
 
     @staticmethod
     def _from_run(spec: ExperimentSpec, label: str, rec: Recorder, end: int, rate: int) -> ExperimentRecord:
