@@ -434,8 +434,9 @@ class SessionRunner:
                     result.status, result.exit_code, result.error = f"aborted: {reason}", EXIT_INTERNAL, exc
                 else:
                     if result.decided:
-                        result.status = (f"ended: {len(result.captured)} of {len(todo)} experiments captured, "
-                                         f"{result.decided}")
+                        # the experiment still being written was captured too (decided within it)
+                        done = len(result.captured) + (self._writing is not None)
+                        result.status = f"ended: {done} of {len(todo)} experiments captured, {result.decided}"
                     elif result.skipped:
                         result.status = (f"ended: {len(todo) - len(result.skipped)} of {len(todo)} experiments "
                                          f"captured, skipped after alarms: {', '.join(result.skipped)}")
