@@ -57,8 +57,6 @@ def run_generate(args: argparse.Namespace) -> int:
         raise UsageError(f"--ramp {args.ramp:g}: must be 0 or more seconds")
     if args.capture == "transient" and args.model != "2dof":
         raise UsageError("--capture transient: the record from rest needs --model 2dof (the gas temperature state)")
-    if args.capture == "transient" and args.physics != "model":
-        raise UsageError("--capture transient: recorded from RUN with the model's physics only (--physics model)")
     letters = [x.strip() for x in args.experiments.split(",")] if args.experiments else None
     plan = select(read_plan(args.plan), letters)
     if not plan:

@@ -17,7 +17,7 @@ from identify.plans import ExperimentSpec
 from simulator.physics import Actuator, Damper, SteadyState, drop_test, periodic_steady_state, run_from_rest
 from simulator.plant.damper import PlantDamper
 from simulator.plant.drop import simulate_drop
-from simulator.plant.sequence import run_plan
+from simulator.plant.sequence import run_plan, run_plan_from_run
 from simulator.sensors import SensorSet
 from simulator.truth import truth_document
 
@@ -56,16 +56,17 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper | Plant
     ``periods`` None captures each experiment's own number of periods.  A
     :class:`PlantDamper` runs the plan in order, the wall's heat and the dissolved gas
     carried from one experiment to the next.  ``capture`` "transient" records each
-    experiment from RUN on (the model's physics only), started at rest with the gas at
-    ambient temperature and the amplitude ramped over ``ramp_s`` (dataset key
-    ``capture``: "transient"); "steady" records its periodic steady state.
+    experiment from RUN on: the model started at rest at its static position with the
+    gas at ambient temperature, the plant after its move there, carrying what the
+    experiments before left (:func:`simulator.plant.sequence.run_plan_from_run`), the
+    amplitude ramped over ``ramp_s`` (dataset key ``capture``: "transient"); "steady"
+    records its periodic steady state.  The plant runs a plan all one way or the other.
     """
     if capture not in CAPTURES:
         raise ValueError(f"unknown capture {capture!r} (steady or transient)")
     transient = [capture == "transient" or spec.capture == "transient" for spec in plan]
-    if any(transient) and isinstance(damper, PlantDamper):
-        raise ValueError("a transient capture from RUN needs the model's physics (--physics model), "
-                         "not the plant's")
+    if isinstance(damper, PlantDamper) and any(transient) and not all(transient):
+        raise ValueError("the plant runs a plan captured either all from RUN on or all in steady state")
     out = Path(out)
     actuator = actuator or Actuator()
     date = date or _dt.date.today().strftime("%y%m%d")
@@ -75,19 +76,22 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper | Plant
         k_periods = spec.periods if periods is None else periods
         k = int(np.ceil(k_periods * rate_hz / spec.frequency_hz))
         times.append(SETTLE_S + np.arange(k) / rate_hz)
-    plant = run_plan(damper, plan, actuator, times, SETTLE_S) if isinstance(damper, PlantDamper) else None
+    plant = None
+    if isinstance(damper, PlantDamper):
+        plant = (run_plan_from_run(damper, plan, actuator, times, ramp_s) if all(transient)
+                 else run_plan(damper, plan, actuator, times, SETTLE_S))
     for i, spec in enumerate(plan):
         sensors = SensorSet(seed=seed * 1000 + i, noise_scale=noise_scale)
         k_periods = spec.periods if periods is None else periods
         t = times[i]
-        if transient[i]:
-            assert isinstance(damper, Damper)  # refused above for the plant
+        if plant is not None:
+            cols, over = _digitise(plant[i].t, plant[i].si, sensors, True)
+        elif transient[i]:
+            assert isinstance(damper, Damper)
             cols, over = _record(run_from_rest(damper, actuator, spec, t - t[0], ramp_s), sensors, True)
-        elif plant is None:
+        else:
             assert isinstance(damper, Damper)
             cols, over = _record(periodic_steady_state(damper, actuator, spec, t), sensors, True)
-        else:
-            cols, over = _digitise(plant[i].t, plant[i].si, sensors, True)
         label = f"{date}{spec.letter}"
         atomic_write_bytes(out / f"{label}.csv", csv_bytes(cols))
         entry = {"label": label, "file": f"{label}.csv", **spec.metadata(), "sample_rate_Hz": rate_hz,

@@ -42,6 +42,7 @@ from simulator.engine import PHYSICS_RATE_HZ, VirtualRig
 from simulator.faults import FaultLog, parse_fault
 from simulator.modbus import ControllerContext
 from simulator.physics import Damper
+from simulator.plant.damper import PlantDamper
 from simulator.truth import load_truth
 
 # Steady-state criteria loose enough that j settles after about half a minute of simulated
@@ -370,9 +371,9 @@ class InProcessRig:
     heartbeat rig.drivers.shaker's thread would send (that thread waits on the wall clock), and
     the heartbeat gets through only while the Modbus link is up."""
 
-    def __init__(self, rig_config: Path, seed: int = 0, truth: Damper | None = None,
+    def __init__(self, rig_config: Path, seed: int = 0, truth: Damper | PlantDamper | None = None,
                  line_baud: float | None = None) -> None:
-        """``truth``: the simulated damper (default: the nominal one); ``line_baud``: each
+        """``truth``: the simulated damper, either tier (default: the nominal model); ``line_baud``: each
         Modbus transaction and DAQ command takes an RTU line's time at this rate."""
         self.rig_config = rig_config
         self.config = load_rig_config(rig_config)

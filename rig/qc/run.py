@@ -21,7 +21,9 @@ import getpass
 import io
 import json
 import shlex
+import shutil
 import socket
+import tempfile
 import uuid
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -45,6 +47,7 @@ from rig.qc.records import CharacteristicRecord, QcRecord, Records, RecordStatus
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
 from rig.qc.trace import SessionTrace, now_utc, software_version, trace_session
+from rig.session.acquisition import ExperimentRecord
 from rig.session.run import (
     Prepared,
     RunOptions,
@@ -55,6 +58,7 @@ from rig.session.run import (
     run_lifecycle,
     terminal_progress,
 )
+from rig.session.storage import Session
 
 EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
 
@@ -169,6 +173,7 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
         def hand_over(runner: SessionRunner | None) -> None:
             if runner is not None:
                 runner.decide = decide
+                runner.acquisition.judge_partial = partial_judge(spec, run_options.out)
                 running[:] = [runner]
             if to.on_runner is not None:
                 to.on_runner(runner)
@@ -252,6 +257,27 @@ def decider(spec: Spec, prep: Prepared, predicted: Callable[[Prediction], None] 
         return None
 
     return decide
+
+
+def partial_judge(spec: Spec, session_dir: Path) -> Callable[[ExperimentRecord], str | None]:
+    """Within a transient capture: the record so far fitted and judged beside the
+    session's experiments already written (in a scratch folder: the session holds only
+    what was captured whole); a reason when every characteristic is decided under the
+    guard band, which ends the capture (the verdict is then made again on all of it)."""
+    def judge(record: ExperimentRecord) -> str | None:
+        with tempfile.TemporaryDirectory() as tmp:
+            scratch = Path(tmp)
+            manifest = json.loads((session_dir / "dataset.json").read_text())
+            manifest["experiments"] = [e for e in manifest["experiments"] if e["label"] != record.label]
+            for entry in manifest["experiments"]:
+                shutil.copyfile(session_dir / entry["file"], scratch / entry["file"])
+            Session(scratch, {}, manifest).write_experiment(record)
+            evaluation = evaluate(spec, scratch)
+        if any(j.outcome is Outcome.INCONCLUSIVE for j in evaluation.judgement.characteristics):
+            return None
+        return f"every characteristic decided ({evaluation.judgement.verdict.value})"
+
+    return judge
 
 
 def stopping_note(result: RunResult, prep: Prepared) -> str:

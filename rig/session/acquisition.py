@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import threading
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -48,6 +49,10 @@ POLL_S = 0.05
 HARMONICS_IN_BLOCK_MEAN = 12
 MAX_LOST_IN_BLOCK = 0.2
 QUICK_RECONNECT_S = 0.5
+# Seconds of a transient record (from RUN) at which qc run judges it as it grows: past the
+# 1 s ramp, then each half second; the capture ends at the first that decides every
+# characteristic.  Each judgement is a fit of the record so far.
+JUDGED_AT_S = (1.5, 2.0, 2.5)
 MOVE_TIMEOUT_S = 30.0           # beyond twice the move profile's duration: the controller is stuck
 # A hold ends on the gas temperature of a line fitted through this much of the stream,
 # or at the model's duration times this factor plus the margin, whichever comes first.
@@ -266,6 +271,10 @@ class Acquisition:
         self.overhead_s = 0.0  # and an experiment's polls and commands beyond the rig's own motion
         self.probed_pace = 1.0  # rig seconds per second of this clock, by the probe (measure_pace)
         self._streamed_samples, self._streamed_s = 0, 0.0   # the session's streams so far (current_pace)
+        # A transient capture judged as it grows (qc run's stop-when-decided): called with the
+        # record so far at each of JUDGED_AT_S; a reason ends the capture there.
+        self.judge_partial: Callable[[ExperimentRecord], str | None] | None = None
+        self.decided_within: str | None = None     # why the last transient capture ended early
         self._recorder: Recorder | None = None
         daq.subscribe(self._on_samples)
 
@@ -615,9 +624,51 @@ class Acquisition:
         n = int(round(transient_capture_s(spec, self.config.steady_state.ramp_time_s, rate) * rate))
         self._enter(Phase.CAPTURING, label, cycles=0)
         self.bus.publish(Kind.LOG, label, message=f"transient capture: {n / rate:.2f} s from RUN, no settling")
-        self._wait_samples(rec, n, label, capture=(0, n))
-        values, present, over = rec.window(0, n)
-        rec.forget_before(n)
+        self.decided_within = None
+        end = self._judged_while_capturing(spec, label, rec, n, rate) if self.judge_partial else n
+        self._wait_samples(rec, end, label, capture=(0, n))
+        record = self._from_run(spec, label, rec, end, rate)
+        rec.forget_before(end)
+        return record
+
+    def _judged_while_capturing(self, spec: ExperimentSpec, label: str, rec: Recorder, n: int, rate: int) -> int:
+        """Capture while the record so far is judged beside it (one judgement at a time,
+        on its own thread: a fit never holds the rig up), each from the first point of
+        :data:`JUDGED_AT_S` the record has reached since the last; the sample count at
+        which the capture ends: ``n``, or what the DAQ had delivered when a judgement
+        decided (every sample kept; the verdict is made again on the whole record).  A
+        judgement still running when the record is whole is left to finish unheard."""
+        judge = self.judge_partial
+        assert judge is not None
+        points = [round(s * rate) for s in JUDGED_AT_S if round(s * rate) < n]
+        pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="judge-partial")
+        running: tuple[int, Future[str | None]] | None = None
+        try:
+            while rec.end < n:
+                if running is not None and running[1].done():
+                    at, future = running
+                    running = None
+                    reason = future.result()
+                    if reason:
+                        end = min(max(rec.end, at), n)
+                        self.decided_within = f"{reason} after {at / rate:g} s of the record"
+                        self.bus.publish(Kind.LOG, label, message=f"transient capture ended at {end / rate:.2f} s "
+                                                                  f"of {n / rate:.2f} s: {self.decided_within}")
+                        return end
+                reached = [p for p in points if p <= rec.end]
+                if running is None and reached:
+                    at = reached[-1]
+                    points = [p for p in points if p > at]
+                    running = (at, pool.submit(judge, self._from_run(spec, label, rec, at, rate)))
+                self._wait_samples(rec, min(rec.end + max(int(POLL_S * rate), 1), n), label, capture=(0, n))
+            return n
+        finally:
+            pool.shutdown(wait=False, cancel_futures=True)
+
+    @staticmethod
+    def _from_run(spec: ExperimentSpec, label: str, rec: Recorder, end: int, rate: int) -> ExperimentRecord:
+        """The samples from RUN to ``end`` as a transient capture's record."""
+        values, present, over = rec.window(0, end)
         lost = int(np.count_nonzero(~present))
         flags = [f"{lost} samples lost in the transient capture (rows absent; it cannot be fitted as a transient)"
                  ] if lost else []

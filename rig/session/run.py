@@ -422,6 +422,10 @@ class SessionRunner:
             after_skip = bool(result.skipped) and result.skipped[-1] == previous
             self._experiment(spec, session, result, planned[spec.letter], after_skip)
             previous = session.label(spec.letter)
+            if self.acquisition.decided_within:   # judged as the transient record grew (qc run)
+                result.decided = self.acquisition.decided_within
+                self.bus.publish(Kind.LOG, message=f"ending the session before its plan: {result.decided}")
+                break
             if self.decide is not None and k < len(todo) - 1:
                 self._written(result)
                 result.decided = self.decide(result)

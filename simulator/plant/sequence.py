@@ -11,9 +11,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from identify.plans import ExperimentSpec
-from simulator.physics import Actuator, steady_stroke
+from simulator.physics import Actuator, steady_stroke, waveform_harmonics
 from simulator.plant.damper import PlantDamper
 from simulator.plant.integrator import STEP_S, integrate
+from simulator.plant.streaming import StreamingPlantTruth
 
 MOVE_SPEED_M_S = 0.02   # between static positions, as the controller's moves
 FADE_PERIODS = 1.0      # fade in and out over a period, at most FADE_MAX_S
@@ -100,3 +101,48 @@ def run_plan(plant: PlantDamper, plan: list[ExperimentSpec], actuator: Actuator,
         y = states[:, -1]
         position = float(q_m[-1])
     return out
+
+
+def run_plan_from_run(plant: PlantDamper, plan: list[ExperimentSpec], actuator: Actuator,
+                      record_times: list[np.ndarray], ramp_s: float) -> list[Capture]:
+    """Captures of ``plan`` recorded from RUN on, as a plan with ``capture = "transient"``
+    runs on a rig: from rest at q = 0, each experiment's move to its static position (a
+    half cosine at :data:`MOVE_SPEED_M_S`), RUN with the amplitude ramped linearly over
+    ``ramp_s`` (the controller's ramp) and captured from that instant for
+    ``record_times[i]`` (uniform, counted from RUN), then the ramp down to the static
+    position; the actuator tracks the setpoint as on the served rig, and the wall's heat
+    and the dissolved gas carry from one experiment to the next (nothing is waited out)."""
+    out = []
+    truth: StreamingPlantTruth | None = None
+    for spec, times in zip(plan, record_times, strict=True):
+        dt = float(times[1] - times[0])
+        if truth is None:
+            truth = StreamingPlantTruth(plant, actuator, dt, 0.0)
+        elif abs(truth.dt - dt) > 1e-12:
+            raise ValueError("a transient capture's sample interval must be the same in every experiment")
+        static = spec.static_position_mm * 1e-3
+        start = truth.position_m
+        move_s = max(abs(static - start) / MOVE_SPEED_M_S, 1.0)
+        u = np.arange(1, int(np.ceil(move_s / dt)) + 1) * dt / move_s
+        _advance(truth, start + (static - start) * 0.5 * (1 - np.cos(np.pi * np.minimum(u, 1.0))))
+        k, b = waveform_harmonics(spec.waveform)
+        tau = times - times[0]
+        envelope = np.clip(tau / max(ramp_s, 1e-9), 0.0, 1.0)
+        shape = np.sin(np.outer(tau, 2 * np.pi * spec.frequency_hz * k)) @ b
+        stroke, v, a, Y = _advance(truth, static + spec.amplitude_mm * 1e-3 * envelope * shape)
+        if np.max(np.abs(v)) > actuator.velocity_limit_m_s:
+            raise ValueError(f"experiment {spec.letter}: peak velocity {np.max(np.abs(v)):.3f} m/s exceeds the "
+                             f"actuator's limit {actuator.velocity_limit_m_s} m/s")
+        out.append(Capture(spec, tau, plant.channels(stroke, v, a, Y), float(np.mean(Y[1])), float(np.mean(Y[2]))))
+        # STOP: the amplitude ramped down from where the capture ended, phase continuing.
+        down = tau[-1] + np.arange(1, int(np.ceil(ramp_s / dt)) + 1) * dt
+        fade = np.clip(1.0 - (down - tau[-1]) / max(ramp_s, 1e-9), 0.0, 1.0)
+        _advance(truth, static + spec.amplitude_mm * 1e-3 * fade
+                 * (np.sin(np.outer(down, 2 * np.pi * spec.frequency_hz * k)) @ b))
+    return out
+
+
+def _advance(truth: StreamingPlantTruth, setpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    stroke, v, a, Y = truth.advance(setpoint)
+    truth.commit(len(setpoint), Y)
+    return stroke, v, a, Y

@@ -38,6 +38,11 @@ class StreamingPlantTruth:
         self._pending = (n, filters, (float(stroke[-1]), float(v[-1])))
         return stroke, v, a, Y
 
+    @property
+    def position_m(self) -> float:
+        """The measured stroke at the last committed step."""
+        return self._last[0]
+
     def commit(self, n: int, Y: np.ndarray) -> None:
         """Keep the last :meth:`advance` (whole; a shorter block is advanced again)."""
         length, filters, last = self._pending
