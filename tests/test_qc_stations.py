@@ -87,6 +87,16 @@ def test_a_url_with_a_password_is_refused_in_one_line_that_says_what_to_do(tmp_p
     assert not (tmp_path / "s").exists()     # refused before anything was written
 
 
+def test_a_password_with_an_at_sign_and_a_port_that_is_no_number_are_refused_without_leaking():
+    # An unescaped '@' makes a parser split at the first one: the password's tail read as the host.
+    r = rig_qc("history", "--db", "postgresql://qc:s3c@ret@127.0.0.1:5999/qc")
+    (line,) = r.stderr.splitlines()
+    assert r.returncode == 2 and "must not carry the password" in line and "s3c" not in line and "ret@" not in line
+    r = rig_qc("history", "--db", "postgresql://qc@127.0.0.1:notaport/qc")
+    (line,) = r.stderr.splitlines()
+    assert r.returncode == 2 and "not a database URL" in line and "notaport" in line, r.stderr
+
+
 def test_a_station_file_with_a_password_that_others_can_read_is_refused(tmp_path):
     station = make_station(tmp_path / "s", "A", "postgresql://qc@127.0.0.1:9/qc", "Pg-s3cret-file")
     (station / "station.toml").chmod(0o640)

@@ -258,14 +258,14 @@ def parse_url(url: str) -> URL:
         url = f"sqlite:///{Path(url).resolve()}"
     try:
         parsed = make_url(url)
-    except ArgumentError:
-        raise RecordsError(f"--db {_mask_raw(url)}: not a database URL (sqlite:///FILE or "
-                           "postgresql://USER@HOST:PORT/DB)") from None
+    except (ArgumentError, ValueError):   # ValueError: a port that is not a number
+        raise RecordsError(f"--db {safe_url(url)}: not a database URL (sqlite:///FILE or "
+                           "postgresql://USER@HOST:PORT/DB, the port a number)") from None
     backend = parsed.get_backend_name()
     if backend not in ("sqlite", "postgresql", "postgres"):
         raise RecordsError(f"--db {safe_url(parsed)}: unsupported database {backend!r} (sqlite or postgresql)")
     if parsed.password is not None or "password" in parsed.query:
-        raise RecordsError(f"--db {safe_url(parsed)}: a URL must not carry the password (every user of the "
+        raise RecordsError(f"--db {safe_url(url)}: a URL must not carry the password (every user of the "
                            f"machine reads it in the process list); {PASSWORD_ADVICE}")
     if backend == "sqlite":
         if not parsed.database or parsed.database == ":memory:":
@@ -280,9 +280,13 @@ def parse_url(url: str) -> URL:
 def safe_url(url: URL | str) -> str:
     """The URL as it may be shown: no password, not even in the query string."""
     if isinstance(url, str):
+        if url.partition("://")[2].partition("/")[0].count("@") > 1:
+            # An '@' left unescaped in a password: a parser splits at the first one and would
+            # show the password's tail as the host; everything before the last '@' goes.
+            return _mask_raw(url)
         try:
             parsed = make_url(url)
-        except ArgumentError:
+        except (ArgumentError, ValueError):
             return _mask_raw(url)
     else:
         parsed = url
@@ -307,9 +311,9 @@ def secrets_for(url: URL, password: str | None = None) -> list[str]:
     try:
         for line in passfile.read_text().splitlines():
             if line.strip() and not line.lstrip().startswith("#"):
-                fields = line.replace("\\\\", "\0").replace("\\:", "\1").split(":")
-                if len(fields) >= 5:
-                    found.append(":".join(fields[4:]).replace("\1", ":").replace("\0", "\\"))
+                fields = line.replace("\\\\", "\0").replace("\\:", "\1").split(":", 4)
+                if len(fields) == 5:   # host:port:database:user:password (the password may hold ':')
+                    found.append(fields[4].replace("\1", ":").replace("\0", "\\"))
     except (OSError, UnicodeDecodeError):
         pass
     out: list[str] = []
