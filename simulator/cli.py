@@ -11,6 +11,7 @@ shows its traceback.
 from __future__ import annotations
 
 import argparse
+import difflib
 import signal
 import sys
 import threading
@@ -35,6 +36,10 @@ def read_plan(source: str) -> tuple[ExperimentSpec, ...]:
     --plan`` reads (a QC spec holds its plan that way too)."""
     if source == "standard":
         return STANDARD_SET
+    if not Path(source).exists():   # a misspelt name reads as a missing file
+        hint = " (did you mean 'standard'?)" if difflib.get_close_matches(source, ["standard"]) else ""
+        raise UsageError(f"--plan {source}: no such plan and no such file{hint}; the plans: standard (built in), "
+                         "or the path of a plan TOML file")
     try:
         doc = tomllib.loads(Path(source).read_text(encoding="utf-8"))
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:

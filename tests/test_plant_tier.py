@@ -47,6 +47,15 @@ def test_generate_refuses_what_the_plant_cannot_take(tmp_path, capsys, argv, say
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize("physics", ["model", "plant"])
+def test_generate_names_the_plan_a_misspelt_one_meant(tmp_path, capsys, physics):
+    assert main(["generate", "--physics", physics, "--plan", "standrad", "--out", str(tmp_path / "x")]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line == ("error: --plan standrad: no such plan and no such file (did you mean 'standard'?); the plans: "
+                    "standard (built in), or the path of a plan TOML file")
+    assert not (tmp_path / "x").exists()
+
+
 def test_plant_constants_only_with_the_plant(tmp_path, capsys):
     assert main(["generate", "--plant-constants", "x.toml", "--out", str(tmp_path / "x")]) == 2
     assert "--physics plant" in capsys.readouterr().err

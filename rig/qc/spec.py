@@ -9,6 +9,7 @@ Every problem is refused with one line naming the file and the key (exit 2)."""
 
 from __future__ import annotations
 
+import difflib
 import hashlib
 import math
 import re
@@ -116,7 +117,14 @@ def spec_path(source: str) -> Path:
     shipped = SPECS_DIR / f"{source}.toml"
     if "/" not in source and not source.endswith(".toml") and shipped.is_file():
         return shipped
-    return Path(source)
+    path = Path(source)
+    if not path.exists():   # a misspelt name reads as a missing file: say which specs there are
+        names = sorted(p.stem for p in SPECS_DIR.glob("*.toml"))
+        meant = difflib.get_close_matches(source, names, n=1)
+        raise SpecError(f"spec {source!r}: no such spec and no such file"
+                        + (f" (did you mean {meant[0]!r}?)" if meant else "")
+                        + f"; the specs shipped: {', '.join(names)}, or the path of a spec TOML file")
+    return path
 
 
 def load_spec(source: str) -> Spec:
