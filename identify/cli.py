@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from identify import notation
+from identify.argparsing import OneLineParser
 from identify.dataset import Experiment, csv_bytes, read_dataset, read_manifest
 from identify.differentiation import SCHEMES, Grid
 from identify.errors import ComputationError, InputError
@@ -538,7 +539,7 @@ def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) ->
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m identify", description=__doc__.split("\n")[0])
+    parser = OneLineParser(prog="python -m identify", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
 
     def model_args(p: argparse.ArgumentParser) -> None:

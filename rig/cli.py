@@ -26,6 +26,7 @@ import time
 import traceback
 from pathlib import Path
 
+from identify.argparsing import OneLineParser
 from identify.errors import InputError
 from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERNAL, EXIT_INTERRUPTED, EXIT_OK
 from identify.model import DEFAULT_ESTIMATE
@@ -181,7 +182,7 @@ def cmd_gui(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m rig", description=(__doc__ or "").replace("``", ""),
+    parser = OneLineParser(prog="python -m rig", description=(__doc__ or "").replace("``", ""),
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     sub = parser.add_subparsers(dest="command", required=True)
 

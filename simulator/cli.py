@@ -20,6 +20,7 @@ import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 
+from identify.argparsing import OneLineParser
 from identify.errors import InputError
 from identify.plans import STANDARD_SET, ExperimentSpec, select
 from simulator.errors import SimulatorError, UsageError
@@ -228,7 +229,7 @@ def run_serve(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m simulator", description="virtual shaker rig")
+    parser = OneLineParser(prog="python -m simulator", description="virtual shaker rig")
     sub = parser.add_subparsers(dest="command", required=True)
     def physics_options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--physics", choices=("model", "plant"), default="model",

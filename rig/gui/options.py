@@ -9,6 +9,8 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from identify.argparsing import OneLineParser
+
 
 def add_link_arguments(p: argparse.ArgumentParser, shaker_required: bool = True) -> None:
     """The controller's address and its configuration files (every ``rig`` command that talks to it)."""
@@ -61,6 +63,6 @@ class ConsoleOptions:
     def parse(cls, argv: Sequence[str]) -> ConsoleOptions:
         """The options of ``python -m rig gui ARGV`` (``gui`` itself may be left out)."""
         argv = list(argv)
-        parser = argparse.ArgumentParser(prog="python -m rig gui")
+        parser = OneLineParser(prog="python -m rig gui")
         add_console_arguments(parser)
         return cls.from_namespace(parser.parse_args(argv[1:] if argv[:1] == ["gui"] else argv))
