@@ -59,6 +59,11 @@ CASES = {
     "negative periods": ({}, ["--periods", "-2"], 2, "--periods: -2: must be at least 1"),
     "unknown estimate": ({}, ["--identify", "--estimate", "theta99"], 2, "no parameter 'theta99'"),
     "dead controller": ({}, [], 3, "no Modbus controller answers at tcp://127.0.0.1:"),
+    "port out of range": (dict(shaker="tcp://127.0.0.1:99999"), [], 2,
+                          "shaker address 'tcp://127.0.0.1:99999': port '99999' is not a TCP port (1-65535)"),
+    "unknown host": (dict(shaker="tcp://no-such-host.invalid:5020"), [], 3,
+                     "no Modbus controller answers at tcp://no-such-host.invalid:5020 (the host name "
+                     "'no-such-host.invalid' is not known here)"),
 }
 
 

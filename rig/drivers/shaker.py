@@ -10,6 +10,7 @@ the link drops.
 from __future__ import annotations
 
 import math
+import socket
 import threading
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
@@ -81,6 +82,9 @@ class ShakerAddress:
         try:
             port = parsed.port
         except ValueError:
+            if parsed.scheme == "tcp":
+                port_text = parsed.netloc.rpartition(":")[2]
+                raise AddressError(f"shaker address {url!r}: port {port_text!r} is not a TCP port (1-65535)") from None
             port = None
         if parsed.scheme == "tcp" and parsed.hostname and port:
             return cls(url, host=parsed.hostname, port=port)
@@ -160,7 +164,7 @@ class Shaker:
         (tests inject faults through it).  ``interlock``: asked before every command that
         can start motion (hydraulics on, move, RUN, fade out); STOP, hydraulics off and
         reads are never vetoed."""
-        address = ShakerAddress.parse(url)
+        address = self.address = ShakerAddress.parse(url)
         self.url, self.limits, self.clock, self.interlock = url, limits, clock, interlock
         self.map = register_map or load_register_map()
         self.reconnect_s, self.on_event = reconnect_s, on_event
@@ -171,6 +175,17 @@ class Shaker:
         self._beat = 0
 
     # ----- connection --------------------------------------------------------------------
+    def _unresolved(self) -> str:
+        """Why nothing answered, where the name says it: a host name that does not resolve
+        (pymodbus only reports that no connection was made)."""
+        if self.address.host is None:
+            return ""
+        try:
+            socket.getaddrinfo(self.address.host, self.address.port)
+        except OSError:
+            return f" (the host name {self.address.host!r} is not known here)"
+        return ""
+
     def connect(self, heartbeat: bool = True) -> None:
         """Open the link, write the rig's limits and watchdog, start the heartbeat."""
         with self._lock:
@@ -181,7 +196,7 @@ class Shaker:
             else:
                 why = ""
             if not answered:
-                raise ShakerLinkError(f"no Modbus controller answers at {self.url}{why}")
+                raise ShakerLinkError(f"no Modbus controller answers at {self.url}{why or self._unresolved()}")
         lim = self.limits
         try:
             # The link was never up: no reconnect time to wait out (something else may have
