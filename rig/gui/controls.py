@@ -12,6 +12,7 @@ from PySide6 import QtWidgets
 from rig.drivers.shaker import ShakerStatus
 from rig.gui.manual import ManualControl
 from rig.gui.messages import Snapshot
+from rig.gui.state_strip import short_link_error
 
 STATE_COLOURS = {"OFF": "#666666", "IDLE": "#1f77b4", "MOVING": "#ff7f0e", "AT_STATIC": "#1f77b4",
                  "RUNNING": "#2ca02c", "ALARM": "#b00020"}
@@ -31,6 +32,7 @@ class ControllerPanel(QtWidgets.QGroupBox):
                                           ("cycles", "Cycles"), ("watchdog", "Watchdog"))):
             label = QtWidgets.QLabel("–")
             label.setObjectName(f"controller_{key}")
+            label.setWordWrap(True)         # a long reason wraps in its column: the window still fits 1280 px
             self.fields[key] = label
             row, col = divmod(i, 2)
             grid.addWidget(QtWidgets.QLabel(title), row, 2 * col)
@@ -42,13 +44,20 @@ class ControllerPanel(QtWidgets.QGroupBox):
         f = self.fields
         st = snap.status
         if st is None:
-            f["state"].setText(f"no answer ({snap.error})" if snap.error else "not connected")
+            f["state"].setText(f"no answer ({short_link_error(snap.error)})" if snap.error else "not connected")
             f["state"].setStyleSheet("color: #b00020; font-weight: bold" if snap.error else "")
+            f["state"].setToolTip(snap.error or "")
             # Nothing read: no number from an older read is shown beside it as if it were now.
             for key in ("position", "alarm", "force", "cycles", "supply", "watchdog"):
                 f[key].setText("–")
                 f[key].setStyleSheet("")
+            if snap.error:
+                # Not read, but what the controller should do on its own is known: said as such.
+                f["watchdog"].setText(f"not read; without a link it should stop the shaker within "
+                                      f"{self.watchdog_s:g} s")
+                f["watchdog"].setStyleSheet("color: #b00020")
             return
+        f["state"].setToolTip("")
         f["state"].setText(st.state)
         f["state"].setStyleSheet(f"color: {STATE_COLOURS.get(st.state, '#000')}; font-weight: bold")
         f["alarm"].setText(st.alarm)

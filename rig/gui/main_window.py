@@ -27,7 +27,7 @@ from rig.drivers.daq import check_daq_address
 from rig.drivers.estop import EstopDone, LatchChanged
 from rig.drivers.shaker import ShakerAddress, ShakerStatus
 from rig.errors import BadInput
-from rig.events import Event, Kind, Message
+from rig.events import Event, Kind, Message, Phase
 from rig.gui.browser import SessionBrowser
 from rig.gui.controls import ControllerPanel, ManualPanel
 from rig.gui.fit_view import FitView
@@ -47,7 +47,7 @@ from rig.gui.options import ConsoleOptions
 from rig.gui.plan_panel import PlanPanel
 from rig.gui.qc import QcDone, QcProgress, QcRequest, QcStarted, refused
 from rig.gui.qc_panel import QcPanel
-from rig.gui.state_strip import COLOURS, RigState, StateStrip, hydraulics_on
+from rig.gui.state_strip import CHECK_RIG, COLOURS, RigState, StateStrip, hydraulics_on, short_link_error
 from rig.gui.station import Station, session_options
 from rig.planning.plans import comma_list, load_plan
 from rig.qc.spec import load_spec
@@ -120,6 +120,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.estop_text: str | None = None          # latched until the operator resets
         self.alarm_latched: str | None = None       # an alarm seen, latched here until the operator resets
         self.link_error: str | None = None
+        self.unsafe_stop: str | None = None         # a session's safe stop did not complete: latched until Reset…
         self.interrupted_by: int | None = None      # SIGINT or SIGTERM closed the window (exit 130)
         self._closing = False
         self._last_redraw = 0.0
@@ -283,7 +284,7 @@ class MainWindow(QtWidgets.QMainWindow):
         trip = latch.reason if latch.latched else "E-STOP" if self.estop_text else self.alarm_latched
         running = self.station.sessions.running
         return RigState(self.status, trip, self.link_error, self.station.manual.shaker is not None or running,
-                        running)
+                        running, self.unsafe_stop)
 
     def _show_state(self) -> None:
         """The strip and which motion controls are allowed, from the same state."""
@@ -306,12 +307,13 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def reset_alarm(self, confirm: bool = True) -> None:
         if confirm:
-            what = self.estop_text or (f"alarm: {self.status.alarm}" if self.status else "alarm")
+            what = (f"The safe stop did not complete ({self.unsafe_stop}); {CHECK_RIG}" if self.unsafe_stop
+                    else self.estop_text or (f"alarm: {self.status.alarm}" if self.status else "alarm"))
             answer = QtWidgets.QMessageBox.question(
                 self, "Reset the trip?", f"{what}\n\nReset only once the cause is known and the rig is safe. Reset?")
             if answer != QtWidgets.QMessageBox.StandardButton.Yes:
                 return
-        self.estop_text = self.alarm_latched = None
+        self.estop_text = self.alarm_latched = self.unsafe_stop = None
         self.station.emergency.confirm_reset()
         if self.status is not None and self.status.state == "ALARM":
             self.manual._do(self.station.manual.reset_alarm())
@@ -350,6 +352,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def abort(self) -> None:
         self.station.abort()
+        self.plan.show_stopping("Abort pressed")
         self._say("Abort: safe stop requested (fade out, STOP, hydraulics off)")
 
     def refit(self, folder: Path, settings: IdentifySettings) -> None:
@@ -408,11 +411,17 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _on_event(self, item: Event) -> None:
         self.plan.apply(item)
+        if item.kind == Kind.PHASE and item.data.get("phase") == Phase.STOPPING and item.experiment is None:
+            # the session's own safe stop (an abort, a lost link, the plan's end): no time left is shown
+            self.plan.show_stopping(str(item.data.get("reason") or "the plan ended"))
         if item.kind in LOGGED_EVENTS:
             self._log_event(item)
 
     def _on_snapshot(self, item: Snapshot) -> None:
         was = self.status
+        if item.error is not None and item.error != self.link_error:
+            # the driver's own words, once, here; the strip, the banner and the panel say it in one line
+            self._say(f"controller not read: {item.error}", "error")
         self.status = item.status
         self.link_error = item.error
         if item.status is not None and item.status.state == "ALARM" and (was is None or was.state != "ALARM"):
@@ -461,6 +470,8 @@ class MainWindow(QtWidgets.QMainWindow):
     def _on_session_closed(self, item: SessionClosed) -> None:
         self.plan.set_running(False)
         self.qc.set_running(False)
+        if item.result is not None and item.result.safe_stop_failures:
+            self.safe_stop_failed(item.result.safe_stop_failures)
         if item.result is not None:
             self.plan.session_ended(item.result.session.path)
         self._say(item.text, "info" if item.result is not None and item.result.exit_code == 0 else "error")
@@ -468,6 +479,14 @@ class MainWindow(QtWidgets.QMainWindow):
             self.plan.eta.setText(item.text.splitlines()[0])
         if self._closing:
             QtCore.QTimer.singleShot(0, self.close)
+
+    def safe_stop_failed(self, failures: list[str]) -> None:
+        """A session's safe stop left steps undone: no reading says the rig is at rest, so
+        the banner and the strip say so, latched until the operator confirms the reset."""
+        steps = ", ".join(f.split(":", 1)[0] for f in failures)
+        self.unsafe_stop = f"{steps} not confirmed at {_dt.datetime.now():%H:%M:%S}"
+        self._say(f"SAFE STOP INCOMPLETE: {steps} not confirmed; {CHECK_RIG}", "error")
+        self._show_banner()
 
     def _on_fit_progress(self, item: FitProgress) -> None:
         self.fit_view.show_progress(item.title, item.iteration, item.objective)
@@ -517,15 +536,24 @@ class MainWindow(QtWidgets.QMainWindow):
                 else "the controller's state is not known (no answer)")
         # alarm: from the readings (the controller's state register) and the console's latch
         alarm_read = st is not None and st.state == "ALARM"
-        alarm = bool(self.estop_text) or alarm_read or self.alarm_latched is not None
-        if self.estop_text:
+        alarm = bool(self.estop_text) or alarm_read or self.alarm_latched is not None or self.unsafe_stop is not None
+        watchdog = self.station.config.limits.watchdog_timeout_s
+        if self.unsafe_stop:
+            now = (f"the controller reads {st.state}, {held}" if st is not None
+                   else f"the controller is not read ({short_link_error(link_error) or 'not connected'})")
+            text = (f"SAFE STOP DID NOT COMPLETE ({self.unsafe_stop}): {CHECK_RIG}. Now {now}; its watchdog "
+                    f"should stop the shaker {watchdog:g} s after the link is lost. Reset… once the rig is safe")
+        elif self.estop_text:
             text = f"{self.estop_text} — {held}. Reset… once the rig is safe"
         elif alarm:
             which = st.alarm if st is not None and alarm_read else \
                 f"{self.alarm_latched}, latched here (the controller reads {st.state if st else '?'})"
             text = f"ALARM: {which} — {held}; find the cause, then Reset…"
         elif link_error:
-            text = f"Controller not answering: {link_error}"
+            # The software E-STOP reaches the rig through the controller's Modbus port too.
+            text = (f"Controller not answering: {short_link_error(link_error)}. Its watchdog should stop the "
+                    f"shaker {watchdog:g} s after the link is lost. The E-STOP button goes over Modbus too and may "
+                    "not reach it: use the hard-wired E-stop if the rig moves")
         elif st is None:
             text = "No alarm known: the controller is not read (not connected)"
         else:

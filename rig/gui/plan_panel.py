@@ -18,7 +18,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from identify.notation import at_place, significant
 from rig.config import CHANNELS, RigConfig
 from rig.events import Event
-from rig.gui.plan_state import ExperimentRow, PlanProgress, deciding
+from rig.gui.plan_state import ACTIVE, ExperimentRow, PlanProgress, deciding
 from rig.planning.criterion import DAQ_LAG_S
 from rig.planning.plans import Plan, comma_list, load_plan
 
@@ -108,6 +108,16 @@ class SteadyStateView(QtWidgets.QGroupBox):
         self.bound.setText("")
         self.bound.setVisible(self.drift is not None)
 
+    def clear(self) -> None:
+        """No experiment settles now: no change of an ended one is shown as if current."""
+        for i, bar in enumerate(self.bars):
+            _item(self.table, i, 0).setText("–")
+            bar.setValue(0)
+            bar.setFormat("–")
+            bar.setProperty("colour", None)
+            bar.setStyleSheet("")
+        self.bound.setText("")
+
     def show_row(self, row: ExperimentRow | None) -> None:
         """The changes against their thresholds at the row's last settling report."""
         if row is None or not row.settling:
@@ -165,6 +175,7 @@ class PlanPanel(QtWidgets.QWidget):
         super().__init__(parent)
         self.config, self.out = config, out
         self.progress: PlanProgress | None = None
+        self.stopping: str | None = None          # why the running session's safe stop was asked for
         self._rows: list[ExperimentRow] = []
         self._preview_number = 0
         self._previewed.connect(self._show_preview)
@@ -312,11 +323,23 @@ class PlanPanel(QtWidgets.QWidget):
 
     # ----- running ---------------------------------------------------------------------------------
     def set_running(self, running: bool) -> None:
+        self.stopping = None
+        self.abort_button.setText("Abort (safe stop)")
         self.run_button.setEnabled(not running)
         self.resume_button.setEnabled(not running)
         self.abort_button.setEnabled(running)
         for w in (self.plan, self.experiments, self.folder, self.identify):
             w.setEnabled(not running)
+
+    def show_stopping(self, why: str) -> None:
+        """The session's safe stop is under way: Abort has been pressed (or the session ends
+        on its own), so no time left is shown and Abort is not offered again."""
+        if self.progress is None or self.progress.ended is not None or self.stopping is not None:
+            return
+        self.stopping = why
+        self.abort_button.setEnabled(False)
+        self.abort_button.setText("Stopping…")
+        self.refresh()
 
     def show_progress(self, progress: PlanProgress) -> None:
         self.progress = progress
@@ -341,6 +364,8 @@ class PlanPanel(QtWidgets.QWidget):
         row = self.progress.apply(event)
         if row is not None and event.kind == "progress" and event.data.get("phase") == "settling":
             self.steady.show_row(row)
+        if event.kind == "session-end":
+            self.steady.clear()
         if row is not None or event.kind == "session-end":
             self.refresh()
 
@@ -352,17 +377,27 @@ class PlanPanel(QtWidgets.QWidget):
         for i, r in enumerate(progress.rows):
             status = _item(self.table, i, 4)
             unread = progress.unread is not None and r.status in ("moving", "settling", "capturing", "stopping")
-            status.setText(r.status_text() + (" — the controller is not answering" if unread else ""))
-            status.setBackground(QtGui.QColor(STATUS_COLOURS.get(r.status, "#ffffff")))
-            _item(self.table, i, 5).setText(_clock(progress.rig_left_s(r)) if r.status != "done" else "")
+            stopping = self.stopping is not None and progress.ended is None and r.status in ACTIVE
+            text = f"safe stop under way ({self.stopping}), was {r.status_text()}" if stopping else r.status_text()
+            status.setText(text + (" — the controller is not answering" if unread else ""))
+            status.setBackground(QtGui.QColor(STATUS_COLOURS["stopping" if stopping else r.status]
+                                              if (stopping or r.status in STATUS_COLOURS) else "#ffffff"))
+            _item(self.table, i, 5).setText("" if r.status == "done" or stopping else _clock(progress.rig_left_s(r)))
         current = progress.current
-        self.steady.show_count(current)
-        capturing = current is not None and current.status == "capturing"
+        if self.stopping is not None and progress.ended is None:
+            self.steady.cycles.setText("Settling: – (the session's safe stop is under way)")
+        else:
+            self.steady.show_count(current)
+        capturing = current is not None and current.status == "capturing" and self.stopping is None
         self.capture.setVisible(capturing)
         if current is not None and capturing:
             self.capture.setValue(int(round(100 * current.fraction)))
             self.capture.setFormat(f"{current.label}: {capture_text(current)}")
-        if progress.ended is not None:
+        if progress.ended is None and self.stopping is not None:
+            self.eta.setText(f"Safe stop under way ({self.stopping}): fade out, STOP, hydraulics off; no time left "
+                             "is shown until the session has ended")
+            self.eta.setToolTip("")
+        elif progress.ended is not None:
             # A status can run to several sentences (a safe stop's failures): its head here, the
             # whole of it in the tooltip and the log below, so the settling view keeps its height.
             whole = f"Session {progress.ended}"
