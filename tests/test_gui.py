@@ -568,6 +568,8 @@ def test_a_controller_lost_mid_run_keeps_the_daq_and_ends_in_a_safe_stop_said_in
     assert "hard-wired E-stop" in banner.text()
     assert "should stop the shaker within 2 s" in find(window, QtWidgets.QLabel, "controller_watchdog").text()
     assert window.minimumSizeHint().width() <= 1280
+    # No excitation read: no loop energy of an older one beside it (the stream may have stopped).
+    qtbot.waitUntil(lambda: "no cycle yet" in find(window, QtWidgets.QLabel, "loopEnergy").text(), timeout=HANG_MS)
 
     abort = find(window, QtWidgets.QPushButton, "abortButton")
     qtbot.mouseClick(abort, QtCore.Qt.MouseButton.LeftButton)

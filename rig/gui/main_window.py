@@ -39,6 +39,7 @@ from rig.gui.messages import (
     FitProgress,
     LinkState,
     Notice,
+    SafeStopIncomplete,
     SessionClosed,
     SessionOpened,
     Snapshot,
@@ -107,7 +108,7 @@ class MainWindow(QtWidgets.QMainWindow):
             SessionClosed: self._on_session_closed, FitProgress: self._on_fit_progress, FitDone: self._on_fit_done,
             ComparisonDone: self._on_comparison_done, EstopDone: self._on_estop_done,
             LatchChanged: self._on_latch_changed, QcStarted: self._on_qc_started, QcProgress: self._on_qc_progress,
-            QcDone: self._on_qc_done}
+            QcDone: self._on_qc_done, SafeStopIncomplete: self._on_safe_stop_incomplete}
         try:
             self.station = Station(shaker, daq, self.queue.put, rig_config=args.rig_config,
                                    calibration=args.calibration, register_map=args.register_map,
@@ -470,8 +471,6 @@ class MainWindow(QtWidgets.QMainWindow):
     def _on_session_closed(self, item: SessionClosed) -> None:
         self.plan.set_running(False)
         self.qc.set_running(False)
-        if item.result is not None and item.result.safe_stop_failures:
-            self.safe_stop_failed(item.result.safe_stop_failures)
         if item.result is not None:
             self.plan.session_ended(item.result.session.path)
         self._say(item.text, "info" if item.result is not None and item.result.exit_code == 0 else "error")
@@ -480,10 +479,10 @@ class MainWindow(QtWidgets.QMainWindow):
         if self._closing:
             QtCore.QTimer.singleShot(0, self.close)
 
-    def safe_stop_failed(self, failures: list[str]) -> None:
+    def _on_safe_stop_incomplete(self, item: SafeStopIncomplete) -> None:
         """A session's safe stop left steps undone: no reading says the rig is at rest, so
         the banner and the strip say so, latched until the operator confirms the reset."""
-        steps = ", ".join(f.split(":", 1)[0] for f in failures)
+        steps = ", ".join(f.split(":", 1)[0] for f in item.failures)
         self.unsafe_stop = f"{steps} not confirmed at {_dt.datetime.now():%H:%M:%S}"
         self._say(f"SAFE STOP INCOMPLETE: {steps} not confirmed; {CHECK_RIG}", "error")
         self._show_banner()
