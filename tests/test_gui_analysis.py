@@ -101,9 +101,13 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     view.show_row(row)
     view.show_count(row)
     assert f"up to {significant(2 * fraction)} σ; captures below {fraction:g} σ" in view.bound.text()
+    # The bound is over its limit: the deciding line says not steady, and no bar is green beside it.
+    assert view.bound.text().startswith("NOT STEADY") and "#2e7d32" not in view.bound.styleSheet()
+    assert all(bar.property("colour") not in ("#43a047", "#a5d6a7") for bar in view.bars)
+    assert view.table.horizontalHeaderItem(2).text() == "÷ threshold (info)"
     assert "predicted cycles left: 10" in view.cycles.text()     # halves every 10 cycles: 10 more
-    # 13x its change threshold: pale orange (over, for information), not the change criterion's orange,
-    # and not a grey that does not say over or under; the stroke's change, under its threshold, pale green
+    # 13x its change threshold: pale orange (over, for information), not the change criterion's orange;
+    # the stroke's change, under its threshold, grey (not green: only the bound passes a capture)
     assert view.bars[3].property("colour") == INFO_OVER and view.bars[0].property("colour") == INFO_UNDER
 
     from dataclasses import replace
@@ -116,6 +120,9 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     assert plain.bars[3].property("colour") == "#fb8c00"
     # A QC spec's session brings its own criterion: the view takes it (the drift bound's
     # field is absent from its reports; the cycles left come from the changes).
+    row.settling.append((60, change | {"bias_sigma": fraction / 2}))
+    view.show_row(row)
+    assert view.bound.text().startswith("steady by the drift criterion") and "#2e7d32" in view.bound.styleSheet()
     view.configure(change_config)
     assert view.title() == "Steady state (change criterion)" and not view.bound.isVisibleTo(view)
     row.settling = [(40, dict(change)), (50, {k: v / 2 for k, v in change.items()})]

@@ -252,6 +252,10 @@ class MainWindow(QtWidgets.QMainWindow):
         layout.addLayout(header)
         layout.addWidget(self.strip)
         layout.addWidget(split, 1)
+        log_title = QtWidgets.QLabel(f"Log — each line stamped with the wall clock, HH:MM:SS {_local_zone()}")
+        log_title.setObjectName("logTitle")
+        log_title.setStyleSheet("color: #555")
+        layout.addWidget(log_title)
         layout.addWidget(self.log)
         self.setCentralWidget(central)
         self.resize(1600, 1000)
@@ -590,6 +594,12 @@ class MainWindow(QtWidgets.QMainWindow):
         if self.simulated is not None:
             self.simulated.stop()
         event.accept()
+
+
+def _local_zone() -> str:
+    """The local time zone's name as the clock stamps are in it (UTC offset beside it)."""
+    now = _dt.datetime.now().astimezone()
+    return f"{now.tzname()}, UTC{now:%z}"
 
 
 def run_gui(args: ConsoleOptions) -> int:

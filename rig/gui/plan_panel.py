@@ -26,8 +26,10 @@ STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "skipped": "#ffe0b2", 
                   "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb", "stopping": "#e3f2fd"}
 UNITS = {"stroke_mm": "mm", "force_N": "N", "pressure_bar": "bar", "gas_temperature_C": "°C"}
 TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "left\n[rig m:s]")
-# Under the drift criterion the changes are for information: pale, but still saying under or over the threshold.
-INFO_UNDER, INFO_OVER = "#a5d6a7", "#ffb74d"
+# Under the drift criterion the changes are for information: grey under their threshold, pale orange over it, never
+# green, so that a column of bars under their thresholds does not read as a pass the deciding bound has not given.
+INFO_UNDER, INFO_OVER = "#cfd8dc", "#ffb74d"
+DRIFT_PASS, DRIFT_WAIT = "#2e7d32", "#e65100"
 ENDED_CHARS = 160                 # of a session's end status under the table
 
 
@@ -68,6 +70,11 @@ class SteadyStateView(QtWidgets.QGroupBox):
     def __init__(self, config: RigConfig, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
         layout = QtWidgets.QVBoxLayout(self)
+        # The deciding line first, above the changes that are for information only.
+        self.bound = QtWidgets.QLabel("")
+        self.bound.setObjectName("driftBound")
+        self.bound.setWordWrap(True)
+        layout.addWidget(self.bound)
         self.table = QtWidgets.QTableWidget(len(CHANNELS), 3)
         self.table.setObjectName("steadyStateTable")
         self.table.setHorizontalHeaderLabels(["change / cycle", "threshold", "÷ threshold"])
@@ -86,10 +93,6 @@ class SteadyStateView(QtWidgets.QGroupBox):
             self.bars.append(bar)
             self.table.setCellWidget(i, 2, bar)
         layout.addWidget(self.table)
-        self.bound = QtWidgets.QLabel("")
-        self.bound.setObjectName("driftBound")
-        self.bound.setWordWrap(True)
-        layout.addWidget(self.bound)
         self.cycles = QtWidgets.QLabel("Settling: –")
         self.cycles.setWordWrap(True)
         self.cycles.setObjectName("settleCycles")
@@ -105,6 +108,8 @@ class SteadyStateView(QtWidgets.QGroupBox):
                       else "Steady state (change criterion)")
         for i, c in enumerate(CHANNELS):
             _item(self.table, i, 1).setText(f"{ss.thresholds[c]:g} {UNITS[c]}")
+        self.table.setHorizontalHeaderLabels(["change / cycle", "threshold",
+                                              "÷ threshold (info)" if self.drift else "÷ threshold"])
         self.bound.setText("")
         self.bound.setVisible(self.drift is not None)
 
@@ -142,11 +147,13 @@ class SteadyStateView(QtWidgets.QGroupBox):
                 bar.setStyleSheet(f"QProgressBar::chunk {{ background: {colour}; }}")
         if self.drift:
             bound = change.get("bias_sigma")
-            self.bound.setText("drift criterion: " + (
+            passed = bound is not None and bound < self.drift.fraction
+            verdict = ("steady by the drift criterion" if passed else "NOT STEADY yet by the drift criterion"
+                       if bound is not None else "drift criterion")
+            self.bound.setText(f"{verdict} (it decides): " + (
                 f"the transient left could bias the fit by up to {significant(bound)} σ; captures below "
                 f"{self.drift.fraction:g} σ" if bound is not None else "waiting for the first blocks"))
-            self.bound.setStyleSheet("color: #2e7d32;" if bound is not None and bound < self.drift.fraction
-                                     else "color: #e65100;")
+            self.bound.setStyleSheet(f"color: {DRIFT_PASS if passed else DRIFT_WAIT}; font-weight: bold")
 
     def show_count(self, row: ExperimentRow | None) -> None:
         """The settling count and what follows it, from the same row as the plan table."""
@@ -159,7 +166,7 @@ class SteadyStateView(QtWidgets.QGroupBox):
             return
         left = row.cycles_left(deciding(self.config), ss.min_cycles, ss.max_cycles)
         after_run = ss.ramp_time_s + DAQ_LAG_S
-        self.cycles.setText(f"{row.label}: settling {row.cycles} cycles, counted from {after_run:g} s after RUN "
+        self.cycles.setText(f"{row.label}: settling {row.cycles} cycles, counted from {after_run:g} s (rig time) after RUN "
                             f"(min {ss.min_cycles}, max {ss.max_cycles}); "
                             f"predicted cycles left: {'?' if left is None else left}")
 
