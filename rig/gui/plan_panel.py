@@ -166,8 +166,8 @@ class SteadyStateView(QtWidgets.QGroupBox):
             return
         left = row.cycles_left(deciding(self.config), ss.min_cycles, ss.max_cycles)
         after_run = ss.ramp_time_s + DAQ_LAG_S
-        self.cycles.setText(f"{row.label}: settling {row.cycles} cycles, counted from {after_run:g} s (rig time) after RUN "
-                            f"(min {ss.min_cycles}, max {ss.max_cycles}); "
+        self.cycles.setText(f"{row.label}: settling {row.cycles} cycles, counted from {after_run:g} s (rig time) "
+                            f"after RUN (min {ss.min_cycles}, max {ss.max_cycles}); "
                             f"predicted cycles left: {'?' if left is None else left}")
 
 
