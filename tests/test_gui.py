@@ -463,7 +463,8 @@ def test_the_counters_agree_within_one_cycle_in_the_same_frame(qtbot, tmp_path, 
         elif row.status == "capturing" and str(shown["table"]).startswith("capturing "):
             percent = str(shown["table"]).split()[1]
             bar = shown["capture"]
-            assert bar.isVisible() and f"({percent} %)" in bar.text() and f"({percent} %)" in str(shown["steady"])
+            whole = f"({percent} % of the capture)"
+            assert bar.isVisible() and whole in bar.text() and whole in str(shown["steady"])
             period = int(bar.text().split("capturing period ")[1].split()[0])
             assert abs(counted - row.settled_at - (period - 0.5)) <= 1, (counted, shown)
         else:

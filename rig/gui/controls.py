@@ -79,7 +79,7 @@ class ControllerPanel(QtWidgets.QGroupBox):
         if trip is None or status is None:
             return
         f = self.fields
-        state = f"ALARM (latched; controller reads {status.state})"
+        state = f"ALARM latched by this console (the controller reads {status.state})"
         if f["state"].text() == state:          # a style sheet is costly: this runs on every tick
             return
         f["state"].setText(state)

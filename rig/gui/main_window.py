@@ -164,6 +164,8 @@ class MainWindow(QtWidgets.QMainWindow):
                                         "font-weight: bold; border: 3px solid #7f0000; border-radius: 8px; }"
                                         "QPushButton:pressed { background: #7f0000; }")
         self.estop_button.clicked.connect(self.estop)
+        self.estop_button.setToolTip("The console's E-STOP: STOP and hydraulics off over Modbus. It does not replace "
+                                     "the hard-wired E-stop, the one that always reaches the rig.")
         for key in ESTOP_KEYS:
             shortcut = QtGui.QShortcut(QtGui.QKeySequence(key), self)
             shortcut.setContext(QtCore.Qt.ShortcutContext.ApplicationShortcut)
@@ -307,6 +309,9 @@ class MainWindow(QtWidgets.QMainWindow):
                 button.setToolTip(self._tooltips[name])
         # A session holds the links until its safe stop: the console's own are taken back after it.
         self.connect_button.setEnabled(not state.session_running)
+        editable = not state.session_running and self.station.manual.shaker is None    # the addresses in use
+        self.shaker_edit.setReadOnly(not editable)
+        self.daq_edit.setReadOnly(not editable)
         self.browser.resume_button.setEnabled(self.browser.resumable and "resume" not in blocked)
         self.browser.resume_button.setToolTip(f"Disabled: {blocked['resume']}" if "resume" in blocked else "")
 
@@ -477,7 +482,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.qc.set_running(False)
         if item.result is not None:
             self.plan.session_ended(item.result.session.path)
-        self._say(item.text, "info" if item.result is not None and item.result.exit_code == 0 else "error")
+        # The session's own end (its status) is already in the log from its event: the folder here.
+        text = f"session folder {item.result.session.path} closed" if item.result is not None else item.text
+        self._say(text, "info" if item.result is not None and item.result.exit_code == 0 else "error")
         if item.result is None:
             self.plan.eta.setText(item.text.splitlines()[0])
         if self._closing:
@@ -508,7 +515,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self.estop_text = f"E-STOP INCOMPLETE ({took}): {'; '.join(item.failures)}"
             self._say(self.estop_text, "error")
         else:
-            self._say(f"E-STOP done in {took} from the press: STOP and hydraulics off written ({item.line})")
+            self._say(f"E-STOP done in {took} from the press: STOP and hydraulics off written and answered by the "
+                      f"controller ({item.line}); the registers read next say what it does")
         self._show_banner()
 
     def _on_latch_changed(self, item: LatchChanged) -> None:

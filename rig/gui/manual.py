@@ -206,8 +206,8 @@ class ManualControl:
         assert shaker is not None  # _refuse checked it
 
         def job() -> None:
-            action(shaker)
-            self.post(Notice(f"{what}: sent"))
+            action(shaker)      # returns once the controller has answered the write
+            self.post(Notice(f"{what}: written, the controller answered"))
         self.submit(what, job)
         return []
 

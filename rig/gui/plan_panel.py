@@ -50,7 +50,8 @@ def clock_text(seconds: float, clock: str) -> str:
 def capture_text(row: ExperimentRow) -> str:
     """A capture's progress in periods, from the row's fraction (the acquisition's event)."""
     periods = row.spec.periods
-    return f"capturing period {min(int(row.fraction * periods) + 1, periods)} of {periods} ({100 * row.fraction:.0f} %)"
+    period = min(int(row.fraction * periods) + 1, periods)
+    return f"capturing period {period} of {periods} ({100 * row.fraction:.0f} % of the capture)"
 
 
 def _item(table: QtWidgets.QTableWidget, row: int, col: int) -> QtWidgets.QTableWidgetItem:
