@@ -12,7 +12,6 @@ from PySide6 import QtWidgets
 from rig.drivers.shaker import ShakerStatus
 from rig.gui.manual import ManualControl
 from rig.gui.messages import Snapshot
-from rig.gui.state_strip import short_link_error
 
 STATE_COLOURS = {"OFF": "#666666", "IDLE": "#1f77b4", "MOVING": "#ff7f0e", "AT_STATIC": "#1f77b4",
                  "RUNNING": "#2ca02c", "ALARM": "#b00020"}
@@ -44,7 +43,8 @@ class ControllerPanel(QtWidgets.QGroupBox):
         f = self.fields
         st = snap.status
         if st is None:
-            f["state"].setText(f"no answer ({short_link_error(snap.error)})" if snap.error else "not connected")
+            # the reason in one line is the strip's and the banner's; the driver's words in the tooltip
+            f["state"].setText("no answer" if snap.error else "not connected")
             f["state"].setStyleSheet("color: #b00020; font-weight: bold" if snap.error else "")
             f["state"].setToolTip(snap.error or "")
             # Nothing read: no number from an older read is shown beside it as if it were now.

@@ -550,10 +550,9 @@ class MainWindow(QtWidgets.QMainWindow):
         alarm = bool(self.estop_text) or alarm_read or self.alarm_latched is not None or self.unsafe_stop is not None
         watchdog = self.station.config.limits.watchdog_timeout_s
         if self.unsafe_stop:
-            now = (f"the controller reads {st.state}, {held}" if st is not None
-                   else f"the controller is not read ({short_link_error(link_error) or 'not connected'})")
-            text = (f"SAFE STOP DID NOT COMPLETE ({self.unsafe_stop}): {CHECK_RIG}. Now {now}; its watchdog "
-                    f"should stop the shaker {watchdog:g} s after the link is lost. Reset… once the rig is safe")
+            # Whether the controller is read now is the strip's and the panel's to say.
+            now = f" The controller now reads {st.state}, {held}." if st is not None else ""
+            text = f"SAFE STOP DID NOT COMPLETE ({self.unsafe_stop}): {CHECK_RIG}.{now} Reset… once it is safe"
         elif self.estop_text:
             text = f"{self.estop_text} — {held}. Reset… once the rig is safe"
         elif alarm:
@@ -607,7 +606,8 @@ class MainWindow(QtWidgets.QMainWindow):
 def _local_zone() -> str:
     """The local time zone's name as the clock stamps are in it (UTC offset beside it)."""
     now = _dt.datetime.now().astimezone()
-    return f"{now.tzname()}, UTC{now:%z}"
+    offset = f"UTC{now:%z}"
+    return "UTC" if offset == "UTC+0000" else f"{now.tzname()} ({offset})"
 
 
 def run_gui(args: ConsoleOptions) -> int:

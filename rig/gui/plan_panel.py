@@ -19,6 +19,7 @@ from identify.notation import at_place, significant
 from rig.config import CHANNELS, RigConfig
 from rig.events import Event
 from rig.gui.plan_state import ACTIVE, ExperimentRow, PlanProgress, deciding
+from rig.gui.state_strip import short_link_error
 from rig.planning.criterion import DAQ_LAG_S
 from rig.planning.plans import Plan, comma_list, load_plan
 
@@ -344,7 +345,7 @@ class PlanPanel(QtWidgets.QWidget):
         on its own), so no time left is shown and Abort is not offered again."""
         if self.progress is None or self.progress.ended is not None or self.stopping is not None:
             return
-        self.stopping = why
+        self.stopping = short_link_error(why)
         self.abort_button.setEnabled(False)
         self.abort_button.setText("Stopping…")
         self.refresh()
@@ -386,11 +387,13 @@ class PlanPanel(QtWidgets.QWidget):
             status = _item(self.table, i, 4)
             unread = progress.unread is not None and r.status in ("moving", "settling", "capturing", "stopping")
             stopping = self.stopping is not None and progress.ended is None and r.status in ACTIVE
-            text = f"safe stop under way ({self.stopping}), was {r.status_text()}" if stopping else r.status_text()
+            text = f"safe stop under way (was {r.status_text()})" if stopping else r.status_text()
             status.setText(text + (" — the controller is not answering" if unread else ""))
             status.setBackground(QtGui.QColor(STATUS_COLOURS["stopping" if stopping else r.status]
                                               if (stopping or r.status in STATUS_COLOURS) else "#ffffff"))
-            _item(self.table, i, 5).setText("" if r.status == "done" or stopping else _clock(progress.rig_left_s(r)))
+            # no time left while stopping, nor while the controller is not read (the count stands still)
+            _item(self.table, i, 5).setText("" if r.status == "done" or stopping else "–" if unread
+                                            else _clock(progress.rig_left_s(r)))
         current = progress.current
         if self.stopping is not None and progress.ended is None:
             self.steady.cycles.setText("Settling: – (the session's safe stop is under way)")
@@ -409,9 +412,13 @@ class PlanPanel(QtWidgets.QWidget):
             # A status can run to several sentences (a safe stop's failures): its head here, the
             # whole of it in the tooltip and the log below, so the settling view keeps its height.
             whole = f"Session {progress.ended}"
-            self.eta.setText(whole if len(whole) <= ENDED_CHARS else
-                             f"{whole[:ENDED_CHARS].rsplit(' ', 1)[0]} … (the whole status: the log below)")
+            head = whole.split(" (", 1)[0]          # a driver's words in parentheses: the log's
+            head = head if len(head) <= ENDED_CHARS else head[:ENDED_CHARS].rsplit(" ", 1)[0]
+            self.eta.setText(whole if head == whole else f"{head} … (the whole status: the log below)")
             self.eta.setToolTip(whole)
+        elif progress.unread is not None:
+            self.eta.setText("Session: time left not known while the controller is not answering")
+            self.eta.setToolTip("")
         else:
             wall = progress.session_left_s()
             self.eta.setText(f"Session: about {clock_text(wall, 'wall')} left "

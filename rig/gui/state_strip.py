@@ -27,7 +27,7 @@ COLOURS = {"ALARM": "#c62828", "RUNNING": "#2e7d32", "MOVING": "#ef6c00", "AT_ST
 NO_LINK_COLOUR = "#ef6c00"
 LINK_ERROR_CHARS = 90          # a link error in the strip, the banner and the panel (the driver's text: the log)
 UNSAFE_WORD = "SAFE STOP INCOMPLETE"
-CHECK_RIG = "hydraulics may still be ON: check the rig, use the hard-wired E-stop if it moves"
+CHECK_RIG = "hydraulics may still be ON: check the rig; use the hard-wired E-stop if it moves"
 
 
 def short_link_error(text: str | None) -> str | None:
