@@ -236,13 +236,19 @@ def build_parser() -> argparse.ArgumentParser:
     goal.add_argument("--target", help="parameters whose σ the plan must reach, e.g. theta4,theta6,theta16")
     goal.add_argument("--qc-spec", help="a QC spec (default or SPEC.toml): its characteristics to a quarter of "
                                         "their tolerance half-width")
+    goal.add_argument("--predict", choices=("drop",), help="drop: the drop test's (350 kg, 0.5 m/s) peak force "
+                                                           "and peak stroke predicted to --accuracy")
+    des.add_argument("--accuracy", type=float, default=0.02, help="--predict: relative σ wanted (default 0.02)")
+    des.add_argument("--discrepancy", type=float, default=0.0,
+                     help="--predict: relative model-discrepancy σ of the drop (from a type test; default 0)")
+    des.add_argument("--estimate", help="--predict: estimated parameters (default theta3,theta4,theta6,theta16)")
     des.add_argument("--no-worse-than", metavar="PLAN", help="--target: every σ at most this plan's (standard or "
                                                               "PLAN.toml)")
     des.add_argument("--sigma", help="--target: the σ wanted, SI, one per parameter (comma-separated)")
     des.add_argument("--compare", metavar="PLAN", help="a reference plan predicted beside the design (standard or "
                                                        "PLAN.toml)")
-    des.add_argument("--model", default="2dof", help="--target: the model")
-    des.add_argument("--params", help="--target: prior parameter values (START.json; default: nominal)")
+    des.add_argument("--model", default="2dof", help="--target, --predict: the model")
+    des.add_argument("--params", help="--target, --predict: prior parameter values (START.json; default: nominal)")
     des.add_argument("--rig-config", help="limits, criteria and transducer noise TOML (default: rig-default.toml)")
     des.add_argument("--out", required=True, help="the plan file to write")
     des.set_defaults(func=cmd_design)
