@@ -124,7 +124,7 @@ class ManualPanel(QtWidgets.QGroupBox):
         self.move_button = QtWidgets.QPushButton("Move")
         self.move_button.setObjectName("moveButton")
         self.move_button.clicked.connect(self.request_move)
-        move.addWidget(QtWidgets.QLabel("Static position"))
+        move.addWidget(QtWidgets.QLabel("Move to (sent on Move)"))
         move.addWidget(self.position, 1)
         move.addWidget(self.move_button)
         layout.addLayout(move)

@@ -173,7 +173,7 @@ class LiveView(QtWidgets.QWidget):
         self._counts: collections.deque[tuple[float, int]] = collections.deque()
 
         bar = QtWidgets.QHBoxLayout()
-        bar.addWidget(QtWidgets.QLabel("Window"))
+        bar.addWidget(QtWidgets.QLabel("Window (rig time)"))
         self.window_box = QtWidgets.QComboBox()
         self.window_box.setObjectName("windowBox")
         for w in WINDOWS_S:
