@@ -13,7 +13,7 @@ import numpy as np
 import pyqtgraph as pg
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from identify.notation import at_place, decimal_place, plus_minus, rounded, significant, unit_text
+from identify.notation import plus_minus, rounded, significant, unit_text
 from identify.result import CORRELATION_REPORT, RELATIVE_STD_WARNING
 from rig.gui.fits import FitSummary
 from rig.gui.plotting import labelled
@@ -28,9 +28,9 @@ NOT_MOVED = "#fff59d"           # an estimate within one σ of where it started:
 def fill_parameter_table(table: QtWidgets.QTableWidget, doc: dict[str, Any]) -> list[str]:
     """The estimated parameters of a RESULT.json document, each value to its std's decimal
     place (σ to two significant digits, identify.notation) and its unit in Unicode;
-    returns its warnings plus one line per strongly correlated pair.  The start is written to
-    the value's decimal place and the move from it in σ: an estimate within one σ of its
-    start is marked, for it cannot be told from one the fit never moved."""
+    returns its warnings plus one line per strongly correlated pair.  Beside the start (as
+    given) the move from it in σ: an estimate within one σ of its start is marked and
+    warned about, for it cannot be told from one the fit never moved."""
     params = {k: p for k, p in doc.get("parameters", {}).items() if p.get("estimated")}
     table.setRowCount(len(params))
     warnings = list(doc.get("warnings", []))
@@ -42,14 +42,14 @@ def fill_parameter_table(table: QtWidgets.QTableWidget, doc: dict[str, Any]) -> 
         shown, sigma = rounded(value, std)
         moved_sigma = (value - start) / std if usable and start is not None else math.nan
         still = abs(moved_sigma) <= 1.0
-        start_text = ("" if start is None else at_place(start, decimal_place(std)) if usable
-                      else significant(start, 6))
-        moved = "–" if math.isnan(moved_sigma) else f"{significant(moved_sigma)} σ" + (" (not moved)" if still else "")
+        start_text = "" if start is None else f"{start:.6g}"      # as the operator or the model gave it
+        moved = "–" if math.isnan(moved_sigma) else f"{significant(moved_sigma)} σ"
         cells = (title, shown, sigma, "–" if math.isnan(rel) else f"{100 * rel:.2g} %", unit_text(p.get("unit", "")),
                  start_text, moved)
         for j, text in enumerate(cells):
             item = QtWidgets.QTableWidgetItem(text)
-            item.setToolTip(text)
+            item.setToolTip(f"{text}: within 1 σ of its start, not told from one never moved" if still and j == 6
+                            else text)
             if j in (1, 2, 3, 5, 6):
                 item.setTextAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
             if rel > RELATIVE_STD_WARNING:
