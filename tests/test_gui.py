@@ -602,3 +602,21 @@ def test_a_controller_lost_mid_run_keeps_the_daq_and_ends_in_a_safe_stop_said_in
     assert "runPlanButton" in motion_disabled(window)       # still: the controller is not read
     closed(qtbot, window)
 
+
+
+def test_a_status_read_that_does_not_come_back_is_not_shown_as_the_rigs_state(qtbot, tmp_path):
+    """A status read waits on the link while a command reconnects (up to the reconnect time):
+    the last answer must not stand on the strip as the rig's state meanwhile.  The poller is
+    stopped here, as a read stuck on the link stops it."""
+    from rig.gui.main_window import SILENT
+
+    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--out", str(tmp_path))
+    connected(qtbot, window)
+    strip = find(window, QtWidgets.QLabel, "stateStrip")
+    qtbot.waitUntil(lambda: "HYDRAULICS OFF" in strip.text(), timeout=HANG_MS)
+    window.station.poller.close()
+    qtbot.waitUntil(lambda: window.status is None, timeout=HANG_MS)
+    assert window.link_error == SILENT and strip.text().startswith("NOT READ") and "HYDRAULICS ?" in strip.text()
+    assert find(window, QtWidgets.QLabel, "controller_state").text() == "no answer"
+    assert "runPlanButton" in motion_disabled(window)
+    closed(qtbot, window)

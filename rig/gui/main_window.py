@@ -63,6 +63,10 @@ LOGGED_EVENTS = (Kind.SESSION_START, Kind.PHASE, Kind.EXPERIMENT_DONE, Kind.EXPE
                  Kind.LINK, Kind.SESSION_END)
 ESTOP_KEYS = ("Esc", "F12")
 GIL_SWITCH_S = 0.0005
+# A status read not answered for this long: the last one is not shown as the rig's state (a read
+# waits on the link's lock while the session's command reconnects, up to reconnect_s, 20 s).
+STALE_READ_S = 2.0
+SILENT = f"no answer to the status read for {STALE_READ_S:g} s (it waits on the link)"
 SIMULATOR_NICE = 5
 
 
@@ -125,6 +129,7 @@ class MainWindow(QtWidgets.QMainWindow):
         self.interrupted_by: int | None = None      # SIGINT or SIGTERM closed the window (exit 130)
         self._closing = False
         self._last_redraw = 0.0
+        self._last_read = time.monotonic()          # when the last status snapshot was taken
         self._last_table = 0.0
         self.setWindowTitle("Damper rig — operator console" + (" — SIMULATED RIG" if self.simulated else ""))
         self._build(args, shaker, daq)
@@ -386,8 +391,10 @@ class MainWindow(QtWidgets.QMainWindow):
             except queue.Empty:
                 break
             self._handle(item)
-        self._show_state()
         now = time.monotonic()
+        if self.status is not None and now - self._last_read > STALE_READ_S:
+            self._controller_silent()
+        self._show_state()
         if self.tabs.currentWidget() is self.live and now - self._last_redraw >= 0.9 / REDRAW_HZ:
             self.live.set_excitation(*self._excitation())
             if self.live.refresh(self.station.live_daq()):
@@ -427,7 +434,18 @@ class MainWindow(QtWidgets.QMainWindow):
         if item.kind in LOGGED_EVENTS:
             self._log_event(item)
 
+    def _controller_silent(self) -> None:
+        """No snapshot for a while though the controller was being read: what it said last
+        is no longer its state (the DAQ line keeps its last counts: the same read is late)."""
+        self._say(f"controller not read: {SILENT}", "error")
+        self.status, self.link_error = None, SILENT
+        if self.plan.progress is not None:
+            self.plan.progress.unread = SILENT
+        self.controller.show_snapshot(Snapshot(None, SILENT))
+        self._show_banner()
+
     def _on_snapshot(self, item: Snapshot) -> None:
+        self._last_read = item.time
         was = self.status
         if item.error is not None and item.error != self.link_error:
             # the driver's own words, once, here; the strip, the banner and the panel say it in one line
