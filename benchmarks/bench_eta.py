@@ -11,6 +11,16 @@ session's last line said it took.
     python benchmarks/bench_eta.py                       # QC's default plan at 10x, 0 and 1 busy cores
     python benchmarks/bench_eta.py --busy 0,1,2 --runs 2 --speed 10
     python benchmarks/bench_eta.py --plan standard --experiments e,j --speed 50
+
+One prediction (issue 34): ``--three-figures standard`` or ``--three-figures designed``
+prints, side by side, ``rig design``'s prediction (``--target theta4,theta6,theta16
+--no-worse-than standard``, its links' pace measured on the served simulator with
+``--shaker/--daq``: the standard plan's figure is the reference it prints, the
+designed plan's its own), ``rig run``'s announcement of that plan and the rig time the
+simulator counted (target: each within ±10 % of the real one).
+
+    python benchmarks/bench_eta.py --three-figures standard     # ~3 min of wall clock at 10x
+    python benchmarks/bench_eta.py --three-figures designed
 """
 
 from __future__ import annotations
@@ -61,13 +71,14 @@ def busy_cores(n: int) -> list[subprocess.Popen]:
     return [subprocess.Popen([sys.executable, "-c", "while 1: pass"]) for _ in range(n)]
 
 
-def run_once(plan: str, experiments: str | None, speed: float, busy: int, seed: int, nice: int) -> dict:
+def run_once(plan: str, experiments: str | None, speed: float, busy: int, seed: int, nice: int,
+             unit: str | None = None) -> dict:
     from rig.virtual import VirtualRig
 
     load = busy_cores(busy)
     try:
         with (tempfile.TemporaryDirectory(prefix="bench-eta-") as tmp,
-              VirtualRig(speed=speed, seed=seed, nice=nice) as sim):
+              VirtualRig(speed=speed, seed=seed, nice=nice, unit=unit, unit_seed=seed if unit else None) as sim):
             links = ["--shaker", sim.modbus_url, "--daq", sim.daq_url]
             if plan == "qc":      # what the console's QC tab runs: qc run, the default spec
                 cmd = [sys.executable, "-m", "rig", "qc", "run", "--spec", "default", "--serial", "SN-0001",
@@ -96,6 +107,39 @@ def run_once(plan: str, experiments: str | None, speed: float, busy: int, seed: 
             p.wait()
 
 
+DESIGNED = re.compile(r": \d+ experiments?, (\d+) s of rig time predicted \(standard: (\d+) s\)")
+THREE_TARGET = 0.10
+
+
+def three_figures(which: str, speed: float, seed: int, nice: int) -> dict:
+    """``rig design``'s prediction, ``rig run``'s announcement and the simulator's count
+    of the rig time, for the standard or the designed lab plan, on one served simulator."""
+    from rig.virtual import VirtualRig
+
+    with (tempfile.TemporaryDirectory(prefix="bench-eta-") as tmp,
+          VirtualRig(speed=speed, seed=seed, nice=nice) as sim):
+        links = ["--shaker", sim.modbus_url, "--daq", sim.daq_url]
+        lab = Path(tmp) / "lab.toml"
+        design = subprocess.run([sys.executable, "-m", "rig", "design", "--target", "theta4,theta6,theta16",
+                                 "--no-worse-than", "standard", *links, "--out", str(lab)],
+                                capture_output=True, text=True, cwd=ROOT, timeout=3600)
+        found = DESIGNED.search(design.stdout)
+        if design.returncode != 0 or found is None:
+            raise SystemExit(f"rig design exit {design.returncode}:\n{(design.stdout + design.stderr)[-3000:]}")
+        predicted = float(found[2] if which == "standard" else found[1])
+        plan = "standard" if which == "standard" else str(lab)
+        r = subprocess.run([sys.executable, "-m", "rig", "run", "--plan", plan, *links, "--out",
+                            str(Path(tmp) / "s")], capture_output=True, text=True, cwd=ROOT, timeout=3600)
+        sim.stop()
+        said = r.stdout + r.stderr
+        announced = ANNOUNCED.search(said)
+        if r.returncode != 0 or announced is None:
+            raise SystemExit(f"rig run exit {r.returncode}:\n{said[-3000:]}")
+        basis = design.stdout.splitlines()[0]
+        return {"design_s": predicted, "announced_s": int(announced[1]) * 60 + int(announced[2]),
+                "real_s": sim.rig_time_s(), "basis": basis}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--plan", default="qc",
@@ -106,15 +150,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--nice", type=int, default=5,
                     help="the simulator's niceness (default 5, as rig gui --simulate starts it)")
     ap.add_argument("--runs", type=int, default=1, help="runs per case")
+    ap.add_argument("--unit", help="--plan qc: a production unit of the simulator (good, gas-leak, worn-seal, "
+                                   "worn-orifice)")
+    ap.add_argument("--three-figures", choices=("standard", "designed"),
+                    help="rig design's prediction, rig run's announcement and the real rig time of this plan")
     args = ap.parse_args(argv)
-    print(f"plan {args.plan}{' ' + args.experiments if args.experiments else ''} on "
+    if args.three_figures:
+        f = three_figures(args.three_figures, args.speed, seed=1, nice=args.nice)
+        print(f"{args.three_figures} plan on simulator serve at {args.speed:g}x (nice {args.nice}); "
+              f"target: each within ±{THREE_TARGET:.0%} of the real rig time")
+        print(f"  {f['basis']}")
+        print(f"{'rig design':>12} {'rig run':>12} {'real':>8}   {'design/real':>11} {'run/real':>9}")
+        print(f"{f['design_s']:>11.0f}s {f['announced_s']:>11.0f}s {f['real_s']:>7.1f}s   "
+              f"{f['design_s'] / f['real_s'] - 1:>+11.1%} {f['announced_s'] / f['real_s'] - 1:>+9.1%}")
+        return 0
+    print(f"plan {args.plan}{' ' + args.experiments if args.experiments else ''}"
+          f"{' unit ' + args.unit if args.unit else ''} on "
           f"simulator serve at {args.speed:g}x (nice {args.nice}); target: announced within ±{TARGET:.0%} of taken")
     print(f"{'busy':>4} {'run':>3} {'pace':>6} {'announced':>9} {'taken':>7} {'error':>7} {'rig said':>8} "
           f"{'after 1st':>9}")
     worst = 0.0
     for busy in (int(b) for b in args.busy.split(",")):
         for run in range(args.runs):
-            f = run_once(args.plan, args.experiments, args.speed, busy, seed=run + 1, nice=args.nice)
+            f = run_once(args.plan, args.experiments, args.speed, busy, seed=run + 1, nice=args.nice, unit=args.unit)
             error = f["announced_s"] / f["taken_s"] - 1
             worst = max(worst, abs(error))
             print(f"{busy:>4} {run + 1:>3} {f['pace']:>6.3g} {f['announced_s']:>8.0f}s {f['taken_s']:>6.0f}s "

@@ -39,6 +39,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from identify.files import atomic_write_bytes  # noqa: E402
+from identify.plans import STANDARD_SET  # noqa: E402
 from tests.sigma_calibration import ESTIMATE, GENERATORS, Case, fit_seed, summarise, warm  # noqa: E402
 
 SPREAD_TARGET = (0.8, 1.25)
@@ -103,7 +104,10 @@ def main() -> int:
     if args.record:
         ratios = [r for row in rows for r in row["spread_over_sigma"].values()]
         doc = {"what": "spread of Monte-Carlo estimates / mean reported standard deviation",
-               "model": "2dof", "estimated": list(ESTIMATE), "seeds": args.seeds,
+               # the scope a fit report quotes it in (identify.result): model, plan, estimated
+               "model": "2dof", "plan": "standard",
+               "plan_frequencies_hz": sorted(e.frequency_hz for e in STANDARD_SET),
+               "estimated": list(ESTIMATE), "seeds": args.seeds,
                "spread_over_sigma_range": [min(ratios), max(ratios)], "cases": rows,
                "date": _dt.date.today().isoformat(),
                "command": f"python benchmarks/bench_sigma.py --seeds {args.seeds} --record"}

@@ -40,6 +40,19 @@ def plus_minus(value: float, std: float | None, unit: str = "") -> str:
     return text + suffix
 
 
+def expanded(value: float, std: float, k: float, unit: str = "") -> tuple[str, str]:
+    """A value with its expanded uncertainty k·σ, and σ, printed so that they agree:
+    ("6.005 ± 0.042 bar", "0.021 bar") for σ 0.0205 and k 2 — σ to two significant digits,
+    k times that σ and the value to σ's decimal place.  Rounding σ and k·σ each on its own
+    printed "6.005 ± 0.041" beside "0.021", which no reader can multiply back."""
+    suffix = f" {unit_text(unit)}" if unit else ""
+    if not _has_std(value, std):
+        return f"{value:.6g}{suffix}", "—"
+    place = decimal_place(std)
+    sigma = at_place(std, place)
+    return f"{at_place(value, place)} ± {at_place(k * float(sigma), place)}{suffix}", f"{sigma}{suffix}"
+
+
 def rounded(value: float, std: float | None) -> tuple[str, str]:
     """The value and its std as two table cells, both to the std's decimal place:
     ("5.909", "0.041"). Without a usable std: the value to six significant digits, "—"."""

@@ -321,7 +321,7 @@ class FitResult:
                          f"one random draw ({count}), is itself uncertain by about "
                          f"±{100 / math.sqrt(2 * max(effective - len(self.estimated), 1)):.0f} %, "
                          f"and does not cover a bias the model error may cause")
-        calibration = _calibration_line(self.model)
+        calibration = _calibration_line(self.model, [e.frequency_hz for e in self.experiments], self.estimated)
         if any(e.capture == "transient" for e in self.experiments):
             # That calibration is of periodic fits; the transient fit's σ has its own check.
             calibration = ("    σ of a transient fit: its Monte-Carlo check is benchmarks/bench_transient.py "
@@ -373,19 +373,29 @@ def _relative(value: float, std: float) -> str:
     return f" ({100 * std / abs(value):.2g} %)"
 
 
-def _calibration_line(model: str) -> str | None:
-    """What the Monte-Carlo calibration on record (CALIBRATION_FILE) says about σ, if any."""
+def _calibration_line(model: str, frequencies_hz: Sequence[float], estimated: Sequence[str]) -> str | None:
+    """What the Monte-Carlo calibration on record (CALIBRATION_FILE) says about σ, scoped
+    to where it was validated: the model, the plan (its experiments' frequencies) and the
+    parameters estimated it names.  A fit outside that scope is told "not validated"."""
     try:
         doc = json.loads(CALIBRATION_FILE.read_text(encoding="utf-8"))
         lo, hi = doc["spread_over_sigma_range"]
-        seeds, calibrated = int(doc["seeds"]), str(doc["model"])
+        seeds, calibrated, plan = int(doc["seeds"]), str(doc["model"]), str(doc["plan"])
+        plan_hz, names = sorted(float(f) for f in doc["plan_frequencies_hz"]), [str(n) for n in doc["estimated"]]
     except (OSError, ValueError, KeyError, TypeError):
         return None
-    if calibrated != model:
-        return (f"    σ not validated by Monte-Carlo for model {model} (the calibration on record is for model "
-                f"{calibrated}: benchmarks/bench_sigma.py, docs/uncertainty.md)")
-    return (f"    σ validated by Monte-Carlo, {seeds} seeds per case: spread/σ {lo:.2f}–{hi:.2f} "
-            f"({', '.join(doc.get('estimated', []))}; benchmarks/bench_sigma.py, docs/uncertainty.md)")
+    scope = (f"model {calibrated}, the {plan} plan ({len(plan_hz)} experiments), {', '.join(names)} estimated, "
+             f"{seeds} seeds per case")
+    same_plan = np.allclose(sorted(frequencies_hz), plan_hz) if len(frequencies_hz) == len(plan_hz) else False
+    if calibrated == model and same_plan and sorted(estimated) == sorted(names):
+        return (f"    σ validated by Monte-Carlo for {scope}: spread/σ {lo:.2f}–{hi:.2f} (benchmarks/bench_sigma.py, "
+                f"docs/uncertainty.md)")
+    differs = [what for what, same in (
+        (f"model {model}", calibrated == model),
+        (f"{len(frequencies_hz)} experiment{'s' if len(frequencies_hz) != 1 else ''} not the {plan} plan", same_plan),
+        (f"{', '.join(estimated)} estimated", sorted(estimated) == sorted(names))) if not same]
+    return (f"    σ not validated by Monte-Carlo for this fit ({'; '.join(differs)}): the calibration on record "
+            f"covers {scope} only (docs/uncertainty.md)")
 
 
 def _finite(x: float) -> float | None:

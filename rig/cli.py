@@ -251,6 +251,9 @@ def build_parser() -> argparse.ArgumentParser:
     des.add_argument("--params", help="--target, --predict: prior parameter values (START.json; default: nominal)")
     des.add_argument("--rig-config", help="limits, criteria and transducer noise TOML (default: rig-default.toml)")
     des.add_argument("--out", required=True, help="the plan file to write")
+    des.add_argument("--shaker", help="with --daq: measure these links' pace and latencies now (nothing moves) and "
+                                      "predict the rig time at them (default: the last measured on this computer)")
+    des.add_argument("--daq", help="with --shaker (see there)")
     des.set_defaults(func=cmd_design)
 
     add_qc_parser(sub)

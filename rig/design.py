@@ -59,7 +59,8 @@ from rig.config import RigConfig, load_rig_config
 from rig.drivers.shaker import check_waveform
 from rig.errors import BadInput
 from rig.planning.imposed import imposed_stroke
-from rig.planning.plans import Plan, check_plan, estimate_experiment_durations, load_plan
+from rig.planning.plans import Plan, check_plan, load_plan
+from rig.planning.prediction import NOT_MEASURED, LinkTiming, last_measured, predict, predict_s
 
 # The candidate grid: the standard set's static positions, amplitudes and frequencies.
 STATIC_MM = (14.0, 40.0, 79.0, 133.0, 179.0, 219.0, 249.0)
@@ -99,6 +100,7 @@ class Designed:
     reference: tuple[str, np.ndarray, float] | None   # name, σ, rig time
     candidates: tuple[ExperimentSpec, ...]
     design_s: float
+    timing: LinkTiming = NOT_MEASURED   # the links' the rig times were predicted on
 
 
 def candidate_specs(config: RigConfig) -> list[ExperimentSpec]:
@@ -147,12 +149,14 @@ def informations(goal: Goal, specs: Sequence[ExperimentSpec], config: RigConfig,
     return kept, info
 
 
-def rig_seconds(plan: Plan, config: RigConfig, params: Parameters) -> float:
-    """Predicted rig time of a plan run in its order (rig.planning.plans, as the session's ETA)."""
-    return sum(d.total_s for d in estimate_experiment_durations(plan.ordered(config), config, 0.0, params))
+def rig_seconds(plan: Plan, config: RigConfig, params: Parameters, timing: LinkTiming = NOT_MEASURED) -> float:
+    """Predicted rig time of a plan run in its order on links of this ``timing``
+    (rig.planning.prediction: the session's announcement is the same function)."""
+    return predict_s(plan.ordered(config), config, timing, 0.0, params)
 
 
-def standalone_seconds(specs: Sequence[ExperimentSpec], config: RigConfig, params: Parameters) -> np.ndarray:
+def standalone_seconds(specs: Sequence[ExperimentSpec], config: RigConfig, params: Parameters,
+                       timing: LinkTiming = NOT_MEASURED) -> np.ndarray:
     """Each experiment's predicted rig time from rest at the start, less its capture: the
     optimiser's quick estimate to shortlist by.  One prediction for all: each experiment
     follows a barely moving one at the start position, whose periodic state is the
@@ -160,7 +164,7 @@ def standalone_seconds(specs: Sequence[ExperimentSpec], config: RigConfig, param
     rest = ExperimentSpec("r", "", 0.0, 0.01, 2.0)
     sequence = tuple(x for k, e in enumerate(specs)
                      for x in (replace(rest, letter=f"r{k}"), replace(e, letter=f"c{k}")))
-    durations = estimate_experiment_durations(Plan("alone", sequence), config, 0.0, params, noise_draws=0)
+    durations = predict(Plan("alone", sequence), config, timing, 0.0, params, noise_draws=0)
     return np.array([d.total_s - d.capture_s for d in durations[1::2]])
 
 
@@ -177,9 +181,10 @@ def _plan(name: str, specs: Sequence[ExperimentSpec], choices: Sequence[Choice],
 
 
 def design(goal: Goal, config: RigConfig, reference: Plan | None, name: str,
-           no_worse_than: bool = False) -> Designed:
+           no_worse_than: bool = False, timing: LinkTiming = NOT_MEASURED) -> Designed:
     """The least-rig-time plan from the candidates that meets the goal's targets (or,
-    ``no_worse_than``, the reference plan's σ)."""
+    ``no_worse_than``, the reference plan's σ), its rig time predicted on links of this
+    ``timing`` (a simulator's pace changes which holds pay, and so the plan)."""
     t0 = time.perf_counter()
     specs = list(goal.required) + candidate_specs(config)
     specs, info = informations(goal, specs, config)
@@ -195,7 +200,7 @@ def design(goal: Goal, config: RigConfig, reference: Plan | None, name: str,
                            f"a periodic solution at the prior parameters")
         ref_sigma = sigmas(covariance([(i, e.periods) for i, e in zip(ref_info, ref_specs, strict=True)]),
                            goal.quantities)
-        reference_figures = (reference.name, ref_sigma, rig_seconds(reference, config, goal.params))
+        reference_figures = (reference.name, ref_sigma, rig_seconds(reference, config, goal.params, timing))
         if no_worse_than:
             targets = ref_sigma
     prior = _prior_precision(goal)
@@ -204,9 +209,9 @@ def design(goal: Goal, config: RigConfig, reference: Plan | None, name: str,
     def cost(seq: Sequence[Choice]) -> float:
         plan = Plan("trial", tuple(replace(specs[c.candidate], letter=f"x{k}", periods=c.periods)
                                    for k, c in enumerate(seq)), "", "fixed")
-        return sum(d.total_s for d in estimate_experiment_durations(plan, config, 0.0, goal.params, noise_draws=3))
+        return predict_s(plan, config, timing, 0.0, goal.params, noise_draws=3)
 
-    alone = standalone_seconds(specs, config, goal.params)
+    alone = standalone_seconds(specs, config, goal.params, timing)
 
     def estimate(seq: Sequence[Choice]) -> float:
         return sum(alone[c.candidate] + c.periods / specs[c.candidate].frequency_hz for c in seq)
@@ -221,8 +226,8 @@ def design(goal: Goal, config: RigConfig, reference: Plan | None, name: str,
     assert not problems, problems   # every candidate passed check_waveform
     sigma = sigmas(covariance([(info[c.candidate], c.periods) for c in found.choices]), goal.quantities)
     met = bool(np.all(sigma <= targets * (1 + 1e-9)))
-    return Designed(plan, sigma, rig_seconds(plan, config, goal.params), met, reference_figures, tuple(specs),
-                    time.perf_counter() - t0)
+    return Designed(plan, sigma, rig_seconds(plan, config, goal.params, timing), met, reference_figures, tuple(specs),
+                    time.perf_counter() - t0, timing)
 
 
 def _prior_precision(goal: Goal) -> np.ndarray:
@@ -379,6 +384,7 @@ def plan_text(designed: Designed, goal: Goal, command: str) -> str:
                           f"{designed.sigma[k] / scale:.3g} {unit}", f"{ref} {unit}" if ref else ""))
     ref_time = f"{designed.reference[2]:.0f} s" if designed.reference else ""
     lines.append(_row("rig time (predicted)", "", f"{designed.rig_s:.0f} s", ref_time))
+    lines.append(f"# rig time predicted {designed.timing.describe()}")
     if goal.risks:
         lines += ["#", "# The risk that remains:"] + [f"# - {r}" for r in goal.risks]
     lines += ["#", f'name = "{designed.plan.name}"',
@@ -431,7 +437,16 @@ def run_design(args: object) -> int:
     out = Path(a["out"])
     if not out.parent.is_dir():
         raise BadInput(f"--out {out}: folder {out.parent} does not exist")
-    designed = design(goal, config, reference, name, no_worse_than=bool(a["no_worse_than"]))
+    if bool(a.get("shaker")) != bool(a.get("daq")):
+        raise BadInput("design: --shaker and --daq go together (the links whose pace the rig time is predicted at)")
+    if a.get("shaker"):
+        from rig.session.run import probe_timing  # the links only this form needs
+
+        timing = probe_timing(a["shaker"], a["daq"], config)
+    else:
+        timing = last_measured()
+    print(f"rig time predicted {timing.describe()}", flush=True)
+    designed = design(goal, config, reference, name, no_worse_than=bool(a["no_worse_than"]), timing=timing)
     command = shlex.join(["python", "-m", "rig", *a["argv"]])
     atomic_write_bytes(out, plan_text(designed, goal, command).encode())
     print(f"{out}: {len(designed.plan.experiments)} experiment{'s' if len(designed.plan.experiments) != 1 else ''}, "

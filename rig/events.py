@@ -45,6 +45,8 @@ class Kind(StrEnum):
     EXPERIMENT_FAILED = "experiment-failed"  # message: skipped after an alarm (--on-alarm skip)
     ALARM = "alarm"                          # message: the controller's alarm, as it ended the experiment
     LINK = "link"                            # link ("controller", "DAQ"), state (LinkCondition), message
+    PREDICTION = "prediction"                # rig_time_left_s: the rest of the plan predicted again (rig
+    #                                          seconds), basis (what it was predicted from), message
     LOG = "log"                              # message: anything else worth a line
     SESSION_END = "session-end"              # message: the status written to session.json; exit_code
 
@@ -57,6 +59,7 @@ FIELDS: dict[Kind, tuple[str, ...]] = {
     Kind.EXPERIMENT_FAILED: ("message",),
     Kind.ALARM: ("message",),
     Kind.LINK: ("link", "state", "message"),
+    Kind.PREDICTION: ("rig_time_left_s", "basis", "message"),
     Kind.LOG: ("message",),
     Kind.SESSION_END: ("message", "exit_code"),
 }

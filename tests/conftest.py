@@ -7,7 +7,12 @@ import os
 os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")  # before any Qt import: CI has no display
 
 import shutil
+import tempfile
 from pathlib import Path
+
+# Sessions keep the links' measured timing for the next rig design (rig.planning.prediction):
+# the tests' sessions keep theirs here, never in the developer's own state.
+os.environ["XDG_STATE_HOME"] = tempfile.mkdtemp(prefix="damper-rig-tests-state-")
 
 import pytest
 

@@ -332,8 +332,11 @@ def test_a_modbus_link_gone_for_good_aborts_and_the_watchdog_stops_the_shaker(vr
                              f"hydraulics off: {LINK_STILL_GONE}): the controller's watchdog stops the shaker once "
                              "this program has let go")
     log = vrig.messages()
-    assert f"safe stop: status unreadable ({LINK_GONE})" in log and log[-1] == \
+    assert f"safe stop: status unreadable ({LINK_GONE})" in log and vrig.messages("log")[-1] == \
         "safe stop incomplete: 2 of 3 steps failed"
+    # then the state is read once more, and what is said is that it could not be
+    idle = [e for _, e in vrig.events if e.kind == "phase" and e.data["phase"] == "idle"]
+    assert idle[-1].data["controller"] is None and LINK_STILL_GONE.split(" (")[0] in idle[-1].data["unread"]
     assert not vrig.sim.daq.streaming                  # the DAQ, on its own link, was stopped
     c = vrig.sim.controller
     assert (c.state, c.alarm) == (State.ALARM, Alarm.WATCHDOG)   # no heartbeat got through

@@ -223,8 +223,8 @@ def test_flat_directions_print_no_meaningless_digits_and_calibration_is_scoped()
     assert _with_std(0.0, 2.8e16) == "0"
     assert "×10" not in _with_std(1.0, 1.0e6)
     assert _with_std(56.1, 2.3) == "56.1 ± 2.3"
-    line = _calibration_line("dahl") or ""
-    assert "not validated by Monte-Carlo for model dahl" in line and "spread/σ" not in line
+    line = _calibration_line("dahl", [0.5, 1.0], ["sigma0"]) or ""   # scoped by model, plan and parameters (#34)
+    assert "σ not validated by Monte-Carlo for this fit (model dahl;" in line and "spread/σ" not in line
 
 
 def test_a_grid_finer_than_the_records_is_refused_for_a_model_taking_input_derivatives(tmp_path):

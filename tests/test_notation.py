@@ -42,3 +42,13 @@ def test_units_are_shown_as_people_write_them(declared, shown):
                                              (13.98, "14"), (-0.0456, "-0.046"), (0.0, "0")])
 def test_a_number_without_uncertainty_keeps_two_significant_digits_and_no_exponent(value, text):
     assert significant(value) == text
+
+
+def test_an_expanded_uncertainty_is_k_times_the_sigma_shown_beside_it():
+    """'6.005 ± 0.041 bar' was printed beside σ '0.021 bar' (each rounded on its own)."""
+    from identify.notation import expanded
+
+    assert expanded(6.00512, 0.0205, 2.0, "bar") == ("6.005 ± 0.042 bar", "0.021 bar")
+    assert expanded(344.12, 2.04, 2.0, "N") == ("344.1 ± 4.0 N", "2.0 N")
+    assert expanded(65.61234, 0.5123, 2.0, "J") == ("65.61 ± 1.02 J", "0.51 J")
+    assert expanded(1.5, float("nan"), 2.0, "N") == ("1.5 N", "—")

@@ -217,9 +217,10 @@ def test_a_characteristic_is_shown_by_its_uncertainty_with_units():
     c = CharacteristicRecord("dissipated_energy_J", "J", 65.61234, 0.5123, 0.2, 0.5, 67.4645, 91.2755, 79.37, "FAIL",
                              "Energy dissipated per cycle", "scatter")
     s = shown(rec, c)
-    assert s.value == "65.6 ± 1.0 J" and s.sigma == "0.51 J" and s.basis == "period scatter"
+    # k·σ is k times the σ shown (2 × 0.51), both at σ's place: 65.6 ± 1.0 beside 0.51 read as a slip
+    assert s.value == "65.61 ± 1.02 J" and s.sigma == "0.51 J" and s.basis == "period scatter"
     assert s.limits == "79.37 J ± 15 %"                       # as the spec states them, not 67.4645 … 91.2755
-    assert s.acceptance == "68.5 … 90.3 J"                    # the limits moved in by 2σ, at the value's place
+    assert s.acceptance == "68.49 … 90.25 J"                  # the limits moved in by 2σ, at the value's place
     assert s.title == "Energy dissipated per cycle" and s.name == "dissipated_energy_J"
     assert limits_text(120.0, 60.0, 150.0, "N") == "60 … 150 N" and limits_text(0.0, None, 3.0, "m^2") == "≤ 3 m²"
 

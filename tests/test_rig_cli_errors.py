@@ -49,7 +49,11 @@ CASES = {
     "daq scheme": (dict(daq="sokcet://127.0.0.1:5021"), [], 2, "unknown scheme 'sokcet'"),
     "daq without port": (dict(daq="socket://127.0.0.1"), [], 2, "expected socket://HOST:PORT"),
     "daq slashes": (dict(daq="socket:/127.0.0.1:5021"), [], 2, "'socket:/127.0.0.1:5021': not a device path nor a URL"),
-    "missing plan": ({}, ["--plan", "no/such/plan.toml"], 2, "plan no/such/plan.toml: cannot be read"),
+    "missing plan": ({}, ["--plan", "no/such/plan.toml"], 2, "plan 'no/such/plan.toml': no such plan and no such "
+                                                              "file; the plans: standard (built in), or the path"),
+    "misspelt plan": ({}, ["--plan", "standrad"], 2, "plan 'standrad': no such plan and no such file (did you mean "
+                                                     "'standard'?); the plans: standard (built in), or the path of a "
+                                                     "plan TOML file"),
     "unknown letter": ({}, ["--experiments", "a,z"], 2, "has no experiment z"),
     "zero periods": ({}, ["--periods", "0"], 2, "--periods: 0: must be at least 1"),
     "negative periods": ({}, ["--periods", "-2"], 2, "--periods: -2: must be at least 1"),
@@ -144,7 +148,8 @@ def test_swapped_addresses_are_named_in_one_line_and_the_simulator_goes_on(virtu
     shaker, daq = sim.daq_url.replace("socket://", "tcp://"), sim.modbus_url.replace("tcp://", "socket://")
     r, out = rig_run(tmp_path, "--rig-config", str(config), shaker=shaker, daq=daq)
     assert r.returncode == 3 and "Traceback" not in r.stderr, r.stderr
-    (line,) = r.stderr.strip().splitlines()
+    first, line = r.stderr.strip().splitlines()     # the first line, said at once (#34), then the error's one
+    assert first.startswith("plan standard: 14 experiments") and first.endswith(f"the DAQ at {daq}")
     assert line == (f"error: the two addresses look swapped: at the controller's address {shaker} a DAQ answered "
                     f"(DAQ4,SIM0001,1.00,SIMULATOR), at the DAQ's address {daq} a Modbus controller in state OFF "
                     "answered; nothing was moved")
@@ -195,7 +200,8 @@ def test_a_daq_cut_at_the_first_start_is_one_line_and_on_record(virtual_rig, tmp
     # one experiment: no thermal ordering to compute (seconds of CPU that a loaded host stretches)
     r, out = rig_run(tmp_path, "--rig-config", str(config), "--experiments", "j", shaker=sim.modbus_url, daq=daq.url)
     assert r.returncode == 3 and "Traceback" not in r.stderr, r.stderr
-    lines = r.stderr.strip().splitlines()
-    assert len(lines) == 1 and "link lost during 'START'" in lines[0], r.stderr
+    lines = r.stderr.strip().splitlines()   # the first line, said at once (#34), then the error's one
+    assert len(lines) == 2 and lines[0].startswith("plan standard: 1 experiment as listed; connecting"), r.stderr
+    assert "link lost during 'START'" in lines[1], r.stderr
     status = json.loads((out / "session.json").read_text())["status"]
     assert status.startswith("aborted: DAQ at ") and status.endswith("(before anything moved)"), status

@@ -85,9 +85,12 @@ def test_line_faults_are_counted_exactly_and_the_capture_recaptured_or_flagged(v
     r = run_rig(sim, out, "--experiments", "j")
     assert r.returncode == 0, r.stderr[-3000:]
     # a simulator at 50x: the console says so, and what it means for the holds
-    assert re.search(r"the links run [\d.]+ rig seconds per second: conditioning holds shorter than \d+ s", r.stderr)
-    assert re.search(r"session took \d+:\d\d min:s of wall clock at [\d.]+ rig seconds per second, about \d+:\d\d "
-                     r"min:s of rig time; announced \d+:\d\d", r.stderr), r.stderr[-2000:]
+    assert re.search(r"the links run [\d.]+ rig seconds per second of this computer's clock \(the DAQ's sample count "
+                     r"over the pace probe's 5 short streams before the first experiment\): conditioning holds "
+                     r"shorter than \d+ s", r.stderr)
+    assert re.search(r"session took \d+:\d\d min:s of this computer's clock; at [\d.]+ rig seconds per second of "
+                     r"this computer's clock \(the DAQ's sample count over \d+ s of this session's streams that ended "
+                     r"as planned\), about \d+:\d\d min:s of rig time; announced \d+:\d\d", r.stderr), r.stderr[-2000:]
     sim.stop()
     (entry,) = manifest(out)["experiments"]
     assert sim.lost_frames() > 500
@@ -276,8 +279,9 @@ def test_the_console_says_the_rig_time_taken_at_the_pace_the_session_measured_la
     now[0] += 11.0
     pace[0] = 10.0
     progress(Event("session-end"))
-    assert "session took 0:11 min:s of wall clock at 10 rig seconds per second, about 1:50 min:s of rig time; " \
-           "announced 1:50" in out.getvalue(), out.getvalue()
+    assert "session took 0:11 min:s of this computer's clock; at 10 rig seconds per second of this computer's " \
+           "clock (the DAQ's sample count over the pace given), about 1:50 min:s of rig time; announced 1:50" \
+           in out.getvalue(), out.getvalue()
 
 
 def test_the_eta_trusts_the_experiments_done_as_far_as_they_are_the_session():

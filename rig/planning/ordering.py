@@ -24,18 +24,25 @@ EXACT_UP_TO = 16    # 2^16 subsets × 16² steps: about a second
 Durations = Callable[[Sequence[ExperimentSpec]], Sequence[float]]
 
 
-def transition_costs(experiments: Sequence[ExperimentSpec], durations: Durations) -> tuple[np.ndarray, np.ndarray]:
+# Told (predecessors done, of how many) as the costs are predicted: seconds of CPU for
+# the standard plan, which the terminal must not spend in silence.
+Progress = Callable[[int, int], object]
+
+
+def transition_costs(experiments: Sequence[ExperimentSpec], durations: Durations,
+                     progress: Progress | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Predicted rig time [s] of each experiment first (from rest), and of j right after i."""
     n = len(experiments)
     first = np.array([durations((e,))[0] for e in experiments])
-    # Every pair (i, j) as a two-experiment stretch of one long sequence: j's lead-in starts
-    # from i's periodic state; what i inherits from the pair before it is not read.
-    pairs = [(i, j) for i in range(n) for j in range(n) if i != j]
-    sequence = tuple(replace(experiments[k], letter=f"{k}.{p}") for p, ij in enumerate(pairs) for k in ij)
-    times = durations(sequence)
     after = np.full((n, n), np.inf)
-    for p, (i, j) in enumerate(pairs):
-        after[i, j] = times[2 * p + 1]
+    for i in range(n):
+        # Every successor j of i as a two-experiment stretch of one sequence: j's lead-in
+        # starts from i's periodic state; what i inherits from the pair before it is not read.
+        js = [j for j in range(n) if j != i]
+        sequence = tuple(replace(experiments[k], letter=f"{k}.{p}") for p, j in enumerate(js) for k in (i, j))
+        after[i, js] = np.asarray(durations(sequence))[1::2]
+        if progress is not None:
+            progress(i + 1, n)
     return first, after
 
 
@@ -76,7 +83,8 @@ def quickest_order(first: np.ndarray, after: np.ndarray) -> list[int]:
     return order[::-1]
 
 
-def thermal_order(experiments: Sequence[ExperimentSpec], durations: Durations) -> tuple[ExperimentSpec, ...]:
+def thermal_order(experiments: Sequence[ExperimentSpec], durations: Durations,
+                  progress: Progress | None = None) -> tuple[ExperimentSpec, ...]:
     """The experiments in the order of least predicted rig time."""
-    first, after = transition_costs(experiments, durations)
+    first, after = transition_costs(experiments, durations, progress)
     return tuple(experiments[k] for k in quickest_order(first, after))

@@ -19,7 +19,7 @@ from rig.config import RigConfig
 from rig.drivers.shaker import check_waveform
 from rig.errors import BadInput
 from rig.planning.criterion import first_block_s
-from rig.planning.ordering import thermal_order
+from rig.planning.ordering import Progress, thermal_order
 from rig.planning.settling import DRIFT_DRAWS, PAUSE_S, Conditioning, Hold, move_duration_s, predict_settling
 from rig.tomlfile import read_toml
 
@@ -32,6 +32,7 @@ class PlanError(BadInput):
 
 
 ORDERS = ("thermal", "fixed")
+BUILT_IN = ("standard",)    # plans known by name (load_plan); any other is a file
 
 
 @dataclass(frozen=True)
@@ -54,10 +55,11 @@ class Plan:
                             f"(letters: {', '.join(by_letter)})")
         return replace(self, experiments=tuple(by_letter[x] for x in letters))
 
-    def ordered(self, config: RigConfig, start_position_m: float = 0.0) -> Plan:
+    def ordered(self, config: RigConfig, start_position_m: float = 0.0, progress: Progress | None = None) -> Plan:
         """The plan in the order it runs: as listed when ``order = "fixed"``, else the
         order of least predicted rig time from rest at ``start_position_m`` (seconds of CPU
-        for the standard plan). The result is fixed: ordering it again costs nothing."""
+        for the standard plan, told to ``progress``). The result is fixed: ordering it
+        again costs nothing."""
         if self.order == "fixed" or len(self.experiments) < 2:
             return self
 
@@ -66,7 +68,7 @@ class Plan:
             # noise floor each experiment settles to is its own whatever comes before it.
             return [d.total_s for d in estimate_experiment_durations(Plan("order", tuple(sequence)), config,
                                                                      start_position_m, noise_draws=0)]
-        return replace(self, experiments=thermal_order(self.experiments, durations), order="fixed")
+        return replace(self, experiments=thermal_order(self.experiments, durations, progress), order="fixed")
 
     def with_periods(self, periods: int | None) -> Plan:
         if periods is None:
@@ -90,6 +92,11 @@ def load_plan(source: str) -> Plan:
         # 116 mm compression whose heat c has to lose where the gas's wall area is least.
         return Plan("standard", STANDARD_SET, "standard", "thermal")
     path = Path(source)
+    if not path.exists():   # a misspelt name reads as a missing file: say what plans there are
+        meant = difflib.get_close_matches(source, BUILT_IN, n=1)
+        raise PlanError(f"plan {source!r}: no such plan and no such file"
+                        + (f" (did you mean {meant[0]!r}?)" if meant else "")
+                        + f"; the plans: {', '.join(BUILT_IN)} (built in), or the path of a plan TOML file")
     text, doc = read_toml(path, PlanError, "plan ")
     for key in sorted(set(doc) - PLAN_KEYS):
         meant = difflib.get_close_matches(key, PLAN_KEYS, n=1)

@@ -9,7 +9,8 @@
 
 Exit status: 0 PASS, 1 FAIL, 4 INCONCLUSIVE (retest with more periods), 2 bad input,
 3 aborted after the safe stop (no verdict), 130 interrupted after the safe stop,
-70 an internal error.  ``history``: 0, or 2 for bad input.  ``history`` and ``judge``
+70 an internal error.  ``history``: 0; 1 when ``--chart DIR`` wrote no chart (every
+record left out, the line says which and why: simulated, aborted); 2 for bad input.  ``history`` and ``judge``
 open an existing records database only (2 when there is none); ``run`` creates its own.
 """
 
@@ -25,6 +26,8 @@ from rig.errors import BadInput
 
 # The commands import what they need when they run: `python -m rig run` does not pay
 # for the database driver and matplotlib.
+
+EXIT_NOTHING_CHARTED = 1   # history --chart DIR wrote no chart (every record left out; the line says why)
 
 
 def _positive_int(text: str) -> int:
@@ -73,7 +76,7 @@ def cmd_history(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.table import Table
 
-    from rig.qc.history import MIN_CAPABILITY_N, capability, control_charts, index, stat
+    from rig.qc.history import MIN_CAPABILITY_N, capability, control_charts, index, left_out, stat
     from rig.qc.present import limits_text
     from rig.qc.records import Records, superseded
 
@@ -113,6 +116,9 @@ def cmd_history(args: argparse.Namespace) -> int:
             caps.add_column(col, justify="left" if col in ("characteristic", "control limits", "spec limits")
                             else "right")
         caps_found = capability(everything, args.include_simulated, args.baseline)
+        omitted = left_out(everything, args.include_simulated)
+        if omitted:
+            caps.caption = omitted
         for c in caps_found:
             limits = "—" if c.lcl is None else f"{stat(c.lcl, c)} … {stat(c.ucl, c)}"
             if c.n < c.n_units:
@@ -120,13 +126,23 @@ def cmd_history(args: argparse.Namespace) -> int:
             caps.add_row(c.title, str(c.n), stat(c.mean, c), stat(c.sigma_within, c), limits, index(c.cp, c),
                          index(c.cpk, c), limits_text(c.nominal, c.low, c.high, c.unit), str(c.passed),
                          str(c.failed), str(c.inconclusive))
-        console.print(caps)
+        if caps_found:
+            console.print(caps)
+        else:   # a table of headers only said nothing; this says why
+            console.print(f"Capability: no unit to count ({omitted or 'no complete run with a value'})",
+                          highlight=False)
         if any(not c.meaningful for c in caps_found):
             console.print(f"(Cp), (Cpk): not meaningful, fewer than {MIN_CAPABILITY_N} units (AIAG SPC manual)",
                           highlight=False)
     if args.chart:
-        for path in control_charts(everything, Path(args.chart), args.include_simulated, args.baseline):
+        charts = control_charts(everything, Path(args.chart), args.include_simulated, args.baseline)
+        for path in charts:
             print(f"chart {path}", file=sys.stderr if args.json else sys.stdout)   # stdout stays JSON
+        if not charts:   # asked for charts and none written: said, and not a success
+            print(f"no chart written to {args.chart}: no unit to chart "
+                  f"({left_out(everything, args.include_simulated) or 'no complete run with a value'})",
+                  file=sys.stderr)
+            return EXIT_NOTHING_CHARTED
     return 0
 
 

@@ -157,6 +157,20 @@ def index(x: float | None, cap: Capability) -> str:
     return f"{x:.2f}" if cap.meaningful else f"({x:.2f})"
 
 
+def left_out(records: list[QcRecord], include_simulated: bool = False) -> str | None:
+    """Why records are not counted, in one clause (None: every one counts): the charts and
+    the capability table say it rather than showing nothing."""
+    latest = latest_judgements(records, include_simulated=True)
+    simulated = sum(r.simulated for r in latest) if not include_simulated else 0
+    unjudged = sum(r.status != "COMPLETE" for r in records)
+    parts = []
+    if simulated:
+        parts.append(f"{simulated} simulated (measured on the simulator; --include-simulated counts them)")
+    if unjudged:
+        parts.append(f"{unjudged} not complete (aborted or in error: no values)")
+    return ", ".join(parts) + " left out" if parts else None
+
+
 def control_charts(records: list[QcRecord], directory: Path, include_simulated: bool = False,
                    baseline: int | None = None) -> list[Path]:
     """One individuals chart (PNG) per characteristic: values in test order, centre line,
@@ -185,21 +199,39 @@ def control_charts(records: list[QcRecord], directory: Path, include_simulated: 
         for y, label, colour in labels:
             ax.annotate(label, (1.0, y), xycoords=("axes fraction", "data"), xytext=(4, 0),
                         textcoords="offset points", va="center", fontsize=8, color=colour)
-        for limit, label in ((cap.low, "LSL"), (cap.high, "USL")):
-            if limit is not None:   # labelled inside on the left: control limits may lie close by on the right
+        for limit, label, inward in ((cap.low, "LSL", 1), (cap.high, "USL", -1)):
+            if limit is not None:   # labelled inside on the left: control limits may lie close by on the right;
+                # on the side of the line towards the tolerance band, so that the plot's edge never cuts it
                 ax.axhline(limit, color="#c62828", ls="--", lw=1.2)
                 ax.annotate(f"{label} {limit:g} {u}", (0.0, limit), xycoords=("axes fraction", "data"),
-                            xytext=(4, 3), textcoords="offset points", va="bottom", fontsize=8, color="#c62828")
-        ax.plot(i[~outside], x[~outside], "o", color="#1f4e9c", ms=5)
+                            xytext=(4, 3 * inward), textcoords="offset points",
+                            va="bottom" if inward > 0 else "top", fontsize=8, color="#c62828")
+        drawn = [float(v) for v in (*x, cap.low, cap.high, cap.lcl, cap.ucl) if v is not None]
+        pad = 0.08 * (max(drawn) - min(drawn) or abs(max(drawn)) or 1.0)
+        ax.set_ylim(min(drawn) - pad, max(drawn) + pad)   # every line and its label inside the plot
+        simulated = np.array([r.simulated for r in rows], dtype=bool)
+        measured = ~outside & ~simulated
+        ax.plot(i[measured], x[measured], "o", color="#1f4e9c", ms=5)
+        if (simulated & ~outside).any():   # hollow: the simulator's, not a unit's measurement
+            ax.plot(i[simulated & ~outside], x[simulated & ~outside], "o", mfc="white", mec="#1f4e9c", ms=6,
+                    label="SIMULATED: measured on the simulator, not on a unit")
         if outside.any():
             ax.plot(i[outside], x[outside], "o", color="#c62828", ms=7,
                     label="beyond the control limits (left out of their estimate)")
+        if outside.any() or simulated.any():
             ax.legend(fontsize=8, loc="best")
+        if simulated.any():   # across the plot, as on the report: a simulated chart is never a process chart
+            ax.text(0.5, 0.5, "SIMULATED", transform=ax.transAxes, fontsize=56, color="#c62828", alpha=0.13,
+                    ha="center", va="center", rotation=20, fontweight="bold", zorder=0)
         ax.set_xlabel("unit, in test order")
         ax.set_ylabel(f"{cap.title} [{u}]")
         note = "" if cap.meaningful else f"; n < {MIN_CAPABILITY_N}: not meaningful"
-        ax.set_title(f"Individuals chart: {cap.title}, spec {limits_text(cap.nominal, cap.low, cap.high, cap.unit)}"
-                     f"\nn = {cap.n}, Cp {index(cap.cp, cap)}, Cpk {index(cap.cpk, cap)}{note}", fontsize=10)
+        sim = "" if not simulated.any() else (
+            "SIMULATED: " if simulated.all() else f"SIMULATED ({int(simulated.sum())} of {len(x)} units): ")
+        ax.set_title(f"{sim}Individuals chart: {cap.title}, spec "
+                     f"{limits_text(cap.nominal, cap.low, cap.high, cap.unit)}"
+                     f"\nn = {cap.n}, Cp {index(cap.cp, cap)}, Cpk {index(cap.cpk, cap)}{note}", fontsize=10,
+                     color="#c62828" if sim else "black")
         ax.grid(alpha=0.3)
         if len(x) <= 25:
             ax.set_xticks(i, [r.serial for r in rows], rotation=60, ha="right", fontsize=7)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from identify.notation import at_place, decimal_place, plus_minus, rounded, unit_text
+from identify.notation import at_place, decimal_place, expanded, plus_minus, rounded, unit_text
 from rig.qc.records import CharacteristicRecord, QcRecord
 
 # Which σ the verdict used, as the report and the console name it, and why that one.
@@ -36,7 +36,7 @@ class Shown:
 
     name: str            # the identifier (JSON, the database)
     title: str           # the spec's readable name
-    value: str           # 5.909 ± 0.082 bar (value ± k·σ)
+    value: str           # 5.909 ± 0.082 bar (value ± k·σ, k times σ as shown)
     sigma: str           # 0.041 bar
     basis: str           # noise only, residual-based, period scatter ("" unknown)
     limits: str          # 6 bar ± 5 %, 60 … 150 N, ≤ 150 N
@@ -64,9 +64,8 @@ def shown(record: QcRecord, c: CharacteristicRecord, k: float | None = None) -> 
     u = unit_text(c.unit)
     value = sigma = acceptance = "—"
     if c.value is not None and c.std is not None and k is not None:
-        value = plus_minus(c.value, k * c.std, c.unit)
-        sigma = f"{rounded(c.value, c.std)[1]} {u}"
-        place = decimal_place(k * c.std)
+        value, sigma = expanded(c.value, c.std, k, c.unit)   # k·σ and σ that agree, at σ's place
+        place = decimal_place(c.std)
         low, high = record.acceptance(c) if record.k is not None else (
             None if c.low is None else c.low + k * c.std, None if c.high is None else c.high - k * c.std)
         if low is not None and high is not None:

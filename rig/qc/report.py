@@ -154,9 +154,18 @@ def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -
     notes = "".join(f"<li>{e(n)}</li>" for n in record.notes if n != record.reason)
     watermark = ("<div class=watermark aria-hidden=true>SIMULATED</div><div class=simbanner>SIMULATED: measured on "
                  "a simulator, not on hardware. Not a production record.</div>") if record.simulated else ""
+    # A re-judgement says so where the eye lands first: the title, the header and a box
+    # naming the record it judges again (it looked like the original before).
+    kind = "QC re-judgement" if record.rejudges else "QC report"
+    if record.rejudges:
+        findings = (f"<div class=box><h2>Re-judgement</h2><p>This report judges again the measurement of record "
+                    f"<code>{e(record.rejudges)}</code> ({e(record.started or '—')} … {e(record.finished or '—')}), "
+                    f"with spec {e(record.spec_name)} {e(record.spec_version)}. That record and its report are "
+                    "kept unchanged.</p></div>") + findings
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
-<title>QC {e(record.serial)}: {e(verdict)}{' (SIMULATED)' if record.simulated else ''}</title>
+<title>{kind} {e(record.serial)}: {e(verdict)}{' (SIMULATED)' if record.simulated else ''}\
+{f' of record {e(record.rejudges[:8])}' if record.rejudges else ''}</title>
 <style>
 body {{ font-family: "DejaVu Sans", Arial, sans-serif; margin: 24px auto; max-width: 1000px; color: #222; }}
 .verdict {{ font-size: 56px; font-weight: bold; color: #fff; background: {colour}; padding: 10px 24px;
@@ -179,7 +188,7 @@ h2 {{ break-after: avoid; }} img, tr {{ break-inside: avoid; }}
   word-break: break-all; }}
 </style></head><body>
 {watermark}
-<h1>QC report — unit {e(record.serial)}</h1>
+<h1>{kind} — unit {e(record.serial)}{f' (re-judges record {e(record.rejudges)})' if record.rejudges else ''}</h1>
 <div class="verdict">{e(verdict)}</div>
 <p>Spec <b>{e(record.spec_name)} {e(record.spec_version)}</b> ({e(spec.title)}); guard band k = {spec.k:g}:
 PASS when value ± kσ lies inside the limits, that is the value inside the acceptance limits (the limits moved

@@ -30,8 +30,8 @@ from rich.console import Console
 
 from identify.files import atomic_write_bytes
 from rig.errors import BadInput
-from rig.events import Subscriber
-from rig.planning.plans import estimate_experiment_durations
+from rig.events import Kind, Subscriber
+from rig.planning.prediction import NOT_MEASURED, predict_s
 from rig.qc.characteristics import check_model
 from rig.qc.evaluate import Evaluation, evaluate
 from rig.qc.judge import Outcome
@@ -118,8 +118,8 @@ class QcOutcome:
 
 def terminal(console: Console) -> QcSubscribers:
     """``rig qc run``'s subscribers: the session's lines and the summary in the terminal."""
+    # the re-prediction is said by the session's terminal progress (a prediction event, with the time left)
     return QcSubscribers(say=lambda text: console.print(text, highlight=False), attach=terminal_progress(console),
-                         predicted=lambda p: console.print(p.sentence(), highlight=False),
                          concluded=lambda record, k, report, database: _print_summary(record, k, report, database))
 
 
@@ -156,11 +156,13 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
             to.before_session(prep)
         started = now_utc()
         identity: dict[str, Any] = dict(serial=opt.serial, operator=operator, rig=rig_id, started=started)
-        decide = decider(spec, prep, to.predicted)
+        running: list[SessionRunner] = []   # the session's runner: its links' timing and its bus
+        decide = decider(spec, prep, to.predicted, lambda: running[0] if running else None)
 
         def hand_over(runner: SessionRunner | None) -> None:
             if runner is not None:
                 runner.decide = decide
+                running[:] = [runner]
             if to.on_runner is not None:
                 to.on_runner(runner)
 
@@ -210,13 +212,14 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
         records.close()
 
 
-def decider(spec: Spec, prep: Prepared,
-            predicted: Callable[[Prediction], None] | None) -> Callable[[RunResult], str | None]:
+def decider(spec: Spec, prep: Prepared, predicted: Callable[[Prediction], None] | None,
+            runner: Callable[[], SessionRunner | None] = lambda: None) -> Callable[[RunResult], str | None]:
     """After each captured experiment but the last: fit and judge what there is, and end
     the session as soon as every characteristic is decided under the guard band (PASS,
-    or FAIL at k·σ); otherwise say how much longer the rest of the plan will take,
-    predicted again from the parameters identified so far (a faulty unit heats and
-    settles otherwise than the nominal one the first estimate assumed)."""
+    or FAIL at k·σ); otherwise predict the rest of the plan again from the parameters
+    identified so far (a faulty unit heats and settles otherwise than the nominal one
+    the first estimate assumed), at the links' measured timing, and publish it
+    (``prediction``: every progress display takes it over)."""
     def decide(result: RunResult) -> str | None:
         evaluation = evaluate(spec, result.session.path)
         labels = ", ".join(e.label for e in result.captured)
@@ -225,12 +228,20 @@ def decider(spec: Spec, prep: Prepared,
             return f"every characteristic decided after {labels} ({evaluation.judgement.verdict.value})"
         done = {e.label for e in result.captured}
         rest = tuple(e for e in prep.plan.experiments if result.session.label(e.letter) not in done)
-        if evaluation.fit is not None and evaluation.fit.converged and rest and predicted is not None:
+        if evaluation.fit is not None and evaluation.fit.converged and rest:
             last = prep.plan.experiments[len(prep.plan.experiments) - len(rest) - 1]
-            eta = sum(d.total_s for d in estimate_experiment_durations(
-                replace(prep.plan, experiments=rest), prep.config, last.static_position_mm * 1e-3,
-                evaluation.fit.params))
-            predicted(Prediction(tuple(e.label for e in result.captured), tuple(open_), eta))
+            session = runner()
+            left = predict_s(replace(prep.plan, experiments=rest), prep.config,
+                             session.timing() if session is not None else NOT_MEASURED,
+                             last.static_position_mm * 1e-3, evaluation.fit.params)
+            basis = f"the parameters identified from {labels}"
+            if session is not None:   # on the bus: session.log, the terminal's and the bar's time left
+                session.bus.publish(Kind.PREDICTION, rig_time_left_s=round(left, 1), basis=basis,
+                                    message=f"{', '.join(open_)} not yet decided after {labels}: the rest of the "
+                                            f"plan ({len(rest)} experiment{'s' if len(rest) != 1 else ''}) "
+                                            f"predicted again from {basis}: {left:.0f} s of rig time")
+            if predicted is not None:
+                predicted(Prediction(tuple(e.label for e in result.captured), tuple(open_), left))
         return None
 
     return decide
@@ -260,16 +271,28 @@ def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str 
         serial = first.serial if first else str(manifest.get("unit", {}).get("serial", "unknown"))
         rig = first.rig if first else str(manifest.get("source", {}).get("generator", "unknown"))
         evaluation = evaluate(spec, session)
+        if first is not None:   # said in the record itself, not only in its link to the first
+            evaluation.notes.insert(0, rejudgement_note(first))
         retest = rejudge_remedy(spec)
+        # The measurement is the first record's: its times, not the session files' (which
+        # said 14:19:09 where the first record said 14:19:08 for the same measurement).
         record = judged_record(spec, trace, evaluation, retest, rejudges=first.uid if first else None,
                                simulated=bool(first and first.simulated), serial=serial,
                                operator=first.operator if first else operator or getpass.getuser(),
-                               rig=rig, started=trace.started, finished=trace.finished)
+                               rig=rig, started=first.started if first else trace.started,
+                               finished=first.finished if first else trace.finished)
         tag = f"{record.judged.replace(':', '').replace('-', '')[:15]}-{record.uid[:8]}"
         return _conclude(records, record, spec, evaluation, session / f"qc-report-{tag}.html",
                          session / f"qc-record-{tag}.json", _print_summary)
     finally:
         records.close()
+
+
+def rejudgement_note(first: QcRecord) -> str:
+    """What a re-judgement's record and report say of the record it judges again."""
+    return (f"re-judgement of record {first.uid} (spec {first.spec_name} {first.spec_version}, verdict "
+            f"{first.verdict or first.status}, judged {first.judged}): the same measurement judged again; that "
+            "record and its report are kept unchanged")
 
 
 def _conclude(records: Records, record: QcRecord, spec: Spec, evaluation: Evaluation, report: Path,
@@ -349,8 +372,9 @@ def _print_summary(record: QcRecord, k: float, report: Path, database: str) -> N
     """The terminal summary: one line per characteristic, fields separated by ' | ' (the
     console's QC panel shows the same cells from the record, rig.qc.present.shown)."""
     simulated = "  SIMULATED (not a production record)" if record.simulated else ""
+    again = f"  RE-JUDGEMENT of record {record.rejudges}" if record.rejudges else ""
     print(f"{record.serial}: {record.verdict}  (spec {record.spec_name} {record.spec_version}; "
-          f"value ± {k:g}σ){simulated}")
+          f"value ± {k:g}σ){simulated}{again}")
     rows = [shown(record, c, k) for c in record.characteristics]
     width = max((len(s.title) for s in rows), default=0)
     for s in rows:

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from identify.plans import ExperimentSpec
-from rig.config import CHANNELS, RigConfig
+from rig.config import CHANNELS, RigConfig, SteadyStateCriteria
 from rig.drivers.clock import WALL_CLOCK, Clock
 from rig.drivers.daq import Daq, Samples
 from rig.drivers.shaker import AlarmError, Shaker, ShakerTimeout
@@ -64,11 +64,26 @@ PACE_FROM_STREAMS_S = 2.0
 # the status read that finds it AT_STATIC, and RUN's setpoints and mode.
 HOLD_END_MODBUS_TRANSACTIONS = 3
 # An experiment's, beside the DAQ's stop and start: the fade-out, STOP, the status read
-# before the move, the move's setpoint and mode, RUN's setpoints and mode.
-EXPERIMENT_MODBUS_TRANSACTIONS = 7
+# before the move, the move's setpoint and mode, RUN's setpoints and mode, the status read
+# after STOP (what the sentence "At rest" is derived from).
+EXPERIMENT_MODBUS_TRANSACTIONS = 8
 STATUS_POLL_S = 0.02           # the controller's state polled this often while waiting for AT_STATIC
 RESPONSE_MIN_MOVE_MM = 5.0       # shorter moves are too slow at their midpoint to time the stroke's delay
 ARRIVED_MM = 0.2                # the stroke channel this near a static position: there (noise 0.01 mm)
+
+
+@dataclass(frozen=True)
+class PaceReading:
+    """The links' rig seconds per second of the acquisition's clock (the host's on a rig
+    or a served simulator), as measured in this session, and over what: the DAQ's
+    sample count against that clock."""
+
+    rig_s_per_s: float
+    over: str
+
+    def __str__(self) -> str:
+        return (f"{self.rig_s_per_s:.3g} rig seconds per second of this computer's clock (the DAQ's sample count "
+                f"over {self.over})")
 
 
 class AcquisitionError(RigFault):
@@ -206,6 +221,20 @@ def _response_delay(rec: Recorder, commanded: int, arrived: int, from_m: float, 
     return max(0.0, (crossed - commanded) / rate_hz - move_duration_s(to_m - from_m) / 2)
 
 
+def drift_cycles_left(ss: SteadyStateCriteria, cycles: int, bias_sigma: float, ratio: float) -> int | None:
+    """Cycles until the drift criterion passes, the transient's bias decaying by ``ratio``
+    per cycle (None: not seen to decay): what the operator waits for, said instead of a
+    bias of hundreds of σ that means nothing at the rig."""
+    assert ss.drift is not None
+    floor = max(ss.min_cycles - cycles, 0)
+    if bias_sigma < ss.drift.fraction:
+        return floor
+    if not 0.0 < ratio < 1.0 or not math.isfinite(bias_sigma):
+        return None
+    left = math.ceil(math.log(ss.drift.fraction / bias_sigma) / math.log(ratio))
+    return int(min(max(left, floor), max(ss.max_cycles - cycles, 0)))
+
+
 def _line_at_end(values: np.ndarray, present: np.ndarray) -> tuple[float, float]:
     """Slope per sample and value at the window's last sample of a straight line through
     the samples present (a noisy channel's trend, read where it is now)."""
@@ -283,13 +312,19 @@ class Acquisition:
         streaming = self.clock.monotonic()
         self.daq.start()
         self.shaker.run(static, amp, spec.frequency_hz, spec.waveform, ss.ramp_time_s)
+        captured = False
         try:
             record = (self._capture_from_run(spec, label, recorder) if transient else
                       self._settle_and_capture(spec, label, recorder, time_constant_s))
+            captured = True
         finally:
             issued = self.daq.stop()
             self._recorder = None
-            self._count_stream(issued, streaming)
+            # Only a stream that ended as planned measures the pace: one cut by a dead
+            # link counts the wait for it as streamed time (a killed simulator's last
+            # stream said 2.13 rig seconds per second at 10x).
+            if captured and not self.daq.reader_error:
+                self._count_stream(issued, streaming)
         record.stream_lost = self.daq.counters.lost_samples - lost0
         self.bus.publish(Kind.LOG, label, message=f"DAQ: {issued} samples taken, {record.stream_lost} lost in the "
                                                f"stream, {record.lost_samples} in the captured window")
@@ -297,7 +332,8 @@ class Acquisition:
         self.shaker.fade_out()
         self._wait_state({"AT_STATIC"}, 30.0 + 2 * ss.ramp_time_s)
         self.shaker.stop()
-        self._enter(Phase.IDLE, label)
+        st = self.shaker.status()   # "At rest" is said from this reading, not from the STOP sent
+        self._enter(Phase.IDLE, label, controller=st.state, alarm=st.alarm)
         return record
 
     def _hold(self, hold: Hold, label: str, from_m: float, then_m: float) -> None:
@@ -444,10 +480,16 @@ class Acquisition:
         the session's own streams (seconds, not the probe's fifth) have taken
         PACE_FROM_STREAMS_S of this clock; then theirs (the samples the DAQ took against
         the time it was streaming), which a host busy for a while moves no more than
-        the simulator's own average."""
+        the simulator's own average.  Streams that ended on a fault do not count."""
+        return self.pace_reading().rig_s_per_s
+
+    def pace_reading(self) -> PaceReading:
+        """:meth:`current_pace` with where it was measured, for a sentence that says so."""
         if self._streamed_s < PACE_FROM_STREAMS_S:
-            return self.probed_pace
-        return max(1.0, self._streamed_samples / self.daq.rate_hz / self._streamed_s)
+            return PaceReading(self.probed_pace, f"the pace probe's {PACE_PROBES} short streams before the first "
+                                                 "experiment")
+        return PaceReading(max(1.0, self._streamed_samples / self.daq.rate_hz / self._streamed_s),
+                           f"{self._streamed_s:.0f} s of this session's streams that ended as planned")
 
     def _wait_state(self, states: set[str], timeout_s: float) -> None:
         """Wait for a controller state in short slices, so that Ctrl-C is honoured."""
@@ -500,7 +542,8 @@ class Acquisition:
                     change = np.abs(means - prev_means) if prev_means is not None else np.full(len(CHANNELS), np.nan)
                     self.bus.publish(Kind.PROGRESS, label, phase=Phase.SETTLING.value, cycles=cycles,
                                      change={c: float(x) for c, x in zip(CHANNELS, change, strict=True)},
-                                     bias_sigma=fit.bias_sigma, ratio=fit.ratio,
+                                     bias_sigma=fit.bias_sigma, ratio=fit.ratio, bias_limit_sigma=drift.fraction,
+                                     cycles_left=drift_cycles_left(ss, cycles, fit.bias_sigma, fit.ratio),
                                      drift={c: float(x) for c, x in zip(drift.noise, fit.drift, strict=True)})
                     if drift_passes(ss, cycles, fit):
                         settled = True
@@ -629,5 +672,16 @@ class Acquisition:
                     self.bus.publish(Kind.LOG, None, message=f"safe stop: {name} failed ({exc})")
         self.bus.publish(Kind.LOG, None, message=f"safe stop done: {', '.join(done)}" if not failed
                          else f"safe stop incomplete: {len(failed)} of {len(steps)} steps failed")
-        self._enter(Phase.IDLE, None)
+        self._enter(Phase.IDLE, None, **self._read_state(patience))
         return failed
+
+    def _read_state(self, patience_s: float) -> dict[str, Any]:
+        """The controller's state as read after a stop (``controller``: None where it could
+        not be read, with ``unread``: why), so that the sentence after it says what the
+        controller said, not what the program asked of it."""
+        try:
+            with self.shaker.link_patience(patience_s):
+                st = self.shaker.status()
+        except Exception as exc:  # noqa: BLE001 — unread is a fact to say, not an error to raise
+            return {"controller": None, "unread": str(exc)}
+        return {"controller": st.state, "alarm": st.alarm}

@@ -101,7 +101,8 @@ class Session:
             if self._progress == "bar" or (self._progress == "auto" and _in_notebook()):
                 return [ProgressBar(ctx.estimates_s)]
             if self._progress:
-                return [ConsoleProgress(rig._console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock)]
+                return [ConsoleProgress(rig._console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock,
+                                        ctx.runner.acquisition.pace_reading)]
             return []
 
         self._result = result = run_lifecycle(self._prepared, rig._console, links=rig._links,

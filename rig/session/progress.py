@@ -19,15 +19,17 @@ from pathlib import Path
 from rich.console import Console
 from rich.markup import escape
 
-from identify.notation import at_place, decimal_place
-from rig.events import Event, Kind, Phase
+from rig.events import Event, Kind, LinkCondition, Phase
+from rig.session.acquisition import PaceReading
 from rig.session.storage import read_log
 
 # How the settling change of each channel is said: its word, unit and decimals (the
 # block means' resolution: a block averages thousands of samples of the transducer's noise).
 CHANGE_WORDS = {"stroke_mm": ("stroke", "mm", 3), "force_N": ("force", "N", 1), "pressure_bar": ("pressure", "bar", 4),
                 "gas_temperature_C": ("gas temperature", "°C", 3)}
-PHASE_SENTENCES = {Phase.SETTLING: "Excitation running, settling.", Phase.IDLE: "At rest."}
+PHASE_SENTENCES = {Phase.SETTLING: "Excitation running, settling."}
+# The controller's states read after a stop in which nothing moves (OFF: hydraulics off too).
+AT_REST_STATES = ("OFF", "IDLE")
 
 
 def describe(e: Event) -> str:
@@ -46,6 +48,8 @@ def describe(e: Event) -> str:
             return f"Stopping: {d['reason']}." if d.get("reason") else "Fading out and stopping."
         if phase is Phase.ALARM:
             return f"ALARM: {d['message']}."
+        if phase is Phase.IDLE:
+            return at_rest_sentence(d)
         return PHASE_SENTENCES[phase]
     if e.kind == Kind.PROGRESS and d["phase"] == Phase.CAPTURING:
         return f"Captured {100 * d['fraction']:.0f} % of the window."
@@ -53,10 +57,13 @@ def describe(e: Event) -> str:
         moved = ", ".join(f"{word} {_fixed(d['change'].get(channel), decimals)} {unit}"
                           for channel, (word, unit, decimals) in CHANGE_WORDS.items() if channel in d["change"])
         text = f"Cycle {d['cycles']}: the block means moved by {moved}"
-        if "bias_sigma" in d:
-            bias = d["bias_sigma"]
-            text += (f"; the transient decays ×{d['ratio']:.3f} per cycle and could bias the fit by up to "
-                     f"{at_place(bias, decimal_place(bias)) if bias > 0 else '0'} σ")
+        if "cycles_left" in d:     # the drift criterion, in what the operator waits for
+            left = d["cycles_left"]
+            text += ("; the transient is not yet seen to decay" if left is None else
+                     f"; about {left} more cycle{'s' if left != 1 else ''} to settle" if left else "; settled")
+            text += f" (it decays ×{d['ratio']:.3f} per cycle)" if left != 0 and 0 < d["ratio"] < 1 else ""
+        elif "bias_sigma" in d:    # a session.log from before cycles_left
+            text += f"; the transient decays ×{d['ratio']:.3f} per cycle"
         return text + "."
     if e.kind == Kind.EXPERIMENT_DONE:
         lost = "none lost in the window" if not d["lost"] else f"{d['lost']} lost in the window"
@@ -65,6 +72,22 @@ def describe(e: Event) -> str:
     if e.kind == Kind.SESSION_END:
         return f"Session {d['message']}."
     return _sentence(str(d.get("message", "")))
+
+
+def at_rest_sentence(d: dict) -> str:
+    """What the controller said after a stop: "At rest" only when it was read at rest."""
+    if "controller" not in d:   # a session.log written before the state was read
+        return "Stopped (the controller's state after the stop is not on record)."
+    state = d["controller"]
+    if state in AT_REST_STATES:
+        return f"At rest: the controller reads {state}{', hydraulics off' if state == 'OFF' else ''}."
+    if state == "ALARM":
+        return f"Stopped by the controller's alarm ({d.get('alarm', 'unknown')}); it stays latched until reset."
+    if state is not None:
+        return f"Not at rest: the controller reads {state} after the stop."
+    why = f" ({d['unread']})" if d.get("unread") else ""
+    return ("Not known to be at rest: the controller could not be read after the stop" + why
+            + "; its watchdog stops the shaker once this program no longer feeds it.")
 
 
 def _fixed(x: float | None, decimals: int) -> str:
@@ -99,16 +122,21 @@ class ConsoleProgress:
     clock, from the rig-time estimate corrected by what is done)."""
 
     def __init__(self, console: Console, estimates_s: dict[str, float], pace: float | Callable[[], float] = 1.0,
-                 rig_clock: Callable[[], float] = time.monotonic) -> None:
+                 rig_clock: Callable[[], float] = time.monotonic,
+                 pace_reading: Callable[[], PaceReading] | None = None) -> None:
         # pace: the links' rig seconds per second, or where to read it as the session
         # corrects it from its streams (Acquisition.current_pace); rig_clock: the
-        # acquisition's (a test's in-process simulator runs on its own)
+        # acquisition's (a test's in-process simulator runs on its own); pace_reading:
+        # the pace with what measured it (Acquisition.pace_reading), for the last line
         self.console, self.estimates, self.rig_clock = console, estimates_s, rig_clock
         self._pace = pace if callable(pace) else lambda: pace
+        self._pace_reading = pace_reading or (lambda: PaceReading(self._pace(), "the pace given"))
         self.rig_started = rig_clock()
         self.total, self.done, self.done_s = len(estimates_s), 0, 0.0
         self.number = {label: i + 1 for i, label in enumerate(estimates_s)}
         self._captured = 0.0
+        self._criterion_said: set[str | None] = set()
+        self._gone: dict[str, None] = {}   # links lost and not back ("controller", "DAQ"): no rig time after
         plural = "s" if self.total != 1 else ""
         console.print(f"session: {self.total} experiment{plural}, about {_min_s(sum(estimates_s.values()))} min:s of "
                       "rig time", highlight=False)
@@ -138,6 +166,10 @@ class ConsoleProgress:
         def say(text: str, style: str = "") -> None:
             self.console.print(f"{self._head(e.experiment)} {text}", style=style, highlight=False)
 
+        if e.kind == Kind.LINK and e.data.get("state") in (LinkCondition.LOST, LinkCondition.GONE):
+            self._gone[e.data["link"]] = None
+        elif e.kind == Kind.LINK and e.data.get("state") == LinkCondition.BACK:
+            self._gone.pop(e.data["link"], None)
         if e.kind in (Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED):
             self.done += 1
             self.done_s += self.estimates.get(e.experiment or "", 0.0)
@@ -146,6 +178,12 @@ class ConsoleProgress:
             if e.data["phase"] != Phase.ALARM:          # the alarm event that follows says it, in red
                 say(describe(e))
         elif e.kind == Kind.PROGRESS and e.data.get("phase") == Phase.SETTLING:
+            if "bias_limit_sigma" in e.data and e.experiment not in self._criterion_said:
+                self._criterion_said.add(e.experiment)   # once per experiment: what settling waits for
+                limit = e.data["bias_limit_sigma"]
+                say(f"Settling: the capture waits until the transient left by the move could shift the fitted "
+                    f"parameters by less than {limit:g} of their standard deviation; the lines below count the "
+                    "cycles left until then.", "dim")
             say(describe(e), "dim")
         elif e.kind == Kind.PROGRESS and e.data.get("phase") == Phase.CAPTURING:
             if e.data["fraction"] >= self._captured + 0.25:
@@ -153,11 +191,20 @@ class ConsoleProgress:
                 say(describe(e), "dim")
         elif e.kind == Kind.EXPERIMENT_DONE:
             say(f"[green]{describe(e)}[/green]{self._eta()}")
+        elif e.kind == Kind.PREDICTION:   # the rest predicted again (qc run: from the unit's own parameters)
+            left = e.data["rig_time_left_s"] / self._pace()
+            say(f"{escape(describe(e))} About {_min_s(left)} left (m:s of wall clock).")
         elif e.kind == Kind.SESSION_END:
-            took, announced, pace = self.rig_clock() - self.rig_started, sum(self.estimates.values()), self._pace()
-            if pace > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
-                self.console.print(f"session took {_min_s(took)} min:s of wall clock at {pace:.3g} rig seconds "
-                                   f"per second, about {_min_s(took * pace)} min:s of rig time; announced "
+            took, announced, pace = self.rig_clock() - self.rig_started, sum(self.estimates.values()), \
+                self._pace_reading()
+            if pace.rig_s_per_s > 1.0 and self._gone:   # no reading of the rig's time after the link went
+                self.console.print(f"session took {_min_s(took)} min:s of this computer's clock; its rig time is not "
+                                   f"known: the {' and the '.join(self._gone)} link was lost, and the pace measured "
+                                   f"before ({pace}) says nothing of the time after; announced {_min_s(announced)}",
+                                   highlight=False)
+            elif pace.rig_s_per_s > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
+                self.console.print(f"session took {_min_s(took)} min:s of this computer's clock; at {pace}, about "
+                                   f"{_min_s(took * pace.rig_s_per_s)} min:s of rig time; announced "
                                    f"{_min_s(announced)}", highlight=False)
             else:
                 self.console.print(f"session took {_min_s(took)} min:s of rig time; announced {_min_s(announced)}",
@@ -183,6 +230,9 @@ class ProgressBar:
             self.bar.set_description(f"{e.experiment} {e.data['phase']}{extra}")
         elif e.kind in ("experiment-done", "experiment-failed"):
             self.bar.update(round(self.estimates.get(e.experiment or "", 0.0)))
+        elif e.kind == "prediction":    # the rest predicted again: the bar's end moves with it
+            self.bar.total = self.bar.n + round(e.data["rig_time_left_s"])
+            self.bar.refresh()
         elif e.kind == "session-end":
             self.bar.set_description(str(e.data.get("message", "ended")))
             if e.data.get("message") == "complete":

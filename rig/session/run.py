@@ -27,7 +27,9 @@ from __future__ import annotations
 import logging
 import shlex
 import signal
+import tempfile
 import threading
+import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
@@ -55,16 +57,18 @@ from rig.drivers.peers import wrong_peer_or
 from rig.drivers.registers import RegisterMap, load_register_map
 from rig.drivers.shaker import AlarmError, Shaker, ShakerAddress, ShakerError, ShakerLinkError
 from rig.errors import RigError, RigFault
-from rig.events import EventBus, Kind, LinkNotice, Subscriber
-from rig.planning.plans import ExperimentDuration, Plan, PlanError, check_plan, estimate_experiment_durations, load_plan
+from rig.events import Event, EventBus, Kind, LinkNotice, Subscriber
+from rig.planning.plans import ExperimentDuration, Plan, PlanError, check_plan, load_plan
+from rig.planning.prediction import LinkTiming, measured, predict, remember
 from rig.session.acquisition import Acquisition, ExperimentRecord, Interrupted
-from rig.session.progress import ConsoleProgress
+from rig.session.progress import ConsoleProgress, describe
 from rig.session.storage import Session, SessionError, SessionLog
 
 if TYPE_CHECKING:  # the numerics are imported when a fit runs, not with the command line
     from identify.result import FitResult
 
 INTERRUPTING_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+ORDERING_PROGRESS_S = 1.5    # at most this long between two lines while the plan is ordered
 
 
 @dataclass
@@ -118,11 +122,11 @@ class Prepared:
     plan: Plan                              # as listed until ordered()
     stored: Session | None                  # the session to resume, as read
 
-    def ordered(self) -> Prepared:
+    def ordered(self, progress: Callable[[int, int], object] | None = None) -> Prepared:
         """With the plan in the order it runs. The lifecycle orders once the links have
         answered, so that a wrong or swapped address is named within seconds, not after
-        the standard plan's seconds of ordering."""
-        return replace(self, plan=self.plan.ordered(self.config))
+        the standard plan's seconds of ordering (told to ``progress``)."""
+        return replace(self, plan=self.plan.ordered(self.config, progress=progress))
 
 
 @dataclass
@@ -241,6 +245,31 @@ def open_links(shaker_url: str, daq_url: str, config: RigConfig, calibration: Ca
     return links
 
 
+def probe_timing(shaker_url: str, daq_url: str, config: RigConfig) -> LinkTiming:
+    """The links' pace and latencies measured now (the session's pace probe: the DAQ
+    streams, the controller's state is read; nothing moves), for a prediction made
+    before a session (``rig design --shaker … --daq …``); kept as the last measured."""
+    bus = EventBus()
+    links = open_links(shaker_url, daq_url, config, Calibration.from_file(), load_register_map(), reset_alarm=False,
+                       on_event=bus.publish_link)
+    try:
+        # As in a session: the DAQ's bytes journalled to disk as they come (the DAQ's stop,
+        # part of every latency measured, waits for that journal's flush).
+        with tempfile.TemporaryDirectory(prefix="rig-pace-probe-") as scratch:
+            links.daq.attach_journal(Path(scratch) / "daq-raw.bin")
+            try:
+                acq = Acquisition(links.shaker, links.daq, config, bus, links.shaker.clock)
+                pace = acq.measure_pace()
+            finally:
+                links.daq.detach_journal()
+    finally:
+        close_links(links, disarm=True)
+        bus.close()
+    timing = measured(pace, acq.answer_s, acq.overhead_s, f"{shaker_url} and {daq_url}", "a pace probe just now")
+    remember(timing)
+    return timing
+
+
 def close_links(links: Links, *, disarm: bool = False) -> None:
     """Close both links; with ``disarm``, first hand the controller back with its watchdog
     off, as the manual commands leave it: a session that ends before it ran took nothing
@@ -263,6 +292,7 @@ class SessionRunner:
         self.state = "connected"
         self.pace: float | None = None     # rig seconds per second of the links (probe_pace)
         self._durations: list[ExperimentDuration] | None = None   # the plan's prediction (durations)
+        self._timing: LinkTiming | None = None                     # the links', measured (timing)
         self._writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="session-writer")
         self._writing: tuple[str, Future[None]] | None = None
         self.stop_reason: str | None = None   # the first request_stop's reason
@@ -271,7 +301,8 @@ class SessionRunner:
         # clock, or a simulated one when a test drives an in-process simulator).
         self.acquisition = Acquisition(links.shaker, links.daq, prep.config, bus, links.shaker.clock)
         # Asked after each captured experiment but the last, its data written: a reason to
-        # end the session there (qc run: every characteristic is decided), or None.
+        # end the session there (qc run: every characteristic is decided), or None; it
+        # may publish a re-prediction of the rest (Kind.PREDICTION) on the runner's bus.
         self.decide: Callable[[RunResult], str | None] | None = None
 
     def open_session(self) -> Session:
@@ -315,12 +346,19 @@ class SessionRunner:
         and the holds run are the same prediction."""
         if self._durations is None:
             todo = tuple(e for e in self.prep.plan.experiments if e.letter not in session.completed())
-            self._durations = estimate_experiment_durations(replace(self.prep.plan, experiments=todo),
-                                                            self.prep.config, start_position_m,
-                                                            pace=self.probe_pace(),
-                                                            answer_s=self.acquisition.answer_s,
-                                                            overhead_s=self.acquisition.overhead_s)
+            self._durations = predict(replace(self.prep.plan, experiments=todo), self.prep.config, self.timing(),
+                                      start_position_m)
         return self._durations
+
+    def timing(self) -> LinkTiming:
+        """The links' pace and latencies as this session's probe measured them (probed
+        once; kept for the predictions made before the next session, ``rig design``'s)."""
+        if self._timing is None:
+            acq = self.acquisition
+            self._timing = measured(self.probe_pace(), acq.answer_s, acq.overhead_s,
+                                    f"{self.prep.shaker_url} and {self.prep.daq_url}", "this session's pace probe")
+            remember(self._timing)
+        return self._timing
 
     def estimates_s(self, session: Session, start_position_m: float) -> dict[str, float]:
         """Rig time per experiment still to do, by label (see :meth:`durations`)."""
@@ -374,7 +412,10 @@ class SessionRunner:
                                 reason = result.decided
                                 bus.publish("log", message=f"ending the session before its plan: {reason}")
                                 break
-                    self._written(result)
+                    # The last experiment's data are waited for after the safe stop: the rig
+                    # is at rest, hydraulics off, while they are written (at 10x, the
+                    # seconds a CSV takes were tens of seconds of the rig's time, with the
+                    # hydraulics on and not in any prediction).
                 except Interrupted:
                     name = signal.Signals(received[-1]).name if received else "SIGINT"
                     reason = f"interrupted by the operator ({name})"
@@ -399,10 +440,18 @@ class SessionRunner:
                 self.state = "stopping"
                 result.safe_stop_failures = acq.safe_stop(reason)
                 if self._writing is not None:     # an experiment captured before the session ended
+                    label = self._writing[0]
                     try:
                         self._written(result)
                     except Exception as exc:  # noqa: BLE001 — the status says what was lost
-                        result.status += f"; {self._writing[0]} was captured but could not be written ({exc})"
+                        if result.exit_code == EXIT_OK and isinstance(exc, RigError):   # not on disk
+                            bus.publish(Kind.LOG, message=f"aborting: {exc}")
+                            result.status, result.exit_code = f"aborted: {exc}", EXIT_ABORTED
+                        elif result.exit_code == EXIT_OK:   # a bug in the writer: shown by the caller
+                            reason = f"internal error: {type(exc).__name__}: {exc}"
+                            result.status, result.exit_code, result.error = f"aborted: {reason}", EXIT_INTERNAL, exc
+                        else:
+                            result.status += f"; {label} was captured but could not be written ({exc})"
         finally:
             if result.status == "running":  # only a failure inside the safe stop itself gets here
                 result.status, result.exit_code = "aborted: the safe stop failed", EXIT_INTERNAL
@@ -507,22 +556,48 @@ def run_session(opt: RunOptions, console: Console | None = None) -> int:
 
 
 def execute(prep: Prepared, console: Console) -> RunResult:
-    """``rig run``: the lifecycle with the terminal's progress lines."""
-    return run_lifecycle(prep, console, attach=terminal_progress(console))
+    """``rig run``: the lifecycle with the terminal's progress lines, the first of them at
+    once (nothing else is said before the links answer, the plan is ordered and the
+    pace is probed: seconds), and the ordering's while it runs."""
+    plan, n = prep.plan, len(prep.plan.experiments)
+    order = "in the order of least predicted rig time" if plan.order == "thermal" and n > 1 else "as listed"
+    kept = f" ({len(prep.stored.completed())} captured before, kept)" if prep.stored else ""
+    console.print(f"plan {plan.name}: {n} experiment{'s' if n != 1 else ''}{kept} {order}; connecting to the "
+                  f"controller at {prep.shaker_url} and the DAQ at {prep.daq_url}", highlight=False)
+    early = _EarlyLines(console)
+    return run_lifecycle(prep, console, subscribers=[early], attach=terminal_progress(console, early))
 
 
-def terminal_progress(console: Console) -> Callable[[SessionContext], list[Subscriber]]:
+def terminal_progress(console: Console, early: _EarlyLines | None = None
+                      ) -> Callable[[SessionContext], list[Subscriber]]:
     """The terminal's subscribers of a session (``rig run``, ``rig qc run``): the pace
-    where the links run faster than the rig, then a line per phase and the ETA."""
+    where the links run faster than the rig, then a line per phase and the ETA (and
+    the ``early`` lines end there)."""
     def progress(ctx: SessionContext) -> list[Subscriber]:
+        if early is not None:
+            early.until = time.time()
         config = ctx.runner.prep.config
         if ctx.pace > 1.0:   # a simulator faster than the rig's own time
-            console.print(f"the links run {ctx.pace:.3g} rig seconds per second: conditioning holds shorter "
+            console.print(f"the links run {ctx.runner.acquisition.pace_reading()}: conditioning holds shorter "
                           f"than {config.min_hold_s * ctx.pace:.0f} s are not planned (session.log has "
                           "the pace probe)", style="dim", highlight=False)
-        return [ConsoleProgress(console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock)]
+        return [ConsoleProgress(console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock,
+                                ctx.runner.acquisition.pace_reading)]
 
     return progress
+
+
+class _EarlyLines:
+    """The terminal's lines before its :class:`ConsoleProgress` exists: the ordering's
+    (log events marked ``ordering``) published until ``until`` (wall clock).  How a
+    session ended before it began is the caller's last line, not said twice."""
+
+    def __init__(self, console: Console) -> None:
+        self.console, self.until = console, float("inf")
+
+    def __call__(self, e: Event) -> None:
+        if e.kind == Kind.LOG and e.data.get("ordering") and e.time < self.until:
+            self.console.print(f"{'[session]':<8} {describe(e)}", style="dim", highlight=False, markup=False)
 
 
 # ----- the one lifecycle ------------------------------------------------------------------------------
@@ -579,7 +654,7 @@ def run_lifecycle(prep: Prepared, console: Console, *, links: Links | None = Non
         else:
             # Links held across sessions (a script's rig): the actuator may have moved since they connected.
             links.start_position_m = links.shaker.status().position_m
-        prep = prep.ordered()
+        prep = _ordered(prep, bus)
         runner = SessionRunner(prep, links, bus, console)
         if on_runner is not None:
             on_runner(runner)
@@ -602,6 +677,31 @@ def run_lifecycle(prep: Prepared, console: Console, *, links: Links | None = Non
         if on_runner is not None:
             on_runner(None)
         _teardown(runner, links, own_links, bus if own_bus else None, log, disarm=not moved)
+
+
+def _ordered(prep: Prepared, bus: EventBus) -> Prepared:
+    """The plan in the order it runs, its progress said on the bus: the standard plan's
+    thermal ordering takes seconds of CPU (15 to 25 on a busy host), which no terminal
+    or console may spend in silence."""
+    n = len(prep.plan.experiments)
+    if prep.plan.order != "thermal" or n < 2:
+        return prep.ordered()
+    bus.publish(Kind.LOG, message=f"ordering the {n} experiments for the least predicted rig time: the damper "
+                                  "model predicts each one's settling after every other one", ordering=True)
+    started = last = time.monotonic()
+
+    def told(done: int, total: int) -> None:
+        nonlocal last
+        now = time.monotonic()
+        if now - last >= ORDERING_PROGRESS_S and done < total:
+            last = now
+            bus.publish(Kind.LOG, message=f"ordering: {done} of {total} experiments' successors predicted "
+                                          f"({now - started:.0f} s)", ordering=True)
+
+    prep = prep.ordered(told)
+    bus.publish(Kind.LOG, message=f"ordered in {time.monotonic() - started:.1f} s: "
+                                  f"{', '.join(e.letter for e in prep.plan.experiments)}", ordering=True)
+    return prep
 
 
 def _ended_before_motion(runner: SessionRunner, session: Session, exc: BaseException) -> RunResult:

@@ -95,6 +95,7 @@ class Session:
             meta["peers"] = [peers]
         manifest = {"format": FORMAT, "name": f"shaker session {meta['date']} ({plan_source} plan)", "unit": unit,
                     "experiments": []}
+        _mark_simulated(manifest, peers)
         session = cls(path, meta, manifest)
         write_manifest(path, manifest)
         session._save_meta()
@@ -126,6 +127,8 @@ class Session:
         self.meta["status"] = "running"
         if peers:
             self.meta.setdefault("peers", []).append(peers)
+            if _mark_simulated(self.manifest, peers):
+                write_manifest(self.path, self.manifest)
         self.meta.setdefault("resumed", []).append(_dt.datetime.now().isoformat(timespec="seconds"))
         self._save_meta()
 
@@ -230,6 +233,17 @@ def read_log(path: Path) -> list[Event]:
             continue
         events.append(Event(kind, experiment, record, stamp))
     return events
+
+
+def _mark_simulated(manifest: dict[str, Any], peers: dict[str, Any] | None) -> bool:
+    """The dataset's own file says SIMULATED where a peer named itself a simulator, so
+    that the data keep the mark wherever they are copied (its CSVs are described by it);
+    True when the mark was added now."""
+    if not (peers and peers.get("simulated")) or manifest.get("simulated"):
+        return False
+    manifest["simulated"] = True
+    manifest["name"] = f"{manifest.get('name', 'session')} (SIMULATED: measured on a simulator, not on hardware)"
+    return True
 
 
 def _csv_in_slices(columns: dict[str, np.ndarray]) -> bytes:
