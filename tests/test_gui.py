@@ -464,7 +464,8 @@ def test_the_counters_agree_within_one_cycle_in_the_same_frame(qtbot, tmp_path, 
         elif row.status == "capturing" and str(shown["table"]).startswith("capturing "):
             percent = str(shown["table"]).split()[1]
             bar = shown["capture"]
-            assert bar.isVisible() and f"({percent} %)" in bar.text() and f"({percent} %)" in str(shown["steady"])
+            whole = f"({percent} % of the capture)"
+            assert bar.isVisible() and whole in bar.text() and whole in str(shown["steady"])
             period = int(bar.text().split("capturing period ")[1].split()[0])
             assert abs(counted - row.settled_at - (period - 0.5)) <= 1, (counted, shown)
         else:
@@ -540,7 +541,83 @@ def test_the_daq_line_gives_the_measured_pace_with_its_clock(qtbot):
     view.show_health(Snapshot(None, None, received=5, time=111, streaming=True))    # a new stream: measured afresh
     assert "measuring over 2 s of wall clock" in view.health.text()
     view.show_health(Snapshot(None, None, received=5, time=112, streaming=False, session=True))
-    assert "not streaming (the session streams while it holds, settles and captures)" in view.health.text()
+    assert "not streaming (the session streams while it holds, settles and captures" in view.health.text()
     for i in range(12):                    # a simulator that keeps up with 1.3x only: said beside the 20x asked
         view.show_health(Snapshot(None, None, received=i * 650, time=200 + i / 4, streaming=True))
     assert "1.3× real time" in view.health.text() and "asked for 20×" in view.health.text()
+
+
+def test_a_controller_lost_mid_run_keeps_the_daq_and_ends_in_a_safe_stop_said_incomplete(qtbot, tmp_path,
+                                                                                        relaxed_config, monkeypatch):
+    """The controller's Modbus server goes away during an experiment and does not come back:
+    the console says so in one short line (the driver's words in the log), shows the
+    operator's Abort under way, and after the session's end says that its safe stop did not
+    complete, keeps the DAQ's traces live (the one independent proof of rest) and offers
+    no session until the controller is read again."""
+    config = tmp_path / "rig-quick-reconnect.toml"
+    config.write_text(relaxed_config.read_text().replace("reconnect_s = 20.0", "reconnect_s = 3.0"))
+    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--experiments", "j", "--out", str(tmp_path),
+                         "--rig-config", str(config), "--fault", "modbus-down@run+5=100000")
+    connected(qtbot, window)
+    window.plan.identify.setChecked(False)
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "runPlanButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: window.station.sessions.running and window.link_error is not None, timeout=HANG_MS)
+    strip, banner = find(window, QtWidgets.QLabel, "stateStrip"), find(window, QtWidgets.QLabel, "alarmBanner")
+    state = find(window, QtWidgets.QLabel, "controller_state")
+    for label in (strip, banner, state):
+        assert "Modbus Error" not in label.text() and "ModbusTcpClient" not in label.text(), label.text()
+    assert "Modbus Error" in window.log.toPlainText()           # the driver's words: in the log only
+    assert "hard-wired E-stop" in banner.text()
+    assert "should stop the shaker within 2 s" in find(window, QtWidgets.QLabel, "controller_watchdog").text()
+    assert window.minimumSizeHint().width() <= 1280
+    # No excitation read: no loop energy of an older one beside it (the stream may have stopped).
+    qtbot.waitUntil(lambda: "no cycle yet" in find(window, QtWidgets.QLabel, "loopEnergy").text(), timeout=HANG_MS)
+
+    abort = find(window, QtWidgets.QPushButton, "abortButton")
+    qtbot.mouseClick(abort, QtCore.Qt.MouseButton.LeftButton)
+    experiments = find(window, QtWidgets.QTableWidget, "experimentTable")
+    assert not abort.isEnabled() and abort.text() == "Stopping…"
+    if window.station.sessions.running:                 # the session may have ended on its own meanwhile
+        assert "safe stop under way" in experiments.item(0, 4).text()
+        assert experiments.item(0, 5).text() == ""      # no time left while stopping
+        assert "Safe stop under way" in find(window, QtWidgets.QLabel, "sessionEta").text()
+
+    qtbot.waitUntil(lambda: not window.station.sessions.running, timeout=HANG_MS)
+    qtbot.waitUntil(lambda: strip.text().startswith("SAFE STOP INCOMPLETE"), timeout=HANG_MS)
+    assert "HYDRAULICS MAY BE ON" in strip.text()
+    assert "SAFE STOP DID NOT COMPLETE" in banner.text() and "hard-wired E-stop" in banner.text()
+    assert "within 0 s" not in window.log.toPlainText()
+    # The controller is gone, the DAQ is not: the console reads it alone and the traces go on.
+    qtbot.waitUntil(lambda: "the DAQ alone is read" in find(window, QtWidgets.QLabel, "linkLabel").text(),
+                    timeout=HANG_MS)
+    assert window.station.manual.daq is not None and window.station.manual.shaker is None
+    qtbot.waitUntil(lambda: window.live.history.n > 0 and "× real time" in window.live.health.text(),
+                    timeout=HANG_MS)
+    disabled = motion_disabled(window)
+    assert {"runPlanButton", "resumeButton", "hydraulicsOnButton"} <= set(disabled), disabled
+    assert window.minimumSizeHint().width() <= 1280
+
+    monkeypatch.setattr(QtWidgets.QMessageBox, "question", lambda *a, **k: QtWidgets.QMessageBox.StandardButton.Yes)
+    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "resetButton"), QtCore.Qt.MouseButton.LeftButton)
+    qtbot.waitUntil(lambda: strip.text().startswith("NOT READ"), timeout=HANG_MS)
+    assert "runPlanButton" in motion_disabled(window)       # still: the controller is not read
+    closed(qtbot, window)
+
+
+
+def test_a_status_read_that_does_not_come_back_is_not_shown_as_the_rigs_state(qtbot, tmp_path):
+    """A status read waits on the link while a command reconnects (up to the reconnect time):
+    the last answer must not stand on the strip as the rig's state meanwhile.  The poller is
+    stopped here, as a read stuck on the link stops it."""
+    from rig.gui.main_window import SILENT
+
+    window = open_window(qtbot, "--simulate", "--speed", SPEED, "--out", str(tmp_path))
+    connected(qtbot, window)
+    strip = find(window, QtWidgets.QLabel, "stateStrip")
+    qtbot.waitUntil(lambda: "HYDRAULICS OFF" in strip.text(), timeout=HANG_MS)
+    window.station.poller.close()
+    qtbot.waitUntil(lambda: window.status is None, timeout=HANG_MS)
+    assert window.link_error == SILENT and strip.text().startswith("NOT READ") and "HYDRAULICS ?" in strip.text()
+    assert find(window, QtWidgets.QLabel, "controller_state").text() == "no answer"
+    assert "runPlanButton" in motion_disabled(window)
+    closed(qtbot, window)

@@ -101,9 +101,13 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     view.show_row(row)
     view.show_count(row)
     assert f"up to {significant(2 * fraction)} σ; captures below {fraction:g} σ" in view.bound.text()
+    # The bound is over its limit: the deciding line says not steady, and no bar is green beside it.
+    assert view.bound.text().startswith("NOT STEADY") and "#2e7d32" not in view.bound.styleSheet()
+    assert all(bar.property("colour") not in ("#43a047", "#a5d6a7") for bar in view.bars)
+    assert view.table.horizontalHeaderItem(2).text() == "÷ threshold (info)"
     assert "predicted cycles left: 10" in view.cycles.text()     # halves every 10 cycles: 10 more
-    # 13x its change threshold: pale orange (over, for information), not the change criterion's orange,
-    # and not a grey that does not say over or under; the stroke's change, under its threshold, pale green
+    # 13x its change threshold: pale orange (over, for information), not the change criterion's orange;
+    # the stroke's change, under its threshold, grey (not green: only the bound passes a capture)
     assert view.bars[3].property("colour") == INFO_OVER and view.bars[0].property("colour") == INFO_UNDER
 
     from dataclasses import replace
@@ -116,6 +120,9 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     assert plain.bars[3].property("colour") == "#fb8c00"
     # A QC spec's session brings its own criterion: the view takes it (the drift bound's
     # field is absent from its reports; the cycles left come from the changes).
+    row.settling.append((60, change | {"bias_sigma": fraction / 2}))
+    view.show_row(row)
+    assert view.bound.text().startswith("steady by the drift criterion") and "#2e7d32" in view.bound.styleSheet()
     view.configure(change_config)
     assert view.title() == "Steady state (change criterion)" and not view.bound.isVisibleTo(view)
     row.settling = [(40, dict(change)), (50, {k: v / 2 for k, v in change.items()})]
@@ -170,3 +177,25 @@ def test_the_time_left_and_the_settling_view_count_the_same_cycles(qtbot):
     assert "predicted cycles left: 10" in view.cycles.text()
     ss, f = config.steady_state, row.spec.frequency_hz
     assert progress.rig_left_s(row) == pytest.approx((10 + row.spec.periods) / f + ss.ramp_time_s)
+
+
+def test_the_parameter_table_marks_an_estimate_that_did_not_move_from_its_start(qtbot):
+    """0.004999978 ± 0.000000023 beside a start of 0.005 after two iterations: recovered or
+    never moved?  The move from the start in σ beside it, and an estimate within 1 σ of its
+    start is marked and warned about; one that moved is not."""
+    from rig.gui.fit_view import NOT_MOVED, fill_parameter_table, parameter_table
+
+    table = parameter_table()
+    qtbot.addWidget(table)
+    doc = {"parameters": {
+        "theta4": {"value": 0.004999978, "std": 2.3e-8, "initial": 0.005, "estimated": True, "unit": "m^2"},
+        "theta16": {"value": 0.85181, "std": 0.00069, "initial": 0.80, "estimated": True, "unit": "W/K"},
+        "theta1": {"value": 1.0, "std": None, "initial": 1.0, "estimated": False, "unit": ""}}}
+    warnings = fill_parameter_table(table, doc)
+    assert table.rowCount() == 2
+    assert table.item(0, 5).text() == "0.005" and table.item(0, 6).text() == "-0.96 σ"
+    assert "not told from one never moved" in table.item(0, 6).toolTip()
+    assert table.item(0, 1).background().color().name() == NOT_MOVED
+    assert table.item(1, 5).text() == "0.8" and table.item(1, 6).text() == "75 σ"
+    assert table.item(1, 1).background().color().name() != NOT_MOVED
+    assert [w.split(":")[0] for w in warnings] == ["theta4"] and "start value 0.005" in warnings[0]

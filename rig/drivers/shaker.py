@@ -376,8 +376,9 @@ class Shaker:
                     # pipe, timeouts): all of them are a lost link, never a crash.
                     deadline = deadline or self.clock.monotonic() + patience
                     if self.clock.monotonic() >= deadline:
-                        raise ShakerLinkError(f"Modbus link to {self.url} lost and not back within "
-                                              f"{patience:g} s ({exc})") from None
+                        # patience 0 (the heartbeat) tried once: no reconnect time to speak of
+                        waited = f" and not back within {patience:g} s" if patience > 0 else ""
+                        raise ShakerLinkError(f"Modbus link to {self.url} lost{waited} ({exc})") from None
                     if delay == 0.05:
                         self.on_event(LinkNotice("controller", LinkCondition.LOST,
                                                   f"Modbus link to {self.url} lost ({exc}); reconnecting"))
@@ -414,7 +415,8 @@ class Shaker:
             except Exception as exc:  # noqa: BLE001 — a failing heartbeat is said once; the watchdog then trips
                 if not failing:
                     self.on_event(LinkNotice("controller", LinkCondition.HEARTBEAT_FAILING,
-                                             f"heartbeat failing: {exc}"))
+                                             f"heartbeat failing: {exc}; the controller's watchdog stops the "
+                                             f"shaker {self.limits.watchdog_timeout_s:g} s after the last beat"))
                 failing = True
             else:
                 if failing:

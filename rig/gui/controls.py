@@ -33,6 +33,7 @@ class ControllerPanel(QtWidgets.QGroupBox):
                                           ("cycles", "Cycles"), ("watchdog", "Watchdog"))):
             label = QtWidgets.QLabel("–")
             label.setObjectName(f"controller_{key}")
+            label.setWordWrap(True)         # a long reason wraps in its column: the window still fits 1280 px
             self.fields[key] = label
             row, col = divmod(i, 2)
             grid.addWidget(QtWidgets.QLabel(title), row, 2 * col)
@@ -44,13 +45,21 @@ class ControllerPanel(QtWidgets.QGroupBox):
         f = self.fields
         st = snap.status
         if st is None:
-            f["state"].setText(f"no answer ({snap.error})" if snap.error else "not connected")
+            # the reason in one line is the strip's and the banner's; the driver's words in the tooltip
+            f["state"].setText("no answer" if snap.error else "not connected")
             f["state"].setStyleSheet("color: #b00020; font-weight: bold" if snap.error else "")
+            f["state"].setToolTip(snap.error or "")
             # Nothing read: no number from an older read is shown beside it as if it were now.
             for key in ("position", "alarm", "force", "cycles", "supply", "watchdog"):
                 f[key].setText("–")
                 f[key].setStyleSheet("")
+            if snap.error:
+                # Not read, but what the controller should do on its own is known: said as such.
+                f["watchdog"].setText(f"not read; without a link it should stop the shaker within "
+                                      f"{self.watchdog_s:g} s")
+                f["watchdog"].setStyleSheet("color: #b00020")
             return
+        f["state"].setToolTip("")
         f["state"].setText(st.state)
         f["state"].setStyleSheet(f"color: {STATE_COLOURS.get(st.state, '#000')}; font-weight: bold")
         f["alarm"].setText(st.alarm)
@@ -72,7 +81,7 @@ class ControllerPanel(QtWidgets.QGroupBox):
         if trip is None or status is None:
             return
         f = self.fields
-        state = f"ALARM (latched; controller reads {status.state})"
+        state = f"ALARM latched by this console (the controller reads {status.state})"
         if f["state"].text() == state:          # a style sheet is costly: this runs on every tick
             return
         f["state"].setText(state)
@@ -117,7 +126,7 @@ class ManualPanel(QtWidgets.QGroupBox):
         self.move_button = QtWidgets.QPushButton("Move")
         self.move_button.setObjectName("moveButton")
         self.move_button.clicked.connect(self.request_move)
-        move.addWidget(QtWidgets.QLabel("Static position"))
+        move.addWidget(QtWidgets.QLabel("Move to (sent on Move)"))
         move.addWidget(self.position, 1)
         move.addWidget(self.move_button)
         layout.addLayout(move)

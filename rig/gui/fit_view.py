@@ -21,31 +21,45 @@ from rig.gui.plotting import labelled
 UNITS = {"stroke_mm": "mm", "pressure_bar": "bar", "gas_temperature_C": "°C", "force_N": "N"}
 NAMES = {"stroke_mm": "stroke", "pressure_bar": "gas pressure", "gas_temperature_C": "gas temperature",
          "force_N": "force"}
-PARAMETER_COLUMNS = ("parameter", "value", "± std", "% std", "unit", "start")
+PARAMETER_COLUMNS = ("parameter", "value", "± σ", "% σ", "unit", "start", "moved")
+NOT_MOVED = "#fff59d"           # an estimate within one σ of where it started: the data did not move it
 
 
 def fill_parameter_table(table: QtWidgets.QTableWidget, doc: dict[str, Any]) -> list[str]:
     """The estimated parameters of a RESULT.json document, each value to its std's decimal
     place (σ to two significant digits, identify.notation) and its unit in Unicode;
-    returns its warnings plus one line per strongly correlated pair."""
+    returns its warnings plus one line per strongly correlated pair.  Beside the start (as
+    given) the move from it in σ: an estimate within one σ of its start is marked and
+    warned about, for it cannot be told from one the fit never moved."""
     params = {k: p for k, p in doc.get("parameters", {}).items() if p.get("estimated")}
     table.setRowCount(len(params))
+    warnings = list(doc.get("warnings", []))
     for i, (name, p) in enumerate(params.items()):
-        value, std = p["value"], p.get("std")
-        rel = abs(std / value) if std is not None and value else math.nan
+        value, std, start = p["value"], p.get("std"), p.get("initial")
+        usable = std is not None and math.isfinite(std) and std > 0
+        rel = abs(std / value) if usable and value else math.nan
         title = f"{name} ({p['alias']})" if p.get("alias") else name
         shown, sigma = rounded(value, std)
+        moved_sigma = (value - start) / std if usable and start is not None else math.nan
+        still = abs(moved_sigma) <= 1.0
+        start_text = "" if start is None else f"{start:.6g}"      # as the operator or the model gave it
+        moved = "–" if math.isnan(moved_sigma) else f"{significant(moved_sigma)} σ"
         cells = (title, shown, sigma, "–" if math.isnan(rel) else f"{100 * rel:.2g} %", unit_text(p.get("unit", "")),
-                 "" if p.get("initial") is None else f"{p['initial']:.6g}")
+                 start_text, moved)
         for j, text in enumerate(cells):
             item = QtWidgets.QTableWidgetItem(text)
-            item.setToolTip(text)
-            if j in (1, 2, 3, 5):
+            item.setToolTip(f"{text}: within 1 σ of its start, not told from one never moved" if still and j == 6
+                            else text)
+            if j in (1, 2, 3, 5, 6):
                 item.setTextAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
             if rel > RELATIVE_STD_WARNING:
                 item.setBackground(QtGui.QColor("#ffe0b2"))
+            elif still and j in (1, 5, 6):
+                item.setBackground(QtGui.QColor(NOT_MOVED))
             table.setItem(i, j, item)
-    warnings = list(doc.get("warnings", []))
+        if still:
+            warnings.append(f"{name}: the estimate is within 1 σ of its start value {start_text}: it cannot be told "
+                            "from a parameter the fit did not move (check it with another start)")
     corr = doc.get("correlation", {})
     names = list(corr)
     for i, a in enumerate(names):

@@ -173,7 +173,7 @@ class LiveView(QtWidgets.QWidget):
         self._counts: collections.deque[tuple[float, int]] = collections.deque()
 
         bar = QtWidgets.QHBoxLayout()
-        bar.addWidget(QtWidgets.QLabel("Window"))
+        bar.addWidget(QtWidgets.QLabel("Window (rig time)"))
         self.window_box = QtWidgets.QComboBox()
         self.window_box.setObjectName("windowBox")
         for w in WINDOWS_S:
@@ -266,6 +266,9 @@ class LiveView(QtWidgets.QWidget):
                     curve.setData([], [])
                 self._show_placeholders("no DAQ link" if daq is None else "no samples yet: the DAQ is not streaming"
                                         if not daq.streaming else "no samples yet")
+            elif not self.frequency_hz:
+                # the excitation ended (or is no longer read): its loop and energy are not shown as if current
+                self._show_placeholders(self.why_none)
             return False
         t, v = self.history.latest(self.window_s)
         for curve, plot, span, (_, _, scale, _), column in zip(self.traces, self.trace_plots, self.min_span, TRACES,
@@ -345,8 +348,9 @@ class LiveView(QtWidgets.QWidget):
         that is against the rig's own rate (frames are samples of rig time)."""
         if not snap.streaming:
             # a session streams while it holds, settles and captures, not while it moves or stops
-            return "not streaming" + (" (the session streams while it holds, settles and captures)"
-                                      if snap.session else "")
+            said = "not streaming" + (" (the session streams while it holds, settles and captures, and stops the "
+                                      "stream first in its safe stop)" if snap.session else "")
+            return said + ("; the traces end at the last sample received" if self.history.n else "")
         (t0, n0), (t1, n1) = self._counts[0], self._counts[-1]
         if t1 - t0 < RATE_WINDOW_S:
             return f"rate: measuring over {RATE_WINDOW_S:g} s of wall clock"

@@ -28,7 +28,7 @@ from rig.drivers.estop import EstopDone, LatchChanged
 from rig.drivers.registers import ControllerState
 from rig.drivers.shaker import ShakerAddress, ShakerStatus
 from rig.errors import BadInput
-from rig.events import Event, Kind, Message
+from rig.events import Event, Kind, Message, Phase
 from rig.gui.browser import SessionBrowser
 from rig.gui.controls import ControllerPanel, ManualPanel
 from rig.gui.fit_view import FitView
@@ -40,6 +40,7 @@ from rig.gui.messages import (
     FitProgress,
     LinkState,
     Notice,
+    SafeStopIncomplete,
     SessionClosed,
     SessionOpened,
     Snapshot,
@@ -48,7 +49,7 @@ from rig.gui.options import ConsoleOptions
 from rig.gui.plan_panel import PlanPanel
 from rig.gui.qc import QcDone, QcProgress, QcRequest, QcStarted, refused
 from rig.gui.qc_panel import QcPanel
-from rig.gui.state_strip import COLOURS, RigState, StateStrip, hydraulics_on
+from rig.gui.state_strip import CHECK_RIG, COLOURS, RigState, StateStrip, hydraulics_on, short_link_error
 from rig.gui.station import Station, session_options
 from rig.planning.plans import comma_list, load_plan
 from rig.qc.spec import load_spec
@@ -63,6 +64,10 @@ LOGGED_EVENTS = (Kind.SESSION_START, Kind.PHASE, Kind.EXPERIMENT_DONE, Kind.EXPE
                  Kind.PACE_PROBE, Kind.HOLD, Kind.HOLD_END, Kind.CAPTURE_WINDOW, Kind.LINK, Kind.SESSION_END)
 ESTOP_KEYS = ("Esc", "F12")
 GIL_SWITCH_S = 0.0005
+# A status read not answered for this long: the last one is not shown as the rig's state (a read
+# waits on the link's lock while the session's command reconnects, up to reconnect_s, 20 s).
+STALE_READ_S = 2.0
+SILENT = f"no answer to the status read for {STALE_READ_S:g} s (it waits on the link)"
 SIMULATOR_NICE = 5
 
 
@@ -108,7 +113,7 @@ class MainWindow(QtWidgets.QMainWindow):
             SessionClosed: self._on_session_closed, FitProgress: self._on_fit_progress, FitDone: self._on_fit_done,
             ComparisonDone: self._on_comparison_done, EstopDone: self._on_estop_done,
             LatchChanged: self._on_latch_changed, QcStarted: self._on_qc_started, QcProgress: self._on_qc_progress,
-            QcDone: self._on_qc_done}
+            QcDone: self._on_qc_done, SafeStopIncomplete: self._on_safe_stop_incomplete}
         try:
             self.station = Station(shaker, daq, self.queue.put, rig_config=args.rig_config,
                                    calibration=args.calibration, register_map=args.register_map,
@@ -121,9 +126,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.estop_text: str | None = None          # latched until the operator resets
         self.alarm_latched: str | None = None       # an alarm seen, latched here until the operator resets
         self.link_error: str | None = None
+        self.unsafe_stop: str | None = None         # a session's safe stop did not complete: latched until Reset…
         self.interrupted_by: int | None = None      # SIGINT or SIGTERM closed the window (exit 130)
         self._closing = False
         self._last_redraw = 0.0
+        self._last_read = time.monotonic()          # when the last status snapshot was taken
         self._last_table = 0.0
         self.setWindowTitle("Damper rig — operator console" + (" — SIMULATED RIG" if self.simulated else ""))
         self._build(args, shaker, daq)
@@ -163,6 +170,10 @@ class MainWindow(QtWidgets.QMainWindow):
         layout.addLayout(header)
         layout.addWidget(self.strip)
         layout.addWidget(split, 1)
+        log_title = QtWidgets.QLabel(f"Log — each line stamped with the wall clock, HH:MM:SS {_local_zone()}")
+        log_title.setObjectName("logTitle")
+        log_title.setStyleSheet("color: #555")
+        layout.addWidget(log_title)
         layout.addWidget(self.log)
         self.setCentralWidget(central)
         self.resize(1600, 1000)
@@ -194,6 +205,8 @@ class MainWindow(QtWidgets.QMainWindow):
                                         "font-weight: bold; border: 3px solid #7f0000; border-radius: 8px; }"
                                         "QPushButton:pressed { background: #7f0000; }")
         self.estop_button.clicked.connect(self.estop)
+        self.estop_button.setToolTip("The console's E-STOP: STOP and hydraulics off over Modbus. It does not replace "
+                                     "the hard-wired E-stop, the one that always reaches the rig.")
         for key in ESTOP_KEYS:
             shortcut = QtGui.QShortcut(QtGui.QKeySequence(key), self)
             shortcut.setContext(QtCore.Qt.ShortcutContext.ApplicationShortcut)
@@ -297,7 +310,7 @@ class MainWindow(QtWidgets.QMainWindow):
         trip = latch.reason if latch.latched else "E-STOP" if self.estop_text else self.alarm_latched
         running = self.station.sessions.running
         return RigState(self.status, trip, self.link_error, self.station.manual.shaker is not None or running,
-                        running)
+                        running, self.unsafe_stop)
 
     def _show_state(self) -> None:
         """The strip and which motion controls are allowed, from the same state."""
@@ -315,17 +328,21 @@ class MainWindow(QtWidgets.QMainWindow):
                 button.setToolTip(self._tooltips[name])
         # A session holds the links until its safe stop: the console's own are taken back after it.
         self.connect_button.setEnabled(not state.session_running)
+        editable = not state.session_running and self.station.manual.shaker is None    # the addresses in use
+        self.shaker_edit.setReadOnly(not editable)
+        self.daq_edit.setReadOnly(not editable)
         self.browser.resume_button.setEnabled(self.browser.resumable and "resume" not in blocked)
         self.browser.resume_button.setToolTip(f"Disabled: {blocked['resume']}" if "resume" in blocked else "")
 
     def reset_alarm(self, confirm: bool = True) -> None:
         if confirm:
-            what = self.estop_text or (f"alarm: {self.status.alarm}" if self.status else "alarm")
+            what = (f"The safe stop did not complete ({self.unsafe_stop}); {CHECK_RIG}" if self.unsafe_stop
+                    else self.estop_text or (f"alarm: {self.status.alarm}" if self.status else "alarm"))
             answer = QtWidgets.QMessageBox.question(
                 self, "Reset the trip?", f"{what}\n\nReset only once the cause is known and the rig is safe. Reset?")
             if answer != QtWidgets.QMessageBox.StandardButton.Yes:
                 return
-        self.estop_text = self.alarm_latched = None
+        self.estop_text = self.alarm_latched = self.unsafe_stop = None
         self.station.emergency.confirm_reset()
         if self.status is not None and self.status.state is ControllerState.ALARM:
             self.manual._do(self.station.manual.reset_alarm())
@@ -364,6 +381,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def abort(self) -> None:
         self.station.abort()
+        self.plan.show_stopping("Abort pressed")
         self._say("Abort: safe stop requested (fade out, STOP, hydraulics off)")
 
     def refit(self, folder: Path, settings: IdentifySettings) -> None:
@@ -387,8 +405,10 @@ class MainWindow(QtWidgets.QMainWindow):
             except queue.Empty:
                 break
             self._handle(item)
-        self._show_state()
         now = time.monotonic()
+        if self.status is not None and now - self._last_read > STALE_READ_S:
+            self._controller_silent()
+        self._show_state()
         if self.tabs.currentWidget() is self.live and now - self._last_redraw >= 0.9 / REDRAW_HZ:
             self.live.set_excitation(*self._excitation())
             if self.live.refresh(self.station.live_daq()):
@@ -422,11 +442,28 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def _on_event(self, item: Event) -> None:
         self.plan.apply(item)
+        if item.kind == Kind.PHASE and item.data.get("phase") == Phase.STOPPING and item.experiment is None:
+            # the session's own safe stop (an abort, a lost link, the plan's end): no time left is shown
+            self.plan.show_stopping(str(item.data.get("reason") or "the plan ended"))
         if item.kind in LOGGED_EVENTS:
             self._log_event(item)
 
+    def _controller_silent(self) -> None:
+        """No snapshot for a while though the controller was being read: what it said last
+        is no longer its state (the DAQ line keeps its last counts: the same read is late)."""
+        self._say(f"controller not read: {SILENT}", "error")
+        self.status, self.link_error = None, SILENT
+        if self.plan.progress is not None:
+            self.plan.progress.unread = SILENT
+        self.controller.show_snapshot(Snapshot(None, SILENT))
+        self._show_banner()
+
     def _on_snapshot(self, item: Snapshot) -> None:
+        self._last_read = item.time
         was = self.status
+        if item.error is not None and item.error != self.link_error:
+            # the driver's own words, once, here; the strip, the banner and the panel say it in one line
+            self._say(f"controller not read: {item.error}", "error")
         self.status = item.status
         self.link_error = item.error
         st = item.status
@@ -479,11 +516,21 @@ class MainWindow(QtWidgets.QMainWindow):
         self.qc.set_running(False)
         if item.result is not None:
             self.plan.session_ended(item.result.session.path)
-        self._say(item.text, "info" if item.result is not None and item.result.exit_code == 0 else "error")
+        # The session's own end (its status) is already in the log from its event: the folder here.
+        text = f"session folder {item.result.session.path} closed" if item.result is not None else item.text
+        self._say(text, "info" if item.result is not None and item.result.exit_code == 0 else "error")
         if item.result is None:
             self.plan.eta.setText(item.text.splitlines()[0])
         if self._closing:
             QtCore.QTimer.singleShot(0, self.close)
+
+    def _on_safe_stop_incomplete(self, item: SafeStopIncomplete) -> None:
+        """A session's safe stop left steps undone: no reading says the rig is at rest, so
+        the banner and the strip say so, latched until the operator confirms the reset."""
+        steps = ", ".join(f.split(":", 1)[0] for f in item.failures)
+        self.unsafe_stop = f"{steps} not confirmed at {_dt.datetime.now():%H:%M:%S}"
+        self._say(f"SAFE STOP INCOMPLETE: {steps} not confirmed; {CHECK_RIG}", "error")
+        self._show_banner()
 
     def _on_fit_progress(self, item: FitProgress) -> None:
         self.fit_view.show_progress(item.title, item.iteration, item.objective)
@@ -502,7 +549,8 @@ class MainWindow(QtWidgets.QMainWindow):
             self.estop_text = f"E-STOP INCOMPLETE ({took}): {'; '.join(item.failures)}"
             self._say(self.estop_text, "error")
         else:
-            self._say(f"E-STOP done in {took} from the press: STOP and hydraulics off written ({item.line})")
+            self._say(f"E-STOP done in {took} from the press: STOP and hydraulics off written and answered by the "
+                      f"controller ({item.line}); the registers read next say what it does")
         self._show_banner()
 
     def _on_latch_changed(self, item: LatchChanged) -> None:
@@ -533,15 +581,23 @@ class MainWindow(QtWidgets.QMainWindow):
                 else "the controller's state is not known (no answer)")
         # alarm: from the readings (the controller's state register) and the console's latch
         alarm_read = st is not None and st.state is ControllerState.ALARM
-        alarm = bool(self.estop_text) or alarm_read or self.alarm_latched is not None
-        if self.estop_text:
+        alarm = bool(self.estop_text) or alarm_read or self.alarm_latched is not None or self.unsafe_stop is not None
+        watchdog = self.station.config.limits.watchdog_timeout_s
+        if self.unsafe_stop:
+            # Whether the controller is read now is the strip's and the panel's to say.
+            now = f" The controller now reads {st.state}, {held}." if st is not None else ""
+            text = f"SAFE STOP DID NOT COMPLETE ({self.unsafe_stop}): {CHECK_RIG}.{now} Reset… once it is safe"
+        elif self.estop_text:
             text = f"{self.estop_text} — {held}. Reset… once the rig is safe"
         elif alarm:
             which = st.alarm if st is not None and alarm_read else \
                 f"{self.alarm_latched}, latched here (the controller reads {st.state if st else '?'})"
             text = f"ALARM: {which} — {held}; find the cause, then Reset…"
         elif link_error:
-            text = f"Controller not answering: {link_error}"
+            # The software E-STOP reaches the rig through the controller's Modbus port too.
+            text = (f"Controller not answering: {short_link_error(link_error)}. Its watchdog should stop the "
+                    f"shaker {watchdog:g} s after the link is lost. The E-STOP button goes over Modbus too and may "
+                    "not reach it: use the hard-wired E-stop if the rig moves")
         elif st is None:
             text = "No alarm known: the controller is not read (not connected)"
         else:
@@ -579,6 +635,13 @@ class MainWindow(QtWidgets.QMainWindow):
         if self.simulated is not None:
             self.simulated.stop()
         event.accept()
+
+
+def _local_zone() -> str:
+    """The local time zone's name as the clock stamps are in it (UTC offset beside it)."""
+    now = _dt.datetime.now().astimezone()
+    offset = f"UTC{now:%z}"
+    return "UTC" if offset == "UTC+0000" else f"{now.tzname()} ({offset})"
 
 
 def run_gui(args: ConsoleOptions) -> int:

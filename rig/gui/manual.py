@@ -74,11 +74,19 @@ class ManualControl:
     # ----- links ----------------------------------------------------------------------------------------
     def connect(self, shaker_url: str | None, daq_url: str | None) -> Future:
         self.urls = (shaker_url, daq_url)
-        return self.submit("connect", self._connect)
+
+        def job() -> None:
+            try:
+                self._connect()
+            except Exception as exc:
+                self.post(LinkState(False, self.unconnected(str(exc))))
+                raise
+        return self.submit("connect", job)
 
     def _connect(self, taking_back: bool = False) -> None:
         if self.shaker is not None:
             return
+        self._release()                 # the DAQ read alone while the controller did not answer
         if self.session_running() and not taking_back:
             raise BadInput("a session holds the rig's links: they come back to the console after its safe stop")
         shaker_url, daq_url = self.urls
@@ -91,6 +99,15 @@ class ManualControl:
         try:
             self.open_estop_line(shaker_url)
             shaker.connect()        # limits written, watchdog on and fed: if this program dies, the rig holds
+        except ShakerLinkError as exc:
+            close_links(Links(shaker, daq, "", None))
+            problem = wrong_peer_or(exc, shaker_url, daq_url, self.register_map)
+            self._daq_alone(daq_url)
+            raise problem from None
+        except BaseException:
+            close_links(Links(shaker, daq, "", None))
+            raise
+        try:
             identity = daq.open()
             peers = Peers(shaker.identify(), identity)
             daq.start()             # the live view streams whenever no session does
@@ -103,11 +120,30 @@ class ManualControl:
         self.shaker, self.daq = shaker, daq
         self.post(LinkState(True, f"controller {shaker_url}, DAQ {daq_url} ({identity})", peers.simulated))
 
+    def _daq_alone(self, daq_url: str) -> None:
+        """The controller did not answer: the DAQ is read all the same, for it is the one
+        independent proof (stroke and force) of whether the rig moves.  No command goes
+        anywhere without the controller, so nothing else is held."""
+        daq = Daq(daq_url, self.calibration, rate_hz=self.config.daq_rate_hz, reconnect_s=CONSOLE_RECONNECT_S,
+                  on_event=self._link_event)
+        try:
+            daq.open()
+            daq.start()
+        except Exception as exc:  # noqa: BLE001 — said beside the controller's own failure
+            daq.close()
+            self.post(Notice(f"DAQ at {daq_url} not read either: {exc}", "error"))
+            return
+        self.daq = daq
+
     def _release(self) -> None:
         shaker, daq = self.shaker, self.daq
         self.shaker = self.daq = None
-        if shaker is not None and daq is not None:
-            close_links(Links(shaker, daq, "", None))
+        for link in (shaker, daq):
+            if link is not None:
+                try:
+                    link.close()
+                except Exception:  # noqa: BLE001 — closing must not hide why the links went
+                    pass
 
     def disconnect(self) -> Future:
         def job() -> None:
@@ -117,7 +153,7 @@ class ManualControl:
 
     def release(self) -> None:
         """Let go of the links for a session (waits until they are closed)."""
-        self._held_before = self.shaker is not None
+        self._held_before = self.shaker is not None or self.daq is not None
         self._commands.submit(self._release).result()
         if self._held_before:
             self.post(LinkState(False, "the session holds the links: the controller and the DAQ are read on its "
@@ -134,9 +170,14 @@ class ManualControl:
             try:
                 self._connect(taking_back=True)
             except Exception as exc:
-                self.post(LinkState(False, f"not connected: the links were not taken back after the session ({exc})"))
+                why = f"the links were not taken back after the session ({exc})"
+                self.post(LinkState(False, self.unconnected(why)))
                 raise
         self.submit("reconnect", job)
+
+    def unconnected(self, why: str) -> str:
+        """The link line when the controller is not connected: whether the DAQ is read all the same."""
+        return f"not connected: {why}" + ("; the DAQ alone is read, for the live view" if self.daq is not None else "")
 
     def _link_event(self, notice: LinkNotice) -> None:
         self.heartbeat.follow(notice.state)
@@ -165,8 +206,8 @@ class ManualControl:
         assert shaker is not None  # _refuse checked it
 
         def job() -> None:
-            action(shaker)
-            self.post(Notice(f"{what}: sent"))
+            action(shaker)      # returns once the controller has answered the write
+            self.post(Notice(f"{what}: written, the controller answered"))
         self.submit(what, job)
         return []
 

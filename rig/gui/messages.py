@@ -61,6 +61,14 @@ class SessionClosed(Message):
 
 
 @dataclass(frozen=True)
+class SafeStopIncomplete(Message):
+    """A session's (a plan's or a QC test's) safe stop left steps undone: no reading says the
+    rig is at rest."""
+
+    failures: tuple[str, ...]              # "step: why", as the session's record has them
+
+
+@dataclass(frozen=True)
 class FitProgress(Message):
     title: str
     iteration: int

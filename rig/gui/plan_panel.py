@@ -18,7 +18,8 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from identify.notation import at_place, significant
 from rig.config import CHANNELS, RigConfig
 from rig.events import Event
-from rig.gui.plan_state import ExperimentRow, PlanProgress, deciding
+from rig.gui.plan_state import ACTIVE, ExperimentRow, PlanProgress, deciding
+from rig.gui.state_strip import short_link_error
 from rig.planning.criterion import DAQ_LAG_S
 from rig.planning.plans import Plan, comma_list, load_plan
 
@@ -26,8 +27,10 @@ STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "skipped": "#ffe0b2", 
                   "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb", "stopping": "#e3f2fd"}
 UNITS = {"stroke_mm": "mm", "force_N": "N", "pressure_bar": "bar", "gas_temperature_C": "°C"}
 TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "left\n[rig m:s]")
-# Under the drift criterion the changes are for information: pale, but still saying under or over the threshold.
-INFO_UNDER, INFO_OVER = "#a5d6a7", "#ffb74d"
+# Under the drift criterion the changes are for information: grey under their threshold, pale orange over it, never
+# green, so that a column of bars under their thresholds does not read as a pass the deciding bound has not given.
+INFO_UNDER, INFO_OVER = "#cfd8dc", "#ffb74d"
+DRIFT_PASS, DRIFT_WAIT = "#2e7d32", "#e65100"
 ENDED_CHARS = 160                 # of a session's end status under the table
 
 
@@ -48,7 +51,8 @@ def clock_text(seconds: float, clock: str) -> str:
 def capture_text(row: ExperimentRow) -> str:
     """A capture's progress in periods, from the row's fraction (the acquisition's event)."""
     periods = row.spec.periods
-    return f"capturing period {min(int(row.fraction * periods) + 1, periods)} of {periods} ({100 * row.fraction:.0f} %)"
+    period = min(int(row.fraction * periods) + 1, periods)
+    return f"capturing period {period} of {periods} ({100 * row.fraction:.0f} % of the capture)"
 
 
 def _item(table: QtWidgets.QTableWidget, row: int, col: int) -> QtWidgets.QTableWidgetItem:
@@ -68,6 +72,11 @@ class SteadyStateView(QtWidgets.QGroupBox):
     def __init__(self, config: RigConfig, parent: QtWidgets.QWidget | None = None) -> None:
         super().__init__(parent)
         layout = QtWidgets.QVBoxLayout(self)
+        # The deciding line first, above the changes that are for information only.
+        self.bound = QtWidgets.QLabel("")
+        self.bound.setObjectName("driftBound")
+        self.bound.setWordWrap(True)
+        layout.addWidget(self.bound)
         self.table = QtWidgets.QTableWidget(len(CHANNELS), 3)
         self.table.setObjectName("steadyStateTable")
         self.table.setHorizontalHeaderLabels(["change / cycle", "threshold", "÷ threshold"])
@@ -86,10 +95,6 @@ class SteadyStateView(QtWidgets.QGroupBox):
             self.bars.append(bar)
             self.table.setCellWidget(i, 2, bar)
         layout.addWidget(self.table)
-        self.bound = QtWidgets.QLabel("")
-        self.bound.setObjectName("driftBound")
-        self.bound.setWordWrap(True)
-        layout.addWidget(self.bound)
         self.cycles = QtWidgets.QLabel("Settling: –")
         self.cycles.setWordWrap(True)
         self.cycles.setObjectName("settleCycles")
@@ -105,8 +110,20 @@ class SteadyStateView(QtWidgets.QGroupBox):
                       else "Steady state (change criterion)")
         for i, c in enumerate(CHANNELS):
             _item(self.table, i, 1).setText(f"{ss.thresholds[c]:g} {UNITS[c]}")
+        self.table.setHorizontalHeaderLabels(["change / cycle", "threshold",
+                                              "÷ threshold (info)" if self.drift else "÷ threshold"])
         self.bound.setText("")
         self.bound.setVisible(self.drift is not None)
+
+    def clear(self) -> None:
+        """No experiment settles now: no change of an ended one is shown as if current."""
+        for i, bar in enumerate(self.bars):
+            _item(self.table, i, 0).setText("–")
+            bar.setValue(0)
+            bar.setFormat("–")
+            bar.setProperty("colour", None)
+            bar.setStyleSheet("")
+        self.bound.setText("")
 
     def show_row(self, row: ExperimentRow | None) -> None:
         """The changes against their thresholds at the row's last settling report."""
@@ -132,11 +149,13 @@ class SteadyStateView(QtWidgets.QGroupBox):
                 bar.setStyleSheet(f"QProgressBar::chunk {{ background: {colour}; }}")
         if self.drift:
             bound = change.get("bias_sigma")
-            self.bound.setText("drift criterion: " + (
+            passed = bound is not None and bound < self.drift.fraction
+            verdict = ("steady by the drift criterion" if passed else "NOT STEADY yet by the drift criterion"
+                       if bound is not None else "drift criterion")
+            self.bound.setText(f"{verdict} (it decides): " + (
                 f"the transient left could bias the fit by up to {significant(bound)} σ; captures below "
                 f"{self.drift.fraction:g} σ" if bound is not None else "waiting for the first blocks"))
-            self.bound.setStyleSheet("color: #2e7d32;" if bound is not None and bound < self.drift.fraction
-                                     else "color: #e65100;")
+            self.bound.setStyleSheet(f"color: {DRIFT_PASS if passed else DRIFT_WAIT}; font-weight: bold")
 
     def show_count(self, row: ExperimentRow | None) -> None:
         """The settling count and what follows it, from the same row as the plan table."""
@@ -149,8 +168,8 @@ class SteadyStateView(QtWidgets.QGroupBox):
             return
         left = row.cycles_left(deciding(self.config), ss.min_cycles, ss.max_cycles)
         after_run = ss.ramp_time_s + DAQ_LAG_S
-        self.cycles.setText(f"{row.label}: settling {row.cycles} cycles, counted from {after_run:g} s after RUN "
-                            f"(min {ss.min_cycles}, max {ss.max_cycles}); "
+        self.cycles.setText(f"{row.label}: settling {row.cycles} cycles, counted from {after_run:g} s (rig time) "
+                            f"after RUN (min {ss.min_cycles}, max {ss.max_cycles}); "
                             f"predicted cycles left: {'?' if left is None else left}")
 
 
@@ -165,6 +184,7 @@ class PlanPanel(QtWidgets.QWidget):
         super().__init__(parent)
         self.config, self.out = config, out
         self.progress: PlanProgress | None = None
+        self.stopping: str | None = None          # why the running session's safe stop was asked for
         self._rows: list[ExperimentRow] = []
         self._preview_number = 0
         self._previewed.connect(self._show_preview)
@@ -312,11 +332,23 @@ class PlanPanel(QtWidgets.QWidget):
 
     # ----- running ---------------------------------------------------------------------------------
     def set_running(self, running: bool) -> None:
+        self.stopping = None
+        self.abort_button.setText("Abort (safe stop)")
         self.run_button.setEnabled(not running)
         self.resume_button.setEnabled(not running)
         self.abort_button.setEnabled(running)
         for w in (self.plan, self.experiments, self.folder, self.identify):
             w.setEnabled(not running)
+
+    def show_stopping(self, why: str) -> None:
+        """The session's safe stop is under way: Abort has been pressed (or the session ends
+        on its own), so no time left is shown and Abort is not offered again."""
+        if self.progress is None or self.progress.ended is not None or self.stopping is not None:
+            return
+        self.stopping = short_link_error(why)
+        self.abort_button.setEnabled(False)
+        self.abort_button.setText("Stopping…")
+        self.refresh()
 
     def show_progress(self, progress: PlanProgress) -> None:
         self.progress = progress
@@ -341,6 +373,8 @@ class PlanPanel(QtWidgets.QWidget):
         row = self.progress.apply(event)
         if row is not None and event.kind == "progress" and event.data.get("phase") == "settling":
             self.steady.show_row(row)
+        if event.kind == "session-end":
+            self.steady.clear()
         if row is not None or event.kind == "session-end":
             self.refresh()
 
@@ -352,23 +386,39 @@ class PlanPanel(QtWidgets.QWidget):
         for i, r in enumerate(progress.rows):
             status = _item(self.table, i, 4)
             unread = progress.unread is not None and r.status in ("moving", "settling", "capturing", "stopping")
-            status.setText(r.status_text() + (" — the controller is not answering" if unread else ""))
-            status.setBackground(QtGui.QColor(STATUS_COLOURS.get(r.status, "#ffffff")))
-            _item(self.table, i, 5).setText(_clock(progress.rig_left_s(r)) if r.status != "done" else "")
+            stopping = self.stopping is not None and progress.ended is None and r.status in ACTIVE
+            text = f"safe stop under way (was {r.status_text()})" if stopping else r.status_text()
+            status.setText(text + (" — the controller is not answering" if unread else ""))
+            status.setBackground(QtGui.QColor(STATUS_COLOURS["stopping" if stopping else r.status]
+                                              if (stopping or r.status in STATUS_COLOURS) else "#ffffff"))
+            # no time left while stopping, nor while the controller is not read (the count stands still)
+            _item(self.table, i, 5).setText("" if r.status == "done" or stopping else "–" if unread
+                                            else _clock(progress.rig_left_s(r)))
         current = progress.current
-        self.steady.show_count(current)
-        capturing = current is not None and current.status == "capturing"
+        if self.stopping is not None and progress.ended is None:
+            self.steady.cycles.setText("Settling: – (the session's safe stop is under way)")
+        else:
+            self.steady.show_count(current)
+        capturing = current is not None and current.status == "capturing" and self.stopping is None
         self.capture.setVisible(capturing)
         if current is not None and capturing:
             self.capture.setValue(int(round(100 * current.fraction)))
             self.capture.setFormat(f"{current.label}: {capture_text(current)}")
-        if progress.ended is not None:
+        if progress.ended is None and self.stopping is not None:
+            self.eta.setText(f"Safe stop under way ({self.stopping}): fade out, STOP, hydraulics off; no time left "
+                             "is shown until the session has ended")
+            self.eta.setToolTip("")
+        elif progress.ended is not None:
             # A status can run to several sentences (a safe stop's failures): its head here, the
             # whole of it in the tooltip and the log below, so the settling view keeps its height.
             whole = f"Session {progress.ended}"
-            self.eta.setText(whole if len(whole) <= ENDED_CHARS else
-                             f"{whole[:ENDED_CHARS].rsplit(' ', 1)[0]} … (the whole status: the log below)")
+            head = whole.split(" (", 1)[0]          # a driver's words in parentheses: the log's
+            head = head if len(head) <= ENDED_CHARS else head[:ENDED_CHARS].rsplit(" ", 1)[0]
+            self.eta.setText(whole if head == whole else f"{head} … (the whole status: the log below)")
             self.eta.setToolTip(whole)
+        elif progress.unread is not None:
+            self.eta.setText("Session: time left not known while the controller is not answering")
+            self.eta.setToolTip("")
         else:
             wall = progress.session_left_s()
             self.eta.setText(f"Session: about {clock_text(wall, 'wall')} left "

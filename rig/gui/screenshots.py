@@ -186,11 +186,13 @@ def estop_view(args: argparse.Namespace, out: Path, sessions: Path) -> None:
 
 
 def lost_link_view(args: argparse.Namespace, out: Path, sessions: Path) -> None:
-    """A link lost mid-run: the controller's Modbus server goes away 20 s (rig time) into
-    the experiment's run and does not come back; lost-link.png while the session waits for
-    it, lost-link-ended.png after the session has ended (aborted, the safe stop incomplete)."""
+    """A link lost mid-run, at 1280 px: the controller's Modbus server goes away 20 s (rig
+    time) into the experiment's run and does not come back; lost-link.png while the session
+    waits for it, lost-link-stopping.png in its safe stop, lost-link-ended.png after the
+    session has ended (aborted, the safe stop incomplete, the DAQ read alone)."""
     window = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--experiments", "j",
                                    "--fault", "modbus-down@run+20=100000", "--out", str(sessions)])
+    window.resize(1280, 1000)
     window.show()
     wait("the connection", lambda: window.status is not None)
     window.plan.identify.setChecked(False)
@@ -199,8 +201,13 @@ def lost_link_view(args: argparse.Namespace, out: Path, sessions: Path) -> None:
          and window.link_error is not None, 300)
     settle_view(1.5)
     shoot(window, out / "lost-link.png")
+    wait("the safe stop", lambda: window.plan.stopping is not None or not window.station.sessions.running, 300)
+    if window.station.sessions.running:
+        settle_view(0.5)
+        shoot(window, out / "lost-link-stopping.png")
     wait("the session's end", lambda: not window.station.sessions.running, 300)
     wait("the console's reconnect tried", lambda: "not connected" in window.link_label.text(), 120)
+    wait("the DAQ read alone", lambda: "× real time" in window.live.health.text(), 60)
     settle_view(1.0)
     shoot(window, out / "lost-link-ended.png")
     closed(window)

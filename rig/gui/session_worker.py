@@ -29,7 +29,7 @@ from rig.errors import BadInput, RigError
 from rig.events import Event, Kind, LinkCondition, Message, Subscriber
 from rig.gui.emergency import EmergencyStop
 from rig.gui.manual import Heartbeat, ManualControl
-from rig.gui.messages import Notice, SessionClosed, SessionOpened
+from rig.gui.messages import Notice, SafeStopIncomplete, SessionClosed, SessionOpened
 from rig.gui.plan_state import PlanProgress
 from rig.gui.qc import QcDone, QcRequest, QcStarted, QcTracker, done_from, ended, refused
 from rig.qc.run import Prediction, QcSubscribers, test_unit
@@ -143,6 +143,7 @@ class SessionWorker:
                 self.manual.take_back()
         if result is None:
             return
+        self._stopped(result)
         self.post(SessionClosed(result, f"session {result.status}: {result.session.path}"))
         if result.exit_code == EXIT_OK and identify and result.captured:
             self.captured(result, opt)
@@ -176,7 +177,7 @@ class SessionWorker:
         to = QcSubscribers(say=lambda text: self.post(Notice(f"QC {request.serial}: {_plain(text)}")), attach=attach,
                            subscribers=[self._event], on_runner=self._runner_changed, interlock=self.emergency.latch,
                            before_session=before,
-                           predicted=predicted, after_session=lambda _result: self._links_back())
+                           predicted=predicted, after_session=self._qc_session_ended)
         done: QcDone
         try:
             shaker_url, daq_url = self.manual.urls
@@ -194,6 +195,14 @@ class SessionWorker:
             self._tracker = None
             self._links_back()
         self.post(done)
+
+    def _stopped(self, result: RunResult) -> None:
+        if result.safe_stop_failures:
+            self.post(SafeStopIncomplete(tuple(result.safe_stop_failures)))
+
+    def _qc_session_ended(self, result: RunResult) -> None:
+        self._stopped(result)
+        self._links_back()
 
     def _links_back(self) -> None:
         if not self.closing:

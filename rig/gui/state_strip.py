@@ -27,6 +27,19 @@ COLOURS: dict[str, str] = {ControllerState.ALARM: "#c62828", ControllerState.RUN
                            ControllerState.MOVING: "#ef6c00", ControllerState.AT_STATIC: "#1565c0",
                            ControllerState.IDLE: "#1565c0", ControllerState.OFF: "#616161"}
 NO_LINK_COLOUR = "#ef6c00"
+LINK_ERROR_CHARS = 90          # a link error in the strip, the banner and the panel (the driver's text: the log)
+UNSAFE_WORD = "SAFE STOP INCOMPLETE"
+CHECK_RIG = "hydraulics may still be ON: check the rig; use the hard-wired E-stop if it moves"
+
+
+def short_link_error(text: str | None) -> str | None:
+    """A link error as one short line: the driver's own words (pymodbus' exception, in
+    parentheses after ours) go to the log only, so that a line on screen stays readable
+    and the window fits 1280 px."""
+    if text is None:
+        return None
+    head = text.splitlines()[0].split(" (", 1)[0].strip() if text.strip() else text
+    return head if len(head) <= LINK_ERROR_CHARS else head[:LINK_ERROR_CHARS - 1].rsplit(" ", 1)[0] + " …"
 
 
 def hydraulics_on(status: ShakerStatus) -> bool:
@@ -42,9 +55,12 @@ class RigState:
     link_error: str | None = None
     connected: bool = False
     session_running: bool = False
+    unsafe: str | None = None            # a session's safe stop did not complete (latched until Reset…)
 
     @property
     def word(self) -> str:
+        if self.unsafe is not None:
+            return UNSAFE_WORD
         if self.trip is not None or (self.status is not None and self.status.state is ControllerState.ALARM):
             return ControllerState.ALARM
         if self.status is None:
@@ -54,12 +70,15 @@ class RigState:
     def strip_text(self) -> str:
         parts = [self.word]
         st = self.status
+        if self.unsafe is not None and (st is None or hydraulics_on(st)):
+            # No reading says the hydraulics are off: the rig may still be live.
+            return "   ·   ".join(parts + ["HYDRAULICS MAY BE ON", "CHECK THE RIG"])
         if self.trip is not None:
             parts.append(self.trip)
         elif st is not None and st.state is ControllerState.ALARM:
             parts.append(st.alarm)
         if st is None:
-            parts.append("HYDRAULICS ?" + (f" ({self.link_error})" if self.link_error else ""))
+            parts.append("HYDRAULICS ?" + (f" ({short_link_error(self.link_error)})" if self.link_error else ""))
         else:
             parts.append(f"HYDRAULICS {'ON' if hydraulics_on(st) else 'OFF'}  {st.hydraulic_pressure_pa / 1e5:.0f} bar")
             if self.trip is not None and st.state is not ControllerState.ALARM:
@@ -67,12 +86,16 @@ class RigState:
         return "   ·   ".join(parts)
 
     def colour(self) -> str:
-        return COLOURS.get(self.word, NO_LINK_COLOUR)
+        return COLOURS[ControllerState.ALARM] if self.word in (ControllerState.ALARM, UNSAFE_WORD) \
+            else COLOURS.get(self.word, NO_LINK_COLOUR)
 
     def blocked(self) -> dict[str, str]:
         """Each motion control that is not allowed now, with the reason its tooltip gives."""
         why: dict[str, str] = {}
         st = self.status
+        if self.unsafe is not None:
+            return dict.fromkeys(MOTION, f"the last safe stop did not complete ({self.unsafe}): check the rig, "
+                                         "then Reset…")
         if self.trip is not None:
             reason = f"{self.trip}: latched until Reset… is confirmed"
             return dict.fromkeys(MOTION, reason)
@@ -81,7 +104,10 @@ class RigState:
         if self.session_running:
             why.update(dict.fromkeys(MOTION, "a session is running: it commands the rig until it ends (Abort)"))
         elif not self.connected or st is None:
-            why.update(dict.fromkeys(MANUAL, self.link_error or "not connected to the controller"))
+            # A session needs the controller as much as a manual command does: with no reading of
+            # its state (hydraulics, alarm) nothing is started on it.
+            why.update(dict.fromkeys(MOTION, "the controller is not read" + (
+                f" ({short_link_error(self.link_error)})" if self.link_error else " (not connected)")))
         elif not hydraulics_on(st):
             why.update(dict.fromkeys(NEED_HYDRAULICS, "hydraulics OFF: switch them on first"))
         return why

@@ -15,6 +15,7 @@ from rig.events import Message
 from rig.gui.messages import Snapshot
 
 STATUS_PERIOD_S = 0.25
+CONTROLLER_NOT_CONNECTED = "the controller is not connected; the DAQ alone is read"
 
 # Which links to read: (the controller, the DAQ, whether they are a session's); None: none held.
 Source = Callable[[], tuple[Shaker | None, Daq | None, bool]]
@@ -31,13 +32,16 @@ class StatusPoller:
     def read(self) -> Snapshot | None:
         """One read of the links that hold the rig now (None: no links held)."""
         shaker, daq, session = self.source()
-        if shaker is None:
+        if shaker is None and daq is None:
             return None
-        status, error = None, None
-        try:
-            status = shaker.status()
-        except Exception as exc:  # noqa: BLE001 — shown as the link's state
-            error = str(exc)
+        status = None
+        error: str | None = CONTROLLER_NOT_CONNECTED
+        if shaker is not None:
+            error = None
+            try:
+                status = shaker.status()
+            except Exception as exc:  # noqa: BLE001 — shown as the link's state
+                error = str(exc)
         if daq is None:
             return Snapshot(status, error, heartbeat_ok=self.heartbeat_ok(), session=session)
         c = daq.counters

@@ -20,6 +20,7 @@ from typing import Any
 from rich.console import Console
 from rich.markup import escape
 
+from rig.drivers.registers import ControllerState
 from rig.events import Event, Kind, LinkCondition, Phase
 from rig.session.acquisition import PaceReading
 from rig.session.outcome import ExitStatus
@@ -31,7 +32,7 @@ CHANGE_WORDS = {"stroke_mm": ("stroke", "mm", 3), "force_N": ("force", "N", 1), 
                 "gas_temperature_C": ("gas temperature", "°C", 3)}
 PHASE_SENTENCES = {Phase.SETTLING: "Excitation running, settling."}
 # The controller's states read after a stop in which nothing moves (OFF: hydraulics off too).
-AT_REST_STATES = ("OFF", "IDLE")
+AT_REST_STATES = (ControllerState.OFF, ControllerState.IDLE)
 
 
 def describe(e: Event) -> str:
@@ -84,8 +85,9 @@ def at_rest_sentence(d: dict) -> str:
         return "Stopped (the controller's state after the stop is not on record)."
     state = d["controller"]
     if state in AT_REST_STATES:
-        return f"At rest: the controller reads {state}{', hydraulics off' if state == 'OFF' else ''}."
-    if state == "ALARM":
+        hydraulics = ", hydraulics off" if state == ControllerState.OFF else ""
+        return f"At rest: the controller reads {state}{hydraulics}."
+    if state == ControllerState.ALARM:   # the state as read back from session.log is its name
         return f"Stopped by the controller's alarm ({d.get('alarm', 'unknown')}); it stays latched until reset."
     if state is not None:
         return f"Not at rest: the controller reads {state} after the stop."
