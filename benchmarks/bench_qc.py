@@ -112,31 +112,6 @@ def rig_session(spec, out: Path, truth: Damper | PlantDamper | None = None, seed
         rig.close()
 
 
-def limit_units() -> dict[str, Damper]:
-    """The nominal damper with one characteristic exactly on each of its limits (the
-    gas pre-charge through the gas amount θ5 and its heat capacity θ15, the damping
-    through θ3, the friction at 10 bar through θ8)."""
-    base = load_truth().theta
-    spec = load_spec(SPEC)
-    out = {}
-    for c in spec.characteristics:
-        for side, limit in (("low", c.low), ("high", c.high)):
-            theta = dict(base)
-            assert limit is not None
-            if c.kind == "gas_pressure":
-                factor = limit / c.nominal
-                theta["theta5"] *= factor
-                theta["theta15"] *= factor
-            elif c.kind == "orifice_force":
-                theta["theta3"] = limit / c.args["velocity_m_s"] ** 2
-            elif c.kind == "friction":
-                theta["theta8"] = limit - theta["theta9"] * c.args["pressure_bar"] * 1e5
-            else:
-                continue
-            out[f"{c.name}@{side}"] = Damper(theta, "2dof")
-    return out
-
-
 Row = tuple[str, int, float, str, str, list[str], list[str]]
 
 
@@ -202,7 +177,7 @@ def sessions(units: int, jobs: int) -> int:
             todo += [("good", 1000 + i, unit_constants("good", 1000 + i)),
                      (fault, 2000 + i, unit_constants(fault, 2000 + i))]
     else:
-        todo = [(name, 3000 + i, d) for i, (name, d) in enumerate(limit_units().items())]
+        todo = [(name, 3000 + i, d) for i, (name, d) in enumerate(bench_qc_plant.limit_units(load_spec(SPEC)).items())]
         for i in range(units):
             fault = list(FAULT_OF)[i % 3]
             todo += [("good", 1000 + i, load_truth(None, "2dof", "good", 1000 + i)),

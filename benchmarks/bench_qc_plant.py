@@ -46,6 +46,7 @@ from rig.qc.evaluate import evaluate
 from rig.qc.judge import judge
 from rig.qc.spec import Spec, load_spec
 from simulator.generate import generate
+from simulator.physics import Damper
 from simulator.truth import load_truth
 
 FAULTS = ("gas-leak", "worn-seal", "worn-orifice")
@@ -159,6 +160,30 @@ def again(spec: Spec, r: Outcome) -> Outcome:
     return Outcome(r.job, j.verdict.value, failed, r.measured, r.direct, r.judged)
 
 
+def limit_units(spec: Spec) -> dict[str, Damper]:
+    """The nominal damper with one characteristic exactly on each of its limits (the
+    gas pre-charge through the gas amount θ5 and its heat capacity θ15, the damping
+    through θ3, the friction at 10 bar through θ8)."""
+    base = load_truth().theta
+    out = {}
+    for c in spec.characteristics:
+        for side, limit in (("low", c.low), ("high", c.high)):
+            theta = dict(base)
+            assert limit is not None
+            if c.kind == "gas_pressure":
+                factor = limit / c.nominal
+                theta["theta5"] *= factor
+                theta["theta15"] *= factor
+            elif c.kind == "orifice_force":
+                theta["theta3"] = limit / c.args["velocity_m_s"] ** 2
+            elif c.kind == "friction":
+                theta["theta8"] = limit - theta["theta9"] * c.args["pressure_bar"] * 1e5
+            else:
+                continue
+            out[f"{c.name}@{side}"] = Damper(theta, "2dof")
+    return out
+
+
 def plant_limit_units(spec: Spec) -> dict[str, object]:
     """Plant units with one directly measured characteristic on each of ``spec``'s limits:
     the gas charge, the orifice bore, the seal preload, solved for by bisection."""
@@ -199,10 +224,7 @@ def _plant_nominal():
 def jobs_for(world: str, units: int, spec: Spec) -> list[Job]:
     todo: list[Job] = []
     if world == "model":
-        sys.path.insert(0, str(Path(__file__).parent))
-        from bench_qc import limit_units
-
-        todo += [Job(world, name, 3000 + i, d) for i, (name, d) in enumerate(limit_units().items())]
+        todo += [Job(world, name, 3000 + i, d) for i, (name, d) in enumerate(limit_units(spec).items())]
         for i in range(units):
             fault = FAULTS[i % 3]
             todo += [Job(world, "good", 1000 + i, load_truth(None, "2dof", "good", 1000 + i)),

@@ -36,11 +36,17 @@ class PeriodicData:
 
     def theta(self, theta: np.ndarray) -> np.ndarray:
         """The shared parameter vector with this experiment's own fixed values."""
-        if not self.fixed:
-            return theta
-        out = theta.copy()
-        out[list(self.fixed)] = list(self.fixed.values())
-        return out
+        return with_fixed(theta, self.fixed)
+
+
+def with_fixed(theta: np.ndarray, fixed: dict[int, float]) -> np.ndarray:
+    """The shared parameter vector with a record's own fixed values in place (a copy where
+    there are any): one set of parameters for every record, some held per record."""
+    if not fixed:
+        return theta
+    out = theta.copy()
+    out[list(fixed)] = list(fixed.values())
+    return out
 
 
 def model_columns(model: CompiledModel, outputs: list[str]) -> list[str]:

@@ -43,6 +43,7 @@ from identify.differentiation import BDF2_D1, BDF2_D2, Factorization
 from identify.errors import InputError
 from identify.model import CompiledModel
 from identify.periodic import ConvergenceError
+from identify.preparation import with_fixed
 from identify.start import Measured, rest_state
 
 NEWTON_ITERATIONS = 40
@@ -138,11 +139,7 @@ class TransientData:
                     and np.all(self.noise_variance > 0))
 
     def theta(self, theta: np.ndarray) -> np.ndarray:
-        if not self.fixed:
-            return theta
-        out = theta.copy()
-        out[list(self.fixed)] = list(self.fixed.values())
-        return out
+        return with_fixed(theta, self.fixed)
 
     def weights(self) -> np.ndarray:
         """(n_outputs,) weights of the initial state's fit: 1/noise variance, or 1/the
