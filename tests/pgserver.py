@@ -75,6 +75,16 @@ class PgServer:
         if (self.data / "postmaster.pid").exists():
             self._run(f"{self.bin}/pg_ctl", "-D", str(self.data), "-m", "immediate", "-w", "stop")
 
+    def create_database(self, name: str) -> str:
+        """A new empty database of this server (a test's own, apart from the module's other
+        tests that share the server); its URL, without the password."""
+        import psycopg
+
+        with psycopg.connect(host="127.0.0.1", port=self.port, user=self.user, password=self.password,
+                             dbname="postgres", autocommit=True) as conn:
+            conn.execute(f'CREATE DATABASE "{name}"')
+        return self.url(database=name)
+
     def url(self, password: str | None = None, database: str = "postgres") -> str:
         auth = f"{self.user}:{password}" if password else self.user
         return f"postgresql://{auth}@127.0.0.1:{self.port}/{database}"

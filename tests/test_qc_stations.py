@@ -212,7 +212,10 @@ def test_a_run_killed_in_each_phase_is_stopped_by_the_watchdog_and_recorded_abor
                             stderr=subprocess.PIPE, text=True)
     lines = Lines(proc)
     lines.wait_for(PHASES[phase])
-    before = read_controller(sim.host, sim.port)
+    # The moving phase is said before the hydraulics are switched on: the kill waits for the
+    # controller to read them on, so that there is motion to stop.
+    before = (read_controller(sim.host, sim.port) if phase == "judging" else
+              wait_controller(sim.host, sim.port, lambda c: c.hydraulics_on))
     os.kill(proc.pid, signal.SIGKILL)
     killed = time.monotonic()
     proc.wait(timeout=60)
@@ -259,10 +262,11 @@ def test_four_stations_write_to_one_postgresql_at_once(pg_server, virtual_rig, t
     """The small one: four stations, three units each, at once (≥ 100 units:
     benchmarks/bench_stations.py)."""
     spec = str(short_spec(tmp_path))
+    url = pg_server.create_database("four_stations")   # none of the module's other tests' records in it
     loops = []
     for i, unit in enumerate(("good", "gas-leak", "worn-seal", "good")):
         sim = virtual_rig(unit=unit, unit_seed=i, speed=50)
-        folder = make_station(tmp_path / f"station-{i}", f"line1-{'ABCD'[i]}", pg_server.url(), pg_server.password)
+        folder = make_station(tmp_path / f"station-{i}", f"line1-{'ABCD'[i]}", url, pg_server.password)
         loops.append(StationLoop(folder, f"S{'ABCD'[i]}", sim.modbus_url, sim.daq_url, 3, spec))
     run_stations(loops)
     assert not [e for loop in loops for e in loop.errors]

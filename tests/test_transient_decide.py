@@ -15,7 +15,7 @@ from rich.console import Console
 from rig.config import DEFAULT_RIG_CONFIG
 from rig.qc.spec import load_spec
 from rig.session.acquisition import JUDGED_AT_S
-from rig.session.run import Links, RunOptions, SessionRunner, prepare
+from rig.session.run import Links, RunOptions, SessionRunner, prepare, run_lifecycle
 from tests.virtual_rig_inprocess import DAQ_URL, SHAKER_URL, InProcessRig
 
 
@@ -27,11 +27,13 @@ def _run(tmp_path, judge):
         prep = prepare(RunOptions(plan=spec.source, shaker=SHAKER_URL, daq=DAQ_URL, out=tmp_path / "s",
                                   date="261126", unit_serial="SN-0001"))
         prep = replace(prep, config=replace(prep.config, steady_state=spec.steady_state))
-        runner = SessionRunner(prep, Links(rig.shaker, rig.daq, rig.identity, None), rig.bus,
-                               Console(file=io.StringIO()))
-        runner.acquisition.judge_partial = judge(rig) if getattr(judge, "needs_rig", False) else judge
+        def configure(runner: SessionRunner | None) -> None:
+            if runner is not None:
+                runner.acquisition.judge_partial = judge(rig) if getattr(judge, "needs_rig", False) else judge
+
         t0 = rig.sim.t
-        result = runner.run(runner.open_session())
+        result = run_lifecycle(prep, Console(file=io.StringIO()), links=Links(rig.shaker, rig.daq, rig.identity, None),
+                               bus=rig.bus, on_runner=configure)
         return result, rig.sim.t - t0, pd.read_csv(tmp_path / "s" / "261126a.csv")
     finally:
         rig.close()

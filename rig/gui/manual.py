@@ -102,7 +102,8 @@ class ManualControl:
         except ShakerLinkError as exc:
             close_links(Links(shaker, daq, "", None))
             problem = wrong_peer_or(exc, shaker_url, daq_url, self.register_map)
-            self._daq_alone(daq_url)
+            if problem is exc:   # swapped or wrong addresses: no DAQ is where the DAQ's address points
+                self._daq_alone(daq_url)
             raise problem from None
         except BaseException:
             close_links(Links(shaker, daq, "", None))
