@@ -47,3 +47,15 @@ def standard_dataset(tmp_path_factory) -> Path:
     out = tmp_path_factory.mktemp("standard")
     generate(out, list(STANDARD_SET), load_truth(), periods=3, rate_hz=2000.0, seed=7, drop=True, date="261122")
     return out
+
+
+@pytest.fixture
+def vrig(tmp_path: Path):
+    """A connected in-process rig with quick settling (tests/virtual_rig_inprocess.py);
+    a module may define its own ``vrig`` (test_estop's runs the default configuration)."""
+    from tests.virtual_rig_inprocess import InProcessRig, quick_rig_config
+
+    rig = InProcessRig(quick_rig_config(tmp_path))
+    rig.connect()
+    yield rig
+    rig.close()

@@ -150,14 +150,23 @@ def generate_dataset(out: str | Path, experiments: Sequence[Experiment], *, rate
             scale = noise_scale.get(ch.column, 1.0) if isinstance(noise_scale, dict) else noise_scale
             cols[ch.column] = AdcChannel(ch.column, scale * ch.noise_std, ch.resolution, ch.offset).measure(
                 clean[ch.column].to_numpy(), rng)
-        label = f"ind-{e.letter}"
-        pd.DataFrame(cols).to_csv(out / f"{label}.csv", index=False, float_format="%.10g")
-        entries.append({"label": label, "kind": "periodic", "file": f"{label}.csv",
-                        "frequency_Hz": e.frequency_hz, "static_position_mm": e.static_position_mm,
-                        "amplitude_mm": e.amplitude_mm, "waveform": "sine", "sample_rate_Hz": rate_hz})
-    manifest = {"format": "damper-dataset/1", "name": "independent 2-dof generator (tests)",
+        entries.append(write_record(out, f"ind-{e.letter}", cols, e, rate_hz))
+    return write_manifest(out, "independent 2-dof generator (tests)", "tests/independent_generator.py", seed, th,
+                          entries)
+
+
+def write_record(out: Path, label: str, cols: dict[str, np.ndarray], e: Experiment, rate_hz: float) -> dict:
+    """One experiment's CSV in the dataset format; its entry for ``dataset.json``."""
+    pd.DataFrame(cols).to_csv(out / f"{label}.csv", index=False, float_format="%.10g")
+    return {"label": label, "kind": "periodic", "file": f"{label}.csv", "frequency_Hz": e.frequency_hz,
+            "static_position_mm": e.static_position_mm, "amplitude_mm": e.amplitude_mm, "waveform": "sine",
+            "sample_rate_Hz": rate_hz}
+
+
+def write_manifest(out: Path, name: str, generator: str, seed: int, th: dict[str, float], entries: list[dict]) -> Path:
+    """``dataset.json`` of a generated dataset (the truth and the seed in its source); ``out``."""
+    manifest = {"format": "damper-dataset/1", "name": name,
                 "ambient": {"temperature_K": -th["theta17"], "pressure_Pa": 101325.0},
-                "source": {"generator": "tests/independent_generator.py", "seed": seed, "truth": th},
-                "experiments": entries}
+                "source": {"generator": generator, "seed": seed, "truth": th}, "experiments": entries}
     (out / "dataset.json").write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
     return out

@@ -10,7 +10,6 @@ p = (θ5 − z)·T/(1 + θ6·q), the axle force from g1 by inverse dynamics.  Th
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -19,7 +18,7 @@ import pandas as pd
 from scipy.integrate import solve_ivp
 from scipy.optimize import fsolve
 
-from tests.independent_generator import CHANNELS, Experiment
+from tests.independent_generator import CHANNELS, Experiment, write_manifest, write_record
 from tests.independent_generator import NOMINAL as NOMINAL_2DOF
 
 NOMINAL: dict[str, float] = dict(NOMINAL_2DOF, theta18=10.0)
@@ -80,14 +79,6 @@ def generate_dataset(out: str | Path, experiments: Sequence[Experiment], *, rate
         cols = {"time_s": clean["time_s"].to_numpy()}
         for ch in CHANNELS:
             cols[ch.column] = ch.measure(clean[ch.column].to_numpy(), rng)
-        label = f"sol-{e.letter}"
-        pd.DataFrame(cols).to_csv(out / f"{label}.csv", index=False, float_format="%.10g")
-        entries.append({"label": label, "kind": "periodic", "file": f"{label}.csv",
-                        "frequency_Hz": e.frequency_hz, "static_position_mm": e.static_position_mm,
-                        "amplitude_mm": e.amplitude_mm, "waveform": "sine", "sample_rate_Hz": rate_hz})
-    manifest = {"format": "damper-dataset/1", "name": "dissolving-gas damper generator (tests)",
-                "ambient": {"temperature_K": -th["theta17"], "pressure_Pa": 101325.0},
-                "source": {"generator": "tests/solubility_data.py", "seed": seed, "truth": th},
-                "experiments": entries}
-    (out / "dataset.json").write_text(json.dumps(manifest, indent=2) + "\n", encoding="utf-8")
-    return out
+        entries.append(write_record(out, f"sol-{e.letter}", cols, e, rate_hz))
+    return write_manifest(out, "dissolving-gas damper generator (tests)", "tests/solubility_data.py", seed, th,
+                          entries)

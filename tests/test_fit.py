@@ -68,7 +68,12 @@ def test_silverbox_duffing_spectral(tmp_path):
                            "--estimate", "m,d,k,k2,k3", "--output", str(result), "--quiet"],
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr + proc.stdout
-    doc = json.loads(result.read_text())
+    assert_silverbox_oscillator(json.loads(result.read_text()))
+
+
+def assert_silverbox_oscillator(doc: dict) -> None:
+    """The circuit of the Silverbox records as a fitted Duffing oscillator (RESULT.json):
+    natural frequency, damping ratio and stiffening in the ranges its literature gives."""
     p = {k: v["value"] for k, v in doc["parameters"].items()}
     fn = math.sqrt(p["k"] / p["m"]) / (2 * math.pi)
     zeta = p["d"] / (2 * math.sqrt(p["k"] * p["m"]))

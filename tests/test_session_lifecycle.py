@@ -10,7 +10,6 @@ import io
 import json
 import os
 import threading
-from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -28,15 +27,7 @@ from rig.session.run import RunOptions, RunResult, SessionRunner, prepare
 from rig.session.storage import Session, SessionError, SessionLog, SessionWriteError, read_log
 from rig.session.timing import log_times
 from simulator.controller import State
-from tests.virtual_rig_inprocess import InProcessRig, quick_rig_config
-
-
-@pytest.fixture
-def vrig(tmp_path: Path) -> Iterator[InProcessRig]:
-    rig = InProcessRig(quick_rig_config(tmp_path))
-    rig.connect()
-    yield rig
-    rig.close()
+from tests.virtual_rig_inprocess import InProcessRig
 
 
 def open_files() -> set[str]:

@@ -13,8 +13,7 @@ from __future__ import annotations
 
 import io
 import json
-from collections.abc import Callable, Iterator
-from pathlib import Path
+from collections.abc import Callable
 
 import pytest
 from rich.console import Console
@@ -27,18 +26,12 @@ from rig.session.progress import ConsoleProgress, describe
 from rig.session.run import SessionContext, SessionRunner
 from rig.session.storage import read_log
 from simulator.controller import State
-from tests.virtual_rig_inprocess import InProcessRig, quick_rig_config
+from tests.virtual_rig_inprocess import InProcessRig
 
 LETTERS = ["j", "n"]        # a fault in j's stopping is met by n's first command
 FIRST = "261122j"
 
 
-@pytest.fixture
-def vrig(tmp_path: Path) -> Iterator[InProcessRig]:
-    rig = InProcessRig(quick_rig_config(tmp_path))
-    rig.connect()
-    yield rig
-    rig.close()
 
 
 def _dead(*args: object, **kwargs: object) -> bytes:

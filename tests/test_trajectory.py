@@ -29,6 +29,7 @@ from identify.trajectory import (
     white_noise_std,
 )
 from tests.conftest import SILVERBOX
+from tests.test_fit import assert_silverbox_oscillator
 
 ESTIMATE = "theta4,theta6,theta16"
 TRUTH = {"theta4": 5.0e-3, "theta6": -3.0, "theta16": 0.85}
@@ -184,13 +185,7 @@ def test_measured_silverbox_records_fitted_as_transients_give_the_periodic_fits_
                     "--output", str(out), "--quiet")
     assert proc.returncode == 0, proc.stderr + proc.stdout
     doc = json.loads(out.read_text())
-    p = {k: v["value"] for k, v in doc["parameters"].items()}
-    # The ranges of test_fit.py's periodic (spectral) fit of the same circuit.
-    fn = math.sqrt(p["k"] / p["m"]) / (2 * math.pi)
-    zeta = p["d"] / (2 * math.sqrt(p["k"] * p["m"]))
-    assert 68.0 <= fn <= 69.5
-    assert 0.04 <= zeta <= 0.06
-    assert 2.5 <= p["k3"] / p["k"] <= 5.5
+    assert_silverbox_oscillator(doc)   # the ranges of the periodic (spectral) fit
     assert doc["experiments"]["schroeder1"]["capture"] == "transient"
 
 
