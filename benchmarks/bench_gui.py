@@ -40,7 +40,7 @@ os.environ.setdefault("QT_QPA_PLATFORM", "offscreen")
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import numpy as np  # noqa: E402
-from PySide6 import QtCore  # noqa: E402
+from PySide6 import QtCore, QtWidgets  # noqa: E402
 
 from rig.drivers.daq import Daq, RingBuffer  # noqa: E402
 from rig.gui.main_window import GIL_SWITCH_S, MainWindow, application  # noqa: E402
@@ -162,13 +162,7 @@ def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.n
 
     dataset = Path(tempfile.mkdtemp()) / "standard"
     generate(dataset, list(STANDARD_SET), load_truth(), periods=3, rate_hz=RATE, seed=7, date="261122")
-    window = MainWindow.from_args(["--simulate", "--speed", "20", "--experiments", "j,h", "--out",
-                                   tempfile.mkdtemp()])
-    window.show()
-    app = application()
-    while window.status is None:
-        app.processEvents()
-        time.sleep(0.01)
+    window, app = started_console(["--experiments", "j,h"])
     fits = {"done": 0}
     original = window._handle
 
@@ -229,19 +223,24 @@ def loop_latency(seconds_min: float, fit: bool = True) -> tuple[np.ndarray, np.n
     return np.array(late) * 1e3, np.array(waited) * 1e3, fitting, wall
 
 
+def started_console(args: list[str]) -> tuple[MainWindow, QtWidgets.QApplication]:
+    """The console on its own simulated rig at 20x, shown, once its first status is read."""
+    window = MainWindow.from_args(["--simulate", "--speed", "20", *args, "--out", tempfile.mkdtemp()])
+    window.show()
+    app = application()
+    while window.status is None:
+        app.processEvents()
+        time.sleep(0.01)
+    return window, app
+
+
 def qc_latency() -> None:
     """The 10 ms probe while the console tests a unit: during its session, and during
     the identification and judging that follow it in the console's process."""
     from rig.events import Event, Kind, Message
     from rig.gui.qc import QcDone
 
-    window = MainWindow.from_args(["--simulate", "--speed", "20", "--unit", "worn-orifice", "--out",
-                                   tempfile.mkdtemp()])
-    window.show()
-    app = application()
-    while window.status is None:
-        app.processEvents()
-        time.sleep(0.01)
+    window, app = started_console(["--unit", "worn-orifice"])
     phase = {"now": "session"}
     late: dict[str, list[float]] = {"session": [], "judging": []}
     original = window._handle

@@ -11,6 +11,7 @@ the cost of back-substitutions only.
 from __future__ import annotations
 
 import warnings
+from collections.abc import Callable
 
 import numpy as np
 from scipy.linalg import LinAlgWarning
@@ -23,6 +24,25 @@ from identify.start import STARTS, Measured, StartError, rest_state, solve_from_
 
 CHORD_SIZE = 1e4  # a full Newton step at most this many tolerances long is confirmed by a chord step
 NEWTON_RTOL = 1e-3  # relative accuracy of a matrix-free Newton step (1e-6: 20 % more GMRES iterations in a fit)
+
+
+def damped_step(at: tuple[np.ndarray, np.ndarray, np.ndarray], step: tuple[np.ndarray, np.ndarray, np.ndarray],
+                weights: np.ndarray, merit: float,
+                residual: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray],
+                ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, float]:
+    """Newton's step damped by halving (Armijo, down to 1/1024) until the weighted sum of
+    squared residuals falls: ``at`` the states and their two derivatives, ``step`` the
+    same three of the full step.  Returns the factor and the states, derivatives,
+    residual and merit there (the periodic and the whole-record solver both take it)."""
+    (X, DX, DDX), (dX, d1, d2) = at, step
+    lam = 1.0
+    while True:
+        Xt, D1, D2 = X + lam * dX, DX + lam * d1, DDX + lam * d2
+        Gt = residual(Xt, D1, D2)
+        trial = float(np.sum((weights * Gt) ** 2))
+        if (np.isfinite(trial) and trial <= (1 - 1e-4 * lam) * merit) or lam < 1.0 / 1024:
+            return lam, Xt, D1, D2, Gt, trial
+        lam /= 2
 
 
 class ConvergenceError(ComputationError):
@@ -158,14 +178,8 @@ class PeriodicSolver:
                 return converged(dX, dD1, dD2, fac)
             if it == most:
                 break
-            lam = 1.0
-            while True:
-                Xt, D1, D2 = X + lam * dX, DX + lam * dD1, DDX + lam * dD2
-                Gt = m.residual(Xt, D1, D2, inputs, theta)
-                trial = float(np.sum((weights * Gt) ** 2))
-                if (np.isfinite(trial) and trial <= (1 - 1e-4 * lam) * merit) or lam < 1.0 / 1024:
-                    break
-                lam /= 2
+            lam, Xt, D1, D2, Gt, trial = damped_step((X, DX, DDX), (dX, dD1, dD2), weights, merit,
+                                                     lambda X, D1, D2: m.residual(X, D1, D2, inputs, theta))
             if not np.isfinite(trial):
                 break
             last_full_step = size if lam == 1.0 else np.nan

@@ -42,7 +42,7 @@ from identify.dataset import DatasetError, Experiment
 from identify.differentiation import BDF2_D1, BDF2_D2, Factorization
 from identify.errors import InputError
 from identify.model import CompiledModel
-from identify.periodic import ConvergenceError
+from identify.periodic import ConvergenceError, damped_step
 from identify.preparation import with_fixed
 from identify.start import Measured, rest_state
 
@@ -466,14 +466,8 @@ class TrajectorySolver:
                 return X + dX, DX + d1, DDX + d2, it + 1, fac
             if it == NEWTON_ITERATIONS:
                 break
-            lam = 1.0
-            while True:
-                Xt, D1, D2 = X + lam * dX, DX + lam * d1, DDX + lam * d2
-                Gt = self._residual(Xt, D1, D2, U, theta, x0)
-                trial = float(np.sum((weights * Gt) ** 2))
-                if (np.isfinite(trial) and trial <= (1 - 1e-4 * lam) * merit) or lam < 1.0 / 1024:
-                    break
-                lam /= 2
+            lam, Xt, D1, D2, Gt, trial = damped_step((X, DX, DDX), (dX, d1, d2), weights, merit,
+                                                     lambda X, D1, D2: self._residual(X, D1, D2, U, theta, x0))
             if not np.isfinite(trial):
                 break
             if lam < 1.0 / 1024 and float(np.max(np.abs(dX) / m.state_scales[:, None])) <= STAGNATION:
