@@ -33,6 +33,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import cast
 
@@ -120,10 +121,9 @@ def convoy(seconds: float) -> None:
     sys.setswitchinterval(GIL_SWITCH_S)
 
 
-def idle_latency(seconds: float) -> np.ndarray:
-    """The same probe in an empty event loop: what this machine gives right now (other
-    programs' load included), as the baseline of the figure below."""
-    late: list[float] = []
+def late_probe(record: Callable[[float], object]) -> QtCore.QTimer:
+    """A precise 10 ms single-shot timer that re-arms itself and hands ``record`` how
+    late each firing was [s]: the event loop's latency, started with ``start(10)``."""
     probe = QtCore.QTimer()
     probe.setSingleShot(True)
     probe.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
@@ -131,10 +131,19 @@ def idle_latency(seconds: float) -> np.ndarray:
 
     def tick() -> None:
         now = time.monotonic()
-        late.append(now - due[0])
+        record(now - due[0])
         due[0] = now + 0.01
         probe.start(10)
+
     probe.timeout.connect(tick)
+    return probe
+
+
+def idle_latency(seconds: float) -> np.ndarray:
+    """The same probe in an empty event loop: what this machine gives right now (other
+    programs' load included), as the baseline of the figure below."""
+    late: list[float] = []
+    probe = late_probe(late.append)
     probe.start(10)
     loop = QtCore.QEventLoop()
     QtCore.QTimer.singleShot(int(seconds * 1000), loop.quit)
@@ -254,18 +263,11 @@ def qc_latency() -> None:
             phase["now"] = "done"
             loop.quit()
     window._handle = handle  # type: ignore[method-assign]
-    probe = QtCore.QTimer()
-    probe.setSingleShot(True)
-    probe.setTimerType(QtCore.Qt.TimerType.PreciseTimer)
-    due = [time.monotonic() + 0.01]
-
-    def tick() -> None:
-        now = time.monotonic()
+    def lateness(late_s: float) -> None:
         if phase["now"] in late:
-            late[phase["now"]].append((now - due[0]) * 1e3)
-        due[0] = now + 0.01
-        probe.start(10)
-    probe.timeout.connect(tick)
+            late[phase["now"]].append(late_s * 1e3)
+
+    probe = late_probe(lateness)
     window.qc.serial.setText("SN-0042")
     window.qc.test_button.click()
     probe.start(10)
