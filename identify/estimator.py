@@ -44,6 +44,7 @@ import numpy as np
 
 from identify.differentiation import Grid
 from identify.errors import ComputationError, InputError
+from identify.fit_warnings import FitWarning, WarningCode
 from identify.folding import FoldedRecord
 from identify.model import CompiledModel
 from identify.parameters import Parameters
@@ -585,7 +586,7 @@ class Estimator:
             lam /= 2
         return None, lam
 
-    def _covariance(self, ev: _Evaluation, v: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, list[str]]:
+    def _covariance(self, ev: _Evaluation, v: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, list[FitWarning]]:
         """Sandwich covariance A⁻¹·B·A⁻¹ of the estimates under the measurement noise:
         the folded output noise and the folded input noise propagated through the model
         (Hᵀ·W·S by the adjoint), each with the fold's exact grid covariance σ²·F·Fᵀ.
@@ -598,8 +599,7 @@ class Estimator:
         A_inv = scaled_pinv(A)
         notes = []
         if ev.noise is None:
-            notes.append("measurement noise not estimable (a single sample per grid bin, or no scatter at all "
-                         "between periods): standard deviations assume white residuals")
+            notes.append(FitWarning(WarningCode.NOISE_NOT_ESTIMABLE))
             return A_inv, None, notes
         k = len(self.index)
         B = np.zeros((k, k))
@@ -613,21 +613,16 @@ class Estimator:
             if x > MODEL_ERROR_RATIO:
                 flagged.append((o, x, self.data[int(np.argmax(excess[:, b]))].label))
         residual_cov, self.residual_units = self._residual_covariance(ev, v, A_inv) if flagged else (None, None)
-        beside = ("; residual-based standard deviations, which include it, are given beside them"
-                  if residual_cov is not None else
-                  f"; with {len(self.data)} experiments for {k} parameters, and too few frequency lines carrying "
-                  f"the misfit, no residual-based ones can be given")
         for o, x, worst in flagged:
-            notes.append(f"{o}: residuals up to {x:.1f}x what the measurement noise explains (worst: {worst}"
-                         f"{self._input_share(ev, o, worst)}): systematic model or discretisation error; the "
-                         f"standard deviations cover the noise only" + beside)
+            notes.append(FitWarning(WarningCode.MODEL_ERROR, {
+                "output": o, "ratio": x, "worst": worst, "input_share": self._input_share(ev, o, worst),
+                "residual_based": residual_cov is not None, "experiments": len(self.data), "parameters": k}))
         for b, o in enumerate(self.outputs):
             share = self._input_shares(ev, b)
             a = int(np.argmax(share))
             if self.model.input_derivatives and o not in {f[0] for f in flagged} and share[a] > INPUT_NOISE_NOTE:
-                notes.append(f"{o}: the inputs' noise left by folding, carried through the model (errors in "
-                             f"variables), explains {100 * share[a]:.0f} % of its residual variance in "
-                             f"{self.data[a].label}; the weights and standard deviations include it")
+                notes.append(FitWarning(WarningCode.INPUT_NOISE, {"output": o, "percent": float(100 * share[a]),
+                                                                  "record": self.data[a].label}))
         return A_inv @ B @ A_inv, residual_cov, notes
 
     def _input_shares(self, ev: _Evaluation, b: int) -> np.ndarray:
@@ -637,16 +632,16 @@ class Estimator:
             return np.zeros(len(self.data))
         return ev.input_noise[:, b] / self._residual_variances(ev)[:, b]
 
-    def _input_share(self, ev: _Evaluation, output: str, label: str) -> str:
-        """A clause saying how much of a record's residual variance the inputs' folded
-        noise explains (errors in variables), for the model-error warning of a model that
-        takes an input's derivatives (whose folding noise it amplifies)."""
+    def _input_share(self, ev: _Evaluation, output: str, label: str) -> float | None:
+        """The share of a record's residual variance the inputs' folded noise explains
+        (errors in variables), for the model-error warning of a model that takes an
+        input's derivatives (whose folding noise it amplifies); None where there is none
+        worth saying."""
         if not self.model.input_derivatives:  # the input itself, as always, not its folded derivative
-            return ""
+            return None
         a = [d.label for d in self.data].index(label)
         share = float(self._input_shares(ev, self.outputs.index(output))[a])
-        return f"; the inputs' folding noise, carried through the model, explains {100 * share:.0f} % of its " \
-               f"residual variance" if share >= 0.005 else ""
+        return share if share >= 0.005 else None
 
     def _residual_covariance(self, ev: _Evaluation, v: np.ndarray,
                              A_inv: np.ndarray) -> tuple[np.ndarray | None, tuple[str, float, float] | None]:
@@ -726,8 +721,7 @@ class Estimator:
             ))
         unstable = [e.label for e in experiments if e.floquet is not None and np.abs(e.floquet[0]) >= 1.0]
         if unstable:
-            notes.append(f"unstable periodic solution (a Floquet multiplier on or outside the unit circle): "
-                         f"{', '.join(unstable)}; the fit may describe an orbit the damper cannot follow")
+            notes.append(FitWarning(WarningCode.UNSTABLE_ORBIT, {"records": unstable}))
         # Weighted, parameter-scaled sensitivities for the identifiability check.
         blocks = []
         for a, S in enumerate(ev.sensitivities):

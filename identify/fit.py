@@ -12,8 +12,8 @@ from identify.dataset import Experiment
 from identify.differentiation import Grid
 from identify.errors import InputError
 from identify.estimator import Estimator
+from identify.fit_warnings import FitWarning, WarningCode
 from identify.model import CompiledModel
-from identify.notation import significant
 from identify.parameters import Parameters
 from identify.preparation import (
     BDF2_ERROR,
@@ -45,7 +45,7 @@ class GridChoice:
     n: int
     oversample: int
     notes: list[str] = field(default_factory=list)
-    warnings: list[str] = field(default_factory=list)
+    warnings: list[FitWarning] = field(default_factory=list)
 
 
 def choose_grid(model: CompiledModel, experiments: list[Experiment], outputs: list[str], n: int | None,
@@ -56,7 +56,7 @@ def choose_grid(model: CompiledModel, experiments: list[Experiment], outputs: li
     same), n from the data for the spectral scheme (DEFAULT_POINTS for bdf2),
     oversampling for spectral grids of models with kinks."""
     notes: list[str] = []
-    warnings: list[str] = []
+    warnings: list[FitWarning] = []
     if scheme in (None, "bdf2"):
         lines, highest, label = excitation(model, experiments)
         error = bdf2_error(highest, n or DEFAULT_POINTS) if highest else 0.0
@@ -67,9 +67,9 @@ def choose_grid(model: CompiledModel, experiments: list[Experiment], outputs: li
                          f"which bdf2 on {n or DEFAULT_POINTS} points would differentiate {100 * error:.0f} % wrong "
                          f"(--scheme bdf2 --n N to insist)")
         elif unresolved:
-            warnings.append(f"bdf2 on {n or DEFAULT_POINTS} points differentiates the highest excited line of "
-                            f"{label} (harmonic {highest} of {lines}) {100 * error:.0f} % wrong: a resonance "
-                            f"lands elsewhere; use --scheme spectral")
+            warnings.append(FitWarning(WarningCode.BDF2_UNRESOLVED, {
+                "n": n or DEFAULT_POINTS, "record": label, "harmonic": highest, "lines": lines,
+                "percent": float(100 * error)}))
         scheme = scheme or "bdf2"
     if n is None:
         if scheme == "spectral":
@@ -111,17 +111,16 @@ def choose_grid(model: CompiledModel, experiments: list[Experiment], outputs: li
     return GridChoice(scheme, n, oversample, notes, warnings)
 
 
-def drift_warnings(model: CompiledModel, data: list[PeriodicData]) -> list[str]:
-    """One line per column whose mean drifted in some record (removed before folding,
+def drift_warnings(model: CompiledModel, data: list[PeriodicData]) -> list[FitWarning]:
+    """One warning per column whose mean drifted in some record (removed before folding,
     identify.folding): how much, where."""
     units = {ch.column: ch.unit for ch in [*model.declaration.inputs.values(), *model.declaration.outputs.values()]}
     out = []
     for column in dict.fromkeys(c for d in data for c in d.folded.drift):
-        where = [f"{d.label} {significant(d.folded.drift[column])}" for d in data if d.folded.drift.get(column)]
+        where = [(d.label, float(d.folded.drift[column])) for d in data if d.folded.drift.get(column)]
         if where:
-            out.append(f"the mean of {column} drifts within records (by {', '.join(where)} {units.get(column, '')}); "
-                       f"the drift was removed before folding (a one-period moving mean fitted by a cubic in time), "
-                       f"since folded as it was it would read as signal and as input noise")
+            out.append(FitWarning(WarningCode.DRIFT, {"column": column, "records": where,
+                                                      "unit": units.get(column, "")}))
     return out
 
 
@@ -176,7 +175,7 @@ def fit_experiments(model: CompiledModel, experiments: list[Experiment], params:
     result.start = {k: start[k] for k in result.estimated}
     result.priors = {k: params[k].prior_std for k in result.estimated}
     result.oversample = oversample
-    result.warnings += grid.warnings + drift_warnings(model, [d for d in data if isinstance(d, PeriodicData)])
+    result.findings += grid.warnings + drift_warnings(model, [d for d in data if isinstance(d, PeriodicData)])
     channels = list(model.declaration.inputs.values())
     result.units = {ch.column: ch.unit for ch in [*channels, *(model.declaration.outputs[o] for o in outputs)]}
     for e, d in zip(result.experiments, data, strict=True):

@@ -13,6 +13,7 @@ import numpy as np
 
 from identify import notation
 from identify.files import atomic_write_bytes
+from identify.fit_warnings import FitWarning, WarningCode
 from identify.model import CompiledModel
 from identify.parameters import Parameters
 
@@ -112,7 +113,7 @@ class FitResult:
     n_grid: int
     scheme: str
     singular_values: np.ndarray
-    warnings: list[str] = field(default_factory=list)
+    findings: list[FitWarning] = field(default_factory=list)  # the warnings as data; ``warnings`` renders them
     start: dict[str, float] = field(default_factory=dict)
     # Residual-based σ, given where the residuals exceed the measurement noise (model error).
     std_residual: dict[str, float] | None = None
@@ -130,7 +131,7 @@ class FitResult:
               experiments: list[ExperimentFit], converged: bool, iterations: int, message: str,
               objective_history: list[float], elapsed_s: float, n_grid: int, scheme: str,
               singular_values: np.ndarray, sensitivity_matrix: np.ndarray,
-              notes: Sequence[str] = (), std_residual: np.ndarray | None = None,
+              notes: Sequence[FitWarning] = (), std_residual: np.ndarray | None = None,
               covariance_residual: np.ndarray | None = None,
               residual_units: tuple[str, float, float] | None = None) -> FitResult:
         n_par = len(estimated)
@@ -150,10 +151,15 @@ class FitResult:
             {nm: float(s) for nm, s in zip(estimated, std_residual, strict=True)},
             covariance_residual=covariance_residual, residual_units=residual_units,
         )
-        result.warnings = result._bound_warnings() + result._identifiability_warnings(sensitivity_matrix) + list(notes)
+        result.findings = result._bound_warnings() + result._identifiability_warnings(sensitivity_matrix) + list(notes)
         return result
 
-    def _bound_warnings(self) -> list[str]:
+    @property
+    def warnings(self) -> list[str]:
+        """The warnings' sentences, rendered from :attr:`findings`."""
+        return [str(w) for w in self.findings]
+
+    def _bound_warnings(self) -> list[FitWarning]:
         """Estimates the bounds stopped: the data pull them beyond, where the model's
         declaration says no physical value lies (negative mass or damping), or beyond the
         START file's range."""
@@ -165,25 +171,22 @@ class FitResult:
                 continue
             limit = p.minimum if side == "minimum" else p.maximum
             physical = limit == p.physical[0 if side == "minimum" else 1]
-            out.append(f"{nm} ({p.alias}) ended on its {side} {limit:g} {p.unit}: the data pull it beyond, "
-                       + ("where no physical value lies (model error, or data that do not determine it)"
-                          if physical else "outside the range the START file allows")
-                       + "; its σ is that of a free parameter")
+            out.append(FitWarning(WarningCode.AT_BOUND, {"name": nm, "alias": p.alias, "side": side, "limit": limit,
+                                                          "unit": p.unit, "physical": physical}))
         return out
 
-    def _identifiability_warnings(self, Sw: np.ndarray) -> list[str]:
+    def _identifiability_warnings(self, Sw: np.ndarray) -> list[FitWarning]:
         out = []
         for nm in self.estimated:
             value = self.params[nm].value
             s = self.honest_std(nm)
             if value == 0 or s / abs(value) > UNDETERMINED:
-                out.append(f"{nm} ({self.params[nm].alias}) is not determined by these experiments: its σ "
-                           f"({notation.significant(s)}) is more than {UNDETERMINED:g} times its value; a flat "
-                           f"direction of the fit, so its estimate is no result")
+                out.append(FitWarning(WarningCode.UNDETERMINED, {"name": nm, "alias": self.params[nm].alias,
+                                                                 "std": float(s), "factor": UNDETERMINED}))
             elif s / abs(value) > RELATIVE_STD_WARNING:
-                out.append(f"{nm} ({self.params[nm].alias}) is poorly identifiable from these experiments: "
-                           f"±{100 * s / abs(value):.0f} %"
-                           + (" (residual-based σ)" if self.std_residual is not None else ""))
+                out.append(FitWarning(WarningCode.POORLY_IDENTIFIABLE, {
+                    "name": nm, "alias": self.params[nm].alias, "percent": float(100 * s / abs(value)),
+                    "residual": self.std_residual is not None}))
         if Sw.size and len(self.singular_values) > 1:
             sv = self.singular_values
             cond = sv[0] / max(sv[-1], 1e-300)
@@ -191,8 +194,7 @@ class FitResult:
                 _, _, vt = np.linalg.svd(Sw, full_matrices=False)
                 weak = np.abs(vt[-1])
                 names = [self.estimated[i] for i in np.argsort(weak)[::-1] if weak[i] > 0.3]
-                out.append(f"sensitivity matrix is ill-conditioned (condition number {cond:.2g}): the data "
-                           f"hardly separate {', '.join(names)}")
+                out.append(FitWarning(WarningCode.ILL_CONDITIONED, {"condition": float(cond), "names": names}))
         return out
 
     # ----------------------------------------------------------------------------------
@@ -284,6 +286,7 @@ class FitResult:
             "oversample": self.oversample,
             "elapsed_s": self.elapsed_s,
             "warnings": self.warnings,
+            "findings": [w.to_json() for w in self.findings],  # the same, as codes and numbers
             **({"std_residual_units": dict(zip(("units", "number", "effective_number"), self.residual_units,
                                                strict=True))}
                if self.std_residual is not None and self.residual_units else {}),

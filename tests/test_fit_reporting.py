@@ -232,7 +232,7 @@ def test_qc_guard_bands_propagate_the_residual_based_covariance_where_the_fit_gi
     i = model.parameter_index("theta4")
     for residual, expected in ((None, 1e-6), (np.array([[9e-12]]), 3e-6)):
         fit = SimpleNamespace(params=Parameters(model), estimated=["theta4"], covariance=np.array([[1e-12]]),
-                              covariance_residual=residual, converged=True, warnings=[])
+                              covariance_residual=residual, converged=True, findings=[])
         fit.honest_covariance = lambda fit=fit: FitResult.honest_covariance(fit)
         value, std = _propagate(model, Identified.from_fit(fit), lambda theta: 2.0 * theta[i], integrated=False)
         assert math.isclose(std, 2 * expected, rel_tol=1e-6)

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from identify.dataset import Experiment
+from identify.fit_warnings import WarningCode
 from identify.model import CompiledModel, ModelError, load_model
 from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
@@ -29,7 +30,6 @@ from rig.qc.spec import Characteristic, Spec, SpecError
 CELSIUS = 273.15
 DROP_WINDOW_S = 1.0        # the first compression, where the peak force lies, is over by about 0.5 s
 DROP_STEP_S = 2.5e-4
-MODEL_ERROR_NOTE = "what the measurement noise explains"   # identify.estimator's words for model error
 RELATIVE_STEP = 1e-5       # of |θ| for the finite differences (1e-3 for the integrated drop test)
 
 
@@ -68,7 +68,7 @@ class Identified:
             return None
         # The residual-based covariance where the fit found model error: a guard band of the
         # noise-only σ would pass units on a precision the model does not have.
-        misfit = any(MODEL_ERROR_NOTE in w for w in fit.warnings)
+        misfit = any(w.code is WarningCode.MODEL_ERROR for w in fit.findings)
         basis = "residual" if fit.covariance_residual is not None else "noise-misfit" if misfit else "noise"
         return cls(fit.params.vector(), tuple(fit.estimated), fit.honest_covariance(), basis)
 

@@ -13,6 +13,7 @@ from pathlib import Path
 from identify.dataset import Experiment, read_dataset
 from identify.errors import IdentifyError
 from identify.fit import fit_experiments
+from identify.fit_warnings import FitWarning, WarningCode
 from identify.model import CompiledModel
 from identify.parameters import Parameters
 from identify.preparation import model_columns, resolve_outputs
@@ -42,7 +43,7 @@ def evaluate(spec: Spec, session: Path) -> Evaluation:
     fit: FitResult | None = None
     try:
         fit = fit_experiments(model, experiments, params, list(spec.estimate), n=spec.grid_points)
-        notes += [_for_the_verdict(w, fit) for w in fit.warnings]
+        notes += [_for_the_verdict(w, fit) for w in fit.findings]
         if not fit.converged:
             notes.append(f"identification did not converge: {fit.message}")
     except IdentifyError as exc:
@@ -50,16 +51,15 @@ def evaluate(spec: Spec, session: Path) -> Evaluation:
     return _judge(spec, model, experiments, fit, Identified.from_fit(fit), notes, t0)
 
 
-def _for_the_verdict(warning: str, fit: FitResult) -> str:
+def _for_the_verdict(warning: FitWarning, fit: FitResult) -> str:
     """A fit's warning as the QC report states it: the fit report says which σ it lists
     first, the verdict uses the residual-based one where there is one (the σ notes say so
     per characteristic), so the report must not say the σ covers the noise only."""
-    head, sep, _ = warning.partition("; the standard deviations cover the noise only")
-    if not sep:
-        return warning
+    if warning.code is not WarningCode.MODEL_ERROR:
+        return str(warning)
     if fit.covariance_residual is not None:
-        return f"{head}; the verdict propagates the residual-based covariance, which includes it"
-    return f"{head}; too few experiments for a residual-based covariance: the verdict's σ is noise-only"
+        return f"{warning.finding}; the verdict propagates the residual-based covariance, which includes it"
+    return f"{warning.finding}; too few experiments for a residual-based covariance: the verdict's σ is noise-only"
 
 
 def evaluate_identified(spec: Spec, session: Path, identified: Identified, notes: list[str]) -> Evaluation:
