@@ -50,7 +50,7 @@ from identify.fit import DEFAULT_POINTS, fit_experiments
 from identify.model import load_model
 from identify.parameters import Parameters
 from identify.preparation import model_columns, resolve_outputs
-from identify.sinks import Delivery, ResultSink, SessionOutcome, Task
+from identify.sinks import BatchState, Delivery, DeliveryState, ResultSink, SessionOutcome, Task
 
 if TYPE_CHECKING:
     from distributed import Client
@@ -168,10 +168,10 @@ def fit_session(path: str, settings: FitSettings, out_dir: str, run_id: str) -> 
         if not isinstance(data_hash, str):
             data_hash = session_digest(manifest)
         key = settings.key(data_hash)
-        if stored.get("key") == key and stored.get("status") == "ok":
+        if stored.get("key") == key and _stored_state(stored) is BatchState.OK:
             # Written by an earlier attempt of this very task (its worker died before it
             # could report) or by an earlier run: either way the fit is not repeated.
-            return _outcome(directory, previous, "ok" if stored.get("run") == run_id else "skipped")
+            return _outcome(directory, previous, BatchState.OK if stored.get("run") == run_id else BatchState.SKIPPED)
         labels = [e.label for e in manifest.select(kind="periodic")]
         outputs = resolve_outputs(model, None)
         ds = read_dataset(directory, model_columns(model, outputs), labels)
@@ -179,18 +179,28 @@ def fit_session(path: str, settings: FitSettings, out_dir: str, run_id: str) -> 
                                  n=settings.n, scheme=settings.scheme, outputs=outputs,
                                  max_iterations=settings.max_iterations, oversample=settings.oversample)
         doc = result.to_document()
-        status = "ok" if result.converged else f"failed: not converged ({result.message})"
+        state, reason = (BatchState.OK, "") if result.converged else (BatchState.FAILED,
+                                                                       f"not converged ({result.message})")
     except IdentifyError as exc:
-        status = f"failed: {exc}"
+        state, reason = BatchState.FAILED, str(exc)
         doc = _failure_document(settings, str(exc))
     except Exception as exc:  # a bug met by one session's data is that session's failure, with its traceback
-        status = f"failed: internal error: {type(exc).__name__}: {exc}"
-        doc = _failure_document(settings, status) | {"traceback": traceback.format_exc()}
-    doc["batch"] = {"status": status, "key": key, "run": run_id, "session": str(directory), "serial": serial,
+        state, reason = BatchState.FAILED, f"internal error: {type(exc).__name__}: {exc}"
+        doc = _failure_document(settings, f"{state}: {reason}") | {"traceback": traceback.format_exc()}
+    status = f"{state}: {reason}" if reason else str(state)
+    doc["batch"] = {"status": status, "state": state.value, "reason": reason, "key": key, "run": run_id,
+                    "session": str(directory), "serial": serial,
                     "fit_s": time.perf_counter() - t0, "model_version": settings.model_version,
                     "data_hash": data_hash, "stamp": stamp}
     atomic_write_bytes(target, (json.dumps(doc, indent=2) + "\n").encode())
-    return _outcome(directory, doc, status)
+    return _outcome(directory, doc, state, reason)
+
+
+def _stored_state(block: dict[str, Any]) -> BatchState | None:
+    """The state a stored result's batch block records: its ``state`` field, or for a
+    result written before there was one, its status when that was the bare word ``ok``."""
+    state = block.get("state", "ok" if block.get("status") == "ok" else None)
+    return BatchState(state) if state in tuple(BatchState) else None
 
 
 def _serial(ds: Dataset) -> str:
@@ -221,13 +231,14 @@ def _failure_document(settings: FitSettings, message: str) -> dict[str, Any]:
             "correlation": {}, "channels": {}, "experiments": {}}
 
 
-def _outcome(directory: Path, doc: dict[str, Any], status: str) -> SessionOutcome:
+def _outcome(directory: Path, doc: dict[str, Any], state: BatchState, reason: str = "") -> SessionOutcome:
     # Only a fit that got as far as a covariance has estimates to show; start values are not.
     fitted = {name: p for name, p in doc["parameters"].items() if p.get("estimated") and p.get("std") is not None}
     residual = any(p.get("std_residual") is not None for p in fitted.values())
-    return SessionOutcome(directory.name, str(directory), status, doc["batch"]["serial"], bool(doc["converged"]),
+    return SessionOutcome(directory.name, str(directory), state, doc["batch"]["serial"], bool(doc["converged"]),
                           doc["batch"]["fit_s"], {k: p["value"] for k, p in fitted.items()},
-                          {k: p["std_residual"] if residual else p["std"] for k, p in fitted.items()}, residual)
+                          {k: p["std_residual"] if residual else p["std"] for k, p in fitted.items()}, residual,
+                          reason=reason)
 
 
 # ------------------------------------------------------------------------------------------
@@ -376,9 +387,9 @@ def run_batch(client: Client, sessions: Sequence[Path], settings: FitSettings, o
         try:
             outcome = future.result()
         except Exception as exc:  # the task itself was lost, e.g. its worker died on every allowed attempt
-            outcome = SessionOutcome(path.name, str(path), f"failed: {type(exc).__name__}: {exc}")
+            outcome = SessionOutcome(path.name, str(path), BatchState.FAILED, reason=f"{type(exc).__name__}: {exc}")
         future.release()  # nothing more is wanted from it: the scheduler may forget it
-        if sink is not None and outcome.state in ("ok", "skipped"):
+        if sink is not None and outcome.state in (BatchState.OK, BatchState.SKIPPED):
             step = deliver(sink, outcome, out)
             if isinstance(step, Task):
                 # Ahead of the fits still queued (priority), so that records follow the results
@@ -402,12 +413,12 @@ def deliver(sink: ResultSink, outcome: SessionOutcome, out: Path) -> Delivery | 
     result; the outcome is only its summary row).  Nothing the sink meets stops the batch."""
     path = Path(out) / f"{outcome.session}.json"
     doc = _read_json(path)
-    if _batch_block(doc).get("status") != "ok":
-        return Delivery("failed", f"{path}: the result cannot be read back")
+    if _stored_state(_batch_block(doc)) is not BatchState.OK:
+        return Delivery(DeliveryState.FAILED, f"{path}: the result cannot be read back")
     try:
         return sink.deliver(outcome, doc)
     except Exception as exc:  # a sink's bug met by one result is that session's failure, as a fit's is
-        return Delivery("failed", f"internal error in {sink.name}: {type(exc).__name__}: {exc}")
+        return Delivery(DeliveryState.FAILED, f"internal error in {sink.name}: {type(exc).__name__}: {exc}")
 
 
 def finish(sink: ResultSink, outcome: SessionOutcome, task: Task, value: Any) -> Delivery:
@@ -415,7 +426,7 @@ def finish(sink: ResultSink, outcome: SessionOutcome, task: Task, value: Any) ->
     try:
         return sink.finish(outcome, task, value)
     except Exception as exc:
-        return Delivery("failed", f"internal error in {sink.name}: {type(exc).__name__}: {exc}")
+        return Delivery(DeliveryState.FAILED, f"internal error in {sink.name}: {type(exc).__name__}: {exc}")
 
 
 def summary_csv(rows: Sequence[SessionOutcome], estimate: Sequence[str]) -> bytes:

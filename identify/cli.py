@@ -36,6 +36,7 @@ from identify.parameters import Parameters, load_document
 from identify.periodic import PeriodicSolver
 from identify.preparation import model_columns, prepare_periodic, resolve_outputs
 from identify.result import FitResult, failed_document, write_document
+from identify.sinks import BatchState, DeliveryState
 from identify.trajectory import is_transient
 from identify.transient import drop_test
 
@@ -467,7 +468,7 @@ def _run_batch(args: argparse.Namespace, console: Console, sessions: list[Path],
 
     from identify import batch
 
-    counts = {"ok": 0, "failed": 0, "skipped": 0}
+    counts = dict.fromkeys(BatchState, 0)
     try:
         with batch.connect(args.scheduler, args.workers) as client:
             try:  # only now: input refused before this point leaves no folder behind
@@ -497,13 +498,14 @@ def _run_batch(args: argparse.Namespace, console: Console, sessions: list[Path],
     _batch_table(rows, settings.estimate)
     print(f"{len(rows)} sessions: " + ", ".join(f"{v} {k}" for k, v in counts.items())
           + f"; results in {out}, summary {out / batch.SUMMARY}")
-    undelivered = [(r.session, r.delivery.text) for r in rows if r.delivery and r.delivery.state == "failed"]
+    undelivered = [(r.session, r.delivery.text) for r in rows
+                   if r.delivery and r.delivery.state is DeliveryState.FAILED]
     if sink is not None:
         for line in sink.summary():
             print(line)
         for session, reason in undelivered:  # each on its own line, whole, as a failed fit's
             print(f"{session}: not written to {sink.name}: {reason}")
-    return EXIT_NOT_CONVERGED if counts["failed"] or undelivered else EXIT_OK
+    return EXIT_NOT_CONVERGED if counts[BatchState.FAILED] or undelivered else EXIT_OK
 
 
 def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) -> None:
@@ -513,7 +515,7 @@ def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) ->
     console = Console()  # stdout: the table is the command's result, progress went to stderr
     shown = rows if len(rows) <= TABLE_ROWS else [r for r in rows if r.failed]
     if shown:
-        converged = {"ok": "yes", "skipped": "earlier", "failed": "no"}
+        converged = {BatchState.OK: "yes", BatchState.SKIPPED: "earlier", BatchState.FAILED: "no"}
         caption = ("value(std): the std in units of the value's last digits, summary.csv has both in full"
                    + ("; *: residual-based std, the residuals exceed the measurement noise (model error)"
                       if any(r.residual_std for r in shown) else "")
@@ -530,7 +532,7 @@ def _batch_table(rows: list[batch.SessionOutcome], estimate: tuple[str, ...]) ->
         for r in shown:
             mark = "*" if r.residual_std else ""
             cells = [notation.concise(r.values[p], r.stds.get(p)) + mark if p in r.values else "" for p in estimate]
-            table.add_row(r.session, r.serial, converged.get(r.state, r.state), *cells,
+            table.add_row(r.session, r.serial, converged[r.state], *cells,
                           "" if r.fit_s is None else f"{r.fit_s:.2f}")
         _print_table(table)
     for r in rows:

@@ -20,8 +20,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from enum import StrEnum
 from importlib.metadata import entry_points
-from typing import Any, Literal, Protocol
+from typing import Any, Protocol
 
 from identify.errors import InputError
 
@@ -30,6 +31,15 @@ GROUP = "identify.result_sinks"
 
 class SinkError(InputError):
     """A sink that cannot be loaded or opened (exit 2, before any task runs)."""
+
+
+class DeliveryState(StrEnum):
+    """What a sink did with one session's result (see :class:`Delivery`)."""
+
+    WRITTEN = "written"
+    PRESENT = "present"
+    PASSED = "passed"
+    FAILED = "failed"
 
 
 @dataclass(frozen=True)
@@ -44,8 +54,19 @@ class Delivery:
                  the batch exits 1, and the next run tries again.
     """
 
-    state: Literal["written", "present", "passed", "failed"]
+    state: DeliveryState  # the state's word ("written", ...) is taken too, for sinks written before the enum
     text: str = ""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "state", DeliveryState(self.state))
+
+
+class BatchState(StrEnum):
+    """What became of one session in a batch run."""
+
+    OK = "ok"            # fitted now and converged
+    FAILED = "failed"    # not converged, or could not be fitted (``SessionOutcome.reason`` says why)
+    SKIPPED = "skipped"  # converged in an earlier run, with the same data and settings
 
 
 @dataclass(frozen=True)
@@ -54,7 +75,7 @@ class SessionOutcome:
 
     session: str  # the folder name, which is also the result's file name
     path: str
-    status: str  # "ok", "failed: <reason>" or "skipped" (converged in an earlier run)
+    state: BatchState  # the state's word ("ok", ...) is taken too
     serial: str = ""
     converged: bool = False
     fit_s: float | None = None
@@ -64,15 +85,19 @@ class SessionOutcome:
     # (model error), and the noise's σ would understate the uncertainty.
     residual_std: bool = False
     delivery: Delivery | None = None  # what the result sink did with it (with a sink, for a converged result)
+    reason: str = ""  # why it failed (empty otherwise)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "state", BatchState(self.state))
 
     @property
     def failed(self) -> bool:
-        return self.status.startswith("failed")
+        return self.state is BatchState.FAILED
 
     @property
-    def state(self) -> str:
-        """``ok``, ``failed`` or ``skipped``: the status without its reason."""
-        return self.status.split(":", 1)[0]
+    def status(self) -> str:
+        """``ok``, ``failed: <reason>`` or ``skipped``: the sentence, rendered from the state."""
+        return f"{self.state}: {self.reason}" if self.reason else str(self.state)
 
 
 @dataclass(frozen=True)

@@ -192,6 +192,33 @@ def test_a_worker_with_another_model_version_fails_its_sessions_with_that_reason
     assert outcome.status.startswith(f"failed: model '2dof' on this worker is version {settings.model_version}, "
                                      "the client's is 0123456789abcdef0123")
     assert json.loads((tmp_path / "unit-02.json").read_text())["converged"] is False
+    # The state is data, in the outcome and in the stored result; the sentence is rendered from it.
+    assert (outcome.state, outcome.failed) == (batch.BatchState.FAILED, True)
+    assert outcome.status == f"failed: {outcome.reason}"
+    stored = json.loads((tmp_path / "unit-02.json").read_text())["batch"]
+    assert (stored["state"], stored["reason"], stored["status"]) == ("failed", outcome.reason, outcome.status)
+
+
+def test_a_result_is_skipped_on_its_stored_state_and_an_older_one_on_its_bare_ok(sessions, settings, tmp_path):
+    first = batch.fit_session(str(sessions[0]), settings, str(tmp_path), "run-1")
+    assert first.state is batch.BatchState.OK and first.reason == "" and not first.failed
+    path = tmp_path / "unit-00.json"
+    doc = json.loads(path.read_text())
+    doc["batch"]["status"] = "ok, reworded"           # the sentence is not read back
+    path.write_text(json.dumps(doc))
+    assert batch.fit_session(str(sessions[0]), settings, str(tmp_path), "run-2").state is batch.BatchState.SKIPPED
+    for key in ("state", "reason"):                   # written before the state was stored
+        del doc["batch"][key]
+    doc["batch"]["status"] = "ok"
+    path.write_text(json.dumps(doc))
+    assert batch.fit_session(str(sessions[0]), settings, str(tmp_path), "run-3").state is batch.BatchState.SKIPPED
+
+
+def test_a_sink_written_with_the_state_words_still_delivers_enums():
+    from identify.sinks import Delivery, DeliveryState
+
+    assert Delivery("written", "PASS").state is DeliveryState.WRITTEN
+    assert batch.SessionOutcome("s", "", "skipped").state is batch.BatchState.SKIPPED
 
 
 def test_killing_a_worker_mid_batch_still_yields_every_result_exactly_once(client, sessions, settings, tmp_path):
@@ -420,7 +447,8 @@ def test_the_batch_table_fits_an_80_column_terminal(monkeypatch, capsys):
     rows.append(batch.SessionOutcome("demo-session", "", "ok", "SIM-0002", True, 1.07,
                                      {"theta4": 0.00512, "theta6": -2.91, "theta16": 0.821},
                                      {"theta4": 3.3e-5, "theta6": 0.011, "theta16": 0.0197}, residual_std=True))
-    rows.append(batch.SessionOutcome("SN-2026-009", "", "failed: SN-2026-009/261122h.csv: line 7: not a number"))
+    rows.append(batch.SessionOutcome("SN-2026-009", "", batch.BatchState.FAILED,
+                                     reason="SN-2026-009/261122h.csv: line 7: not a number"))
     _batch_table(rows, ESTIMATE)
     out = capsys.readouterr().out
     assert max(len(line) for line in out.splitlines()) <= 80, out

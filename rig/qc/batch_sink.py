@@ -35,7 +35,7 @@ from identify.batch import SessionOutcome
 from identify.errors import IdentifyError
 from identify.model import CompiledModel
 from identify.parameters import Parameters
-from identify.sinks import Delivery, SinkError, Task
+from identify.sinks import Delivery, DeliveryState, SinkError, Task
 from rig.errors import RigError
 from rig.qc.characteristics import Identified, check_model
 from rig.qc.evaluate import evaluate_identified
@@ -69,15 +69,15 @@ class Rejudgements:
         self.records = records
         self.name = records.name
         self._specs: dict[tuple[Path, str], Spec] = {}  # (file, sha256) → the spec, each loaded once
-        self._by_state: dict[str, list[tuple[str, str]]] = {}  # state → (session, text), in arrival order
+        self._by_state: dict[DeliveryState, list[tuple[str, str]]] = {}  # state → (session, text), in arrival order
 
     def deliver(self, outcome: SessionOutcome, result: dict[str, Any]) -> Delivery | Task:
         try:
             return self._deliver(outcome, result)
         except NotApplicable as exc:
-            return self._count(outcome, Delivery("passed", str(exc)))
+            return self._count(outcome, Delivery(DeliveryState.PASSED, str(exc)))
         except (RigError, IdentifyError, OSError, ValueError) as exc:  # the records' and the data's own faults
-            return self._count(outcome, Delivery("failed", str(exc)))
+            return self._count(outcome, Delivery(DeliveryState.FAILED, str(exc)))
 
     def _deliver(self, outcome: SessionOutcome, result: dict[str, Any]) -> Delivery | Task:
         session = Path(outcome.path)
@@ -91,24 +91,26 @@ class Rejudgements:
         uid = str(uuid.uuid5(NAMESPACE, f"{result['batch']['key']} {spec.sha256}"))
         earlier = next((r for r in history if r.uid == uid), None)
         if earlier is not None:
-            return self._count(outcome, Delivery("present", _verdict(earlier)))
+            return self._count(outcome, Delivery(DeliveryState.PRESENT, _verdict(earlier)))
         identity = {"serial": first.serial, "operator": first.operator, "rig": first.rig,
                     "station": first.station, "simulated": first.simulated}
         return Task(judge_result, (spec, trace, result, first.uid, uid, identity))
 
     def finish(self, outcome: SessionOutcome, task: Task, value: Any) -> Delivery:
         if isinstance(value, (RigError, IdentifyError, OSError, ValueError)):
-            return self._count(outcome, Delivery("failed", str(value)))
+            return self._count(outcome, Delivery(DeliveryState.FAILED, str(value)))
         if isinstance(value, BaseException):
-            return self._count(outcome, Delivery("failed", f"internal error: {type(value).__name__}: {value}"))
+            return self._count(outcome, Delivery(DeliveryState.FAILED,
+                                                 f"internal error: {type(value).__name__}: {value}"))
         record: QcRecord = value
         try:
             self.records.add(record)
         except RecordsError as exc:
             if any(r.uid == record.uid for r in self.records.for_data(record.data_sha256)):
-                return self._count(outcome, Delivery("present", _verdict(record)))  # another client wrote it first
-            return self._count(outcome, Delivery("failed", str(exc)))
-        return self._count(outcome, Delivery("written", _verdict(record)))
+                # another client wrote it first
+                return self._count(outcome, Delivery(DeliveryState.PRESENT, _verdict(record)))
+            return self._count(outcome, Delivery(DeliveryState.FAILED, str(exc)))
+        return self._count(outcome, Delivery(DeliveryState.WRITTEN, _verdict(record)))
 
     def _count(self, outcome: SessionOutcome, delivery: Delivery) -> Delivery:
         self._by_state.setdefault(delivery.state, []).append((outcome.session, delivery.text))
@@ -135,8 +137,8 @@ class Rejudgements:
                             f"file nor {SPECS_DIR} has it")
 
     def summary(self) -> list[str]:
-        written, present = self._by_state.get("written", []), self._by_state.get("present", [])
-        passed, failed = self._by_state.get("passed", []), self._by_state.get("failed", [])
+        written, present = self._by_state.get(DeliveryState.WRITTEN, []), self._by_state.get(DeliveryState.PRESENT, [])
+        passed, failed = self._by_state.get(DeliveryState.PASSED, []), self._by_state.get(DeliveryState.FAILED, [])
         lines = [f"QC records in {self.name}: {len(written)} sessions re-judged{_verdicts(written)}, "
                  f"{len(present)} re-judged before{_verdicts(present)}, "
                  f"{sum(1 for _, why in passed if why == NO_RECORD)} without a QC record, "
