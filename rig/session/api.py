@@ -35,12 +35,12 @@ from rig.drivers.shaker import ShakerStatus
 from rig.errors import BadInput, RigFault
 from rig.events import Event, EventBus, LinkNotice, Subscriber
 from rig.session.acquisition import Acquisition
+from rig.session.outcome import ExitStatus, RunResult
 from rig.session.progress import ConsoleProgress, ProgressBar
 from rig.session.run import (
     EXIT_OK,
     Links,
     RunOptions,
-    RunResult,
     SessionContext,
     SessionRunner,
     close_links,
@@ -65,11 +65,13 @@ def _in_notebook() -> bool:
 
 class SessionFailed(RigFault):
     """A session ended short of complete (aborted, interrupted); the rig was safely stopped
-    and what was captured is kept: ``.session`` says how far it got."""
+    and what was captured is kept: ``.session`` says how far it got, ``.result`` how it
+    ended, as data (its ``exit_status``, ``reason``, ``exception``)."""
 
     def __init__(self, session: Session) -> None:
         super().__init__(f"session {session.status} ({session.dataset_dir})")
         self.session = session
+        self.result: RunResult | None = session.result
 
 
 class Session:
@@ -116,8 +118,21 @@ class Session:
         return self
 
     @property
+    def result(self) -> RunResult | None:
+        """How the session ended, as data (None until :meth:`run` has returned or raised):
+        read its ``exit_status`` (:class:`~rig.session.outcome.ExitStatus`), ``reason``,
+        ``exception``, ``captured``, ``skipped``; :attr:`status` is the sentence for people."""
+        return self._result
+
+    @property
+    def exit_status(self) -> ExitStatus | None:
+        """The session's end state (None while planned): what a script decides on."""
+        return self._result.exit_status if self._result is not None else None
+
+    @property
     def status(self) -> str:
-        """``planned``, then what ``session.json`` says: complete, ended: …, aborted: …"""
+        """``planned``, then what ``session.json`` says: complete, ended: …, aborted: …
+        (a sentence for people; code reads :attr:`exit_status` or :attr:`result`)"""
         return self._folder.meta["status"] if self._folder is not None else "planned"
 
     @property
