@@ -1,15 +1,16 @@
 """The virtual rig as a child process: ``python -m simulator serve`` on free loopback
 ports, exactly as an operator would start it by hand, with its endpoints, its log and
 its clean stop.  The rig package never imports the simulator; it talks to it over
-Modbus and the DAQ line only.  Used by the pytest plugin (``rig.testing``), the demo
-(``examples/demo.py``) and ``rig gui --simulate``."""
+Modbus and the DAQ line only, and learns its endpoints and state from the JSON file
+``serve --state`` keeps (the log is for people: it is shown, never parsed).  Used by
+the pytest plugin (``rig.testing``), the demo (``examples/demo.py``) and
+``rig gui --simulate``."""
 
 from __future__ import annotations
 
 import atexit
 import json
 import os
-import re
 import signal
 import subprocess
 import sys
@@ -17,6 +18,7 @@ import tempfile
 import threading
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from rig.errors import BadInput, RigFault
 
@@ -46,8 +48,11 @@ class VirtualRig:
         cmd += ["--unit-seed", str(unit_seed)] if unit_seed is not None else []
         for fault in faults:
             cmd += ["--fault", fault]
+        self._state_path = Path(self._tmp.name) / "state.json"
+        cmd += ["--state", str(self._state_path)]
         cmd += list(extra_args)
         self.command = cmd
+        self._state: dict[str, Any] = {}   # the state file as last read (kept once the folder is gone)
         self._proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                       preexec_fn=(lambda: os.nice(nice)) if nice else None)
         # Stopped with this program even when nobody called stop() (a failing test, an
@@ -62,26 +67,34 @@ class VirtualRig:
         self.returncode: int | None = None
 
     def _endpoints(self) -> tuple[str, str]:
-        found: dict[str, str] = {}
         ready = threading.Event()
 
         def read() -> None:
+            # The first line on stdout (or its end, when the simulator gave up) says the
+            # state file is written: the simulator writes it before it prints its addresses.
             assert self._proc.stdout is not None
-            for line in self._proc.stdout:
-                kind, _, url = line.strip().partition(" ")
-                found[kind] = url
-                if {"modbus", "daq"} <= found.keys():
-                    break
+            self._proc.stdout.readline()
             ready.set()
 
         threading.Thread(target=read, daemon=True).start()
-        if not ready.wait(START_TIMEOUT_S) or not {"modbus", "daq"} <= found.keys():
+        found = self.state() if ready.wait(START_TIMEOUT_S) else {}
+        if found.get("state") != "serving":
             self.stop()
             said = [line.strip().removeprefix("error: ") for line in self.log().splitlines() if line.strip()]
             why = f"the virtual rig did not start (simulator exit {self.returncode}): {(said or ['no output'])[-1]}"
             # The simulator's exit 2 is input it refused (a truth file, a fault): the caller's mistake.
             raise BadInput(why) if self.returncode == 2 else RigFault(why)
-        return found["modbus"], found["daq"]
+        return str(found["modbus"]), str(found["daq"])
+
+    def state(self) -> dict[str, Any]:
+        """The simulator's state file (``simulator serve --state``): ``state`` (serving,
+        stopped), ``modbus``, ``daq``, ``hydraulics`` ([simulated s, on] pairs), and once
+        stopped ``t_s``, ``lost_frames``, ``lost``.  Empty before the simulator wrote it."""
+        try:
+            self._state = json.loads(self._state_path.read_text())
+        except FileNotFoundError:
+            pass   # not written yet, or stopped and cleaned up: what was read last stands
+        return self._state
 
     def _read_log(self) -> None:
         assert self._proc.stderr is not None
@@ -117,22 +130,23 @@ class VirtualRig:
                 self._proc.wait()
         self._drain.join(timeout=5)
         self.returncode = self._proc.returncode
+        self.state()   # its last word, before the folder goes
         self._tmp.cleanup()
         return self.log()
 
     def rig_time_s(self) -> float:
-        """Simulated seconds from the first 'hydraulics on' to the last 'hydraulics off'."""
-        marks = re.findall(r"\[sim t=\s*([0-9.]+) s\] hydraulics (on|off)", self.log())
-        if not marks or marks[0][1] != "on" or marks[-1][1] != "off":
-            raise ValueError("the simulator's log holds no hydraulics on ... off")
+        """Simulated seconds from the first hydraulics on to the last hydraulics off."""
+        marks = self.state().get("hydraulics", [])
+        if not marks or not marks[0][1] or marks[-1][1]:
+            raise ValueError("the simulator's state holds no hydraulics on ... off")
         return float(marks[-1][0]) - float(marks[0][0])
 
     def lost_frames(self) -> int:
         """The simulator's own count of DAQ frames lost to injected faults (once stopped)."""
-        m = re.search(r"DAQ frames lost by faults: (\d+)", self.log())
-        if m is None:
-            raise ValueError("no loss count in the log: stop() the rig first")
-        return int(m.group(1))
+        lost = self.state().get("lost_frames")
+        if lost is None:
+            raise ValueError("no loss count in the simulator's state: stop() the rig first")
+        return int(lost)
 
     def __enter__(self) -> VirtualRig:
         return self

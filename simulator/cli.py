@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import argparse
 import difflib
+import json
+import os
 import signal
 import sys
 import threading
@@ -19,6 +21,7 @@ import time
 import tomllib
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from identify.argparsing import OneLineParser
 from identify.errors import InputError
@@ -165,6 +168,26 @@ def _linked(device: str, link: Path | None, made: list[Path]) -> str:
     return str(link)
 
 
+class StateFile:
+    """``serve --state FILE``: what a program driving the simulator needs to know, as JSON
+    it reads instead of the log meant for people.  Rewritten whole (atomically) once the
+    endpoints are open (``state`` "serving", ``modbus``, ``daq``), at each hydraulics
+    switching (``hydraulics``: [simulated s, on] pairs) and at exit (``state`` "stopped",
+    ``t_s``, ``lost_frames`` and ``lost`` by kind: the DAQ frames lost to injected faults)."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.doc: dict[str, Any] = {"format": 1, "pid": os.getpid(), "state": "starting", "hydraulics": []}
+        self._lock = threading.Lock()
+
+    def update(self, **fields: Any) -> None:
+        with self._lock:
+            self.doc.update(fields)
+            tmp = self.path.with_name(f".{self.path.name}.tmp")
+            tmp.write_text(json.dumps(self.doc) + "\n")
+            os.replace(tmp, self.path)   # a reader sees the old document or the new one, never half
+
+
 def run_serve(args: argparse.Namespace) -> int:
     from simulator.daq import Port, PtyPort, TcpPort
     from simulator.engine import VirtualRig
@@ -196,6 +219,9 @@ def run_serve(args: argparse.Namespace) -> int:
                      faults=faults, modbus_host=host, modbus_port=port,
                      modbus_serial=bridge.server_path if bridge else None, rig_type=args.rig,
                      drop_mass_kg=args.drop_mass)
+    state = StateFile(Path(args.state)) if args.state else None
+    if state is not None:
+        rig.on_state = lambda: state.update(hydraulics=[[t, on] for t, on in rig.hydraulics])
     stop = threading.Event()
     for sig in (signal.SIGINT, signal.SIGTERM):
         signal.signal(sig, lambda *_: stop.set())
@@ -211,6 +237,8 @@ def run_serve(args: argparse.Namespace) -> int:
             # What rig takes, verbatim: a pseudo-terminal by the path asked for, where one was.
             modbus_url = f"rtu://{_linked(bridge.client_path, modbus.link, links)}" if bridge else rig.modbus.url
             daq_url = _linked(daq_port.url, daq.link, links) if daq.tcp is None else daq_port.url
+            if state is not None:   # before the lines below: whoever waits for them finds the file
+                state.update(state="serving", modbus=modbus_url, daq=daq_url, speed=args.speed)
             print(f"modbus {modbus_url}", flush=True)
             print(f"daq {daq_url}", flush=True)
             print(f"rig options: --shaker {modbus_url} --daq {daq_url}", flush=True)
@@ -218,6 +246,8 @@ def run_serve(args: argparse.Namespace) -> int:
                 pass
         finally:
             rig.close()
+            if state is not None:
+                state.update(state="stopped", t_s=rig.t, lost_frames=rig.daq.lost_frames, lost=dict(rig.daq.lost))
             print(f"simulator stopped at simulated t = {rig.t:.1f} s; DAQ frames lost by faults: "
                   f"{rig.daq.lost_frames} {rig.daq.lost}", file=sys.stderr, flush=True)
     finally:
@@ -289,6 +319,9 @@ def build_parser() -> argparse.ArgumentParser:
                             "disconnect@T, modbus-down@T=D, hydraulic-loss@T[=D], estop@T, drift=CH:RATE[@T], "
                             "servo-drift@T=MM_PER_S; "
                             "T in simulated s, or run+T for T s after the first RUN")
+    serve.add_argument("--state", metavar="FILE.json",
+                       help="keep FILE.json up to date for a program driving the simulator: the endpoints once "
+                            "ready, each hydraulics switching, and at exit the DAQ frames lost by faults")
     serve.set_defaults(func=run_serve)
     return parser
 

@@ -152,6 +152,7 @@ class ShakerController:
     initial_position_m: float = 0.0
     wall_clock: Callable[[], float] = time.monotonic
     on_event: Callable[[str], None] = lambda message: None
+    on_hydraulics: Callable[[bool], None] = lambda on: None  # the switching as data (the state file)
     holding: dict[str, int] = field(default_factory=lambda: dict(DEFAULT_HOLDING))
     hydraulics_on: bool = False
     alarm: Alarm = Alarm.NONE
@@ -380,6 +381,7 @@ class ShakerController:
         self._run_started_s = None
         self._heartbeat_wall = self.wall_clock()
         self.on_event(f"hydraulics {'on' if on else 'off'}")
+        self.on_hydraulics(on)
 
     def _reset_alarm(self) -> None:
         if self.alarm == Alarm.NONE:

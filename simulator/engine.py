@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -64,7 +65,12 @@ class VirtualRig:
         # The controller's position transducer reads the measured stroke; a drop rig holds
         # the damper at q = 0 until the release.
         rest_m = rest_stroke(self.damper) if self.rig_type == "drop" else 0.0
-        self.controller = ShakerController(initial_position_m=rest_m, on_event=lambda m: self.log.record(self.t, m))
+        # Each hydraulics switching at its simulated time, as data (serve's --state file); on_state
+        # is told after each one.
+        self.hydraulics: list[tuple[float, bool]] = []
+        self.on_state: Callable[[], None] = lambda: None
+        self.controller = ShakerController(initial_position_m=rest_m, on_event=lambda m: self.log.record(self.t, m),
+                                           on_hydraulics=self._hydraulics_switched)
         self.tier = make_tier(self.damper, self.actuator, self._dt, self.controller.position_m)
         self.sensors = SensorSet(seed=self.seed)
         self.daq = DaqDevice(self.daq_port, now=lambda: self.t, log=self.log, speed=self.speed, seed=self.seed)
@@ -86,6 +92,10 @@ class VirtualRig:
             self._drop = self.tier.drop(self.drop_mass_kg, DROP_RECORD_S)
         elif self.rig_type != "shaker":
             raise ValueError(f"rig type {self.rig_type!r}: shaker or drop")
+
+    def _hydraulics_switched(self, on: bool) -> None:
+        self.hydraulics.append((self.t, on))
+        self.on_state()
 
     # ----- lifecycle ---------------------------------------------------------------------
     def start(self) -> None:
