@@ -4,6 +4,7 @@ virtual rig learns the simulator's endpoints and state from its state file, not 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -55,3 +56,48 @@ def test_the_state_file_is_written_whole_and_says_stopped_at_exit(tmp_path):
     doc = json.loads(path.read_text())
     assert (doc["state"], doc["modbus"], doc["hydraulics"]) == ("serving", "tcp://127.0.0.1:1", [[1.5, True]])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["state.json"]
+
+
+def _entry(session: Path) -> dict[str, object]:
+    return {"uid": "0b4c0ffe-0000-4000-8000-000000000042", "session": str(session), "pid": 4242, "host": "station-1",
+            "station": "S1", "spec": {"name": "default", "version": "1", "sha256": "ab" * 32, "k": 2.0},
+            "serial": "SN-0666", "operator": "op", "rig": "rig-1", "started": "2026-11-28T06:00:00+00:00"}
+
+
+def test_a_run_left_running_is_ended_with_an_outcome_that_reads_aborted(tmp_path):
+    from rig.qc.queue import KILLED, abandoned_record
+    from rig.qc.records import RecordStatus
+    from rig.session.outcome import stored_exit_status
+    from rig.session.storage import Session
+
+    folder = tmp_path / "session"
+    Session.create(folder, plan_source="standard", letters=["j"], periods=None, date="261128", snapshot={},
+                   unit={"serial": "SN-0666"}, endpoints={})
+    assert stored_exit_status(json.loads((folder / "session.json").read_text())) is ExitStatus.RUNNING
+    record = abandoned_record(_entry(folder))
+    assert record is not None and record.status is RecordStatus.ABORTED
+    meta = json.loads((folder / "session.json").read_text())
+    assert stored_exit_status(meta) is ExitStatus.ABORTED          # no longer None: the outcome is stored
+    assert meta["status"] == f"aborted: {KILLED}"                   # the sentence as it was, rendered
+    assert (meta["outcome"]["reason"], meta["outcome"]["exit_code"]) == (KILLED, 3)
+    assert record.details["session_status"] == "running"           # what was found
+    assert record.details["session_outcome"]["exit_status"] == "aborted"
+
+
+def test_a_run_that_had_ended_keeps_its_own_outcome(tmp_path):
+    from rig.qc.queue import abandoned_record
+    from rig.session.outcome import RunResult
+    from rig.session.storage import Session
+
+    folder = tmp_path / "session"
+    session = Session.create(folder, plan_source="standard", letters=["j"], periods=None, date="261128",
+                             snapshot={}, unit={"serial": "SN-0666"}, endpoints={})
+    ended = RunResult(session, planned=1)
+    ended.end(ExitStatus.COMPLETE)
+    session.finish(ended.status, ended.to_json())
+    # A reworded sentence changes nothing: the decision reads the stored outcome.
+    meta = json.loads((folder / "session.json").read_text())
+    (folder / "session.json").write_text(json.dumps({**meta, "status": "running"}))
+    record = abandoned_record(_entry(folder))
+    assert record is not None and record.reason.startswith("process ended while judging")
+    assert json.loads((folder / "session.json").read_text())["outcome"]["exit_status"] == "complete"

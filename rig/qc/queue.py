@@ -30,6 +30,7 @@ from typing import IO, Any
 from rig.qc.records import QcRecord, Records, RecordsError, RecordStatus, Unreachable, default_url
 from rig.qc.station import load_station_config
 from rig.qc.trace import now_utc, software_version, trace_session
+from rig.session.outcome import ExitStatus, RunResult, stored_exit_status
 from rig.session.storage import SESSION_FILE, Session
 
 QUEUE_DIR = "qc-queue"
@@ -263,9 +264,12 @@ def abandoned_record(entry: dict[str, Any]) -> QcRecord | None:
     session = Session.load(folder)
     status, finished = session.meta.get("status"), trace.finished
     where = f"process {entry['pid']} on {entry['host']}"
-    if status == "running":
+    if stored_exit_status(session.meta) is ExitStatus.RUNNING:
+        # Ended here, as data: stored_exit_status reads ABORTED from now on.
+        result = RunResult(session)
+        result.end(ExitStatus.ABORTED, KILLED)
+        session.finish(result.status, result.to_json())
         reason = f"{KILLED} ({where}; the controller's watchdog stops the rig)"
-        session.finish(f"aborted: {KILLED}")
     else:
         reason = f"process ended while judging ({where}), after the session {status}"
     peers = trace.peers[0] if trace.peers else {}
@@ -278,7 +282,8 @@ def abandoned_record(entry: dict[str, Any]) -> QcRecord | None:
                     session=trace.path, data_sha256=trace.data_sha256, files=trace.files, characteristics=(),
                     notes=(reason,), simulated=trace.simulated, controller=peers.get("controller"),
                     daq=peers.get("daq"), reason=reason, k=spec["k"], station=entry.get("station"),
-                    details={"found": "on the station's next start", "session_status": status})
+                    details={"found": "on the station's next start", "session_status": status,
+                             "session_outcome": session.meta.get("outcome")})
 
 
 def pending_count(folder: Path) -> int:
