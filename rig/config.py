@@ -7,6 +7,7 @@ import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from identify.move_profile import CONTROLLER_MOVE, MoveProfile
 from rig.errors import BadInput
 from rig.tomlfile import read_toml
 
@@ -118,6 +119,8 @@ class RigConfig:
     hold_timing_s: float = 0.0  # how early or late a hold's end is answered, in the links' seconds
     # the live traces' smallest axis span per channel, engineering units ([display]; none: autoscale)
     min_span: dict[str, float] = field(default_factory=dict)
+    # the controller's move to a static position ([limits] move_speed_m_s; default its datasheet's)
+    move: MoveProfile = CONTROLLER_MOVE
 
 
 def _seconds(table: dict, key: str, default: float, path: Path) -> float:
@@ -129,6 +132,18 @@ def _seconds(table: dict, key: str, default: float, path: Path) -> float:
     if not math.isfinite(value):
         raise ConfigError(f"{path}: [conditioning] {key} = {value}: not a finite number of seconds")
     return value
+
+
+def _move_profile(limits: dict, path: Path) -> MoveProfile:
+    """The controller's move from ``[limits] move_speed_m_s`` (its peak speed), where the
+    rig's controller is not the datasheet's."""
+    if "move_speed_m_s" not in limits:
+        return CONTROLLER_MOVE
+    try:
+        return MoveProfile(float(limits["move_speed_m_s"]))
+    except (TypeError, ValueError):
+        raise ConfigError(f"{path}: [limits] move_speed_m_s = {limits['move_speed_m_s']!r}: not a positive number "
+                          f"of m/s") from None
 
 
 def load_rig_config(path: str | Path | None = None) -> RigConfig:
@@ -147,6 +162,7 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
         min_hold = _seconds(conditioning, "min_hold_s", 1.0, path)
         hold_timing = _seconds(conditioning, "hold_timing_s", 0.0, path)
         min_span = {str(k): float(v) for k, v in doc.get("display", {}).get("min_span", {}).items()}
+        move = _move_profile(lim, path)
     except KeyError as exc:
         raise ConfigError(f"{path}: missing key {exc.args[0]!r}") from None
     except (TypeError, ValueError) as exc:
@@ -164,4 +180,5 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
                           + (f" ({', '.join(sorted(unknown))} is not one)" if unknown else ""))
     if hold_timing < 0:
         raise ConfigError(f"{path}: [conditioning] hold_timing_s = {hold_timing:g}: must be 0 or positive")
-    return RigConfig(str(path), limits, rate, criteria, reconnect, text, max_hold, min_hold, hold_timing, min_span)
+    return RigConfig(str(path), limits, rate, criteria, reconnect, text, max_hold, min_hold, hold_timing, min_span,
+                     move)

@@ -22,6 +22,8 @@ from enum import IntEnum
 
 import numpy as np
 
+from identify.move_profile import CONTROLLER_MOVE, MoveProfile
+
 
 class State(IntEnum):
     OFF = 0
@@ -63,7 +65,6 @@ DEVICE_IDENTIFICATION = {"VendorName": "damper-rig", "ProductCode": "SIMULATOR",
                          "MajorMinorRevision": f"{FIRMWARE // 100}.{FIRMWARE % 100:02d}",
                          "ProductName": "shaker controller simulator", "ModelName": "SIMULATOR"}
 ACTUATOR_TRAVEL_M = 0.300      # ± mechanical travel of the actuator
-MOVE_SPEED_M_S = 0.050         # peak speed of the profile for moves to a static position
 FLOW_LIMIT_M_S = 0.6           # hydraulic flow: peak velocity of a waveform
 MAX_FREQUENCY_HZ = 20.0
 SUPPLY_PRESSURE_PA = 210e5
@@ -119,8 +120,7 @@ class _Segment:
         if self.kind == "hold":
             return np.full(t.shape, self.start_m)
         if self.kind == "move":
-            s = np.clip((t - self.t0) / self.duration_s, 0.0, 1.0) if self.duration_s > 0 else np.ones(t.shape)
-            return self.start_m + (self.target_m - self.start_m) * 0.5 * (1.0 - np.cos(np.pi * s))
+            return MoveProfile.stroke(self.start_m, self.target_m, self.duration_s, t - self.t0)[0]
         phase = 2 * np.pi * self.frequency_hz * (t - self.t0)
         wave = np.sin(phase) if self.waveform == 0 else (2 / np.pi) * np.arcsin(np.sin(phase))
         return self.start_m + self.amplitude_m * self.envelope(t) * wave
@@ -358,7 +358,7 @@ class ShakerController:
 
     def _move_to(self, target: float, t: float) -> None:
         start = float(self._segment.setpoint(np.array([t]))[0])
-        duration = np.pi * abs(target - start) / (2 * MOVE_SPEED_M_S)
+        duration = CONTROLLER_MOVE.duration_s(target - start)
         self._segment = _Segment("move", t, start, target_m=target, duration_s=duration)
 
     def _start_run(self, t: float) -> None:

@@ -20,7 +20,7 @@ from rig.drivers.shaker import check_waveform
 from rig.errors import BadInput
 from rig.planning.criterion import first_block_s
 from rig.planning.ordering import Progress, thermal_order
-from rig.planning.settling import DRIFT_DRAWS, PAUSE_S, Conditioning, Hold, move_duration_s, predict_settling
+from rig.planning.settling import DRIFT_DRAWS, PAUSE_S, Conditioning, Hold, predict_settling
 from rig.tomlfile import read_toml
 
 EXPERIMENT_KEYS = {"label", "group", "static_mm", "amplitude_mm", "frequency_Hz", "waveform", "periods", "capture"}
@@ -210,17 +210,18 @@ def estimate_experiment_durations(plan: Plan, config: RigConfig, start_position_
     settling = predict_settling(plan.experiments, ss, rate, params, start_position_m=start_position_m,
                                 start_temperature_k=start_temperature_k, pause_s=pause_s,
                                 conditioning=conditioning_for(plan, config, pace, answer_s),
-                                noise_draws=noise_draws)
+                                noise_draws=noise_draws, move=config.move)
     pauses = np.broadcast_to(np.asarray(pause_s, dtype=float), len(plan.experiments))
     out, position = [], start_position_m
     for e, s, pause in zip(plan.experiments, settling, pauses, strict=True):
         static = e.static_position_mm * 1e-3
         samples_per_period = rate / e.frequency_hz
         # Blocks and the capture are whole samples, as the acquisition cuts them.
-        move_s = (move_duration_s(s.hold.position_m - position) + move_duration_s(static - s.hold.position_m)
-                  if s.hold else move_duration_s(static - position))
+        move = config.move.duration_s
+        move_s = (move(s.hold.position_m - position) + move(static - s.hold.position_m) if s.hold
+                  else move(static - position))
         if e.capture == "transient":  # no hold, no settling: the capture starts at RUN, the ramp included
-            out.append(ExperimentDuration(e.letter, float(pause), move_duration_s(static - position), 0.0, 0, 0.0,
+            out.append(ExperimentDuration(e.letter, float(pause), move(static - position), 0.0, 0, 0.0,
                                           transient_capture_s(e, ss.ramp_time_s, rate), ss.ramp_time_s, None,
                                           s.time_constant_s, pace * overhead_s))
             position = static

@@ -30,6 +30,7 @@ import numpy as np
 from numpy.polynomial import chebyshev
 
 from identify.model import CompiledModel, load_model
+from identify.move_profile import CONTROLLER_MOVE, MoveProfile
 from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
 from rig.config import SteadyStateCriteria
@@ -44,7 +45,6 @@ from rig.planning.criterion import (
 )
 
 FloatOrArray = TypeVar("FloatOrArray", float, np.ndarray)
-MOVE_PEAK_SPEED_M_S = 0.05     # the controller's half-cosine profile for moves to a static position
 PAUSE_S = 1.0                  # at rest between experiments: commands, handshakes, writing the data
 
 # RK4 steps per half period of a waveform, integrated between the triangle's kinks
@@ -121,9 +121,10 @@ class SettlingPrediction:
     time_constant_s: float = math.nan  # of the gas's relaxation to the periodic state
 
 
-def move_duration_s(distance_m: FloatOrArray) -> FloatOrArray:
-    """Duration of the controller's move profile (half cosine, peak speed fixed)."""
-    return math.pi * abs(distance_m) / (2 * MOVE_PEAK_SPEED_M_S)
+def move_duration_s(distance_m: FloatOrArray, move: MoveProfile = CONTROLLER_MOVE) -> FloatOrArray:
+    """Duration of the controller's move (:mod:`identify.move_profile`); ``move``: the
+    rig's, ``RigConfig.move`` (the controller's datasheet by default)."""
+    return move.durations_s(distance_m) if isinstance(distance_m, np.ndarray) else move.duration_s(distance_m)
 
 
 def earliest_cycles(criteria: SteadyStateCriteria, frequency_hz: float) -> int:
@@ -267,8 +268,8 @@ class _Runs:
 def predict_settling(experiments: Sequence[ExperimentSpec], criteria: SteadyStateCriteria, rate_hz: float,
                      params: Parameters | None = None, *, start_position_m: float = 0.0,
                      start_temperature_k: float | None = None, pause_s: float | Sequence[float] = PAUSE_S,
-                     conditioning: Conditioning | None = None, noise_draws: int = DRIFT_DRAWS
-                     ) -> list[SettlingPrediction]:
+                     conditioning: Conditioning | None = None, noise_draws: int = DRIFT_DRAWS,
+                     move: MoveProfile = CONTROLLER_MOVE) -> list[SettlingPrediction]:
     """Settle cycles of each experiment run in this order, the damper resting at
     ``start_position_m`` and ``start_temperature_k`` (default: ambient) before the first.
 
@@ -278,7 +279,8 @@ def predict_settling(experiments: Sequence[ExperimentSpec], criteria: SteadyStat
     allows one and it is predicted to save rig time), the amplitude ramp and the wait
     before the first block.
     ``params``: the damper's parameters (default: the 2-dof model's nominal values);
-    ``noise_draws``: see :func:`_apply_drift_criterion`.
+    ``noise_draws``: see :func:`_apply_drift_criterion`; ``move``: the controller's move
+    profile (the rig's configuration, ``RigConfig.move``).
     """
     params = params if params is not None else Parameters(load_model("2dof"))
     gas = GasThermalModel(params)
@@ -294,25 +296,25 @@ def predict_settling(experiments: Sequence[ExperimentSpec], criteria: SteadyStat
     prev_static, T_rest = _after_previous(gas, runs, period_map, criteria, t0, start_position_m,
                                           gas.ambient_k if start_temperature_k is None else start_temperature_k,
                                           np.broadcast_to(np.asarray(pause_s, dtype=float), len(experiments)))
-    T_start = _run_in(gas, runs, criteria, t0, _move(gas, prev_static, runs.static_m, T_rest))
+    T_start = _run_in(gas, runs, criteria, t0, _move(gas, move, prev_static, runs.static_m, T_rest))
     m = np.array([block_cycles(criteria, e.frequency_hz) for e in experiments])
     cycles, settled, limiting = _settle(period_map, T_start, m, gas.channels, criteria, runs, experiments, rate_hz,
                                         noise_draws)
     holds: list[Hold | None] = [None] * len(experiments)
     if conditioning is not None:
         position, duration, arrival_k, end_k = _plan_holds(gas, runs, period_map, criteria, t0, prev_static, T_rest,
-                                                conditioning)
+                                                           conditioning, move)
         planned = np.isfinite(duration)
         if planned.any():
             steps = int(min(HOLD_STEPS_MAX, REST_STEPS + HOLD_STEPS_PER_S * duration[planned].max()))
-            T_end = _rest(gas, position, _move(gas, prev_static, position, T_rest), np.where(planned, duration, 0.0),
-                          steps)
+            T_end = _rest(gas, position, _move(gas, move, prev_static, position, T_rest),
+                          np.where(planned, duration, 0.0), steps)
             T_held, held = _settle_after_hold(gas, runs, period_map, criteria, t0, position, T_end,
-                                              conditioning.timing_s, m, experiments, rate_hz, noise_draws)
+                                              conditioning.timing_s, m, experiments, rate_hz, noise_draws, move)
             period = 1.0 / runs.frequency_hz
-            direct_s = move_duration_s(runs.static_m - prev_static) + cycles * period
-            held_s = (move_duration_s(position - prev_static) + np.where(planned, duration, 0.0)
-                      + move_duration_s(runs.static_m - position) + held[0] * period)
+            direct_s = move.durations_s(runs.static_m - prev_static) + cycles * period
+            held_s = (move.durations_s(position - prev_static) + np.where(planned, duration, 0.0)
+                      + move.durations_s(runs.static_m - position) + held[0] * period)
             # A hold must pay for itself by more than the commands and waits it adds.
             better = planned & (held_s < direct_s - HOLD_OVERHEAD_S)
             T_start = np.where(better, T_held, T_start)
@@ -340,7 +342,7 @@ def landing_error_k(gas: GasThermalModel, position_m: np.ndarray, end_temperatur
 def _settle_after_hold(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria: SteadyStateCriteria,
                        t0_s: float, position_m: np.ndarray, end_temperature_k: np.ndarray, timing_s: float,
                        m: np.ndarray, experiments: Sequence[ExperimentSpec], rate_hz: float,
-                       draws: int) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+                       draws: int, move: MoveProfile) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """The gas at the first block after a hold ending at ``end_temperature_k``, and the
     criterion's settle cycles, whether it passes and the limiting channel from there.
 
@@ -351,7 +353,7 @@ def _settle_after_hold(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap
     criterion waits out an offset of either sign, so a hold that would land exactly
     is predicted to settle longer than that once its landing is uncertain."""
     def first_block(T_end: np.ndarray) -> np.ndarray:
-        return _run_in(gas, runs, criteria, t0_s, _move(gas, position_m, runs.static_m, T_end))
+        return _run_in(gas, runs, criteria, t0_s, _move(gas, move, position_m, runs.static_m, T_end))
 
     T_held = first_block(end_temperature_k)
     if timing_s <= 0:
@@ -382,7 +384,7 @@ def _settle(period_map: _PeriodMap, T_start: np.ndarray, m: np.ndarray, channels
 
 def _plan_holds(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, criteria: SteadyStateCriteria,
                 t0_s: float, prev_static: np.ndarray, T_rest: np.ndarray,
-                conditioning: Conditioning) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                conditioning: Conditioning, move: MoveProfile) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Per experiment, the quickest hold that brings the gas to the experiment's periodic
     temperature at its first block: position [m], duration [s] (inf: none within
     ``conditioning``'s range and longest hold), the gas temperature on arrival and at
@@ -397,10 +399,10 @@ def _plan_holds(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, crite
     lo, hi = conditioning.range_m
     position = np.broadcast_to(np.linspace(lo, hi, HOLD_CANDIDATES), (len(T_rest), HOLD_CANDIDATES))
     target, wanted = runs.static_m[col], period_map.fixed_point_k[col]
-    T_arrive = _move(gas, prev_static[col], position, T_rest[col])
+    T_arrive = _move(gas, move, prev_static[col], position, T_rest[col])
 
     def to_first_block(T_end: np.ndarray) -> np.ndarray:
-        return _run_in(gas, runs, criteria, t0_s, _move(gas, position, target, T_end), col)
+        return _run_in(gas, runs, criteria, t0_s, _move(gas, move, position, target, T_end), col)
 
     a, fa = T_arrive, to_first_block(T_arrive)
     b = T_arrive - SECANT_STEP_K
@@ -416,7 +418,7 @@ def _plan_holds(gas: GasThermalModel, runs: _Runs, period_map: _PeriodMap, crite
         rest_k = T_arrive - r_arrive / k                          # where the gas would come to rest there
         hold = np.log((needed - rest_k) / (T_arrive - rest_k)) / k
     reachable = (k < 0) & np.isfinite(hold) & (hold >= conditioning.min_hold_s) & (hold <= conditioning.max_hold_s)
-    moves_s = move_duration_s(position - prev_static[col]) + move_duration_s(target - position)
+    moves_s = move.durations_s(position - prev_static[col]) + move.durations_s(target - position)
     total = np.where(reachable, moves_s + hold, np.inf)
     best = np.argmin(total, axis=1)
     rows = np.arange(len(T_rest))
@@ -520,17 +522,13 @@ def _rest(gas: GasThermalModel, position_m: np.ndarray, T: np.ndarray, duration_
     return _rk4(rest, T, duration_s, steps)
 
 
-def _move(gas: GasThermalModel, from_m: np.ndarray, to_m: np.ndarray, T: np.ndarray) -> np.ndarray:
-    """The gas temperature after the controller's half-cosine move (arrays broadcast)."""
-    distance = to_m - from_m
-    duration = move_duration_s(distance)
-    omega = np.pi / np.maximum(duration, 1e-12)  # a zero-length move takes zero time and has zero distance
+def _move(gas: GasThermalModel, profile: MoveProfile, from_m: np.ndarray, to_m: np.ndarray,
+          T: np.ndarray) -> np.ndarray:
+    """The gas temperature after the controller's move (arrays broadcast)."""
+    duration = profile.durations_s(to_m - from_m)
 
     def move(t, T):
-        q = from_m + distance * 0.5 * (1 - np.cos(omega * t))
-        v = distance * 0.5 * omega * np.sin(omega * t)
-        a = distance * 0.5 * omega**2 * np.cos(omega * t)
-        return gas.temperature_rate(q, v, a, T)
+        return gas.temperature_rate(*MoveProfile.during(from_m, to_m, duration, t), T)
 
     duration, T = np.broadcast_arrays(duration, T)
     return _rk4(move, T, duration, MOVE_STEPS)

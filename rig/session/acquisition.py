@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from identify.move_profile import MoveProfile
 from identify.plans import ExperimentSpec
 from rig.config import CHANNELS, RigConfig, SteadyStateCriteria
 from rig.drivers.clock import WALL_CLOCK, Clock
@@ -40,7 +41,7 @@ from rig.planning.criterion import (
     first_block_sample,
 )
 from rig.planning.plans import transient_capture_s
-from rig.planning.settling import Hold, move_duration_s
+from rig.planning.settling import Hold
 
 POLL_S = 0.05
 # Block means with lost samples (see block_means): harmonics of the excitation fitted
@@ -222,7 +223,8 @@ def block_means(values: np.ndarray, present: np.ndarray, index: np.ndarray,
     return coefficients[0]
 
 
-def _response_delay(rec: Recorder, commanded: int, arrived: int, from_m: float, to_m: float, rate_hz: float) -> float:
+def _response_delay(rec: Recorder, commanded: int, arrived: int, from_m: float, to_m: float, rate_hz: float,
+                    move: MoveProfile) -> float:
     """Rig seconds from a move's command to the stroke following the controller's profile,
     as the acquisition sees it: the stroke's crossing of the move's midpoint, where it is
     fastest, against the profile's (the link's delivery, the controller's reaction and the
@@ -236,7 +238,7 @@ def _response_delay(rec: Recorder, commanded: int, arrived: int, from_m: float, 
     if not len(past):
         return 0.0
     crossed = max(commanded, rec.base) + int(past[0])
-    return max(0.0, (crossed - commanded) / rate_hz - move_duration_s(to_m - from_m) / 2)
+    return max(0.0, (crossed - commanded) / rate_hz - move.duration_s(to_m - from_m) / 2)
 
 
 def drift_cycles_left(ss: SteadyStateCriteria, cycles: int, bias_sigma: float, ratio: float) -> int | None:
@@ -326,7 +328,8 @@ class Acquisition:
             position = hold.position_m
         else:
             self.shaker.move_to(static)
-        self._wait_state({ControllerState.AT_STATIC}, MOVE_TIMEOUT_S + 2 * move_duration_s(static - position))
+        self._wait_state({ControllerState.AT_STATIC},
+                         MOVE_TIMEOUT_S + 2 * self.config.move.duration_s(static - position))
         self._check_stop()
 
         self._enter(Phase.SETTLING, label)
@@ -395,8 +398,8 @@ class Acquisition:
             self.shaker.move_to(hold.position_m)
             commanded = rec.end
             arrived = self._wait_for_stroke(rec, hold.position_m, label,
-                                            MOVE_TIMEOUT_S + 2 * move_duration_s(hold.position_m - from_m))
-            lead = _response_delay(rec, commanded, arrived, from_m, hold.position_m, rate)
+                                            MOVE_TIMEOUT_S + 2 * self.config.move.duration_s(hold.position_m - from_m))
+            lead = _response_delay(rec, commanded, arrived, from_m, hold.position_m, rate, self.config.move)
             cap = arrived + round((HOLD_CAP_FACTOR * hold.duration_s + HOLD_CAP_MARGIN_S) * rate)
             while rec.end < cap:
                 self._wait_samples(rec, min(rec.end + step, cap), label)

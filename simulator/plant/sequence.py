@@ -10,13 +10,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from identify.move_profile import CONTROLLER_MOVE, MoveProfile
 from identify.plans import ExperimentSpec
 from simulator.physics import Actuator, steady_stroke, waveform_harmonics
 from simulator.plant.damper import PlantDamper
 from simulator.plant.integrator import STEP_S, integrate
 from simulator.plant.streaming import StreamingPlantTruth
 
-MOVE_SPEED_M_S = 0.02   # between static positions, as the controller's moves
 FADE_PERIODS = 1.0      # fade in and out over a period, at most FADE_MAX_S
 FADE_MAX_S = 10.0
 STEPS_PER_PERIOD = 200  # the states' grid: a period's 200th, at least STEP_S
@@ -37,20 +37,14 @@ class Segment:
 
     @classmethod
     def after(cls, spec: ExperimentSpec, actuator: Actuator, start_m: float, end_s: float) -> Segment:
-        move = max(abs(spec.static_position_mm * 1e-3 - start_m) / MOVE_SPEED_M_S, 1.0)
+        move = CONTROLLER_MOVE.duration_s(spec.static_position_mm * 1e-3 - start_m)
         return cls(spec, actuator, start_m, move, min(FADE_PERIODS * spec.period_s, FADE_MAX_S), end_s)
 
     def stroke(self, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Measured stroke, velocity and acceleration at times σ (SI)."""
         static = self.spec.static_position_mm * 1e-3
-        # The move: a half cosine from start_m to the static position.
-        u = np.clip((sigma + self.move_s) / self.move_s, 0.0, 1.0)
-        moving = (sigma < 0) & (sigma > -self.move_s)
-        w = np.pi / self.move_s
-        d = static - self.start_m
-        q = self.start_m + d * 0.5 * (1 - np.cos(np.pi * u))
-        v = np.where(moving, d * 0.5 * w * np.sin(np.pi * u), 0.0)
-        a = np.where(moving, d * 0.5 * w**2 * np.cos(np.pi * u), 0.0)
+        # The controller's move from start_m to the static position, ending at σ = 0.
+        q, v, a = MoveProfile.stroke(self.start_m, static, self.move_s, sigma + self.move_s)
         # The oscillation, faded in after σ = 0 and out after end_s.
         x, xd, xdd = steady_stroke(self.spec, self.actuator, sigma)
         x = x - static
@@ -106,8 +100,8 @@ def run_plan(plant: PlantDamper, plan: list[ExperimentSpec], actuator: Actuator,
 def run_plan_from_run(plant: PlantDamper, plan: list[ExperimentSpec], actuator: Actuator,
                       record_times: list[np.ndarray], ramp_s: float) -> list[Capture]:
     """Captures of ``plan`` recorded from RUN on, as a plan with ``capture = "transient"``
-    runs on a rig: from rest at q = 0, each experiment's move to its static position (a
-    half cosine at :data:`MOVE_SPEED_M_S`), RUN with the amplitude ramped linearly over
+    runs on a rig: from rest at q = 0, each experiment's move to its static position (the
+    controller's, :mod:`identify.move_profile`), RUN with the amplitude ramped linearly over
     ``ramp_s`` (the controller's ramp) and captured from that instant for
     ``record_times[i]`` (uniform, counted from RUN), then the ramp down to the static
     position; the actuator tracks the setpoint as on the served rig, and the wall's heat
@@ -122,9 +116,10 @@ def run_plan_from_run(plant: PlantDamper, plan: list[ExperimentSpec], actuator: 
             raise ValueError("a transient capture's sample interval must be the same in every experiment")
         static = spec.static_position_mm * 1e-3
         start = truth.position_m
-        move_s = max(abs(static - start) / MOVE_SPEED_M_S, 1.0)
-        u = np.arange(1, int(np.ceil(move_s / dt)) + 1) * dt / move_s
-        _advance(truth, start + (static - start) * 0.5 * (1 - np.cos(np.pi * np.minimum(u, 1.0))))
+        move_s = CONTROLLER_MOVE.duration_s(static - start)
+        if move_s > 0:
+            steps = np.arange(1, int(np.ceil(move_s / dt)) + 1) * dt
+            _advance(truth, MoveProfile.stroke(start, static, move_s, steps)[0])
         k, b = waveform_harmonics(spec.waveform)
         tau = times - times[0]
         envelope = np.clip(tau / max(ramp_s, 1e-9), 0.0, 1.0)
