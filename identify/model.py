@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import importlib.util
 import inspect
+import logging
 import os
 import sys
 from collections.abc import Callable
@@ -29,6 +30,7 @@ from identify.errors import InputError
 from identify.files import atomic_write_bytes
 
 GENERATOR_VERSION = "7"
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -383,15 +385,19 @@ def compile_model(cls: type[ModelDeclaration]) -> CompiledModel:
     if path.exists():
         try:
             module = _load_module(path, modname)
-        except Exception:  # a truncated or stale cache file: regenerate below
+        except Exception as exc:  # a truncated or stale cache file: regenerate below
+            log.info("model %s: the cached code %s cannot be loaded (%s: %s); generated again",
+                     decl.name, path, type(exc).__name__, exc)
             module = None
     if module is None:
         src = generate_source(decl)
         try:
             atomic_write_bytes(path, src.encode())
             module = _load_module(path, modname)
-        except OSError:
+        except OSError as exc:
             # Read-only home: keep the generated code in memory for this process.
+            log.info("model %s: the generated code cannot be cached in %s (%s); kept in memory",
+                     decl.name, directory, exc.strerror or exc)
             module = ModuleType(modname)
             exec(compile(src, f"<generated {decl.name}>", "exec"), module.__dict__)
     sys.modules.setdefault(modname, module)

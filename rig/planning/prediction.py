@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import logging
 import os
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
@@ -26,6 +27,8 @@ from identify.parameters import Parameters
 from rig.config import RigConfig
 from rig.planning.plans import ExperimentDuration, Plan, estimate_experiment_durations
 from rig.planning.settling import DRIFT_DRAWS, PAUSE_S
+
+log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
@@ -96,8 +99,9 @@ def remember(timing: LinkTiming) -> None:
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
         atomic_write_bytes(path, (json.dumps(asdict(timing), indent=1) + "\n").encode())
-    except OSError:
-        pass
+    except OSError as exc:
+        log.warning("the link timing measured now is not kept in %s (%s): the next prediction before a session "
+                    "says its timing is not measured", path, exc.strerror or exc)
 
 
 def last_measured() -> LinkTiming:
@@ -106,7 +110,10 @@ def last_measured() -> LinkTiming:
     try:
         doc = json.loads(path.read_text())
         timing = LinkTiming(**doc)
-    except (OSError, ValueError, TypeError):
+    except FileNotFoundError:     # nothing measured on this computer yet
+        return NOT_MEASURED
+    except (OSError, ValueError, TypeError) as exc:
+        log.warning("the last link timing, %s, cannot be used (%s): predicted as not measured", path, exc)
         return NOT_MEASURED
     if not timing.is_measured:
         return NOT_MEASURED
