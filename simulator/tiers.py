@@ -21,16 +21,6 @@ from simulator.plant.drop import simulate_drop
 from simulator.plant.streaming import StreamingPlantTruth
 
 
-class Tier(Protocol):
-    name: str
-
-    def rest(self) -> np.ndarray: ...
-    def advance(self, setpoint: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]: ...
-    def commit(self, n: int, X: np.ndarray) -> None: ...
-    def axle_force(self, stroke: np.ndarray, v: np.ndarray, a: np.ndarray, X: np.ndarray) -> np.ndarray: ...
-    def channels(self, stroke: np.ndarray, v: np.ndarray, a: np.ndarray, X: np.ndarray) -> np.ndarray: ...
-
-
 class DropTrack(Protocol):
     duration_s: float
 
@@ -40,8 +30,6 @@ class DropTrack(Protocol):
 
 class ModelTier:
     """The identification model's damper (θ)."""
-
-    name = "model"
 
     def __init__(self, damper: Damper, actuator: Actuator, dt_s: float, position_m: float) -> None:
         self.damper = damper
@@ -92,8 +80,6 @@ class _ModelDrop:
 
 class PlantTier:
     """The plant truth."""
-
-    name = "plant"
 
     def __init__(self, plant: PlantDamper, actuator: Actuator, dt_s: float, position_m: float) -> None:
         self.plant = plant

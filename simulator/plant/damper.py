@@ -27,10 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from simulator.plant import heat, oil, orifice, seals, transducers
-from simulator.plant.constants import G0, MOVING_MASS_KG, P_ATM, R_GAS, PlantConstants, load_constants
+from simulator.plant.constants import G0, MOVING_MASS_KG, P_ATM, PlantConstants, load_constants
 from simulator.plant.gas import Nitrogen
 
-N_STATES = 6
 KAPPA_COMPLIANCE = 1.3
 
 
@@ -160,10 +159,6 @@ class PlantDamper:
         force = self.moving_mass * (acceleration + gravity) + f.damper_force
         return np.vstack([q + 0 * velocity, force, f.p_dead, y[4] + 0 * q])
 
-    def state_summary(self, y) -> dict[str, float]:
-        return {"T_gas_K": float(y[0]), "T_wall_K": float(y[1]), "dissolved_mol": float(y[2]),
-                "free_mol": float(self.n_total - y[2]), "void_m3": float(y[5])}
-
 
 def equilibrium_pressure(plant: PlantDamper, q: float, T: float) -> float:
     """Gas pressure at rest at stroke q, gas and wall at T, dissolved gas at equilibrium."""
@@ -176,4 +171,4 @@ def equilibrium_pressure(plant: PlantDamper, q: float, T: float) -> float:
     return float(plant.gas_pressure(q, y)[0])
 
 
-__all__ = ["N_STATES", "PlantDamper", "Forces", "equilibrium_pressure", "R_GAS"]
+__all__ = ["PlantDamper", "Forces", "equilibrium_pressure"]
