@@ -22,7 +22,7 @@ def _fit(findings: list[FitWarning], residual: np.ndarray | None = None) -> Simp
     model = load_model("2dof")
     fit = SimpleNamespace(params=Parameters(model), estimated=["theta4"], covariance=np.array([[1e-12]]),
                           covariance_residual=residual, converged=True, findings=findings)
-    fit.honest_covariance = lambda: FitResult.honest_covariance(fit)
+    fit.honest_covariance = lambda: FitResult.honest_covariance(fit)  # type: ignore[arg-type]
     return fit
 
 
