@@ -73,8 +73,10 @@ DECIDE = False    # --decide
 TARGETS = {"default": (45.0, 90.0), "transient": (10.0, 20.0)}  # median, max rig seconds per unit
 
 
-def rig_session(spec, out: Path, truth: Damper | PlantDamper | None = None, seed: int = 0) -> tuple[float, str]:
-    """The spec's plan as qc run executes it, on the in-process virtual rig."""
+def rig_session(spec, out: Path, truth: Damper | PlantDamper | None = None,
+                seed: int = 0) -> tuple[float, str, bool]:
+    """The spec's plan as qc run executes it, on the in-process virtual rig: the rig
+    seconds, the session's status for the table, and whether every experiment was captured."""
     rig = InProcessRig(DEFAULT_RIG_CONFIG, seed=seed, truth=truth, line_baud=LINE_BAUD)
     try:
         rig.connect()
@@ -104,10 +106,11 @@ def rig_session(spec, out: Path, truth: Damper | PlantDamper | None = None, seed
         t0 = rig.sim.t
         result = run_lifecycle(prep, links=Links(rig.shaker, rig.daq, rig.identity, None), bus=rig.bus,
                                on_runner=configure)
-        status = "complete" if result.exit_code == 0 and not result.skipped else result.status
+        captured = result.exit_code == 0 and not result.skipped
+        status = "complete" if captured else result.status
         if result.decided:
             status += f" early: {result.decided}"
-        return rig.sim.t - t0, status
+        return rig.sim.t - t0, status, captured
     finally:
         rig.close()
 
@@ -124,13 +127,13 @@ def judged_session(job: tuple[str, int, object]) -> Row:
     spec = _world_spec()
     with tempfile.TemporaryDirectory() as tmp:
         damper = PlantDamper(truth) if WORLD == "plant" else truth  # type: ignore[arg-type]
-        rig_s, status = rig_session(spec, Path(tmp) / "session", damper, seed)  # type: ignore[arg-type]
+        rig_s, status, captured = rig_session(spec, Path(tmp) / "session", damper, seed)  # type: ignore[arg-type]
         if WORLD == "plant":
             direct = bench_qc_plant.direct_values(spec, bench_qc_plant.Job("plant", kind, seed, truth), Path(tmp))
             out_of_tolerance = bench_qc_plant.truly_faulty(spec, direct)
         else:
             out_of_tolerance = [FAULT_OF[kind]] if kind in FAULT_OF else []  # on a limit: neither
-        if not status.startswith("complete"):
+        if not captured:
             return kind, seed, rig_s, status, "-", [], out_of_tolerance
         ev = evaluate(spec, Path(tmp) / "session")
     failed = [j.name for j in ev.judgement.characteristics if j.outcome.value == "FAIL"]
@@ -318,7 +321,7 @@ def main() -> int:
     spec = load_spec(SPEC)
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        rig_s, status = rig_session(spec, Path(tmp) / "session")
+        rig_s, status, _ = rig_session(spec, Path(tmp) / "session")
         wall = time.perf_counter() - t0
         ev = evaluate(spec, Path(tmp) / "session")
         plan = ", ".join(f"{e.letter} {e.static_position_mm:g}±{e.amplitude_mm:g} mm {e.frequency_hz:g} Hz "
