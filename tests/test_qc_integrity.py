@@ -16,6 +16,7 @@ import pytest
 from sqlalchemy import text
 from sqlalchemy.exc import SQLAlchemyError
 
+from identify.fit_warnings import FitWarning, WarningCode
 from rig.cli import build_parser, main
 from rig.config import load_rig_config
 from rig.drivers.daq import Calibration, Daq
@@ -231,9 +232,12 @@ def test_the_report_states_which_sigma_the_verdict_used_and_never_contradicts_it
                                     "Gas pre-charge", "residual")
     assert "residual-based" in sigma_note(residual) and "u_cal 0.02 bar" in sigma_note(residual)
     assert "noise only" in sigma_note(replace(residual, sigma_basis="noise"))
-    warning = ("stroke_mm: residuals up to 2.2x what the measurement noise explains (worst: l): systematic model or "
-               "discretisation error; the standard deviations cover the noise only; residual-based standard "
-               "deviations, which include it, are given beside them")
+    warning = FitWarning(WarningCode.MODEL_ERROR, {"output": "stroke_mm", "ratio": 2.2, "worst": "l",
+                                                   "input_share": None, "residual_based": True, "experiments": 5,
+                                                   "parameters": 3})
+    assert str(warning) == ("stroke_mm: residuals up to 2.2x what the measurement noise explains (worst: l): "
+                            "systematic model or discretisation error; the standard deviations cover the noise only; "
+                            "residual-based standard deviations, which include it, are given beside them")
     with_residual = _for_the_verdict(warning, SimpleNamespace(covariance_residual=np.eye(2)))
     assert "cover the noise only" not in with_residual and "verdict propagates the residual-based" in with_residual
     without = _for_the_verdict(warning, SimpleNamespace(covariance_residual=None))
