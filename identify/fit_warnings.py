@@ -51,6 +51,12 @@ class FitWarning:
     def to_json(self) -> dict[str, Any]:
         return {"code": self.code.value, **self.numbers}
 
+    @classmethod
+    def from_json(cls, doc: Mapping[str, Any]) -> FitWarning:
+        """A warning as RESULT.json's ``findings`` lists it (ValueError for an unknown code)."""
+        numbers = dict(doc)
+        return cls(WarningCode(numbers.pop("code")), numbers)
+
 
 def _at_bound(v: Mapping[str, Any]) -> str:
     why = ("where no physical value lies (model error, or data that do not determine it)" if v["physical"]

@@ -6,6 +6,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 from identify.fit_warnings import FitWarning, WarningCode
 from identify.model import load_model
@@ -51,3 +52,31 @@ def test_the_verdict_words_a_model_error_from_its_code_and_leaves_the_others_as_
     assert said.endswith("the verdict propagates the residual-based covariance, which includes it")
     unstable = FitWarning(WarningCode.UNSTABLE_ORBIT, {"records": ["A1", "B2"]})
     assert _for_the_verdict(unstable, _fit([unstable])) == str(unstable)
+
+
+def test_a_stored_batch_result_gives_the_same_basis_from_its_codes():
+    from rig.qc.batch_sink import identified_from_result
+
+    model = load_model("2dof")
+    result = {"model": "2dof", "parameters": {"theta4": {"value": 5e-3, "std": 1e-5, "estimated": True}},
+              "covariance": {"estimated": ["theta4"], "noise": [[1e-10]], "residual": None},
+              "warnings": [str(MISFIT)], "findings": [MISFIT.to_json()]}
+    assert identified_from_result(model, result).basis == "noise-misfit"
+    # The same words without the code (a result written before there were codes) decide nothing.
+    assert identified_from_result(model, {**result, "findings": []}).basis == "noise"
+    assert identified_from_result(model, {**result, "covariance": {**result["covariance"], "residual": [[4e-10]]}}
+                                  ).basis == "residual"
+
+
+def test_a_warning_read_back_from_result_json_renders_and_decides_the_same():
+    import json
+
+    from rig.qc.evaluate import verdict_note
+
+    drift = FitWarning(WarningCode.DRIFT, {"column": "pressure_bar", "records": [("A1", 0.0123)], "unit": "bar"})
+    for w in (MISFIT, drift):
+        back = FitWarning.from_json(json.loads(json.dumps(w.to_json())))
+        assert back.code is w.code and str(back) == str(w)
+    assert verdict_note(FitWarning.from_json(MISFIT.to_json()), True).endswith("which includes it")
+    with pytest.raises(ValueError):
+        FitWarning.from_json({"code": "no-such-code"})

@@ -33,12 +33,13 @@ import numpy as np
 
 from identify.batch import SessionOutcome
 from identify.errors import IdentifyError
+from identify.fit_warnings import FitWarning, WarningCode
 from identify.model import CompiledModel
 from identify.parameters import Parameters
 from identify.sinks import Delivery, DeliveryState, SinkError, Task
 from rig.errors import RigError
 from rig.qc.characteristics import Identified, check_model
-from rig.qc.evaluate import evaluate_identified
+from rig.qc.evaluate import evaluate_identified, verdict_note
 from rig.qc.records import QcRecord, Records, RecordsError
 from rig.qc.run import judged_record, rejudge_remedy
 from rig.qc.spec import SPECS_DIR, Spec, load_spec
@@ -161,8 +162,13 @@ def judge_result(spec: Spec, trace: SessionTrace, result: dict[str, Any], rejudg
     model = check_model(spec)
     key = result["batch"]["key"]
     notes = [f"identified by identify batch: result key {key}, model {model.name} {model.version}, "
-             f"scheme {result.get('scheme')}, n {result.get('n')} (the spec's own fit: n {spec.grid_points})",
-             *result.get("warnings", [])]
+             f"scheme {result.get('scheme')}, n {result.get('n')} (the spec's own fit: n {spec.grid_points})"]
+    findings = result.get("findings")
+    if isinstance(findings, list):   # worded for the verdict as a fit of qc judge's own is
+        residual = isinstance(result.get("covariance"), dict) and result["covariance"].get("residual") is not None
+        notes += [verdict_note(FitWarning.from_json(f), residual) for f in findings]
+    else:                            # a result written before the codes: its sentences as they are
+        notes += result.get("warnings", [])
     evaluation = evaluate_identified(spec, Path(trace.path), identified_from_result(model, result), notes)
     return judged_record(spec, trace, evaluation, rejudge_remedy(spec), rejudges=rejudges, uid=uid,
                          started=trace.started, finished=trace.finished, **identity)
@@ -183,7 +189,8 @@ def _check_applies(spec: Spec, model: CompiledModel, result: dict[str, Any]) -> 
 
 def identified_from_result(model: CompiledModel, result: dict[str, Any]) -> Identified:
     """Parameters and the covariance to propagate from a RESULT.json document: the
-    residual-based one where the fit found model error, as for a fit made by qc judge."""
+    residual-based one where the fit found model error, as for a fit made by qc judge,
+    and the σ basis from the result's warning codes (``findings``) as that fit's."""
     cov = result.get("covariance")
     if not isinstance(cov, dict):
         raise IdentifyError("the batch result holds no covariance matrix (written by an identify before "
@@ -194,8 +201,9 @@ def identified_from_result(model: CompiledModel, result: dict[str, Any]) -> Iden
     estimated = tuple(cov["estimated"])
     if covariance.shape != (len(estimated), len(estimated)):
         raise IdentifyError(f"batch result: covariance of shape {covariance.shape} for {len(estimated)} parameters")
+    misfit = any(isinstance(f, dict) and f.get("code") == WarningCode.MODEL_ERROR for f in result.get("findings", []))
     return Identified(params.vector(), estimated, covariance,
-                      "residual" if cov.get("residual") is not None else "noise")
+                      "residual" if cov.get("residual") is not None else "noise-misfit" if misfit else "noise")
 
 
 def _verdict(record: QcRecord) -> str:

@@ -52,12 +52,17 @@ def evaluate(spec: Spec, session: Path) -> Evaluation:
 
 
 def _for_the_verdict(warning: FitWarning, fit: FitResult) -> str:
+    return verdict_note(warning, fit.covariance_residual is not None)
+
+
+def verdict_note(warning: FitWarning, residual_based: bool) -> str:
     """A fit's warning as the QC report states it: the fit report says which σ it lists
-    first, the verdict uses the residual-based one where there is one (the σ notes say so
-    per characteristic), so the report must not say the σ covers the noise only."""
+    first, the verdict uses the residual-based one where there is one (``residual_based``;
+    the σ notes say so per characteristic), so the report must not say the σ covers the
+    noise only."""
     if warning.code is not WarningCode.MODEL_ERROR:
         return str(warning)
-    if fit.covariance_residual is not None:
+    if residual_based:
         return f"{warning.finding}; the verdict propagates the residual-based covariance, which includes it"
     return f"{warning.finding}; too few experiments for a residual-based covariance: the verdict's σ is noise-only"
 
