@@ -99,6 +99,8 @@ def test_an_aborted_run_is_on_record_without_a_verdict(virtual_rig, tmp_path):
     (doc,) = history(station / "qc-records.sqlite")
     assert (doc["verdict"], doc["status"], doc["characteristics"]) == (None, "ABORTED", {})
     assert "emergency stop" in doc["reason"] and doc["simulated"] is True     # the session had started
+    outcome = doc["details"]["session_outcome"]                               # how it ended, as data
+    assert (outcome["exit_status"], outcome["exit_code"]) == ("aborted", 3) and "emergency stop" in outcome["reason"]
     session = Path(doc["session"])
     assert "safe stop done" in (session / "session.log").read_text()
     report = (session / "qc-report.html").read_text()

@@ -195,11 +195,11 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
             to.after_session(result)
         if result.error is not None:
             _store(records, _unjudged(spec, session, RecordStatus.ERROR, f"internal error: {result.error!r}",
-                                      finished=finished, **identity), spec)
+                                      result.to_json(), finished=finished, **identity), spec)
             raise result.error
         if result.exit_code != EXIT_OK:
             record = _store(records, _unjudged(spec, session, RecordStatus.ABORTED, f"session {result.status}",
-                                               finished=finished, **identity), spec)
+                                               result.to_json(), finished=finished, **identity), spec)
             to.say(f"[red]QC run ABORTED: session {result.status}; no verdict[/red]")
             return QcOutcome(result.exit_code, record, session / "qc-report.html", spec.k, records.name)
         try:
@@ -380,10 +380,14 @@ def _base(spec: Spec, trace: SessionTrace, uid: str | None = None, *, simulated:
                 daq=peers.get("daq"), k=spec.k, details=details, **identity)
 
 
-def _unjudged(spec: Spec, session: Path, status: RecordStatus, reason: str, **identity: Any) -> QcRecord:
-    """A run without a verdict (ABORTED, ERROR): status, reason, no characteristics."""
-    return QcRecord(**_base(spec, trace_session(session), **identity), verdict=None, status=status,
-                    characteristics=(), reason=reason, notes=(reason,))
+def _unjudged(spec: Spec, session: Path, status: RecordStatus, reason: str, outcome: dict[str, Any] | None = None,
+              **identity: Any) -> QcRecord:
+    """A run without a verdict (ABORTED, ERROR): status, reason, no characteristics;
+    ``outcome``: how the session ended, as data (``RunResult.to_json``), kept in the details."""
+    base = _base(spec, trace_session(session), **identity)
+    if outcome is not None:
+        base["details"] = {**base["details"], "session_outcome": outcome}
+    return QcRecord(**base, verdict=None, status=status, characteristics=(), reason=reason, notes=(reason,))
 
 
 def judged_record(spec: Spec, trace: SessionTrace, evaluation: Evaluation, retest: str, rejudges: str | None,
