@@ -118,6 +118,8 @@ class RigConfig:
     hold_timing_s: float = 0.0  # how early or late a hold's end is answered, in the links' seconds
     # the live traces' smallest axis span per channel, engineering units ([display]; none: autoscale)
     min_span: dict[str, float] = field(default_factory=dict)
+    # the damper's stroke envelope (full extension, bottom-out) [m] ([damper]; none: unchecked)
+    stroke_envelope_m: tuple[float, float] | None = None
 
 
 def _seconds(table: dict, key: str, default: float, path: Path) -> float:
@@ -147,6 +149,9 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
         min_hold = _seconds(conditioning, "min_hold_s", 1.0, path)
         hold_timing = _seconds(conditioning, "hold_timing_s", 0.0, path)
         min_span = {str(k): float(v) for k, v in doc.get("display", {}).get("min_span", {}).items()}
+        damper = doc.get("damper")
+        envelope = None if damper is None else (float(damper["full_extension_mm"]) * 1e-3,
+                                                float(damper["bottom_out_mm"]) * 1e-3)
     except KeyError as exc:
         raise ConfigError(f"{path}: missing key {exc.args[0]!r}") from None
     except (TypeError, ValueError) as exc:
@@ -164,4 +169,7 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
                           + (f" ({', '.join(sorted(unknown))} is not one)" if unknown else ""))
     if hold_timing < 0:
         raise ConfigError(f"{path}: [conditioning] hold_timing_s = {hold_timing:g}: must be 0 or positive")
-    return RigConfig(str(path), limits, rate, criteria, reconnect, text, max_hold, min_hold, hold_timing, min_span)
+    if envelope is not None and not envelope[0] < envelope[1]:
+        raise ConfigError(f"{path}: [damper] full_extension_mm must be below bottom_out_mm")
+    return RigConfig(str(path), limits, rate, criteria, reconnect, text, max_hold, min_hold, hold_timing, min_span,
+                     envelope)

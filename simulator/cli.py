@@ -26,7 +26,7 @@ from identify.plans import STANDARD_SET, ExperimentSpec, select
 from simulator.errors import SimulatorError, UsageError
 from simulator.faults import parse_fault
 from simulator.generate import generate
-from simulator.physics import Damper
+from simulator.physics import Damper, past_the_stops
 from simulator.plant import PlantDamper, load_plant
 from simulator.truth import load_truth
 from simulator.units import UNITS
@@ -67,6 +67,10 @@ def run_generate(args: argparse.Namespace) -> int:
     plan = select(read_plan(args.plan), letters)
     if not plan:
         raise UsageError(f"--plan {args.plan}: no [[experiment]] tables")
+    for spec in plan:
+        past = past_the_stops(spec)
+        if past:
+            raise UsageError(f"--plan {args.plan}: experiment {spec.letter} {past}; nothing generated")
     t0 = time.perf_counter()
     truth = _truth(args)
     out = generate(args.out, plan, truth, periods=args.periods, rate_hz=args.rate, seed=args.seed, drop=args.drop,

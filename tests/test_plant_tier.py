@@ -56,6 +56,32 @@ def test_generate_names_the_plan_a_misspelt_one_meant(tmp_path, capsys, physics)
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize("physics", ["model", "plant"])
+def test_generate_refuses_a_plan_past_the_end_stops_in_one_line(tmp_path, capsys, physics):
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[experiment]]\nlabel = "m"\nstatic_mm = 17\namplitude_mm = 22\nfrequency_Hz = 1\n')
+    assert main(["generate", "--physics", physics, "--plan", str(plan), "--out", str(tmp_path / "x")]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line == (f"error: --plan {plan}: experiment m commands the stroke to -5.0 mm, past the damper's full "
+                    "extension at 0.0 mm; nothing generated")
+    assert not (tmp_path / "x").exists()
+
+
+def test_the_end_stops_resist_past_the_stroke_in_both_tiers():
+    """Full extension and bottom-out: the plant's stops and the model tier's, the same
+    stiff contact; nothing between them."""
+    from simulator.physics import stop_force
+
+    plant = load_plant()
+    q = np.array([-1e-3, 0.0, 0.15, 0.30, 0.301])
+    for force in (plant.stop_force(q), stop_force(q)):
+        assert force[0] < -1e6 and force[4] > 1e6 and not force[1:4].any()
+    model = load_truth()
+    y = plant.rest_state(0.0)[:, None]
+    assert plant.forces(q[:1], np.zeros(1), y).damper_force[0] < -1e6
+    assert model.damper_force(q[:1], np.zeros(1), np.full(1, model.ambient_k))[0] < -1e6
+
+
 def test_plant_constants_only_with_the_plant(tmp_path, capsys):
     assert main(["generate", "--plant-constants", "x.toml", "--out", str(tmp_path / "x")]) == 2
     assert "--physics plant" in capsys.readouterr().err
