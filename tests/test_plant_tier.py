@@ -82,6 +82,27 @@ def test_the_end_stops_resist_past_the_stroke_in_both_tiers():
     assert model.damper_force(q[:1], np.zeros(1), np.full(1, model.ambient_k))[0] < -1e6
 
 
+@pytest.mark.parametrize("argv, velocity", [([], 0.5), (["--drop-velocity", "0"], 0.0)])
+def test_the_drop_touches_down_at_the_papers_speed_unless_told(tmp_path, argv, velocity):
+    """The paper's drop reaches about 0.5 m/s: by default the mass touches down at that
+    speed (released at rest on the extended damper it would peak at a quarter of a m/s)."""
+    out = tmp_path / "ds"
+    assert main(["generate", "--physics", "plant", "--experiments", "j", "--periods", "1", "--drop", *argv,
+                 "--out", str(out), "--date", "261126"]) == 0
+    (drop,) = [e for e in json.loads((out / "dataset.json").read_text())["experiments"] if e.get("kind") == "drop"]
+    assert drop["drop_velocity_m_s"] == velocity
+    stroke = np.genfromtxt(out / "261126drop.csv", delimiter=",", names=True)["stroke_mm"]
+    peak_speed = np.max(stroke[20:2000] - stroke[:1980]) / 20 * 2000 / 1e3   # over 10 ms at 2 kHz, mm → m/s
+    assert peak_speed == pytest.approx(0.5 if velocity else 0.24, abs=0.03)
+
+
+def test_a_negative_drop_velocity_is_refused_in_one_line(tmp_path, capsys):
+    assert main(["generate", "--drop", "--drop-velocity", "-1", "--out", str(tmp_path / "x")]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line == "error: --drop-velocity -1: a touchdown speed, 0 or more m/s"
+    assert not (tmp_path / "x").exists()
+
+
 def test_plant_constants_only_with_the_plant(tmp_path, capsys):
     assert main(["generate", "--plant-constants", "x.toml", "--out", str(tmp_path / "x")]) == 2
     assert "--physics plant" in capsys.readouterr().err
