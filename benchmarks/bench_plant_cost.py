@@ -12,11 +12,12 @@ against scipy's LSODA at rtol 1e-8; then the CPU per rig second of the plant off
 
 from __future__ import annotations
 
-import _setup  # noqa: F401  (one BLAS thread, the repository importable)
-
 import argparse
 import time
 
+import _setup  # noqa: F401  first: one BLAS thread, set before numpy loads; the repository importable
+
+# isort: split
 import numpy as np
 from scipy.integrate import solve_ivp
 

@@ -80,9 +80,9 @@ def past_the_stops(spec: ExperimentSpec) -> str | None:
     top, bottom, _ = _STOPS
     low = (spec.static_position_mm - spec.amplitude_mm) * 1e-3
     high = (spec.static_position_mm + spec.amplitude_mm) * 1e-3
-    if low < top:
+    if low <= top:
         return f"commands the stroke to {low * 1e3:.1f} mm, past the damper's full extension at {top * 1e3:.1f} mm"
-    if high > bottom:
+    if high >= bottom:
         return f"commands the stroke to {high * 1e3:.1f} mm, past the damper's bottom-out at {bottom * 1e3:.1f} mm"
     return None
 

@@ -155,10 +155,12 @@ def envelope_problems(e: ExperimentSpec, full_extension_m: float, bottom_out_m: 
     past ``limits`` (the controller's trip limits, whose own check says that)."""
     low, high = (e.static_position_mm - e.amplitude_mm) * 1e-3, (e.static_position_mm + e.amplitude_mm) * 1e-3
     problems = []
-    if limits[0] <= low < full_extension_m:
+    # The stop engages at contact: commanding onto it is commanding into it (the
+    # actuator's overshoot, micrometres, meets a stop as stiff as the stroke's steel).
+    if limits[0] <= low <= full_extension_m:
         problems.append(f"commands the stroke to {low * 1e3:.1f} mm, past the damper's full extension at "
                         f"{full_extension_m * 1e3:.1f} mm")
-    if bottom_out_m < high <= limits[1]:
+    if bottom_out_m <= high <= limits[1]:
         problems.append(f"commands the stroke to {high * 1e3:.1f} mm, past the damper's bottom-out at "
                         f"{bottom_out_m * 1e3:.1f} mm")
     return problems
