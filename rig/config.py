@@ -121,6 +121,8 @@ class RigConfig:
     min_span: dict[str, float] = field(default_factory=dict)
     # the controller's move to a static position ([limits] move_speed_m_s; default its datasheet's)
     move: MoveProfile = CONTROLLER_MOVE
+    # the damper's stroke envelope (full extension, bottom-out) [m] ([damper]; none: unchecked)
+    stroke_envelope_m: tuple[float, float] | None = None
 
 
 def _seconds(table: dict, key: str, default: float, path: Path) -> float:
@@ -163,6 +165,9 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
         hold_timing = _seconds(conditioning, "hold_timing_s", 0.0, path)
         min_span = {str(k): float(v) for k, v in doc.get("display", {}).get("min_span", {}).items()}
         move = _move_profile(lim, path)
+        damper = doc.get("damper")
+        envelope = None if damper is None else (float(damper["full_extension_mm"]) * 1e-3,
+                                                float(damper["bottom_out_mm"]) * 1e-3)
     except KeyError as exc:
         raise ConfigError(f"{path}: missing key {exc.args[0]!r}") from None
     except (TypeError, ValueError) as exc:
@@ -180,5 +185,7 @@ def load_rig_config(path: str | Path | None = None) -> RigConfig:
                           + (f" ({', '.join(sorted(unknown))} is not one)" if unknown else ""))
     if hold_timing < 0:
         raise ConfigError(f"{path}: [conditioning] hold_timing_s = {hold_timing:g}: must be 0 or positive")
+    if envelope is not None and not envelope[0] < envelope[1]:
+        raise ConfigError(f"{path}: [damper] full_extension_mm must be below bottom_out_mm")
     return RigConfig(str(path), limits, rate, criteria, reconnect, text, max_hold, min_hold, hold_timing, min_span,
-                     move)
+                     move, envelope)

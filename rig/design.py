@@ -62,12 +62,12 @@ from rig.config import RigConfig, load_rig_config
 from rig.drivers.shaker import check_waveform
 from rig.errors import BadInput
 from rig.planning.imposed import imposed_stroke
-from rig.planning.plans import Plan, check_plan, load_plan
+from rig.planning.plans import Plan, check_plan, envelope_problems, load_plan
 from rig.planning.prediction import NOT_MEASURED, LinkTiming, last_measured, predict, predict_s
 
 # The candidate grid: the standard set's static positions, amplitudes and frequencies.
 STATIC_MM = (14.0, 40.0, 79.0, 133.0, 179.0, 219.0, 249.0)
-AMPLITUDE_MM = (10.0, 20.0, 35.0, 60.0, 80.0, 127.0)
+AMPLITUDE_MM = (10.0, 20.0, 35.0, 60.0, 78.0, 127.0)  # 78 (g's), not 80: 79±80 passes full extension
 FREQUENCY_HZ = (0.04, 0.1, 0.2, 0.5, 1.0, 2.0, 4.0)
 PERIODS = (2, 3, 4, 6, 8, 12)
 GRID_POINTS = 800
@@ -144,13 +144,17 @@ class Designed:
 
 
 def candidate_specs(config: RigConfig) -> list[ExperimentSpec]:
-    """Every grid point within the stroke, velocity and frequency limits."""
+    """Every grid point within the stroke, velocity and frequency limits and the damper's
+    stroke envelope."""
     out: list[ExperimentSpec] = []
+    limits = (config.limits.stroke_low_m, config.limits.stroke_high_m)
     for s in STATIC_MM:
         for a in AMPLITUDE_MM:
             for f in FREQUENCY_HZ:
-                if not check_waveform(config.limits, s * 1e-3, a * 1e-3, f):
-                    out.append(ExperimentSpec(f"c{len(out)}", "designed", s, a, f))
+                spec = ExperimentSpec(f"c{len(out)}", "designed", s, a, f)
+                if not check_waveform(config.limits, s * 1e-3, a * 1e-3, f) and not (
+                        config.stroke_envelope_m and envelope_problems(spec, *config.stroke_envelope_m, limits)):
+                    out.append(spec)
     return out
 
 
@@ -263,7 +267,7 @@ def design(goal: Goal, config: RigConfig, reference: Plan | None, name: str,
         raise BadInput(f"design: {exc}") from None
     plan = _plan(name, specs, found.choices, len(required))
     problems = check_plan(plan, config)
-    assert not problems, problems   # every candidate passed check_waveform
+    assert not problems, problems   # every candidate passed check_waveform and the envelope
     sigma = sigmas(covariance([(info[c.candidate], c.periods) for c in found.choices]), goal.quantities)
     met = bool(np.all(sigma <= targets * (1 + 1e-9)))
     return Designed(plan, sigma, rig_seconds(plan, config, goal.params, timing), met, reference_figures, tuple(specs),

@@ -29,8 +29,9 @@ from identify.plans import STANDARD_SET, ExperimentSpec, select
 from simulator.errors import SimulatorError, UsageError
 from simulator.faults import parse_fault
 from simulator.generate import generate
-from simulator.physics import Damper
+from simulator.physics import Damper, past_the_stops
 from simulator.plant import PlantDamper, load_plant
+from simulator.plant.drop import DROP_VELOCITY_M_S
 from simulator.truth import load_truth
 from simulator.units import UNITS
 
@@ -64,17 +65,23 @@ def run_generate(args: argparse.Namespace) -> int:
         raise UsageError(f"--rate {args.rate:g}: must be positive")
     if args.ramp < 0:
         raise UsageError(f"--ramp {args.ramp:g}: must be 0 or more seconds")
+    if args.drop_velocity < 0:
+        raise UsageError(f"--drop-velocity {args.drop_velocity:g}: a touchdown speed, 0 or more m/s")
     if args.capture == "transient" and args.model != "2dof":
         raise UsageError("--capture transient: the record from rest needs --model 2dof (the gas temperature state)")
     letters = [x.strip() for x in args.experiments.split(",")] if args.experiments else None
     plan = select(read_plan(args.plan), letters)
     if not plan:
         raise UsageError(f"--plan {args.plan}: no [[experiment]] tables")
+    for spec in plan:
+        past = past_the_stops(spec)
+        if past:
+            raise UsageError(f"--plan {args.plan}: experiment {spec.letter} {past}; nothing generated")
     t0 = time.perf_counter()
     truth = _truth(args)
     out = generate(args.out, plan, truth, periods=args.periods, rate_hz=args.rate, seed=args.seed, drop=args.drop,
                    date=args.date, noise_scale=args.noise_scale, serial=args.serial,
-                   capture=args.capture, ramp_s=args.ramp)
+                   capture=args.capture, ramp_s=args.ramp, drop_velocity_m_s=args.drop_velocity)
     print(f"wrote {out} ({len(plan)} experiments{' + drop test' if args.drop else ''}, {args.physics} physics, "
           f"{time.perf_counter() - t0:.1f} s)")
     return 0
@@ -194,6 +201,8 @@ def run_serve(args: argparse.Namespace) -> int:
 
     if args.speed <= 0:
         raise UsageError(f"--speed {args.speed}: must be positive")
+    if args.drop_velocity < 0:
+        raise UsageError(f"--drop-velocity {args.drop_velocity:g}: a touchdown speed, 0 or more m/s")
     damper = _truth(args)  # refused before any endpoint opens
     faults = [parse_fault(f) for f in args.fault]
     modbus, daq = parse_modbus(args.modbus), parse_daq(args.daq)
@@ -218,7 +227,7 @@ def run_serve(args: argparse.Namespace) -> int:
     rig = VirtualRig(damper, daq_port, speed=args.speed, seed=args.seed,
                      faults=faults, modbus_host=host, modbus_port=port,
                      modbus_serial=bridge.server_path if bridge else None, rig_type=args.rig,
-                     drop_mass_kg=args.drop_mass)
+                     drop_mass_kg=args.drop_mass, drop_velocity_m_s=args.drop_velocity)
     state = StateFile(Path(args.state)) if args.state else None
     if state is not None:
         rig.on_state = lambda: state.update(hydraulics=[[t, on] for t, on in rig.hydraulics])
@@ -286,7 +295,11 @@ def build_parser() -> argparse.ArgumentParser:
     gen.add_argument("--periods", type=int, help="periods per experiment (default: the plan's; standard: 3)")
     gen.add_argument("--rate", type=float, default=2000.0, help="sample rate, Hz")
     gen.add_argument("--seed", type=int, default=0)
-    gen.add_argument("--drop", action="store_true", help="add the drop test (350 kg, v0 = 0)")
+    gen.add_argument("--drop", action="store_true",
+                     help="add the drop test (350 kg touching down at --drop-velocity)")
+    gen.add_argument("--drop-velocity", type=float, default=DROP_VELOCITY_M_S, metavar="M_S",
+                     help=f"the drop's velocity at touchdown (q = 0), m/s (default {DROP_VELOCITY_M_S:g}: the "
+                          "paper's landing; 0 releases the mass at rest on the extended damper)")
     gen.add_argument("--date", help="label date yymmdd (default: today)")
     gen.add_argument("--noise-scale", type=float, default=1.0, help="multiplies the transducer noise")
     gen.add_argument("--capture", choices=("steady", "transient"), default="steady",
@@ -312,8 +325,11 @@ def build_parser() -> argparse.ArgumentParser:
     unit_options(serve)
     serve.add_argument("--seed", type=int, default=0)
     serve.add_argument("--rig", choices=("shaker", "drop"), default="shaker",
-                       help="drop: a drop-test rig; RUN (mode 2, hydraulics on) releases the mass at q = 0")
+                       help="drop: a drop-test rig; RUN (mode 2, hydraulics on) lets the mass touch down at q = 0 at "
+                            "--drop-velocity")
     serve.add_argument("--drop-mass", type=float, default=350.0, help="dropped mass, kg (drop rig)")
+    serve.add_argument("--drop-velocity", type=float, default=DROP_VELOCITY_M_S, metavar="M_S",
+                       help=f"the mass's velocity at touchdown (q = 0), m/s (drop rig; default {DROP_VELOCITY_M_S:g})")
     serve.add_argument("--fault", action="append", default=[], metavar="KIND[@T][=V]",
                        help="inject a fault (repeatable): corrupt=P, drop=P, overflow@T=N, stall@T=D, "
                             "disconnect@T, modbus-down@T=D, hydraulic-loss@T[=D], estop@T, drift=CH:RATE[@T], "

@@ -24,6 +24,7 @@ from simulator.faults import Fault, FaultLog
 from simulator.modbus import ModbusEndpoint
 from simulator.physics import Actuator, Damper
 from simulator.plant.damper import PlantDamper
+from simulator.plant.drop import DROP_VELOCITY_M_S
 from simulator.sensors import SensorSet
 from simulator.tiers import DropTrack, make_tier, rest_stroke
 
@@ -58,6 +59,7 @@ class VirtualRig:
     actuator: Actuator = field(default_factory=Actuator)
     rig_type: str = "shaker"        # or "drop": a mass released onto the damper by a RUN command
     drop_mass_kg: float = 350.0
+    drop_velocity_m_s: float = DROP_VELOCITY_M_S   # at touchdown (q = 0): the paper's landing
 
     def __post_init__(self) -> None:
         self.t = 0.0
@@ -87,9 +89,9 @@ class VirtualRig:
         self._drop: DropTrack | None = None
         self._released_at: float | None = None
         if self.rig_type == "drop":
-            # The whole drop (released at q = 0, v0 = 0, gas at ambient) is integrated once,
+            # The whole drop (touching down at q = 0, gas at ambient) is integrated once,
             # stiffly and tightly; the stream samples it from the moment of release.
-            self._drop = self.tier.drop(self.drop_mass_kg, DROP_RECORD_S)
+            self._drop = self.tier.drop(self.drop_mass_kg, DROP_RECORD_S, self.drop_velocity_m_s)
         elif self.rig_type != "shaker":
             raise ValueError(f"rig type {self.rig_type!r}: shaker or drop")
 
@@ -163,7 +165,8 @@ class VirtualRig:
         c = self.controller
         if self._released_at is None and c.holding["mode"] == 2 and c.hydraulics_on:
             self._released_at = self.t
-            self.log.record(self.t, f"drop: {self.drop_mass_kg:g} kg released at q = 0")
+            self.log.record(self.t, f"drop: {self.drop_mass_kg:g} kg touching down at q = 0 at "
+                                    f"{self.drop_velocity_m_s:g} m/s")
         ts = self.daq.due_times(float(t[-1]))
         if len(ts):
             since = ts - self._released_at if self._released_at is not None else np.full(len(ts), -1.0)

@@ -16,7 +16,7 @@ from identify.files import atomic_write_bytes
 from identify.plans import ExperimentSpec
 from simulator.physics import Actuator, Damper, SteadyState, drop_test, periodic_steady_state, run_from_rest
 from simulator.plant.damper import PlantDamper
-from simulator.plant.drop import simulate_drop
+from simulator.plant.drop import DROP_VELOCITY_M_S, simulate_drop
 from simulator.plant.sequence import run_plan, run_plan_from_run
 from simulator.sensors import SensorSet
 from simulator.truth import truth_document
@@ -48,7 +48,8 @@ def _digitise(t: np.ndarray, si: np.ndarray, sensors: SensorSet,
 def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper | PlantDamper, *, periods: int | None = 3,
              rate_hz: float = 2000.0, seed: int = 0, drop: bool = False, date: str | None = None,
              actuator: Actuator | None = None, noise_scale: float = 1.0, name: str | None = None,
-             serial: str = "SIM-0001", capture: str = "steady", ramp_s: float = RAMP_S) -> Path:
+             serial: str = "SIM-0001", capture: str = "steady", ramp_s: float = RAMP_S,
+             drop_velocity_m_s: float = DROP_VELOCITY_M_S) -> Path:
     """Write the dataset folder ``out`` and return its path.
 
     Labels are ``date + letter`` as in the paper; ``truth.json`` beside the manifest
@@ -61,6 +62,8 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper | Plant
     experiments before left (:func:`simulator.plant.sequence.run_plan_from_run`), the
     amplitude ramped over ``ramp_s`` (dataset key ``capture``: "transient"); "steady"
     records its periodic steady state.  The plant runs a plan all one way or the other.
+    ``drop_velocity_m_s``: the drop's velocity at touchdown (q = 0; default the paper's
+    landing, about 0.5 m/s).
     """
     if capture not in CAPTURES:
         raise ValueError(f"unknown capture {capture!r} (steady or transient)")
@@ -105,16 +108,16 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper | Plant
         sensors = SensorSet(seed=seed * 1000 + 999, noise_scale=noise_scale)
         t = np.arange(int(DROP_DURATION_S * rate_hz)) / rate_hz
         if isinstance(damper, PlantDamper):
-            rec = simulate_drop(mass_kg=DROP_MASS_KG, velocity_m_s=0.0, duration_s=float(t[-1]), rate_hz=rate_hz,
-                                constants=damper.k, ambient_k=damper.ambient_k)
+            rec = simulate_drop(mass_kg=DROP_MASS_KG, velocity_m_s=drop_velocity_m_s, duration_s=float(t[-1]),
+                                rate_hz=rate_hz, constants=damper.k, ambient_k=damper.ambient_k)
             si = np.vstack([rec.stroke_m, rec.force_N, rec.pressure_Pa, rec.temperature_K])
             cols, _ = _digitise(rec.t, si, sensors, True)
         else:
-            cols, _ = _record(drop_test(damper, DROP_MASS_KG, 0.0, t), sensors, True)
+            cols, _ = _record(drop_test(damper, DROP_MASS_KG, drop_velocity_m_s, t), sensors, True)
         label = f"{date}drop"
         atomic_write_bytes(out / f"{label}.csv", csv_bytes(cols))
         entries.append({"label": label, "kind": "drop", "file": f"{label}.csv", "drop_mass_kg": DROP_MASS_KG,
-                        "drop_velocity_m_s": 0.0, "sample_rate_Hz": rate_hz})
+                        "drop_velocity_m_s": drop_velocity_m_s, "sample_rate_Hz": rate_hz})
     manifest = {
         "format": FORMAT,
         "name": name or f"simulated {_tier_name(damper)} damper, {len(plan)}-experiment set",

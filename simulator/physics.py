@@ -67,6 +67,36 @@ def check_truth(theta: dict[str, float], model: str) -> None:
                          "(an absolute temperature above 0 K)")
 
 
+def stop_force(q: float | np.ndarray) -> np.ndarray:
+    """The end stops' contact force at the damper's stroke q [N], positive compressing:
+    zero within the stroke, the plant's top-out and bottom-out stops outside it
+    (simulator/plant/constants.toml [stops]), so that no tier strokes past them."""
+    top, bottom, stiffness = _STOPS
+    return stiffness * (np.minimum(np.asarray(q) - top, 0.0) + np.maximum(np.asarray(q) - bottom, 0.0))
+
+
+def past_the_stops(spec: ExperimentSpec) -> str | None:
+    """What experiment ``spec`` commands past the end stops, in one phrase (None: nothing)."""
+    top, bottom, _ = _STOPS
+    low = (spec.static_position_mm - spec.amplitude_mm) * 1e-3
+    high = (spec.static_position_mm + spec.amplitude_mm) * 1e-3
+    if low <= top:
+        return f"commands the stroke to {low * 1e3:.1f} mm, past the damper's full extension at {top * 1e3:.1f} mm"
+    if high >= bottom:
+        return f"commands the stroke to {high * 1e3:.1f} mm, past the damper's bottom-out at {bottom * 1e3:.1f} mm"
+    return None
+
+
+def _stops() -> tuple[float, float, float]:
+    from simulator.plant.constants import load_constants
+
+    k = load_constants()
+    return k.stops_top_out_stroke, k.stops_bottom_out_stroke, k.stops_stiffness
+
+
+_STOPS = _stops()
+
+
 @dataclass(frozen=True)
 class Damper:
     """Damper parameters θ (SI, keyed theta1…theta17) and the model variant.
@@ -111,10 +141,11 @@ class Damper:
         return self.theta5 * T / (1 + self.theta6 * q + self.theta7 * T)
 
     def damper_force(self, q: np.ndarray, v: np.ndarray, T: np.ndarray) -> np.ndarray:
-        """F_d = θ3·v|v| + θ4·p + (θ8 + θ9·p)·arctan(θ10·v) + θ11  [N]."""
+        """F_d = θ3·v|v| + θ4·p + (θ8 + θ9·p)·arctan(θ10·v) + θ11  [N], plus the end stops'
+        contact outside the stroke (the model has none; the plant's, :func:`stop_force`)."""
         p = self.pressure(q, T)
         return (self.theta3 * v * np.abs(v) + self.theta4 * p
-                + (self.theta8 + self.theta9 * p) * np.arctan(self.theta10 * v) + self.theta11)
+                + (self.theta8 + self.theta9 * p) * np.arctan(self.theta10 * v) + self.theta11 + stop_force(q))
 
     def axle_force(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, T: np.ndarray) -> np.ndarray:
         """Fe from g1 = 0 (inverse dynamics of the imposed stroke) [N]."""

@@ -53,16 +53,16 @@ class ModelTier:
         q = d.internal_stroke(stroke)
         return np.vstack([stroke, d.axle_force(q, v, a, T), d.pressure(q, T), T])
 
-    def drop(self, mass_kg: float, duration_s: float) -> DropTrack:
-        return _ModelDrop(self.damper, mass_kg, duration_s)
+    def drop(self, mass_kg: float, duration_s: float, velocity_m_s: float) -> DropTrack:
+        return _ModelDrop(self.damper, mass_kg, duration_s, velocity_m_s)
 
 
 class _ModelDrop:
-    """The whole drop (released at q = 0, v0 = 0, gas at ambient), integrated once."""
+    """The whole drop (touching down at q = 0 at ``velocity_m_s``, gas at ambient), integrated once."""
 
-    def __init__(self, damper: Damper, mass_kg: float, duration_s: float) -> None:
+    def __init__(self, damper: Damper, mass_kg: float, duration_s: float, velocity_m_s: float) -> None:
         self.damper = damper
-        self.rec = drop_test(damper, mass_kg, 0.0, np.arange(0.0, duration_s, 1e-3))
+        self.rec = drop_test(damper, mass_kg, velocity_m_s, np.arange(0.0, duration_s, 1e-3))
         self.duration_s = float(self.rec.t[-1])
 
     def channels(self, since):
@@ -100,16 +100,16 @@ class PlantTier:
     def channels(self, stroke, v, a, X):
         return self.plant.channels(stroke, v, a, X)
 
-    def drop(self, mass_kg: float, duration_s: float) -> DropTrack:
-        return _PlantDrop(self.plant, mass_kg, duration_s)
+    def drop(self, mass_kg: float, duration_s: float, velocity_m_s: float) -> DropTrack:
+        return _PlantDrop(self.plant, mass_kg, duration_s, velocity_m_s)
 
 
 class _PlantDrop:
-    """The plant's drop (released at q = 0, v0 = 0), integrated once and sampled."""
+    """The plant's drop (touching down at q = 0 at ``velocity_m_s``), integrated once and sampled."""
 
-    def __init__(self, plant: PlantDamper, mass_kg: float, duration_s: float) -> None:
+    def __init__(self, plant: PlantDamper, mass_kg: float, duration_s: float, velocity_m_s: float) -> None:
         self.plant = plant
-        self.rec = simulate_drop(mass_kg=mass_kg, velocity_m_s=0.0, duration_s=duration_s, rate_hz=1000.0,
+        self.rec = simulate_drop(mass_kg=mass_kg, velocity_m_s=velocity_m_s, duration_s=duration_s, rate_hz=1000.0,
                                  constants=plant.k, ambient_k=plant.ambient_k)
         self.duration_s = float(self.rec.t[-1])
         rest = plant.channels(0.0, 0.0, -9.81, plant.rest_state(0.0))[:, 0]

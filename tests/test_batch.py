@@ -339,7 +339,7 @@ def test_db_re_judges_only_where_the_spec_applies_and_reports_what_it_could_not_
     other = _batch_db(client, folders[:1], tmp_path / "other", str(pristine), "theta3", "theta5", "theta6")
     assert other.returncode == 0, other.stdout + other.stderr
     assert "0 sessions re-judged, 0 re-judged before, 0 without a QC record, 1 not re-judged, 0 failed" in other.stdout
-    assert ("1 not re-judged (good-3): spec default 1.2.0 estimates theta15, theta3, theta5, theta6, theta8; "
+    assert ("1 not re-judged (good-3): spec default 1.3.0 estimates theta15, theta3, theta5, theta6, theta8; "
             "the batch theta3, theta5, theta6") in other.stdout
 
     with sqlite3.connect(pristine) as conn:               # a database that refuses every new record

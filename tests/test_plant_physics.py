@@ -8,13 +8,18 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from identify.plans import STANDARD_SET
+from simulator.physics import Actuator, ActuatorTrack
 from simulator.plant import load_constants, load_plant, unit_constants
 from simulator.plant.constants import R_GAS, sources
 from simulator.plant.damper import PlantDamper, equilibrium_pressure
 from simulator.plant.drop import simulate_drop
-from simulator.plant.integrator import integrate
+from simulator.plant.integrator import integrate, integrate_stroke, states_at
 from simulator.plant.oil import dissolved_equilibrium, kinematic_viscosity
 from simulator.plant.orifice import pressure_drop
+from simulator.plant.sequence import Segment
+from simulator.plant.streaming import StreamingPlantTruth
+from simulator.sensors import DATASHEET_CHANNELS
 
 # Z of nitrogen from the reference EOS (plant-physics-sources.md 1(b), Span et al. 2000).
 Z_TABLE = {280: (0.9965, 0.9912, 0.9881, 0.9909), 300: (0.9984, 0.9966, 0.9966, 1.0052),
@@ -173,3 +178,82 @@ def test_docs_plant_lists_every_constant_with_its_value():
         value = entry["value"]
         shown = ", ".join(f"{x:g}" for x in value) if isinstance(value, list) else f"{value:g}"
         assert f"`{name}` | {shown} |" in doc, f"{name}: docs/plant.md shows another value than constants.toml"
+
+
+# ----- one integration for every use -------------------------------------------------
+ENGINE_DT_S = 1e-4   # the served engine's step (simulator.engine.PHYSICS_RATE_HZ)
+DAQ_EVERY = 5        # its DAQ samples every fifth step (2 kHz)
+CYCLES = {"a": 1, "b": 1}   # cycles after the fade-in; the slow experiments fewer
+
+
+def _fade_in_setpoint(spec, t):
+    static = spec.static_position_mm * 1e-3
+    return static + spec.amplitude_mm * 1e-3 * np.clip(t / spec.period_s, 0.0, 1.0) * np.sin(
+        2 * np.pi * spec.frequency_hz * t)
+
+
+@pytest.mark.parametrize("spec", [pytest.param(s, marks=pytest.mark.slow) if s.letter == "a" else s
+                                  for s in STANDARD_SET], ids=lambda s: s.letter)
+def test_offline_and_served_records_agree_within_the_transducers_noise(plant, spec):
+    """One stroke (the actuator's answer to a faded-in sine at the engine's 10 kHz), the
+    served plant advanced in blocks of irregular length as the engine cuts them, the
+    offline plant on its own grid as simulator generate runs it: the DAQ's samples agree
+    within a standard deviation of each channel's noise."""
+    static = spec.static_position_mm * 1e-3
+    n = int(round((1 + CYCLES.get(spec.letter, 2)) * spec.period_s / ENGINE_DT_S))
+    t = ENGINE_DT_S * np.arange(1, n + 1)
+    setpoint = _fade_in_setpoint(spec, t)
+    served = StreamingPlantTruth(plant, Actuator(), ENGINE_DT_S, static)
+    rng = np.random.default_rng(ord(spec.letter))
+    rows, start = [], 0
+    while start < n:
+        k = min(int(rng.integers(3, 1000)), n - start)
+        stroke, v, a, Y = served.advance(setpoint[start:start + k])
+        served.commit(k, Y)
+        rows.append(plant.channels(stroke, v, a, Y))
+        start += k
+    served_si = np.hstack(rows)[:, DAQ_EVERY - 1::DAQ_EVERY]
+    stroke, v, a, _ = ActuatorTrack(Actuator(), ENGINE_DT_S, static).track(setpoint)
+    tt, qq, vv = np.concatenate(([0.0], t)), np.concatenate(([static], stroke)), np.concatenate(([0.0], v))
+    grid, states = integrate_stroke(plant, lambda g: (np.interp(g, tt, qq), np.interp(g, tt, vv)), 0.0, t[-1],
+                                    plant.rest_state(static))
+    samples = slice(DAQ_EVERY - 1, None, DAQ_EVERY)
+    Y = states_at(plant, grid, np.interp(grid, tt, qq), np.interp(grid, tt, vv), states, t[samples])
+    offline_si = plant.channels(stroke[samples], v[samples], a[samples], Y)
+    for i, ch in enumerate(DATASHEET_CHANNELS):
+        gap = np.max(np.abs(ch.to_engineering(served_si[i]) - ch.to_engineering(offline_si[i])))
+        assert gap < ch.noise_std, f"{ch.name}: offline and served differ by {gap:.3g} {ch.unit}"
+
+
+@pytest.mark.parametrize("spec", [pytest.param(s, marks=pytest.mark.slow) if s.letter in "ab" else s
+                                  for s in STANDARD_SET], ids=lambda s: s.letter)
+def test_the_plants_grid_keeps_loop_work_and_peak_pressure_within_a_percent_of_lsoda(plant, spec):
+    """The experiment faded in from rest at its static position, then one cycle: the
+    gas's ∮p dV over that cycle and the transducer's peak pressure, on the states' grid
+    and from scipy's LSODA at rtol 1e-8, both read at the grid's nodes."""
+    from scipy.integrate import solve_ivp
+
+    static, period = spec.static_position_mm * 1e-3, spec.period_s
+    seg = Segment(spec, Actuator(), static, 1.0, period, 1e9)
+    y0 = plant.rest_state(static)
+    grid, states = integrate_stroke(plant, seg.stroke, 0.0, 2 * period, y0)
+
+    def rhs(time, y):
+        q, v, _ = seg.stroke(np.array([time]))
+        return plant.rates(q, v, y[:, None])[:, 0]
+
+    sol = solve_ivp(rhs, (0.0, grid[-1]), y0, method="LSODA", rtol=1e-8, atol=1e-10 * np.abs(y0) + 1e-14,
+                    dense_output=True)
+    assert sol.success, sol.message
+    last = grid >= grid[-1] - period - 1e-9
+    q, v, _ = seg.stroke(grid[last])
+
+    def loop(Y):
+        f = plant.forces(q, v, Y)
+        return -np.trapezoid(f.p_gas, f.gas_volume), np.max(f.p_dead)
+
+    work, peak = loop(states[:, last])
+    work_ref, peak_ref = loop(sol.sol(grid[last]))
+    assert work_ref > 0
+    assert work == pytest.approx(work_ref, rel=0.01)
+    assert peak == pytest.approx(peak_ref, rel=0.01)

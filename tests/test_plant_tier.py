@@ -56,6 +56,53 @@ def test_generate_names_the_plan_a_misspelt_one_meant(tmp_path, capsys, physics)
     assert not (tmp_path / "x").exists()
 
 
+@pytest.mark.parametrize("physics", ["model", "plant"])
+def test_generate_refuses_a_plan_past_the_end_stops_in_one_line(tmp_path, capsys, physics):
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[experiment]]\nlabel = "m"\nstatic_mm = 17\namplitude_mm = 22\nfrequency_Hz = 1\n')
+    assert main(["generate", "--physics", physics, "--plan", str(plan), "--out", str(tmp_path / "x")]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line == (f"error: --plan {plan}: experiment m commands the stroke to -5.0 mm, past the damper's full "
+                    "extension at 0.0 mm; nothing generated")
+    assert not (tmp_path / "x").exists()
+
+
+def test_the_end_stops_resist_past_the_stroke_in_both_tiers():
+    """Full extension and bottom-out: the plant's stops and the model tier's, the same
+    stiff contact; nothing between them."""
+    from simulator.physics import stop_force
+
+    plant = load_plant()
+    q = np.array([-1e-3, 0.0, 0.15, 0.30, 0.301])
+    for force in (plant.stop_force(q), stop_force(q)):
+        assert force[0] < -1e6 and force[4] > 1e6 and not force[1:4].any()
+    model = load_truth()
+    y = plant.rest_state(0.0)[:, None]
+    assert plant.forces(q[:1], np.zeros(1), y).damper_force[0] < -1e6
+    assert model.damper_force(q[:1], np.zeros(1), np.full(1, model.ambient_k))[0] < -1e6
+
+
+@pytest.mark.parametrize("argv, velocity", [([], 0.5), (["--drop-velocity", "0"], 0.0)])
+def test_the_drop_touches_down_at_the_papers_speed_unless_told(tmp_path, argv, velocity):
+    """The paper's drop reaches about 0.5 m/s: by default the mass touches down at that
+    speed (released at rest on the extended damper it would peak at a quarter of a m/s)."""
+    out = tmp_path / "ds"
+    assert main(["generate", "--physics", "plant", "--experiments", "j", "--periods", "1", "--drop", *argv,
+                 "--out", str(out), "--date", "261126"]) == 0
+    (drop,) = [e for e in json.loads((out / "dataset.json").read_text())["experiments"] if e.get("kind") == "drop"]
+    assert drop["drop_velocity_m_s"] == velocity
+    stroke = np.genfromtxt(out / "261126drop.csv", delimiter=",", names=True)["stroke_mm"]
+    peak_speed = np.max(stroke[20:2000] - stroke[:1980]) / 20 * 2000 / 1e3   # over 10 ms at 2 kHz, mm → m/s
+    assert peak_speed == pytest.approx(0.5 if velocity else 0.24, abs=0.03)
+
+
+def test_a_negative_drop_velocity_is_refused_in_one_line(tmp_path, capsys):
+    assert main(["generate", "--drop", "--drop-velocity", "-1", "--out", str(tmp_path / "x")]) == 2
+    (line,) = capsys.readouterr().err.splitlines()
+    assert line == "error: --drop-velocity -1: a touchdown speed, 0 or more m/s"
+    assert not (tmp_path / "x").exists()
+
+
 def test_plant_constants_only_with_the_plant(tmp_path, capsys):
     assert main(["generate", "--plant-constants", "x.toml", "--out", str(tmp_path / "x")]) == 2
     assert "--physics plant" in capsys.readouterr().err

@@ -210,3 +210,23 @@ def test_a_daq_cut_at_the_first_start_is_one_line_and_on_record(virtual_rig, tmp
     assert "link lost during 'START'" in lines[1], r.stderr
     status = json.loads((out / "session.json").read_text())["status"]
     assert status.startswith("aborted: DAQ at ") and status.endswith("(before anything moved)"), status
+
+
+def test_a_plan_past_full_extension_is_refused_in_one_line_and_nothing_moves(virtual_rig, tmp_path):
+    """Experiment m as Table 1 reads (17 ± 22 mm) commands the stroke to −5 mm, inside the
+    controller's trip limits (−10 mm) but past the damper's top-out stop: refused against
+    the rig's [damper] envelope before the hydraulics come on."""
+    sim = virtual_rig()
+    plan = tmp_path / "plan.toml"
+    plan.write_text('[[experiment]]\nlabel = "m"\nstatic_mm = 17\namplitude_mm = 22\nfrequency_Hz = 1\n')
+    r, out = rig_run(tmp_path, "--plan", str(plan), shaker=sim.modbus_url, daq=sim.daq_url)
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    refusal = [line for line in r.stderr.splitlines() if "refused" in line]
+    assert refusal == [line for line in r.stderr.splitlines() if line.strip()], r.stderr   # one line
+    assert ("plan refused, nothing moved" in refusal[0]
+            and "experiment m: commands the stroke to -5.0 mm, past the damper's full extension at 0.0 mm"
+            in refusal[0]), r.stderr
+    status = subprocess.run([sys.executable, "-m", "rig", "status", "--shaker", sim.modbus_url],
+                            capture_output=True, text=True, timeout=HANG_S).stdout
+    assert "state OFF" in status and "position 0.00 mm" in status, status   # no hydraulics, no move
+    assert not out.exists()

@@ -142,6 +142,27 @@ def check_plan(plan: Plan, config: RigConfig) -> list[str]:
             problems.append(f"experiment {e.letter}: {p}")
         if e.periods < 1:
             problems.append(f"experiment {e.letter}: periods {e.periods} < 1")
+        if config.stroke_envelope_m is not None:
+            # Past a stop but within the controller's trip limits (beyond them the limits' line says it).
+            limits = (config.limits.stroke_low_m, config.limits.stroke_high_m)
+            problems += [f"experiment {e.letter}: {p}" for p in envelope_problems(e, *config.stroke_envelope_m, limits)]
+    return problems
+
+
+def envelope_problems(e: ExperimentSpec, full_extension_m: float, bottom_out_m: float,
+                      limits: tuple[float, float] = (-math.inf, math.inf)) -> list[str]:
+    """Where experiment ``e`` commands the stroke past the damper's end stops, but not
+    past ``limits`` (the controller's trip limits, whose own check says that)."""
+    low, high = (e.static_position_mm - e.amplitude_mm) * 1e-3, (e.static_position_mm + e.amplitude_mm) * 1e-3
+    problems = []
+    # The stop engages at contact: commanding onto it is commanding into it (the
+    # actuator's overshoot, micrometres, meets a stop as stiff as the stroke's steel).
+    if limits[0] <= low <= full_extension_m:
+        problems.append(f"commands the stroke to {low * 1e3:.1f} mm, past the damper's full extension at "
+                        f"{full_extension_m * 1e3:.1f} mm")
+    if bottom_out_m <= high <= limits[1]:
+        problems.append(f"commands the stroke to {high * 1e3:.1f} mm, past the damper's bottom-out at "
+                        f"{bottom_out_m * 1e3:.1f} mm")
     return problems
 
 

@@ -95,9 +95,12 @@ class PlanRefused(PlanError):
 
     def __init__(self, source: str, problems: list[str]) -> None:
         self.problems = problems
+        if len(problems) == 1:   # one violation: one line
+            super().__init__(f"plan refused, nothing moved (the limits in {source}): {problems[0]}")
+            return
         lines = "\n".join(f"  {p}" for p in problems)
-        super().__init__(f"plan refused, nothing moved ({len(problems)} violation{'s' if len(problems) > 1 else ''}"
-                         f" of the limits in {source}):\n{lines}")
+        super().__init__(f"plan refused, nothing moved ({len(problems)} violations of the limits in {source}):\n"
+                         f"{lines}")
 
 
 class AlarmLatched(RigFault):

@@ -5,7 +5,7 @@ production line scatters or a fault changes."""
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass, fields, replace
+from dataclasses import MISSING, dataclass, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -69,6 +69,10 @@ class PlantConstants:
     transducer_thermometer_time: float
     transducer_thermometer_mount_time: float
     gas_loss: float = 1.0  # fraction of the charge's nitrogen left (a leaking unit has less)
+    # The end stops ([stops] of constants.toml); a constants file from before them gets these.
+    stops_top_out_stroke: float = 0.0
+    stops_bottom_out_stroke: float = 0.30
+    stops_stiffness: float = 2.0e9
 
     def changed(self, **values: Any) -> PlantConstants:
         return replace(self, **values)
@@ -92,7 +96,8 @@ def load_constants(path: str | Path | None = None) -> PlantConstants:
             value = entry["value"]
             values[f"{section}_{key}"] = tuple(float(x) for x in value) if isinstance(value, list) else float(value)
     names = {f.name for f in fields(PlantConstants)} - {"gas_loss"}
-    missing, unknown = names - values.keys(), values.keys() - names
+    optional = {f.name for f in fields(PlantConstants) if f.default is not MISSING}
+    missing, unknown = names - optional - values.keys(), values.keys() - names
     if missing or unknown:
         raise PlantError(f"{path}: missing {sorted(missing)}, unknown {sorted(unknown)}")
     return PlantConstants(**values)

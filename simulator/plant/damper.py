@@ -98,9 +98,17 @@ class PlantDamper:
         cavitating = self._cavitating(p, velocity, nu, y[5])
         chamber = np.where(cavitating, k.oil_cavitation_pressure, p + np.sign(velocity) * dp)
         chamber = np.maximum(chamber, k.oil_cavitation_pressure)
-        force = self.area * (chamber - P_ATM) + seals.friction(k, velocity, chamber)
+        force = self.area * (chamber - P_ATM) + seals.friction(k, velocity, chamber) + self.stop_force(q)
         p_dead = self.gas.pressure(k.transducer_dead_volume / y[3], y[1])
         return Forces(p, volume, chamber, force, p_dead)
+
+    def stop_force(self, q):
+        """The end stops' contact force [N], positive compressing: the top-out stop
+        pushes an over-extended piston back in, the bottom-out stop resists further
+        compression; nothing between them."""
+        k = self.k
+        return k.stops_stiffness * (np.minimum(q - k.stops_top_out_stroke, 0.0)
+                                    + np.maximum(q - k.stops_bottom_out_stroke, 0.0))
 
     def _cavitating(self, p, velocity, nu, void):
         q_max = orifice.max_flow(self.k, p - self.k.oil_cavitation_pressure, nu)

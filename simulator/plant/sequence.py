@@ -1,7 +1,8 @@
 """A plan run on the plant as a rig runs it: one experiment after the other, each moved
 to its static position, faded in, settled, captured and faded out, the wall's heat and
 the oil's dissolved gas carried from one experiment to the next.  The plant's states are
-integrated on a grid of their own (:mod:`simulator.plant.integrator`); the DAQ's
+integrated on the grid the served rig integrates them on, every
+:data:`~simulator.plant.integrator.STEP_S`; the DAQ's
 samples read them interpolated, the stroke and its derivatives exactly."""
 
 from __future__ import annotations
@@ -14,12 +15,11 @@ from identify.move_profile import CONTROLLER_MOVE, MoveProfile
 from identify.plans import ExperimentSpec
 from simulator.physics import Actuator, steady_stroke, waveform_harmonics
 from simulator.plant.damper import PlantDamper
-from simulator.plant.integrator import STEP_S, integrate
+from simulator.plant.integrator import integrate_stroke, states_at
 from simulator.plant.streaming import StreamingPlantTruth
 
 FADE_PERIODS = 1.0      # fade in and out over a period, at most FADE_MAX_S
 FADE_MAX_S = 10.0
-STEPS_PER_PERIOD = 200  # the states' grid: a period's 200th, at least STEP_S
 
 
 @dataclass(frozen=True)
@@ -83,17 +83,16 @@ def run_plan(plant: PlantDamper, plan: list[ExperimentSpec], actuator: Actuator,
     out = []
     for spec, times in zip(plan, record_times, strict=True):
         seg = Segment.after(spec, actuator, position, float(times[-1]))
-        step = max(STEP_S, spec.period_s / STEPS_PER_PERIOD)
-        grid = np.arange(-seg.move_s, times[-1] + seg.fade_s + step, step)
-        q_m, v, _ = seg.stroke(grid)
-        states = integrate(plant, grid, q_m, v, y)
+        # The served rig's step for every experiment: a period's 200th (the step this
+        # once took) left experiment a's loop area at 60 % of LSODA's.
+        grid, states = integrate_stroke(plant, seg.stroke, -seg.move_s, times[-1] + seg.fade_s, y)
         keep = (times >= settle_s)
         ts = times[keep]
-        ys = np.vstack([np.interp(ts, grid, s) for s in states])
         q_s, v_s, a_s = seg.stroke(ts)
+        ys = states_at(plant, grid, *seg.stroke(grid)[:2], states, ts)
         out.append(Capture(spec, ts, plant.channels(q_s, v_s, a_s, ys), float(np.mean(ys[1])), float(np.mean(ys[2]))))
         y = states[:, -1]
-        position = float(q_m[-1])
+        position = float(seg.stroke(grid[-1:])[0][0])
     return out
 
 
