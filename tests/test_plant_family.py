@@ -89,3 +89,9 @@ def test_the_variants_directory_ships_with_the_package():
     assert VARIANTS_DIR.is_dir()
     pyproject = (ROOT / "pyproject.toml").read_text()
     assert "plant/variants/*.toml" in pyproject and "plant/constants.toml" in pyproject
+
+
+def test_serve_takes_the_variant_option_and_refuses_it_for_the_model_before_any_endpoint_opens(capsys):
+    assert main(["serve", "--plant-variant", "low-cd", "--modbus", "tcp://127.0.0.1:0",
+                 "--daq", "socket://127.0.0.1:0"]) == 2
+    assert capsys.readouterr().err.startswith("error: --plant-variant: only with --physics plant")
