@@ -141,6 +141,13 @@ def main() -> None:
         never = [keys[i] for i in range(len(keys)) if not any(table[(n, p)][i].holds for n in names)]
         print(f"  {p}: across the family, hold on every plant: {' '.join(always) or 'none'}; on none: "
               f"{' '.join(never) or 'none'}; move with the constants: {' '.join(moves) or 'none'}")
+    print("\nwhat decides findings 7 and 8 (friction from the force jumps: its line, and how far off the averaged "
+          "line; single-experiment spreads of θ4, θ6, 2-dof/1-dof)")
+    for w in worlds:
+        f7 = table[(w, procedures[0])][6].shown.split("; ", 1)[1]
+        f8 = "; ".join(f"{p}: {table[(w, p)][7].shown.split(' (')[0].removeprefix('spread 2-dof/1-dof: ')}"
+                       for p in procedures)
+        print(f"  {w:24}{f7}\n  {'':24}{f8}")
     print("\nheadline figures (QC and drop); the drop: 350 kg touching at 0.5 m/s, 2.5 s")
     print(f"  {'plant':24}{'damping 0.1 / 0.3 m/s':>24}{'friction @10 bar':>18}{'∮p dV a':>10}{'∮F dq b':>10}"
           f"{'drop peak F':>13}{'peak stroke':>13}{'reversals':>11}")
