@@ -4,7 +4,13 @@ identification model).  One argument, ``--physics``, chooses between them; every
 else a benchmark does is the same in both.
 
 A world gives data of a production unit under a plan (`simulator generate`, offline) and
-the unit's own drop test: the truth a prediction is judged against.
+the unit's own drop test: the truth a prediction is judged against.  The plant world is a
+family: ``variant`` names one of its plausible plants (``plant_variants()``, nominal
+first; docs/plant.md), so that a claim can be measured on each:
+
+    for variant in plant_variants():
+        generate("plant", "standard", out / variant, unit, variant=variant)
+        drop("plant", unit, variant=variant)
 """
 
 from __future__ import annotations
@@ -58,13 +64,33 @@ class Drop:
     stroke_m: np.ndarray
 
 
-def generate(world: str, plan: str, out: Path, unit: Unit = Unit(), seed: int = 0) -> Path:
-    """``python -m simulator generate`` of ``plan`` in ``world`` into ``out``."""
+def plant_variants() -> list[str]:
+    """The plant's named variants (simulator.plant.family), ``nominal`` first."""
+    if not available("plant"):
+        raise WorldUnavailable("no plant world on this checkout")
+    from simulator.plant.family import variant_names
+
+    return variant_names()
+
+
+def plant_variant_args(variant: str | None) -> list[str]:
+    """The ``simulator generate|serve`` arguments of plant variant ``variant`` (None or nominal: none)."""
+    return [] if variant in (None, "nominal") else ["--plant-variant", variant]
+
+
+def generate(world: str, plan: str, out: Path, unit: Unit = Unit(), seed: int = 0,
+             variant: str | None = None) -> Path:
+    """``python -m simulator generate`` of ``plan`` in ``world`` into ``out`` (the plant:
+    its ``variant``, default nominal)."""
     if not available(world):
         raise WorldUnavailable(f"no {world} world on this checkout")
     cmd = [sys.executable, "-m", "simulator", "generate", "--plan", plan, "--out", str(out), "--seed", str(seed),
            "--date", "261126", *unit.args()]
     cmd += ["--physics", world]
+    if world == "plant":
+        cmd += plant_variant_args(variant)
+    elif variant not in (None, "nominal"):
+        raise ValueError(f"plant variant {variant!r} in the {world} world")
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     proc = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=ROOT)
     if proc.returncode != 0:
@@ -72,10 +98,13 @@ def generate(world: str, plan: str, out: Path, unit: Unit = Unit(), seed: int = 
     return out
 
 
-def drop(world: str, unit: Unit = Unit(), t: np.ndarray | None = None) -> Drop:
-    """The unit's own drop test in ``world``: 350 kg landing at 0.5 m/s, 2.5 s."""
+def drop(world: str, unit: Unit = Unit(), t: np.ndarray | None = None, variant: str | None = None) -> Drop:
+    """The unit's own drop test in ``world`` (the plant: its ``variant``): 350 kg landing
+    at 0.5 m/s, 2.5 s."""
     t = np.linspace(0.0, DROP_DURATION_S, 1251) if t is None else t
     if world == "model":
+        if variant not in (None, "nominal"):
+            raise ValueError(f"plant variant {variant!r} in the model world")
         from simulator.physics import drop_test
         from simulator.truth import load_truth
 
@@ -85,10 +114,12 @@ def drop(world: str, unit: Unit = Unit(), t: np.ndarray | None = None) -> Drop:
     if not available(world):
         raise WorldUnavailable(f"no {world} world on this checkout")
     from simulator.plant.drop import simulate_drop
+    from simulator.plant.family import variant_constants
 
     rate = (len(t) - 1) / (t[-1] - t[0])
     record = simulate_drop(unit.kind, unit.seed, mass_kg=DROP_MASS_KG, velocity_m_s=DROP_VELOCITY_M_S,
-                           duration_s=float(t[-1] - t[0]), rate_hz=rate)
+                           duration_s=float(t[-1] - t[0]), rate_hz=rate,
+                           constants=variant_constants(variant or "nominal"))
     if len(record.t) != len(t):
         raise RuntimeError(f"plant drop sampled {len(record.t)} times, asked for {len(t)}")
     return Drop(t, np.asarray(record.force_N), np.asarray(record.stroke_m))

@@ -29,9 +29,14 @@ from identify.plans import STANDARD_SET, ExperimentSpec, select
 from simulator.errors import SimulatorError, UsageError
 from simulator.faults import parse_fault
 from simulator.generate import generate
+<<<<<<< HEAD
 from simulator.physics import Damper, past_the_stops
 from simulator.plant import PlantDamper, load_plant
 from simulator.plant.drop import DROP_VELOCITY_M_S
+=======
+from simulator.physics import Damper
+from simulator.plant import PlantDamper, load_plant, variant_names
+>>>>>>> family
 from simulator.truth import load_truth
 from simulator.units import UNITS
 
@@ -91,15 +96,16 @@ def _truth(args: argparse.Namespace) -> Damper | PlantDamper:
     """The damper of the chosen physics tier: the model's θ (``--params``, ``--model``)
     or the plant truth (``--plant-constants``); a production unit in either."""
     if args.physics == "model":
-        if args.plant_constants:
-            raise UsageError("--plant-constants: only with --physics plant (the model tier takes --params)")
+        if args.plant_constants or args.plant_variant:
+            option = "--plant-constants" if args.plant_constants else "--plant-variant"
+            raise UsageError(f"{option}: only with --physics plant (the model tier takes --params)")
         return load_truth(args.params, args.model, args.unit, args.unit_seed)
     if args.params:
         raise UsageError(f"--params {args.params}: the plant truth has no θ; give its constants with "
                          "--plant-constants FILE.toml (see simulator/plant/constants.toml)")
     if args.model != "2dof":
         raise UsageError(f"--model {args.model}: only with --physics model (the plant is no identification model)")
-    return load_plant(args.unit, args.unit_seed, args.plant_constants)
+    return load_plant(args.unit, args.unit_seed, args.plant_constants, args.plant_variant)
 
 
 @dataclass(frozen=True)
@@ -276,6 +282,9 @@ def build_parser() -> argparse.ArgumentParser:
                             "plant: the plant truth, richer than any identification model (docs/plant.md)")
         p.add_argument("--plant-constants", metavar="FILE.toml",
                        help="the plant's constants (--physics plant; default simulator/plant/constants.toml)")
+        p.add_argument("--plant-variant", choices=variant_names(), metavar="NAME",
+                       help="a named plausible plant (--physics plant): its constants moved within their brackets, "
+                            f"applied to --plant-constants; one of {', '.join(variant_names())} (docs/plant.md)")
 
     def unit_options(p: argparse.ArgumentParser) -> None:
         p.add_argument("--unit", choices=UNITS,

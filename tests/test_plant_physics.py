@@ -21,7 +21,7 @@ from simulator.plant.sequence import Segment
 from simulator.plant.streaming import StreamingPlantTruth
 from simulator.sensors import DATASHEET_CHANNELS
 
-# Z of nitrogen from the reference EOS (plant-physics-sources.md 1(b), Span et al. 2000).
+# Z of nitrogen from the reference EOS of Span et al. 2000 (J. Phys. Chem. Ref. Data 29(6)) via CoolProp.
 Z_TABLE = {280: (0.9965, 0.9912, 0.9881, 0.9909), 300: (0.9984, 0.9966, 0.9966, 1.0052),
            320: (0.9998, 1.0006, 1.0030, 1.0158), 350: (1.0013, 1.0049, 1.0097, 1.0269)}
 Z_BAR = (10, 30, 50, 100)
