@@ -29,14 +29,9 @@ from identify.plans import STANDARD_SET, ExperimentSpec, select
 from simulator.errors import SimulatorError, UsageError
 from simulator.faults import parse_fault
 from simulator.generate import generate
-<<<<<<< HEAD
 from simulator.physics import Damper, past_the_stops
-from simulator.plant import PlantDamper, load_plant
-from simulator.plant.drop import DROP_VELOCITY_M_S
-=======
-from simulator.physics import Damper
 from simulator.plant import PlantDamper, load_plant, variant_names
->>>>>>> family
+from simulator.plant.drop import DROP_VELOCITY_M_S
 from simulator.truth import load_truth
 from simulator.units import UNITS
 
