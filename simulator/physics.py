@@ -142,10 +142,11 @@ class Damper:
 
     def damper_force(self, q: np.ndarray, v: np.ndarray, T: np.ndarray) -> np.ndarray:
         """F_d = θ3·v|v| + θ4·p + (θ8 + θ9·p)·arctan(θ10·v) + θ11  [N], plus the end stops'
-        contact outside the stroke (the model has none; the plant's, :func:`stop_force`)."""
+        contact outside the stroke (the model has none; the plant's, :func:`stop_force`, on
+        the measured stroke q + θ12, the coordinate the rig's envelope and plans are in)."""
         p = self.pressure(q, T)
-        return (self.theta3 * v * np.abs(v) + self.theta4 * p
-                + (self.theta8 + self.theta9 * p) * np.arctan(self.theta10 * v) + self.theta11 + stop_force(q))
+        return (self.theta3 * v * np.abs(v) + self.theta4 * p + (self.theta8 + self.theta9 * p) * np.arctan(
+            self.theta10 * v) + self.theta11 + stop_force(q + self.theta12))
 
     def axle_force(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, T: np.ndarray) -> np.ndarray:
         """Fe from g1 = 0 (inverse dynamics of the imposed stroke) [N]."""
