@@ -55,7 +55,7 @@ STANDARD_SET: tuple[ExperimentSpec, ...] = (
     ExperimentSpec("f", "high", 179, 75, 0.2),
     # k and m as read from Table 1 (79 ± 80 and 17 ± 22 mm) command the stroke past full
     # extension (−1 and −5 mm); the paper's Figure 5 shows m between 4 and 18 mm, so m is
-    # taken from the figure and k moved inside the stroke by 1 mm (docs/experiment-design.md).
+    # taken from the figure and k moved inside the stroke by 1 mm (docs/rig-interfaces.md §3).
     ExperimentSpec("k", "low", 80, 79, 0.2),
     ExperimentSpec("l", "low", 39, 35, 0.5),
     ExperimentSpec("m", "low", 11, 7, 1.0),

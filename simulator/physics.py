@@ -70,7 +70,9 @@ def check_truth(theta: dict[str, float], model: str) -> None:
 def stop_force(q: float | np.ndarray) -> np.ndarray:
     """The end stops' contact force at the damper's stroke q [N], positive compressing:
     zero within the stroke, the plant's top-out and bottom-out stops outside it
-    (simulator/plant/constants.toml [stops]), so that no tier strokes past them."""
+    (simulator/plant/constants.toml [stops]).  The model tier feels them where its
+    stroke is free, in the drop (:func:`drop_test`); an imposed stroke is kept inside
+    them by the plan checks (:func:`past_the_stops`, the rig's envelope)."""
     top, bottom, stiffness = _STOPS
     return stiffness * (np.minimum(np.asarray(q) - top, 0.0) + np.maximum(np.asarray(q) - bottom, 0.0))
 
@@ -141,11 +143,10 @@ class Damper:
         return self.theta5 * T / (1 + self.theta6 * q + self.theta7 * T)
 
     def damper_force(self, q: np.ndarray, v: np.ndarray, T: np.ndarray) -> np.ndarray:
-        """F_d = θ3·v|v| + θ4·p + (θ8 + θ9·p)·arctan(θ10·v) + θ11  [N], plus the end stops'
-        contact outside the stroke (the model has none; the plant's, :func:`stop_force`)."""
+        """F_d = θ3·v|v| + θ4·p + (θ8 + θ9·p)·arctan(θ10·v) + θ11  [N]."""
         p = self.pressure(q, T)
         return (self.theta3 * v * np.abs(v) + self.theta4 * p
-                + (self.theta8 + self.theta9 * p) * np.arctan(self.theta10 * v) + self.theta11 + stop_force(q))
+                + (self.theta8 + self.theta9 * p) * np.arctan(self.theta10 * v) + self.theta11)
 
     def axle_force(self, q: np.ndarray, v: np.ndarray, a: np.ndarray, T: np.ndarray) -> np.ndarray:
         """Fe from g1 = 0 (inverse dynamics of the imposed stroke) [N]."""
@@ -290,14 +291,14 @@ def drop_test(damper: Damper, mass_kg: float, velocity_m_s: float, t: np.ndarray
 
     def rhs(_, y):
         q, v, T = y
-        a = -d.theta2 - d.damper_force(q, v, T) / d.theta1
+        a = -d.theta2 - (d.damper_force(q, v, T) + stop_force(q)) / d.theta1
         return [v, a, d.temperature_rate(q, v, T)]
 
     sol = solve_ivp(rhs, (0.0, t[-1]), [0.0, velocity_m_s, d.ambient_k], method="Radau",
                     rtol=1e-9, atol=[1e-10, 1e-9, 1e-7], dense_output=True, max_step=0.01)
     q, v, T = sol.sol(t)
     a = np.gradient(v, t)
-    return SteadyState(t, q, d.measured_stroke(q), v, a, T, d.pressure(q, T), d.damper_force(q, v, T))
+    return SteadyState(t, q, d.measured_stroke(q), v, a, T, d.pressure(q, T), d.damper_force(q, v, T) + stop_force(q))
 
 
 class ActuatorTrack:

@@ -29,7 +29,7 @@ class ChannelSpec:
 DATASHEET_CHANNELS: tuple[ChannelSpec, ...] = (
     ChannelSpec("stroke_mm", "mm", 0.005, 140.0, 0.01, 1e-3),
     ChannelSpec("force_N", "N", 1.0, 0.0, 2.0),
-    ChannelSpec("pressure_bar", "bar", 0.001, 32.768, 0.003, 1e5),
+    ChannelSpec("pressure_bar", "bar", 0.001, 32.768, 0.003, 1e5),    # absolute, not gauge
     ChannelSpec("gas_temperature_C", "degC", 0.005, 50.0, 0.02, 1.0, 273.15),
 )
 

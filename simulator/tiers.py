@@ -15,7 +15,7 @@ from typing import Protocol
 
 import numpy as np
 
-from simulator.physics import Actuator, Damper, StreamingPlant, drop_test
+from simulator.physics import Actuator, Damper, StreamingPlant, drop_test, stop_force
 from simulator.plant.damper import PlantDamper
 from simulator.plant.drop import simulate_drop
 from simulator.plant.streaming import StreamingPlantTruth
@@ -71,7 +71,7 @@ class _ModelDrop:
         q = np.where(since >= 0, np.interp(inside, rec.t, rec.q), 0.0)
         v = np.where(since >= 0, np.interp(inside, rec.t, rec.velocity), 0.0)
         T = np.where(since >= 0, np.interp(inside, rec.t, rec.temperature), d.ambient_k)
-        return np.vstack([d.measured_stroke(q), d.damper_force(q, v, T), d.pressure(q, T), T])
+        return np.vstack([d.measured_stroke(q), d.damper_force(q, v, T) + stop_force(q), d.pressure(q, T), T])
 
     def stroke(self, since_s):
         q = float(np.interp(min(since_s, self.rec.t[-1]), self.rec.t, self.rec.q)) if since_s >= 0 else 0.0

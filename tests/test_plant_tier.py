@@ -69,17 +69,21 @@ def test_generate_refuses_a_plan_past_the_end_stops_in_one_line(tmp_path, capsys
 
 def test_the_end_stops_resist_past_the_stroke_in_both_tiers():
     """Full extension and bottom-out: the plant's stops and the model tier's, the same
-    stiff contact; nothing between them."""
-    from simulator.physics import stop_force
+    stiff contact, nothing between them; a mass thrown outward from full extension in
+    the model tier's drop is caught by the top-out stop."""
+    from simulator.physics import drop_test, stop_force
+    from simulator.plant.drop import simulate_drop
 
     plant = load_plant()
     q = np.array([-1e-3, 0.0, 0.15, 0.30, 0.301])
     for force in (plant.stop_force(q), stop_force(q)):
         assert force[0] < -1e6 and force[4] > 1e6 and not force[1:4].any()
-    model = load_truth()
     y = plant.rest_state(0.0)[:, None]
     assert plant.forces(q[:1], np.zeros(1), y).damper_force[0] < -1e6
-    assert model.damper_force(q[:1], np.zeros(1), np.full(1, model.ambient_k))[0] < -1e6
+    t = np.linspace(0.0, 0.5, 501)
+    thrown = drop_test(load_truth(), 350.0, -0.5, t)   # extending at 0.5 m/s at q = 0
+    assert -5e-4 < np.min(thrown.q) < 0 and np.max(thrown.q) > 0.02   # δ = v·√(M/k) = 0.2 mm
+    assert -5e-4 < np.min(simulate_drop(velocity_m_s=-0.5, duration_s=0.5).stroke_m) < 0
 
 
 @pytest.mark.parametrize("argv, velocity", [([], 0.5), (["--drop-velocity", "0"], 0.0)])

@@ -42,7 +42,7 @@ def short_spec(tmp_path: Path) -> Path:
     assert text.count("[[experiment]]") == 1
     for old, new in (("pressure_bar = 0.003", "pressure_bar = 0.5"), ("gas_temperature_C = 0.01",
                                                                        "gas_temperature_C = 10.0"),
-                     ("force_N = 5.0", "force_N = 200.0"), ('version = "1.2.0"', 'version = "test"')):
+                     ("force_N = 5.0", "force_N = 200.0"), ('version = "1.3.0"', 'version = "test"')):
         assert old in text
         text = text.replace(old, new)
     path = tmp_path / "QC-short.toml"

@@ -230,3 +230,29 @@ def test_a_plan_past_full_extension_is_refused_in_one_line_and_nothing_moves(vir
                             capture_output=True, text=True, timeout=HANG_S).stdout
     assert "state OFF" in status and "position 0.00 mm" in status, status   # no hydraulics, no move
     assert not out.exists()
+
+
+def test_the_envelope_refuses_onto_a_stop_and_an_older_rig_file_checks_none(tmp_path):
+    """Commanding onto the top-out stop is commanding into it; a rig file without
+    [damper] (from before the envelope) keeps its behaviour; the standard set and the QC
+    specs' plans stay inside."""
+    from dataclasses import replace
+
+    from identify.plans import ExperimentSpec
+    from rig.config import load_rig_config
+    from rig.planning.plans import Plan, check_plan, load_plan
+    from rig.qc.spec import load_spec
+
+    config = load_rig_config(None)
+    assert config.stroke_envelope_m == (0.0, 0.3)
+    onto = Plan("p", (ExperimentSpec("x", "", 20, 20, 1.0),))
+    assert check_plan(onto, config) == ["experiment x: commands the stroke to 0.0 mm, past the damper's full "
+                                        "extension at 0.0 mm"]
+    assert check_plan(onto, replace(config, stroke_envelope_m=None)) == []
+    old = tmp_path / "rig.toml"
+    old.write_text("\n".join(line for line in DEFAULT_RIG_CONFIG.read_text().splitlines()
+                             if not line.startswith(("[damper]", "full_extension_mm", "bottom_out_mm"))))
+    assert load_rig_config(old).stroke_envelope_m is None
+    assert check_plan(load_plan("standard"), config) == []
+    for name in ("default", "transient"):
+        assert check_plan(load_spec(name).plan, config) == [], name

@@ -197,7 +197,7 @@ def test_conditioning_holds_land_the_gas_on_its_periodic_state_within_the_plans_
     conditioning = conditioning_for(plan, with_holds)
     assert conditioning is not None and conditioning_for(plan, CONFIG) is None
     low, high = conditioning.range_m
-    assert (low, high) == pytest.approx((-0.005, 0.260))      # m: 17 - 22 mm, 133 + 127 mm
+    assert (low, high) == pytest.approx((0.001, 0.260))       # k: 80 - 79 mm, a: 133 + 127 mm
     predicted = predict_settling(STANDARD_SET, CONFIG.steady_state, CONFIG.daq_rate_hz, conditioning=conditioning)
     held = [p for p in predicted if p.hold]
     assert len(held) >= len(predicted) // 2

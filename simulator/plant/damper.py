@@ -35,7 +35,7 @@ KAPPA_COMPLIANCE = 1.3
 
 @dataclass(frozen=True)
 class Forces:
-    """Algebraic quantities at a state (vectorised)."""
+    """Algebraic quantities at a state (vectorised); pressures absolute [Pa]."""
 
     p_gas: np.ndarray
     gas_volume: np.ndarray
@@ -89,7 +89,7 @@ class PlantDamper:
         return self.gas.pressure(volume / n, T, coefficients), volume
 
     def forces(self, q, velocity, y) -> Forces:
-        """Pressures and the damper force (on the piston, positive compressing) [N]."""
+        """Pressures (absolute) and the damper force (on the piston, positive compressing) [N]."""
         k = self.k
         p, volume = self.gas_pressure(q, y)
         nu = oil.kinematic_viscosity(k, y[1])
@@ -161,8 +161,8 @@ class PlantDamper:
     # ----- outputs -----------------------------------------------------------------
     def channels(self, q, velocity, acceleration, y, gravity: float = G0):
         """The four SI channels the DAQ digitises: measured stroke, axle force (inverse
-        dynamics of the imposed stroke), the transducer's pressure, the thermometer's
-        temperature."""
+        dynamics of the imposed stroke), the transducer's absolute pressure (the paper
+        recorded gauge: subtract P_ATM to compare), the thermometer's temperature."""
         f = self.forces(q, velocity, y)
         force = self.moving_mass * (acceleration + gravity) + f.damper_force
         return np.vstack([q + 0 * velocity, force, f.p_dead, y[4] + 0 * q])

@@ -22,7 +22,8 @@ DROP_VELOCITY_M_S = 0.5  # at contact; the paper's peak velocity is about 0.5 m/
 @dataclass(frozen=True)
 class DropRecord:
     """What a drop rig records (SI): measured stroke, ground load (the damper force),
-    the pressure transducer, the gas thermometer; and the velocity, which it does not."""
+    the pressure transducer (absolute), the gas thermometer; and the velocity, which it
+    does not."""
 
     t: np.ndarray
     stroke_m: np.ndarray
