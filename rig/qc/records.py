@@ -790,6 +790,11 @@ def _unreachable(exc: SQLAlchemyError) -> bool:
         return False
     state = getattr(orig, "sqlstate", None)
     if state is None:
+        # A server that answered with FATAL (a refused login, no such database) was reached;
+        # one starting up or shutting down was not, as yet.
+        words = str(orig)
+        if "FATAL:" in words and not any(w in words for w in ("starting up", "shutting down", "not yet accepting")):
+            return False
         return any(t.__name__ == "OperationalError" for t in type(orig).__mro__)
     return str(state).startswith("08") or state in ("57P01", "57P02", "57P03")
 
