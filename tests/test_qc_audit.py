@@ -19,16 +19,15 @@ import datetime as _dt
 import getpass
 import hashlib
 import json
-import os
 import sqlite3
-import subprocess
-import sys
 from dataclasses import replace
 from pathlib import Path
+from types import SimpleNamespace
 
 import psycopg
 import pytest
 
+from rig.cli import main
 from rig.qc.evaluate import evaluate
 from rig.qc.queue import RecordQueue, queue_warning
 from rig.qc.records import QcRecord, Records, TooPrivileged, init_schema, parse_url, safe_url
@@ -45,9 +44,20 @@ from tests.test_qc_records import record
 SPEC = load_spec("default")
 
 
-def rig_qc(*args: str, env: dict[str, str] | None = None, stdin: str | None = None) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "rig", "qc", *args], capture_output=True, text=True, timeout=600,
-                          env={**os.environ, **(env or {})}, input=stdin)
+@pytest.fixture
+def rig_qc(capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch):
+    """``python -m rig qc …`` in this process (the interpreter's start is most of a
+    command's time here): its exit status, stdout and stderr."""
+    def run(*args: str, env: dict[str, str] | None = None) -> SimpleNamespace:
+        capsys.readouterr()
+        with monkeypatch.context() as m:
+            for k, v in (env or {}).items():
+                m.setenv(k, v)
+            code = main(["qc", *args])
+        out = capsys.readouterr()
+        return SimpleNamespace(returncode=code, stdout=out.out, stderr=out.err)
+
+    return run
 
 
 def chained(records: Records, station: str, n: int, tag: str) -> list[QcRecord]:
@@ -67,7 +77,7 @@ def admin_connection(pg, database: str) -> psycopg.Connection:
 
 
 # ----- least privilege and the chain ------------------------------------------------------------------------
-def test_a_station_role_can_only_insert_and_read_and_verify_finds_what_the_administrator_did(pg_server):  # noqa: F811
+def test_a_station_role_can_only_insert_and_read_and_verify_finds_what_the_administrator_did(pg_server, rig_qc):  # noqa: F811
     url = pg_server.records_database("audit")
     records = Records.open(url, password=STATION_PASSWORD, writer=True)     # a station's writer is accepted
     written = chained(records, "line1-A", 4, "pg")
@@ -100,7 +110,7 @@ def test_a_station_role_can_only_insert_and_read_and_verify_finds_what_the_admin
     assert lines[-1].endswith(": 2 problems")
 
 
-def test_qc_run_refuses_a_role_that_owns_the_tables_and_station_check_says_why(pg_server, tmp_path):  # noqa: F811
+def test_qc_run_refuses_a_role_that_owns_the_tables_and_station_check_says_why(pg_server, tmp_path, rig_qc):  # noqa: F811
     admin = pg_server.create_database("owned")
     with admin_connection(pg_server, "postgres") as conn:
         conn.execute("CREATE ROLE owner LOGIN PASSWORD 'Own3r-pw'")
@@ -125,7 +135,7 @@ def test_qc_run_refuses_a_role_that_owns_the_tables_and_station_check_says_why(p
     assert any(s.startswith("FAIL  database rights: records database") for s in r.stdout.splitlines())
 
 
-def test_verify_finds_a_changed_a_deleted_and_an_inserted_record_in_sqlite(tmp_path):
+def test_verify_finds_a_changed_a_deleted_and_an_inserted_record_in_sqlite(tmp_path, rig_qc):
     path = tmp_path / "r.sqlite"
     records = Records.open(str(path), create=True)
     chained(records, "s", 5, "sq")
@@ -149,7 +159,7 @@ def test_verify_finds_a_changed_a_deleted_and_an_inserted_record_in_sqlite(tmp_p
 
 
 # ----- commissioning and the queue ----------------------------------------------------------------------------
-def test_a_wrong_database_port_fails_commissioning_and_the_station_then_refuses_to_test(pg_server, tmp_path):  # noqa: F811
+def test_a_wrong_database_port_fails_commissioning_and_the_station_then_refuses_to_test(pg_server, tmp_path, rig_qc):  # noqa: F811
     wrong = pg_server.url(database="audit", user="station").replace(f":{pg_server.port}/", ":9/")
     station = make_station(tmp_path / "station", "line1-C", wrong, STATION_PASSWORD)
     r = rig_qc("station", "check", "--out", str(station), "--shaker", "tcp://127.0.0.1:9", "--daq",
@@ -167,7 +177,7 @@ def test_a_wrong_database_port_fails_commissioning_and_the_station_then_refuses_
     assert not [p for p in station.iterdir() if p.is_dir()]        # nothing started, nothing queued
 
 
-def test_a_queue_older_than_its_limit_warns_on_the_next_run_and_keeps_its_database(tmp_path):
+def test_a_queue_older_than_its_limit_warns_on_the_next_run_and_keeps_its_database(tmp_path, rig_qc):
     bench = tmp_path / "bench"
     down = "postgresql://station@127.0.0.1:9/qc"
     old = replace(record("SN-0001", "queued-1"),
@@ -204,7 +214,7 @@ def unit(tmp_path_factory: pytest.TempPathFactory) -> Path:
                     periods=None, seed=31, date="261128", serial="SN-0031")
 
 
-def test_a_rejudgement_on_a_postgresql_station_records_who_rejudged_and_why(pg_server, unit):  # noqa: F811
+def test_a_rejudgement_on_a_postgresql_station_records_who_rejudged_and_why(pg_server, unit, rig_qc):  # noqa: F811
     url = pg_server.records_database("rejudged")
     station = make_station(unit.parent, "line2-A", url, STATION_PASSWORD)
     records = Records.open(url, password=STATION_PASSWORD, writer=True)
@@ -232,7 +242,7 @@ def test_a_rejudgement_on_a_postgresql_station_records_who_rejudged_and_why(pg_s
     assert r.returncode == 0 and r.stdout.endswith(": intact\n"), r.stdout
 
 
-def test_a_pin_identifies_a_qualified_operator_and_a_login_must_be_listed(tmp_path):
+def test_a_pin_identifies_a_qualified_operator_and_a_login_must_be_listed(tmp_path, rig_qc):
     folder = make_station(tmp_path / "s", "line3", "sqlite:///x.sqlite", None, 'identify = "pin"',
                           "[[operator]]", 'name = "B. Checker"', f'pin = "{pin_hash("4711")}"')
     config = load_station_config(folder)
@@ -249,7 +259,7 @@ def test_a_pin_identifies_a_qualified_operator_and_a_login_must_be_listed(tmp_pa
 
 
 # ----- the report ---------------------------------------------------------------------------------------------
-def test_a_flagged_capture_is_in_the_record_and_the_report_with_everything_an_auditor_asks(virtual_rig, tmp_path):
+def test_a_flagged_capture_is_in_the_record_and_the_report_with_everything_an_auditor_asks(virtual_rig, tmp_path, rig_qc):
     text = (Path(SPEC.source)).read_text().replace("max_cycles = 400", "max_cycles = 3").replace(
         'version = "1.2.0"', 'version = "flagged"')
     spec = tmp_path / "QC-flagged.toml"
