@@ -197,7 +197,9 @@ def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -
               f"<th>operator</th><td>{e(operator)}</td></tr>"
               f"<tr><th>archive id</th><td>{e(record.archive_id)}</td><th>software</th>"
               f"<td>{e(record.software)}</td></tr>"
-              f"<tr><th>record</th><td>{e(record.uid)}</td><th>judged</th><td>{e(record.judged)}</td></tr></table>")
+              f"<tr><th>record</th><td>{e(record.uid)}</td><th>judged</th><td>{e(record.judged)}</td></tr>"
+              f"<tr><th>ambient</th><td>{e(ambient_text(record.ambient))}</td><th>equipment</th>"
+              f"<td>{len(record.equipment)} item{'s' * (len(record.equipment) != 1)} (below)</td></tr></table>")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
 <title>{kind} {e(record.serial)}: {e(verdict)}{' (SIMULATED)' if record.simulated else ''}\
@@ -232,7 +234,8 @@ table.head {{ margin-bottom: 12px; }} table.head th {{ width: 11%; color: #555; 
     font-weight: bold; color: #c62828; }}
   @bottom-left {{ content: {_css_string('archive id ' + record.archive_id)}; font-size: 8pt; color: #555; }}
   @bottom-right {{ content: "page " counter(page) " of " counter(pages); font-size: 8pt; color: #555; }} }}
-@media print {{ body {{ margin: 0; max-width: none; }} }}
+@media print {{ body {{ margin: 0; max-width: none; }}
+  .watermark {{ font-size: 104px; top: 42%; }} }}
 </style></head><body>
 {watermark}
 <h1>{kind} — unit {e(record.serial)}{f' (re-judges record {e(record.rejudges)})' if record.rejudges else ''}</h1>
