@@ -259,7 +259,7 @@ def test_a_pin_identifies_a_qualified_operator_and_a_login_must_be_listed(tmp_pa
 
 
 # ----- the report ---------------------------------------------------------------------------------------------
-def test_a_flagged_capture_is_in_the_record_and_the_report_with_everything_an_auditor_asks(virtual_rig, tmp_path, rig_qc):
+def test_a_flagged_capture_is_in_the_record_and_the_report_with_all_an_auditor_asks(virtual_rig, tmp_path, rig_qc):
     text = (Path(SPEC.source)).read_text().replace("max_cycles = 400", "max_cycles = 3").replace(
         'version = "1.2.0"', 'version = "flagged"')
     spec = tmp_path / "QC-flagged.toml"
