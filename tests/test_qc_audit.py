@@ -232,6 +232,7 @@ def test_a_rejudgement_on_a_postgresql_station_records_who_rejudged_and_why(pg_s
         ("A. Original", "login", None), (getpass.getuser(), "login", first.uid)]
     assert docs[1]["rejudge_reason"] == "spec 1.2.0 replaced the hand-chosen plan"
     assert docs[1]["report_sha256"] and docs[1]["station"] == "line2-A"
+    assert docs[0]["released"]["by"] == getpass.getuser() and docs[1]["released"] is None
     report = next(unit.glob(f"qc-report-*-{docs[1]['uid'][:8]}.html")).read_text()
     assert f"Re-judged by <b>{getpass.getuser()} (identified by the station: OS login)</b>" in report
     r = rig_qc("release", "SN-0031", "--out", str(station))          # the one who re-judged cannot release it
@@ -261,7 +262,7 @@ def test_a_pin_identifies_a_qualified_operator_and_a_login_must_be_listed(tmp_pa
 # ----- the report ---------------------------------------------------------------------------------------------
 def test_a_flagged_capture_is_in_the_record_and_the_report_with_all_an_auditor_asks(virtual_rig, tmp_path, rig_qc):
     text = (Path(SPEC.source)).read_text().replace("max_cycles = 400", "max_cycles = 3").replace(
-        'version = "1.2.0"', 'version = "flagged"')
+        'version = "1.2.0"', 'version = "flagged"\nrelease = true')
     spec = tmp_path / "QC-flagged.toml"
     spec.write_text(text)
     sim = virtual_rig(unit="good", speed=50)
@@ -269,6 +270,7 @@ def test_a_flagged_capture_is_in_the_record_and_the_report_with_all_an_auditor_a
     r = rig_qc("run", "--serial", "SN-0044", "--shaker", sim.modbus_url, "--daq", sim.daq_url, "--out", str(bench),
                "--spec", str(spec), "--rig-id", "rig-7")
     assert r.returncode in (0, 1, 4), r.stderr[-3000:]
+    assert "release required by the spec: a second person runs python -m rig qc release SN-0044" in r.stdout
     (doc,) = json.loads(rig_qc("history", "--out", str(bench), "--json").stdout)
     assert list(doc["flagged"].values()) == [["steady state not reached within 3 cycles"]]
     (session,) = [p for p in bench.iterdir() if p.name.startswith("SN-0044")]
@@ -277,7 +279,8 @@ def test_a_flagged_capture_is_in_the_record_and_the_report_with_all_an_auditor_a
     software = json.loads((session / "qc-record.json").read_text())["software"]
     for item in ("<h2>Flagged captures</h2>", "steady state not reached within 3 cycles", "<th>station</th>",
                  f"{getpass.getuser()} (identified by the station: OS login)", software, "DAQ calibration file",
-                 "not reported by the rig", f"archive id rig-7/{session.name}", 'counter(page) " of " counter(pages)',
+                 "not reported by the rig", f"archive id rig-7/{session.name}",
+                 "required by the spec: a second", 'counter(page) " of " counter(pages)',
                  "class=watermark"):
         assert item in html, item
     assert str(tmp_path) not in html and "/tmp" not in html           # no machine path

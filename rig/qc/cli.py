@@ -155,6 +155,7 @@ def cmd_history(args: argparse.Namespace) -> int:
         if args.verify:
             return _verify(records, args)
         everything = records.find(serial=args.serial, since=since, station=args.station)
+        released = {r.record_uid: r for r in records.releases(args.serial)}
     finally:
         records.close()
     warning = _queue_warning(args, url)
@@ -163,7 +164,8 @@ def cmd_history(args: argparse.Namespace) -> int:
     later = superseded(everything)
     found = everything if args.all else latest_only(everything, later)
     if args.json:
-        print(json.dumps([r.to_json(later.get(r.uid)) for r in found], indent=2))
+        print(json.dumps([{**r.to_json(later.get(r.uid)), "released": _released(released.get(r.uid))}
+                          for r in found], indent=2))
     else:
         console = Console(soft_wrap=True)
         if not console.is_terminal:
@@ -171,7 +173,7 @@ def cmd_history(args: argparse.Namespace) -> int:
         which = "every record" if args.all else "each test's latest judgement; --all: every record"
         table = Table(title=f"QC records in {records.name} ({len(found)}: {which})")
         for col in ("serial", "measured (UTC)", "verdict", "status", "spec", "failed", "operator", "station", "rig",
-                    "record"):
+                    "record") + (("released by",) if released else ()):
             table.add_column(col)
         for r in found:
             failed = ", ".join(c.title or c.name for c in r.characteristics if c.outcome == Outcome.FAIL)
@@ -179,8 +181,10 @@ def cmd_history(args: argparse.Namespace) -> int:
             spec = f"{r.spec_name} {r.spec_version}" + (" (re-judged)" if r.rejudges else "")
             if r.uid in later:
                 spec += f" (superseded by {later[r.uid][:8]})"
+            release = released.get(r.uid)
             table.add_row(r.serial, (r.started or "—")[:19], verdict, r.status + (f": {r.reason}" if r.reason else ""),
-                          spec, failed, r.operator, r.station or "—", r.rig, r.uid[:8])
+                          spec, failed, r.operator, r.station or "—", r.rig, r.uid[:8],
+                          *((f"{release.approver} {release.released[:16]}" if release else "—",) if released else ()))
         console.print(table)
         counted = "simulated included" if args.include_simulated else "simulated left out (--include-simulated)"
         caps = Table(title=f"Capability: the latest judgement of each complete run, {counted}; I-MR limits "
@@ -219,6 +223,11 @@ def cmd_history(args: argparse.Namespace) -> int:
                   file=sys.stderr)
             return EXIT_NOTHING_CHARTED
     return 0
+
+
+def _released(release) -> dict | None:
+    return None if release is None else {"by": release.approver, "identified_by": release.identified_by,
+                                         "at": release.released, "note": release.note, "uid": release.uid}
 
 
 EXIT_UNREACHABLE = 3        # history: the database did not answer (the station's queue is listed)

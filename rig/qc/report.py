@@ -112,6 +112,11 @@ IDENTIFIED = {"login": "identified by the station: OS login", "pin": "identified
               "typed": "typed, not identified by a station"}
 
 
+RELEASE = {"required": "required by the spec: a second person approves this record (python -m rig qc release "
+                        "SERIAL); the database holds the release, not this report",
+           None: "not required by the spec"}
+
+
 def ambient_text(ambient: dict | None) -> str:
     """The ambient conditions as the report states them; the rig's controller and DAQ
     report none (docs/rig-interfaces.md: the gas temperature is the damper's, not the room's)."""
@@ -199,7 +204,9 @@ def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -
               f"<td>{e(record.software)}</td></tr>"
               f"<tr><th>record</th><td>{e(record.uid)}</td><th>judged</th><td>{e(record.judged)}</td></tr>"
               f"<tr><th>ambient</th><td>{e(ambient_text(record.ambient))}</td><th>equipment</th>"
-              f"<td>{len(record.equipment)} item{'s' * (len(record.equipment) != 1)} (below)</td></tr></table>")
+              f"<td>{len(record.equipment)} item{'s' * (len(record.equipment) != 1)} (below)</td></tr>"
+              f"<tr><th>release</th><td colspan=3>{e(RELEASE.get(record.details.get('release'), RELEASE[None]))}"
+              "</td></tr></table>")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
 <title>{kind} {e(record.serial)}: {e(verdict)}{' (SIMULATED)' if record.simulated else ''}\
