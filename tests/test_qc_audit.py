@@ -118,8 +118,14 @@ def test_qc_run_refuses_a_role_that_owns_the_tables_and_station_check_says_why(p
     with admin_connection(pg_server, "owned") as conn:
         conn.execute("GRANT CREATE ON SCHEMA public TO owner")
     owner = pg_server.url(database="owned", user="owner")
+    station = make_station(tmp_path / "station", "line9-Z", owner, "Own3r-pw")
+    check = ("station", "check", "--out", str(station), "--shaker", "tcp://127.0.0.1:9", "--daq", "socket://127.0.0.1:9")
+    r = rig_qc(*check)                             # no schema yet: a station does not make one
+    assert r.returncode == 1
+    (line,) = [s for s in r.stdout.splitlines() if "schema version" in s]
+    assert line.startswith("FAIL  schema version:") and "an administrator makes it" in line
     init_schema(owner, password="Own3r-pw")       # the first run's way before: the station's user made the tables
-    assert admin                                   # (made by the administrator, the tables by the owner)
+    assert admin                                   # (the database made by the administrator, the tables by the owner)
     r = rig_qc("run", "--serial", "SN-0001", "--shaker", "tcp://127.0.0.1:9", "--daq", "socket://127.0.0.1:9",
                "--out", str(tmp_path / "bench"), "--db", owner, env={"PGPASSWORD": "Own3r-pw"})
     assert r.returncode == 2, r.stderr
@@ -128,9 +134,7 @@ def test_qc_run_refuses_a_role_that_owns_the_tables_and_station_check_says_why(p
     assert "INSERT and SELECT only" in line and "Own3r-pw" not in line
     with pytest.raises(TooPrivileged, match="is a superuser"):   # the administrator is no station either
         Records.open(pg_server.url(database="owned"), password=pg_server.password, writer=True)
-    station = make_station(tmp_path / "station", "line9-Z", owner, "Own3r-pw")
-    r = rig_qc("station", "check", "--out", str(station), "--shaker", "tcp://127.0.0.1:9", "--daq",
-               "socket://127.0.0.1:9")
+    r = rig_qc(*check)
     assert r.returncode == 1
     assert any(s.startswith("FAIL  database rights: records database") for s in r.stdout.splitlines())
 

@@ -19,7 +19,16 @@ from typing import Any
 
 from identify.files import atomic_write_bytes
 from rig.errors import BadInput, RigError
-from rig.qc.records import SCHEMA_VERSION, Records, TooPrivileged, Unreachable, default_url, parse_url, safe_url
+from rig.qc.records import (
+    SCHEMA_VERSION,
+    Records,
+    SchemaMismatch,
+    TooPrivileged,
+    Unreachable,
+    default_url,
+    parse_url,
+    safe_url,
+)
 from rig.qc.station import StationConfig
 from rig.qc.trace import now_utc, sha256
 
@@ -116,10 +125,10 @@ def _database(folder: Path, config: StationConfig, db: str | None) -> list[Item]
     except TooPrivileged as exc:
         return [Item("database reachable", True, safe_url(parse_url(url))),
                 Item("schema version", True, str(SCHEMA_VERSION)), Item("database rights", False, str(exc))]
-    except RigError as exc:
-        return [Item("database reachable", True, safe_url(parse_url(url))) if "schema" in str(exc) else
-                Item("database reachable", False, str(exc))] + (
-            [Item("schema version", False, str(exc))] if "schema" in str(exc) else [])
+    except SchemaMismatch as exc:
+        return [Item("database reachable", True, safe_url(parse_url(url))), Item("schema version", False, str(exc))]
+    except RigError as exc:      # a refused login, a URL that is none, a station.toml others may read …
+        return [Item("database reachable", False, str(exc))]
     try:
         name = records.name
         if records.url.get_backend_name() == "sqlite":

@@ -176,6 +176,10 @@ class RecordsError(BadInput):
     """A records database that cannot be opened or written (named without credentials)."""
 
 
+class SchemaMismatch(RecordsError):
+    """The database answered but holds no QC schema, or another version of it."""
+
+
 class TooPrivileged(RecordsError):
     """The station's database role could rewrite records (it owns the tables, is a
     superuser, or holds UPDATE, DELETE or TRUNCATE): a station writes with INSERT and SELECT only."""
@@ -501,7 +505,7 @@ class Records:
             admin_only = self.writer and conn.dialect.name == "postgresql"
             if not inspect(conn).has_table("qc_schema"):
                 if not create or admin_only:
-                    raise RecordsError(f"{self.name} is not a QC records database (no qc_schema table)"
+                    raise SchemaMismatch(f"{self.name} is not a QC records database (no qc_schema table)"
                                        + (f"; an administrator makes it: {INIT_COMMAND}" if admin_only else ""))
                 metadata.create_all(conn)
                 _create_triggers(conn)
@@ -510,13 +514,13 @@ class Records:
             versions = conn.execute(select(schema_table.c.version)).scalars().all()
             if versions and max(versions) < SCHEMA_VERSION and set(versions) <= set(range(1, SCHEMA_VERSION)):
                 if admin_only:
-                    raise RecordsError(f"records database {self.name} has schema version {max(versions)}; this "
+                    raise SchemaMismatch(f"records database {self.name} has schema version {max(versions)}; this "
                                        f"program writes version {SCHEMA_VERSION}: an administrator upgrades it "
                                        f"({INIT_COMMAND})")
                 _upgrade(conn, max(versions))
                 return
         if not versions or max(versions) != SCHEMA_VERSION:   # {1, 2, 3}: upgraded from 1 to 2 and 3
-            raise RecordsError(f"records database {self.name} has schema version "
+            raise SchemaMismatch(f"records database {self.name} has schema version "
                                f"{', '.join(map(str, versions)) or 'none'}; this program reads and writes "
                                f"version {SCHEMA_VERSION}")
 
@@ -790,8 +794,9 @@ def _unreachable(exc: SQLAlchemyError) -> bool:
         return False
     state = getattr(orig, "sqlstate", None)
     if state is None:
-        # A server that answered with FATAL (a refused login, no such database) was reached;
-        # one starting up or shutting down was not, as yet.
+        # psycopg gives no SQLSTATE for an error while connecting; the server's own FATAL
+        # (a refused login, no such database) says it answered, so it was reached, unless
+        # it is starting up or shutting down (not reachable, as yet).
         words = str(orig)
         if "FATAL:" in words and not any(w in words for w in ("starting up", "shutting down", "not yet accepting")):
             return False
