@@ -47,7 +47,7 @@ from rig.qc.queue import Outbox
 from rig.qc.records import CharacteristicRecord, QcRecord, Records, RecordStatus, default_url
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
-from rig.qc.station import identify_operator, load_station_config
+from rig.qc.station import identify_operator, load_station_config, read_pin
 from rig.qc.trace import SessionTrace, measuring_equipment, now_utc, software_version, trace_session
 from rig.session.acquisition import ExperimentRecord
 from rig.session.run import (
@@ -99,6 +99,7 @@ class QcSubscribers:
     predicted: Callable[[Prediction], None] | None = None       # the time left, predicted again after an experiment
     after_session: Callable[[RunResult], object] | None = None  # the session over, its links closed; judging next
     concluded: Callable[[QcRecord, float, Path, str], None] | None = None   # a verdict: record, k, report, database
+    ask_pin: Callable[[], str] | None = None                    # a PIN station's: how its operator enters the PIN
 
 
 @dataclass(frozen=True)
@@ -131,7 +132,8 @@ def terminal(console: Console) -> QcSubscribers:
     """``rig qc run``'s subscribers: the session's lines and the summary in the terminal."""
     # the re-prediction is said by the session's terminal progress (a prediction event, with the time left)
     return QcSubscribers(say=lambda text: console.print(text, highlight=False), attach=terminal_progress(console),
-                         concluded=lambda record, k, report, database: _print_summary(record, k, report, database))
+                         concluded=lambda record, k, report, database: _print_summary(record, k, report, database),
+                         ask_pin=read_pin)
 
 
 def qc_run(opt: QcOptions, console: Console) -> int:
@@ -157,7 +159,13 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
     if station.is_station:   # a production station: commissioned for exactly this configuration
         require_commissioned(opt.out, configuration(opt.out, station, opt.db, opt.shaker, opt.daq, opt.calibration,
                                                     spec.sha256))
-    who = identify_operator(station, opt.operator, opt.pin)
+    pin = opt.pin
+    if station.identify == "pin" and station.is_station and pin is None and opt.operator is None:
+        if to.ask_pin is None:   # never a prompt on a terminal nobody watches while a window waits
+            raise BadInput(f"{station.path}: the station identifies its operator by PIN, which this front end "
+                           "does not ask for; run python -m rig qc run in a terminal")
+        pin = to.ask_pin()
+    who = identify_operator(station, opt.operator, pin)
     operator, rig_id = who.operator, opt.rig_id or socket.gethostname()
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     run_options = RunOptions(plan=spec.source, shaker=opt.shaker, daq=opt.daq,
