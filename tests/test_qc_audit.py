@@ -30,7 +30,7 @@ import pytest
 from rig.cli import main
 from rig.qc.evaluate import evaluate
 from rig.qc.queue import RecordQueue, queue_warning
-from rig.qc.records import QcRecord, Records, TooPrivileged, init_schema, parse_url, safe_url
+from rig.qc.records import ADDED_IN_4, QcRecord, Records, TooPrivileged, init_schema, parse_url, safe_url
 from rig.qc.run import judged_record
 from rig.qc.spec import load_spec
 from rig.qc.station import StationConfigError, identify_operator, load_station_config, pin_hash
@@ -288,3 +288,23 @@ def test_a_flagged_capture_is_in_the_record_and_the_report_with_all_an_auditor_a
                  "class=watermark"):
         assert item in html, item
     assert str(tmp_path) not in html and "/tmp" not in html           # no machine path
+
+
+def test_an_older_postgresql_schema_is_upgraded_by_the_administrator_only(pg_server, rig_qc):  # noqa: F811
+    url = pg_server.records_database("older")
+    with admin_connection(pg_server, "older") as conn:          # back to version 3, as an older program left it
+        conn.execute("DROP TABLE qc_release")
+        for column in ADDED_IN_4["qc_record"]:
+            conn.execute(f"ALTER TABLE qc_record DROP COLUMN {column}")
+        conn.execute("ALTER TABLE qc_schema DISABLE TRIGGER USER")
+        conn.execute("UPDATE qc_schema SET version = 3")
+        conn.execute("ALTER TABLE qc_schema ENABLE TRIGGER USER")
+    r = rig_qc("history", "--db", url, env={"PGPASSWORD": STATION_PASSWORD})
+    assert r.returncode == 2 and "has schema version 3" in r.stderr and "an administrator upgrades it" in r.stderr
+    init_schema(pg_server.url(database="older"), ("station",), password=pg_server.password)
+    r = rig_qc("history", "--db", url, "--verify", env={"PGPASSWORD": STATION_PASSWORD})
+    assert r.returncode == 0 and r.stdout.endswith(": 0 records of 0 stations checked against their hash chains: "
+                                                   "intact\n"), r.stdout
+    records = Records.open(url, password=STATION_PASSWORD, writer=True)   # INSERT on the new table granted too
+    chained(records, "line1-U", 1, "up")
+    records.close()

@@ -506,23 +506,25 @@ class Records:
             if not inspect(conn).has_table("qc_schema"):
                 if not create or admin_only:
                     raise SchemaMismatch(f"{self.name} is not a QC records database (no qc_schema table)"
-                                       + (f"; an administrator makes it: {INIT_COMMAND}" if admin_only else ""))
+                                         + (f"; an administrator makes it: {INIT_COMMAND}" if admin_only else ""))
                 metadata.create_all(conn)
                 _create_triggers(conn)
                 conn.execute(schema_table.insert().values(version=SCHEMA_VERSION))
                 return
             versions = conn.execute(select(schema_table.c.version)).scalars().all()
             if versions and max(versions) < SCHEMA_VERSION and set(versions) <= set(range(1, SCHEMA_VERSION)):
-                if admin_only:
+                # PostgreSQL: the administrator's command (create, not a station's writer) upgrades;
+                # a reader or a station is told who does.
+                if conn.dialect.name == "postgresql" and (admin_only or not create):
                     raise SchemaMismatch(f"records database {self.name} has schema version {max(versions)}; this "
-                                       f"program writes version {SCHEMA_VERSION}: an administrator upgrades it "
-                                       f"({INIT_COMMAND})")
+                                         f"program reads and writes version {SCHEMA_VERSION}: an administrator "
+                                         f"upgrades it ({INIT_COMMAND})")
                 _upgrade(conn, max(versions))
                 return
         if not versions or max(versions) != SCHEMA_VERSION:   # {1, 2, 3}: upgraded from 1 to 2 and 3
             raise SchemaMismatch(f"records database {self.name} has schema version "
-                               f"{', '.join(map(str, versions)) or 'none'}; this program reads and writes "
-                               f"version {SCHEMA_VERSION}")
+                                 f"{', '.join(map(str, versions)) or 'none'}; this program reads and writes "
+                                 f"version {SCHEMA_VERSION}")
 
     def add(self, record: QcRecord) -> bool:
         """The record and its characteristics, in one transaction; False (and nothing
