@@ -8,13 +8,21 @@
              characteristic, individuals control charts
 ``sync``     a station's queued records to the database (and runs a killed process
              left on the rig recorded as ABORTED)
+``release``  a second person's approval of a unit's latest judgement
+``station``  ``check``: commission a station (database, addresses, calibration, spec);
+             ``pin``: the hash of an operator's PIN for station.toml
+``db``       ``init``: the administrator makes (or upgrades) the schema and grants
+             station roles INSERT and SELECT only
 
 Exit status: 0 PASS, 1 FAIL, 4 INCONCLUSIVE (retest with more periods), 2 bad input,
 3 aborted after the safe stop (no verdict), 130 interrupted after the safe stop,
 70 an internal error; a record the database did not take is queued in the station's
 folder, and the exit status is the verdict's all the same.  ``history``: 0; 1 when
 ``--chart DIR`` wrote no chart (every record left out, the line says which and why:
-simulated, aborted); 2 for bad input.  ``sync``: 0 when nothing is left queued, 3 when
+simulated, aborted) or ``--verify`` found a record changed, deleted or inserted; 3 when
+``--out``'s database is down (its queued records listed); 2 for bad input.
+``station check``: 0 every item passed, 1 one failed.  ``release``, ``db init``: 0, or 2
+for bad input and refusals.  ``sync``: 0 when nothing is left queued, 3 when
 records stay queued (the database unreachable), 2 for bad input.  ``history`` and
 ``judge`` open an existing records database only (2 when there is none); ``run`` creates
 its own.  A database URL never carries a password (refused, 2): see docs/qc.md,
