@@ -28,6 +28,7 @@ import psycopg
 import pytest
 
 from rig.cli import main
+from rig.qc.commissioning import Commissioning, Configuration, Item, NotCommissioned, require_commissioned, write
 from rig.qc.evaluate import evaluate
 from rig.qc.queue import RecordQueue, queue_warning
 from rig.qc.records import ADDED_IN_4, QcRecord, Records, TooPrivileged, init_schema, parse_url, safe_url
@@ -308,3 +309,13 @@ def test_an_older_postgresql_schema_is_upgraded_by_the_administrator_only(pg_ser
     records = Records.open(url, password=STATION_PASSWORD, writer=True)   # INSERT on the new table granted too
     chained(records, "line1-U", 1, "up")
     records.close()
+
+
+def test_a_run_with_another_configuration_than_the_one_commissioned_is_refused(tmp_path):
+    checked = Configuration("line1-A", "sqlite:////srv/qc.sqlite", "tcp://10.0.0.7:502", "socket://10.0.0.8:5025",
+                            "a" * 64, "b" * 64)
+    write(tmp_path, Commissioning("2026-11-28T07:00:00+00:00", checked, (Item("controller", True, "answers"),)))
+    require_commissioned(tmp_path, checked)                          # the same: accepted
+    with pytest.raises(NotCommissioned, match="shaker, spec_sha256 changed since its commissioning"):
+        require_commissioned(tmp_path, replace(checked, shaker="tcp://10.0.0.9:502", spec_sha256="c" * 64))
+    assert (tmp_path / "commissioning.txt").read_text().splitlines()[0] == "PASS  controller: answers"
