@@ -457,4 +457,5 @@ def _print_summary(record: QcRecord, k: float, report: Path, database: str) -> N
         print(f"  remedy: {record.remedy}")
     print(f"report {report}; record {record.uid} in {database}")
     if record.details.get("release") == "required" and record.verdict is not None:
-        print(f"release required by the spec: a second person runs python -m rig qc release {record.serial} --out …")
+        print(f"release required by the spec: a second person runs python -m rig qc release {record.serial} "
+              f"--out {report.parent.parent}")     # the report lies in the session folder, in the station's
