@@ -32,6 +32,7 @@ from rig.qc.commissioning import Commissioning, Configuration, Item, NotCommissi
 from rig.qc.evaluate import evaluate
 from rig.qc.queue import RecordQueue, queue_warning
 from rig.qc.records import ADDED_IN_4, QcRecord, Records, TooPrivileged, init_schema, parse_url, safe_url
+from rig.qc.report import render_report
 from rig.qc.run import judged_record
 from rig.qc.spec import load_spec
 from rig.qc.station import StationConfigError, identify_operator, load_station_config, pin_hash
@@ -319,3 +320,12 @@ def test_a_run_with_another_configuration_than_the_one_commissioned_is_refused(t
     with pytest.raises(NotCommissioned, match="shaker, spec_sha256 changed since its commissioning"):
         require_commissioned(tmp_path, replace(checked, shaker="tcp://10.0.0.9:502", spec_sha256="c" * 64))
     assert (tmp_path / "commissioning.txt").read_text().splitlines()[0] == "PASS  controller: answers"
+
+
+def test_a_report_names_no_path_of_the_stations_disk():
+    base = replace(record("SN-0001", "paths"), session="/srv/qc/line1-A/SN-0001-20261128-070000", station="line1-A",
+                   remedy="python -m rig qc run --serial SN-0001 --out /srv/qc/line1-A --periods 4",
+                   notes=("judged in /srv/qc/line1-A/SN-0001-20261128-070000",))
+    page = render_report(base, SPEC, None)
+    assert "/srv" not in page
+    assert "--out STATION_DIR --periods 4" in page and "judged in line1-A/SN-0001-20261128-070000" in page

@@ -14,6 +14,7 @@ from __future__ import annotations
 import base64
 import html
 import io
+from pathlib import Path
 
 import matplotlib
 
@@ -132,7 +133,15 @@ def _css_string(text: str) -> str:
 
 
 def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -> str:
-    e = html.escape
+    def e(text: str) -> str:
+        """Escaped, and without a path of the station's disk: the session folder is named by
+        its archive id, the station's folder (a retest command's --out) as STATION_DIR."""
+        text = str(text)
+        if len(Path(record.session).parts) > 2:     # a real folder in a station's folder, not "/" itself
+            text = text.replace(record.session, record.archive_id)
+            text = text.replace(str(Path(record.session).parent), "STATION_DIR")
+        return html.escape(text)
+
     verdict = record.verdict or f"no verdict ({record.status})"
     colour = verdict_colours(record.verdict).text
     descriptions = {c.name: c.description for c in spec.characteristics}
