@@ -32,8 +32,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from rig.virtual import VirtualRig  # noqa: E402
-from tests.pgserver import PgServer  # noqa: E402
-from tests.stations import StationLoop, make_station, run_stations  # noqa: E402
+from tests.pgserver import STATION_PASSWORD, PgServer  # noqa: E402
+from tests.stations import StationLoop, commission, make_station, run_stations  # noqa: E402
 from tests.test_qc_run import short_spec  # noqa: E402
 
 UNITS = ("good", "gas-leak", "worn-seal", "worn-orifice")
@@ -55,18 +55,22 @@ def main() -> int:
     try:
         server.start()
         spec = str(short_spec(root))
+        url = server.records_database("bench")     # the administrator's schema; the stations' role writes
         loops = []
         for i, unit in enumerate(UNITS):
             sim = VirtualRig(unit=unit, unit_seed=i, seed=i + 1, speed=args.speed)
             sims.append(sim)
-            folder = make_station(root / f"station-{i}", f"line1-{'ABCD'[i]}", server.url(), server.password)
+            folder = make_station(root / f"station-{i}", f"line1-{'ABCD'[i]}", url, STATION_PASSWORD)
+            checked = commission(folder, sim.modbus_url, sim.daq_url, spec)
+            if checked.returncode != 0:
+                raise SystemExit(f"station {i} not commissioned:\n{checked.stdout}{checked.stderr}")
             loops.append(StationLoop(folder, f"S{'ABCD'[i]}", sim.modbus_url, sim.daq_url, args.units, spec,
                                      progress=True))
         t0 = time.monotonic()
         run_stations(loops)
         wall = time.monotonic() - t0
-        env = {**os.environ, "PGPASSWORD": server.password}
-        r = subprocess.run([sys.executable, "-m", "rig", "qc", "history", "--db", server.url(), "--json", "--all"],
+        env = {**os.environ, "PGPASSWORD": STATION_PASSWORD}
+        r = subprocess.run([sys.executable, "-m", "rig", "qc", "history", "--db", url, "--json", "--all"],
                            capture_output=True, text=True, env=env, check=True)
         docs = json.loads(r.stdout)
         per_station = []

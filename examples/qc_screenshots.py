@@ -3,7 +3,10 @@ into out/screenshots/ (qc-report-pass.png, qc-report-fail.png), plus the control
 of a small batch (qc-chart-damping.png), so that a person can look at what the station
 shows.  The units are simulated (a good one and one with a worn orifice), judged with
 the default spec through the public command line: their reports carry the SIMULATED
-watermark, and the chart counts them with --include-simulated.
+watermark, and the chart counts them with --include-simulated.  The FAIL report is also
+printed to PDF as a browser prints it (A4) and each page rasterised
+(qc-report-fail-print-N.png, with poppler's pdftoppm): the running head, the page
+numbers and the watermark on every page, no machine path.
 """
 
 from __future__ import annotations
@@ -49,6 +52,24 @@ def full_page(chromium: str, page: Path, png: Path, width: int, profile: Path) -
     screenshot(chromium, page, png, width, int(rows[-1]) + BOTTOM_MARGIN_PX, profile)
 
 
+def printed(chromium: str, page: Path, out: Path, stem: str, profile: Path) -> list[Path]:
+    """The report printed to PDF (no browser header or footer: those would show the file's
+    path; the report's own @page margins carry its head and page numbers), each page as a PNG."""
+    pdf = out / f"{stem}.pdf"
+    r = subprocess.run([chromium, *CHROMIUM_FLAGS, f"--user-data-dir={profile}", "--no-pdf-header-footer",
+                        f"--print-to-pdf={pdf}", page.as_uri()], capture_output=True, text=True, timeout=180)
+    if r.returncode != 0 or not pdf.is_file():
+        raise SystemExit(f"chromium could not print {page} (exit {r.returncode}): {r.stderr[-2000:]}")
+    pdftoppm = shutil.which("pdftoppm")
+    if not pdftoppm:
+        print(f"{pdf} (pdftoppm not installed: apt-get install poppler-utils for its pages as PNG)", file=sys.stderr)
+        return [pdf]
+    for old in out.glob(f"{stem}-*.png"):
+        old.unlink()
+    subprocess.run([pdftoppm, "-r", "70", "-png", str(pdf), str(out / stem)], check=True, timeout=120)
+    return [pdf, *sorted(out.glob(f"{stem}-*.png"))]
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--out", default="out/screenshots")
@@ -83,8 +104,11 @@ def main() -> int:
         shutil.copy(tmp / "charts" / "damping_force_0.3_N.png", out / "qc-chart-damping.png")
         for verdict, page in reports.items():
             full_page(chromium, page, out / f"qc-report-{verdict}.png", 1100, tmp / "chromium")
+        pages = printed(chromium, reports["fail"], out, "qc-report-fail-print", tmp / "chromium")
     for name in ("qc-report-pass.png", "qc-report-fail.png", "qc-chart-damping.png"):
         print(out / name)
+    for path in pages:
+        print(path)
     return 0
 
 

@@ -36,6 +36,9 @@ def _free_port() -> int:
         return int(s.getsockname()[1])
 
 
+STATION_PASSWORD = "St4tion-pw-71c2"   # every station role's in these tests
+
+
 class PgServer:
     """Start with :meth:`start`, stop with :meth:`stop`; ``url(password)`` names a database."""
 
@@ -85,9 +88,26 @@ class PgServer:
             conn.execute(f'CREATE DATABASE "{name}"')
         return self.url(database=name)
 
-    def url(self, password: str | None = None, database: str = "postgres") -> str:
-        auth = f"{self.user}:{password}" if password else self.user
+    def url(self, password: str | None = None, database: str = "postgres", user: str | None = None) -> str:
+        user = user or self.user
+        auth = f"{user}:{password}" if password else user
         return f"postgresql://{auth}@127.0.0.1:{self.port}/{database}"
+
+    def records_database(self, name: str, station_role: str = "station") -> str:
+        """A new database with the QC schema made by the administrator (this server's
+        superuser, who owns it) and ``station_role`` (made once, password
+        :data:`STATION_PASSWORD`) granted INSERT and SELECT: a station's URL of it."""
+        import psycopg
+
+        from rig.qc.records import init_schema
+
+        admin = self.create_database(name)
+        with psycopg.connect(host="127.0.0.1", port=self.port, user=self.user, password=self.password,
+                             dbname="postgres", autocommit=True) as conn:
+            if not conn.execute("SELECT 1 FROM pg_roles WHERE rolname = %s", (station_role,)).fetchone():
+                conn.execute(f"CREATE ROLE \"{station_role}\" LOGIN PASSWORD '{STATION_PASSWORD}'")
+        init_schema(admin, (station_role,), password=self.password)
+        return self.url(database=name, user=station_role)
 
 
 @pytest.fixture(scope="module")

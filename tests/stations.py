@@ -22,16 +22,23 @@ STATE_NAMES = ("OFF", "IDLE", "MOVING", "AT_STATIC", "RUNNING", "ALARM")
 ALARM_NAMES = ("none", "stroke limit", "force limit", "low hydraulic pressure", "watchdog", "emergency stop")
 
 
-def make_station(folder: Path, name: str, db: str, password: str | None = None) -> Path:
+def make_station(folder: Path, name: str, db: str, password: str | None = None, *extra: str) -> Path:
     """A station folder whose station.toml names the station and its database (and the
-    password, with the file the owner's alone)."""
+    password, with the file the owner's alone); ``extra``: more lines of it."""
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "station.toml"
-    lines = [f'station = "{name}"', f'db = "{db}"'] + ([f'password = "{password}"'] if password else [])
+    lines = [f'station = "{name}"', f'db = "{db}"'] + ([f'password = "{password}"'] if password else []) + list(extra)
     path.touch(mode=0o600)
     path.chmod(0o600)
     path.write_text("\n".join(lines) + "\n")
     return folder
+
+
+def commission(folder: Path, shaker: str, daq: str, spec: str, *args: str) -> subprocess.CompletedProcess:
+    """``rig qc station check`` of a station folder with these addresses and spec (what its runs use)."""
+    return subprocess.run([sys.executable, "-m", "rig", "qc", "station", "check", "--out", str(folder), "--shaker",
+                           shaker, "--daq", daq, "--spec", spec, *args], capture_output=True, text=True,
+                          timeout=HANG_S)
 
 
 class Lines:

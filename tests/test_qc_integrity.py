@@ -28,7 +28,7 @@ from rig.qc.evaluate import _for_the_verdict
 from rig.qc.history import MIN_CAPABILITY_N, capability, imr_limits, index
 from rig.qc.judge import Outcome
 from rig.qc.present import limits_text, shown, sigma_note
-from rig.qc.records import ADDED_IN_2, ADDED_IN_3, CharacteristicRecord, QcRecord, Records, RecordStatus
+from rig.qc.records import ADDED_IN_2, ADDED_IN_3, ADDED_IN_4, CharacteristicRecord, QcRecord, Records, RecordStatus
 from rig.qc.run import Prediction, QcOutcome
 from rig.qc.spec import load_spec
 from simulator.generate import generate
@@ -343,10 +343,11 @@ def test_a_version_1_database_is_upgraded_without_changing_a_record(tmp_path):
     db.close()
     with sqlite3.connect(path) as conn:         # back to version 1: its columns, its one version row
         conn.execute("DROP INDEX ix_qc_record_station")
-        for added in (ADDED_IN_2, ADDED_IN_3):
+        for added in (ADDED_IN_2, ADDED_IN_3, ADDED_IN_4):
             for table, columns in added.items():
                 for column in columns:
                     conn.execute(f"ALTER TABLE {table} DROP COLUMN {column}")
+        conn.execute("DROP TABLE qc_release")
         conn.execute("DROP TRIGGER qc_schema_no_update")
         conn.execute("UPDATE qc_schema SET version = 1")
     (r,) = Records.open(str(path)).find()
@@ -354,4 +355,4 @@ def test_a_version_1_database_is_upgraded_without_changing_a_record(tmp_path):
         ("SN-0001", Outcome.PASS, False, None, None, None)
     assert r.characteristics[0].value == 450.0 and r.characteristics[0].title is None
     with sqlite3.connect(path) as conn:
-        assert sorted(v for (v,) in conn.execute("SELECT version FROM qc_schema")) == [1, 2, 3]
+        assert sorted(v for (v,) in conn.execute("SELECT version FROM qc_schema")) == [1, 2, 3, 4]

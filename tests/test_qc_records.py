@@ -19,7 +19,7 @@ from rig.qc.records import CharacteristicRecord, QcRecord, Records, RecordStatus
 from rig.qc.spec import load_spec
 from simulator.generate import generate
 from simulator.truth import load_truth
-from tests.pgserver import pg_server  # noqa: F401 — the fixture
+from tests.pgserver import STATION_PASSWORD, pg_server  # noqa: F401 — the fixture
 
 SPEC = load_spec("default")
 
@@ -43,8 +43,8 @@ def qc(capsys: pytest.CaptureFixture[str], *args: str) -> tuple[int, str]:
 
 def test_the_same_records_read_back_identically_from_sqlite_and_postgresql(units, pg_server, tmp_path, capsys,  # noqa: F811
                                                                           monkeypatch):
-    monkeypatch.setenv("PGPASSWORD", pg_server.password)
-    url_pg = pg_server.url()
+    monkeypatch.setenv("PGPASSWORD", STATION_PASSWORD)
+    url_pg = pg_server.records_database("judged")     # made by the administrator; a station's role writes
     url_sqlite = f"sqlite:///{tmp_path / 'records.sqlite'}"
     for url in (url_sqlite, url_pg):
         assert [qc(capsys, "judge", str(u), "--db", url, "--create-db", "--operator", "qe")[0] for u in units] == [0, 1]
@@ -53,8 +53,10 @@ def test_the_same_records_read_back_identically_from_sqlite_and_postgresql(units
         code, out = qc(capsys, "history", "--db", url, "--json")
         assert code == 0
         docs.append(json.loads(out))
-    def same(doc: dict) -> dict:   # each judgement is a record of its own: its uid and time are its own
-        return {k: v for k, v in doc.items() if k not in ("uid", "judged_at")}
+    def same(doc: dict) -> dict:   # each judgement is a record of its own: its uid and time are its own,
+        # and so are the hashes that cover them (the report shows the uid)
+        return {k: v for k, v in doc.items()
+                if k not in ("uid", "judged_at", "record_sha256", "previous_sha256", "report_sha256")}
     assert [same(d) for d in docs[0]] == [same(d) for d in docs[1]]
     assert [(d["serial"], d["verdict"]) for d in docs[0]] == [("SN-0008", "PASS"), ("SN-0009", "FAIL")]
     assert docs[0][1]["characteristics"]["gas_precharge_bar"]["outcome"] == "FAIL"

@@ -20,7 +20,8 @@ from rig.qc.spec import SPECS_DIR
 HISTORY_KEYS = {"uid", "serial", "verdict", "status", "reason", "simulated", "judged_at", "rejudges", "superseded_by",
                 "station",
                 "spec", "k", "characteristics", "started", "finished", "operator", "rig", "measured_on", "details",
-                "session", "data_sha256"}
+                "session", "data_sha256", "archive_id", "identified_by", "rejudge_reason", "equipment", "ambient",
+                "flagged", "report_sha256", "previous_sha256", "record_sha256", "released"}
 
 
 def qc_cmd(sim, out: Path, serial: str, *args: str) -> list[str]:

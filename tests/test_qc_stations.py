@@ -28,8 +28,16 @@ import pytest
 from rig.qc.queue import Outbox, RecordQueue
 from rig.qc.records import QcRecord, Records
 from rig.qc.spec import load_spec
-from tests.pgserver import pg_server  # noqa: F401 — the fixture
-from tests.stations import Lines, StationLoop, make_station, read_controller, run_stations, wait_controller
+from tests.pgserver import STATION_PASSWORD, pg_server  # noqa: F401 — the fixture
+from tests.stations import (
+    Lines,
+    StationLoop,
+    commission,
+    make_station,
+    read_controller,
+    run_stations,
+    wait_controller,
+)
 from tests.test_qc_run import qc_cmd, short_spec
 
 # How late after the stated watchdog time the controller may be seen at rest: the
@@ -53,7 +61,7 @@ def test_a_record_reads_back_from_the_station_journal_as_it_was_written(tmp_path
     from tests.test_qc_records import record
 
     written = record("SN-0001", "journal-1")
-    path = RecordQueue(tmp_path).put(written)
+    path = RecordQueue(tmp_path).put(written, "sqlite:////somewhere/qc-records.sqlite")
     assert path.parent.name == "pending" and not list(path.parent.glob(".*"))   # no temporary left
     assert QcRecord.from_journal(json.loads(path.read_text())) == written
 
@@ -108,10 +116,14 @@ def test_a_station_file_with_a_password_that_others_can_read_is_refused(tmp_path
 
 
 def test_the_password_is_in_no_argv_output_file_or_record(pg_server, virtual_rig, tmp_path):  # noqa: F811
-    secret = pg_server.password
-    station = make_station(tmp_path / "station", "line1-A", pg_server.url(), secret)
+    secret = STATION_PASSWORD
+    url = pg_server.records_database("argv")      # the station's role, not the administrator's
+    station = make_station(tmp_path / "station", "line1-A", url, secret)
     sim = virtual_rig(unit="good")
-    proc = subprocess.Popen(qc_cmd(sim, station, "SN-0077", "--spec", str(short_spec(tmp_path))),
+    spec = str(short_spec(tmp_path))
+    checked = commission(station, sim.modbus_url, sim.daq_url, spec)
+    assert checked.returncode == 0, checked.stdout + checked.stderr
+    proc = subprocess.Popen(qc_cmd(sim, station, "SN-0077", "--spec", spec),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lines = Lines(proc)
     lines.wait_for("Now capturing")            # the run is going: the database is open, the rig moving
@@ -121,28 +133,28 @@ def test_the_password_is_in_no_argv_output_file_or_record(pg_server, virtual_rig
     out = lines.stdout()
     err = lines.rest()
     assert proc.returncode in (0, 1, 4), err[-3000:]
-    seen = [out, err]
+    seen = [out, err, checked.stdout, checked.stderr]
     # the other places libpq takes it from: PGPASSWORD, a pgpass file
     plain = tmp_path / "plain"
     plain.mkdir()
-    r = rig_qc("history", "--db", pg_server.url(), "--json", env={"PGPASSWORD": secret})
+    r = rig_qc("history", "--db", url, "--json", env={"PGPASSWORD": secret})
     assert r.returncode == 0 and [d["station"] for d in json.loads(r.stdout)] == ["line1-A"]
     seen += [r.stdout, r.stderr]
     passfile = tmp_path / "pgpass"
-    passfile.write_text(f"127.0.0.1:{pg_server.port}:*:{pg_server.user}:{secret}\n")
+    passfile.write_text(f"127.0.0.1:{pg_server.port}:*:station:{secret}\n")
     passfile.chmod(0o600)
-    r = rig_qc("history", "--db", pg_server.url(), env={"PGPASSFILE": str(passfile)})
+    r = rig_qc("history", "--db", url, env={"PGPASSFILE": str(passfile)})
     assert r.returncode == 0 and "SN-0077" in r.stdout
     seen += [r.stdout, r.stderr]
     # errors name the database without it: a wrong password, a server that is not there
-    wrong = make_station(tmp_path / "wrong", "B", pg_server.url(), "wrong-" + secret)
+    wrong = make_station(tmp_path / "wrong", "B", url, "wrong-" + secret)
     r = rig_qc("history", "--out", str(wrong))
-    assert r.returncode == 2 and r.stderr.startswith("error: records database postgresql+psycopg://qc@127.0.0.1:")
+    assert r.returncode == 2 and r.stderr.startswith("error: records database postgresql+psycopg://station@127.0.0.1:")
     assert "password authentication failed" in r.stderr and "wrong-" not in r.stderr
     seen += [r.stdout, r.stderr]
     gone = make_station(tmp_path / "gone", "C", "postgresql://qc@127.0.0.1:9/qc", secret)
-    r = rig_qc("history", "--out", str(gone))
-    assert r.returncode == 2 and "Connection refused" in r.stderr
+    r = rig_qc("history", "--out", str(gone))     # said, with the station's queue (empty here)
+    assert r.returncode == 3 and "Connection refused" in r.stderr and "0 records of station" in r.stderr
     seen += [r.stdout, r.stderr]
 
     for text in seen:
@@ -150,7 +162,7 @@ def test_the_password_is_in_no_argv_output_file_or_record(pg_server, virtual_rig
     for p in station.rglob("*"):
         if p.is_file() and p.name != "station.toml":
             assert secret.encode() not in p.read_bytes(), p
-    records = Records.open(pg_server.url(), password=secret)
+    records = Records.open(url, password=secret)
     dumped = json.dumps([r.to_journal() for r in records.find()], default=str)
     records.close()
     assert secret not in dumped and "SN-0077" in dumped
@@ -158,9 +170,12 @@ def test_the_password_is_in_no_argv_output_file_or_record(pg_server, virtual_rig
 
 def test_a_record_made_while_the_database_is_down_reaches_it_once_when_it_is_back(pg_server, virtual_rig,  # noqa: F811
                                                                                    tmp_path):
-    station = make_station(tmp_path / "station", "line1-B", pg_server.url(), pg_server.password)
+    url = pg_server.records_database("queued")
+    station = make_station(tmp_path / "station", "line1-B", url, STATION_PASSWORD)
     sim = virtual_rig(unit="gas-leak")
-    proc = subprocess.Popen(qc_cmd(sim, station, "SN-0101", "--spec", str(short_spec(tmp_path))),
+    spec = str(short_spec(tmp_path))
+    assert commission(station, sim.modbus_url, sim.daq_url, spec).returncode == 0
+    proc = subprocess.Popen(qc_cmd(sim, station, "SN-0101", "--spec", spec),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     lines = Lines(proc)
     try:
@@ -182,7 +197,7 @@ def test_a_record_made_while_the_database_is_down_reaches_it_once_when_it_is_bac
     assert r.returncode == 0 and "warning: 1 record of station" in r.stderr and "qc sync" in r.stderr
     assert "SN-0101" not in r.stdout
     r = rig_qc("sync", "--out", str(station))
-    named = pg_server.url().replace("postgresql", "postgresql+psycopg", 1)
+    named = url.replace("postgresql", "postgresql+psycopg", 1)
     assert (r.returncode, r.stderr.strip()) == (0, f"1 queued record sent to {named}"), r.stderr
     # a second send of the same record (the queue not told, as after a crash) adds nothing
     (sent,) = (station / "qc-queue" / "sent").iterdir()
@@ -262,11 +277,12 @@ def test_four_stations_write_to_one_postgresql_at_once(pg_server, virtual_rig, t
     """The small one: four stations, three units each, at once (≥ 100 units:
     benchmarks/bench_stations.py)."""
     spec = str(short_spec(tmp_path))
-    url = pg_server.create_database("four_stations")   # none of the module's other tests' records in it
+    url = pg_server.records_database("four_stations")   # none of the module's other tests' records in it
     loops = []
     for i, unit in enumerate(("good", "gas-leak", "worn-seal", "good")):
         sim = virtual_rig(unit=unit, unit_seed=i, speed=50)
-        folder = make_station(tmp_path / f"station-{i}", f"line1-{'ABCD'[i]}", url, pg_server.password)
+        folder = make_station(tmp_path / f"station-{i}", f"line1-{'ABCD'[i]}", url, STATION_PASSWORD)
+        assert commission(folder, sim.modbus_url, sim.daq_url, spec).returncode == 0
         loops.append(StationLoop(folder, f"S{'ABCD'[i]}", sim.modbus_url, sim.daq_url, 3, spec))
     run_stations(loops)
     assert not [e for loop in loops for e in loop.errors]

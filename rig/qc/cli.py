@@ -8,13 +8,21 @@
              characteristic, individuals control charts
 ``sync``     a station's queued records to the database (and runs a killed process
              left on the rig recorded as ABORTED)
+``release``  a second person's approval of a unit's latest judgement
+``station``  ``check``: commission a station (database, addresses, calibration, spec);
+             ``pin``: the hash of an operator's PIN for station.toml
+``db``       ``init``: the administrator makes (or upgrades) the schema and grants
+             station roles INSERT and SELECT only
 
 Exit status: 0 PASS, 1 FAIL, 4 INCONCLUSIVE (retest with more periods), 2 bad input,
 3 aborted after the safe stop (no verdict), 130 interrupted after the safe stop,
 70 an internal error; a record the database did not take is queued in the station's
 folder, and the exit status is the verdict's all the same.  ``history``: 0; 1 when
 ``--chart DIR`` wrote no chart (every record left out, the line says which and why:
-simulated, aborted); 2 for bad input.  ``sync``: 0 when nothing is left queued, 3 when
+simulated, aborted) or ``--verify`` found a record changed, deleted or inserted; 3 when
+``--out``'s database is down (its queued records listed); 2 for bad input.
+``station check``: 0 every item passed, 1 one failed.  ``release``, ``db init``: 0, or 2
+for bad input and refusals.  ``sync``: 0 when nothing is left queued, 3 when
 records stay queued (the database unreachable), 2 for bad input.  ``history`` and
 ``judge`` open an existing records database only (2 when there is none); ``run`` creates
 its own.  A database URL never carries a password (refused, 2): see docs/qc.md,
@@ -58,7 +66,8 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_judge(args: argparse.Namespace) -> int:
     from rig.qc.run import qc_judge
 
-    return qc_judge(Path(args.session), args.spec, args.db, args.operator, args.create_db)
+    return qc_judge(Path(args.session), args.spec, args.db, args.operator, args.create_db, args.reason,
+                    Path(args.out) if args.out else None)
 
 
 def _since(text: str | None) -> str | None:
@@ -88,12 +97,26 @@ def cmd_sync(args: argparse.Namespace) -> int:
     outbox = Outbox.open(Path(args.out), args.db, lambda text: console.print(text, highlight=False))
     # (it recorded the runs a killed process left and sent the queue)
     try:
+        elsewhere = sorted({e.queued_for for e in outbox.queue.entries()
+                            if e.queued_for is not None and e.queued_for != outbox.records.name})
+        if elsewhere and (args.send_to_current or _ask(
+                f"records are queued for {', '.join(elsewhere)}; send them to {outbox.records.name} instead? [y/N] ")):
+            outbox.send(anywhere=True)
         left = len(outbox.queue.pending())
     finally:
         outbox.close()
     print(f"{left} record{'s' * (left != 1)} queued in {outbox.queue.pending_dir}" if left else
           f"nothing queued: every record of {args.out} is in {outbox.records.name}")
     return 3 if left else 0
+
+
+def _ask(question: str) -> bool:
+    """A yes/no question on the terminal; no terminal: no."""
+    if not sys.stdin.isatty():
+        print(f"{question.rstrip(' [y/N]')}: not asked (no terminal); --send-to-current sends them",
+              file=sys.stderr)
+        return False
+    return input(question).strip().lower() in ("y", "yes")
 
 
 def _queue_warning(args: argparse.Namespace, url: str) -> str | None:
@@ -121,7 +144,7 @@ def cmd_history(args: argparse.Namespace) -> int:
     from rig.qc.history import MIN_CAPABILITY_N, capability, control_charts, index, left_out, stat
     from rig.qc.judge import Outcome
     from rig.qc.present import limits_text
-    from rig.qc.records import Records, default_url, superseded
+    from rig.qc.records import Records, Unreachable, default_url, superseded
     from rig.qc.station import load_station_config
 
     since = _since(args.since)
@@ -130,9 +153,17 @@ def cmd_history(args: argparse.Namespace) -> int:
     if url is None:
         raise BadInput("qc history: give --db URL or --out STATION_DIR")
     # never created here: a mistyped path is refused
-    records = Records.open(url, password=config.password if config else None)
     try:
+        records = Records.open(url, password=config.password if config else None)
+    except Unreachable as exc:
+        if not args.out:
+            raise
+        return _history_unreachable(Path(args.out), exc)
+    try:
+        if args.verify:
+            return _verify(records, args)
         everything = records.find(serial=args.serial, since=since, station=args.station)
+        released = {r.record_uid: r for r in records.releases(args.serial)}
     finally:
         records.close()
     warning = _queue_warning(args, url)
@@ -141,7 +172,8 @@ def cmd_history(args: argparse.Namespace) -> int:
     later = superseded(everything)
     found = everything if args.all else latest_only(everything, later)
     if args.json:
-        print(json.dumps([r.to_json(later.get(r.uid)) for r in found], indent=2))
+        print(json.dumps([{**r.to_json(later.get(r.uid)), "released": _released(released.get(r.uid))}
+                          for r in found], indent=2))
     else:
         console = Console(soft_wrap=True)
         if not console.is_terminal:
@@ -149,7 +181,7 @@ def cmd_history(args: argparse.Namespace) -> int:
         which = "every record" if args.all else "each test's latest judgement; --all: every record"
         table = Table(title=f"QC records in {records.name} ({len(found)}: {which})")
         for col in ("serial", "measured (UTC)", "verdict", "status", "spec", "failed", "operator", "station", "rig",
-                    "record"):
+                    "record") + (("released by",) if released else ()):
             table.add_column(col)
         for r in found:
             failed = ", ".join(c.title or c.name for c in r.characteristics if c.outcome == Outcome.FAIL)
@@ -157,8 +189,10 @@ def cmd_history(args: argparse.Namespace) -> int:
             spec = f"{r.spec_name} {r.spec_version}" + (" (re-judged)" if r.rejudges else "")
             if r.uid in later:
                 spec += f" (superseded by {later[r.uid][:8]})"
+            release = released.get(r.uid)
             table.add_row(r.serial, (r.started or "—")[:19], verdict, r.status + (f": {r.reason}" if r.reason else ""),
-                          spec, failed, r.operator, r.station or "—", r.rig, r.uid[:8])
+                          spec, failed, r.operator, r.station or "—", r.rig, r.uid[:8],
+                          *((f"{release.approver} {release.released[:16]}" if release else "—",) if released else ()))
         console.print(table)
         counted = "simulated included" if args.include_simulated else "simulated left out (--include-simulated)"
         caps = Table(title=f"Capability: the latest judgement of each complete run, {counted}; I-MR limits "
@@ -199,6 +233,120 @@ def cmd_history(args: argparse.Namespace) -> int:
     return 0
 
 
+def _released(release) -> dict | None:
+    return None if release is None else {"by": release.approver, "identified_by": release.identified_by,
+                                         "at": release.released, "note": release.note, "uid": release.uid}
+
+
+EXIT_UNREACHABLE = 3        # history: the database did not answer (the station's queue is listed)
+EXIT_TAMPERED = 1          # history --verify: a record changed, deleted or inserted
+
+
+def _history_unreachable(out: Path, exc: Exception) -> int:
+    """The station's database is down: said, and what the station holds queued listed."""
+    from rig.qc.queue import RecordQueue
+
+    queued = RecordQueue(out).entries()
+    print(f"{exc}: the database cannot be read now; {len(queued)} record{'s' * (len(queued) != 1)} of station "
+          f"{out} queued{':' if queued else ''}", file=sys.stderr)
+    for q in queued:
+        print(f"  {q.judged}  {q.serial}  {q.verdict or q.status}  record {q.uid}  for {q.queued_for or '—'}")
+    return EXIT_UNREACHABLE
+
+
+def _verify(records, args: argparse.Namespace) -> int:
+    """``history --verify``: every station's hash chain, and the station's own copies (``--out``)."""
+    from rig.qc.integrity import sentence, station_copies, verify
+
+    found = records.find(station=args.station)
+    copies = station_copies(Path(args.out), records.name) if args.out else []
+    result = verify(found, copies)
+    for problem in result.problems:
+        print(sentence(problem))
+    stations = len({r.station for r in found})
+    print(f"{records.name}: {result.checked} record{'s' * (result.checked != 1)} of {stations} "
+          f"station{'s' * (stations != 1)} checked against their hash chains"
+          + (f", {len(copies)} against the station's own copies" if args.out else "")
+          + (f"; {result.unchained} written before the chain (schema version < 4) cannot be checked"
+             if result.unchained else "")
+          + (": intact" if result.ok else f": {len(result.problems)} problem{'s' * (len(result.problems) != 1)}"))
+    return 0 if result.ok else EXIT_TAMPERED
+
+
+def cmd_db_init(args: argparse.Namespace) -> int:
+    from rig.qc.records import init_schema
+
+    if bool(args.db) == bool(args.admin_service):
+        raise BadInput("qc db init: give --admin-service NAME or --db ADMIN_URL (one of them)")
+    url = args.db or f"postgresql:///?service={args.admin_service}"
+    name, version, rights = init_schema(url, tuple(args.grant or ()))
+    print(f"{name}: QC records schema version {version}"
+          + (f", owned by {rights.role}" if rights else ""))
+    for role in args.grant or ():
+        print(f"  {role}: SELECT on every table, INSERT on qc_record, qc_characteristic and qc_release; nothing else")
+    if rights is not None and not args.grant:
+        print("  no station role granted (--grant ROLE): stations cannot write yet")
+    return 0
+
+
+def cmd_station_check(args: argparse.Namespace) -> int:
+    from rig.qc.commissioning import check_station, write
+    from rig.qc.station import load_station_config
+
+    out = Path(args.out)
+    config = load_station_config(out)
+    result = check_station(out, config, args.db, args.shaker or config.shaker, args.daq or config.daq,
+                           args.calibration or config.calibration, args.spec)
+    for line in result.lines():
+        print(line)
+    path = write(out, result)
+    print(f"written to {path}", file=sys.stderr)
+    return 0 if result.passed else 1
+
+
+def cmd_station_pin(args: argparse.Namespace) -> int:
+    from rig.qc.station import pin_hash, read_pin
+
+    pin = read_pin("new PIN: ")
+    if len(pin) < 4 or (sys.stdin.isatty() and read_pin("the PIN again: ") != pin):
+        raise BadInput("PIN: at least 4 characters, typed the same twice")
+    print(f'pin = "{pin_hash(pin)}"')
+    return 0
+
+
+def cmd_release(args: argparse.Namespace) -> int:
+    """``qc release SERIAL``: a second person approves the unit's latest judgement."""
+    import uuid
+
+    from rig.qc.records import Records, RecordStatus, Release, default_url, superseded
+    from rig.qc.station import identify_operator, load_station_config
+    from rig.qc.trace import now_utc
+
+    out = Path(args.out)
+    config = load_station_config(out)
+    who = identify_operator(config, args.approver)
+    records = Records.open(args.db or config.db or default_url(out), password=config.password, writer=True)
+    try:
+        found = records.find(serial=args.serial)
+        latest = latest_only(found, superseded(found))
+        if not latest:
+            raise BadInput(f"qc release {args.serial}: no record of this unit in {records.name}")
+        record = latest[-1]
+        if record.status != RecordStatus.COMPLETE:
+            raise BadInput(f"qc release {args.serial}: its latest record {record.uid} has no verdict ({record.status})")
+        if record.operator == who.operator:
+            raise BadInput(f"qc release {args.serial}: {who.operator} judged it (record {record.uid}); a release is "
+                           "a second person's")
+        release = Release(str(uuid.uuid4()), record.uid, record.serial, who.operator, who.by, now_utc(),
+                          config.name, args.note)
+        records.add_release(release)
+    finally:
+        records.close()
+    print(f"{args.serial}: record {record.uid} ({record.verdict}, judged by {record.operator}) released by "
+          f"{who.operator} ({who.by}) at {release.released}")
+    return 0
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """The ``qc`` command and its subcommands, under ``python -m rig``."""
     qc = sub.add_parser("qc", help="quality control: pass/fail runs on production dampers",
@@ -208,13 +356,14 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     run = qsub.add_parser("run", help="test one unit: plan, identification, verdict, record, report")
     run.add_argument("--spec", default="default", help="default or QC.toml")
     run.add_argument("--serial", required=True, help="the unit's serial number (format set by the spec)")
-    run.add_argument("--shaker", required=True, help="tcp://HOST:PORT or rtu:///dev/DEVICE")
-    run.add_argument("--daq", required=True, help="device path, socket://HOST:PORT or any pyserial URL")
+    run.add_argument("--shaker", help="tcp://HOST:PORT or rtu:///dev/DEVICE (default: station.toml's shaker)")
+    run.add_argument("--daq", help="device path, socket://HOST:PORT or any pyserial URL (default: station.toml's)")
     run.add_argument("--out", required=True, help="the station's folder: a session folder per unit goes in it")
     run.add_argument("--db", help="records database URL without a password: sqlite:///FILE or "
                                   "postgresql://USER@HOST:PORT/DB (default: OUT/station.toml's, else "
                                   "OUT/qc-records.sqlite)")
-    run.add_argument("--operator", help="who runs the test (default: the login name)")
+    run.add_argument("--operator", help="who runs the test, on a bench folder without station.toml (default: the "
+                                        "login name); a station identifies its operator itself")
     run.add_argument("--rig-id", help="this rig's name in the records (default: the host name)")
     run.add_argument("--periods", type=_positive_int, help="periods per experiment (the retest of an INCONCLUSIVE)")
     run.add_argument("--reset-alarm", action="store_true", help="clear an alarm latched before the run")
@@ -226,8 +375,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     judge = qsub.add_parser("judge", help="judge stored data again: a new record referring to the first")
     judge.add_argument("session", help="session folder (or any dataset folder)")
     judge.add_argument("--spec", default="default", help="default or QC.toml")
-    judge.add_argument("--db", help="records database URL (default: qc-records.sqlite beside the session folder)")
-    judge.add_argument("--operator", help="for data without an earlier record (default: the login name)")
+    judge.add_argument("--db", help="records database URL (default: the station's station.toml, else "
+                                    "qc-records.sqlite beside the session folder)")
+    judge.add_argument("--operator", help="who re-judges, on a bench folder without station.toml (default: the "
+                                          "login name); a station identifies its operator itself")
+    judge.add_argument("--reason", help="why the data are judged again (on record)")
+    judge.add_argument("--out", metavar="STATION_DIR",
+                       help="the station's folder: its station.toml (default: the session folder's own folder)")
     judge.add_argument("--create-db", action="store_true",
                        help="create the records database where none exists (otherwise a missing one is refused)")
     judge.set_defaults(func=cmd_judge)
@@ -247,10 +401,47 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     history.add_argument("--baseline", type=_positive_int, metavar="N",
                          help="control limits from the first N units (default: every unit)")
     history.add_argument("--chart", metavar="DIR", help="write an individuals control chart (PNG) per characteristic")
+    history.add_argument("--verify", action="store_true",
+                         help="check every station's hash chain (and --out's own copies): changed, deleted or "
+                              "inserted records; exit 1 if any")
     history.set_defaults(func=cmd_history)
+
+    release = qsub.add_parser("release", help="a second person approves a unit's latest judgement")
+    release.add_argument("serial")
+    release.add_argument("--out", required=True, metavar="STATION_DIR", help="the station's folder")
+    release.add_argument("--db", help="records database URL (default: the station's)")
+    release.add_argument("--note", help="a note on record with the release")
+    release.add_argument("--approver", help="on a bench folder without station.toml only (default: the login)")
+    release.set_defaults(func=cmd_release)
+
+    db = qsub.add_parser("db", help="the records database (an administrator's commands)")
+    dsub = db.add_subparsers(dest="db_command", required=True)
+    init = dsub.add_parser("init", help="make or upgrade the schema, owned by the administrator's role; grant "
+                                        "station roles INSERT and SELECT only")
+    init.add_argument("--admin-service", metavar="NAME", help="the administrator's pg_service.conf service")
+    init.add_argument("--db", metavar="ADMIN_URL", help="the database as the administrator (no password in it)")
+    init.add_argument("--grant", action="append", metavar="ROLE", help="a station's role (repeatable)")
+    init.set_defaults(func=cmd_db_init)
+
+    station = qsub.add_parser("station", help="a station's commissioning and its operators' PINs")
+    ssub = station.add_subparsers(dest="station_command", required=True)
+    check = ssub.add_parser("check", help="check database, addresses, calibration and spec; production runs wait "
+                                          "for a pass")
+    check.add_argument("--out", required=True, metavar="STATION_DIR", help="the station's folder")
+    check.add_argument("--db", help="records database URL (default: the station's)")
+    check.add_argument("--shaker", help="default: station.toml's shaker")
+    check.add_argument("--daq", help="default: station.toml's daq")
+    check.add_argument("--calibration", help="default: station.toml's calibration, else the datasheet's")
+    check.add_argument("--spec", default="default", help="the spec the station tests with")
+    check.set_defaults(func=cmd_station_check)
+    pin = ssub.add_parser("pin", help="the hash of an operator's PIN, for station.toml (the PIN is read, not typed "
+                                      "on the command line)")
+    pin.set_defaults(func=cmd_station_pin)
 
     sync = qsub.add_parser("sync", help="send a station's queued records to the database")
     sync.add_argument("--out", required=True, metavar="STATION_DIR", help="the station's folder (qc run's --out)")
     sync.add_argument("--db", help="records database URL (default: the station's station.toml, else "
                                    "STATION_DIR/qc-records.sqlite)")
+    sync.add_argument("--send-to-current", action="store_true",
+                      help="send records queued for another database to this one without asking")
     sync.set_defaults(func=cmd_sync)

@@ -34,7 +34,7 @@ import json
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from enum import StrEnum
 from pathlib import Path
 from typing import Any
@@ -64,12 +64,16 @@ from sqlalchemy.engine import URL, make_url
 from sqlalchemy.exc import ArgumentError, DBAPIError, SQLAlchemyError
 
 from rig.errors import BadInput
+from rig.qc.integrity import record_sha256
 from rig.qc.judge import Outcome
 
-SCHEMA_VERSION = 3            # 2: where measured (simulated, controller, daq), reason, k, details; titles; 3: station
+SCHEMA_VERSION = 4            # 2: where measured (simulated, controller, daq), reason, k, details; titles; 3: station;
+                              # 4: the hash chain, the report's hash, equipment, ambient, flagged captures, who and
+                              # why (identified_by, rejudge_reason), releases
 DEFAULT_FILE = "qc-records.sqlite"
 SQLITE_WAIT_S = 60.0          # a writer waits this long for another one's transaction
 PG_SCHEMA_LOCK = 0x5143_5245  # advisory lock key ("QCRE") held while the schema is created
+PG_CHAIN_LOCK = 0x5143_4348   # advisory lock key ("QCCH"), with the station's hash: one writer per station chain
 PG_CONNECT_TIMEOUT_S = 10     # a server that does not answer within this is unreachable: the record is queued
 
 metadata = MetaData()
@@ -106,6 +110,14 @@ record_table = Table(
     Column("k", Float(precision=53)),             # the guard band's coverage factor of the verdict
     Column("details", Text),                      # JSON object: further facts about the run
     Column("station", String(128), index=True),   # the station that measured (several share a database)
+    Column("previous_sha256", String(64)),        # the hash of the station's previous record (the chain)
+    Column("record_sha256", String(64)),          # this record's own hash (rig.qc.integrity.record_sha256)
+    Column("report_sha256", String(64)),          # the sha256 of the report file written with it
+    Column("equipment", Text),                    # JSON list of Equipment: the measuring equipment used
+    Column("ambient", Text),                      # JSON object: ambient conditions the rig reported; NULL: none
+    Column("flagged", Text),                      # JSON {experiment: [flags]}: captures flagged by the session
+    Column("identified_by", String(32)),          # how the station identified the operator: login, pin, typed
+    Column("rejudge_reason", Text),               # a re-judgement: why the data were judged again
 )
 characteristic_table = Table(
     "qc_characteristic", metadata,
@@ -128,8 +140,26 @@ characteristic_table = Table(
 ADDED_IN_2: dict[str, tuple[str, ...]] = {"qc_record": ("simulated", "controller", "daq", "reason", "k", "details"),
               "qc_characteristic": ("title", "sigma_basis")}
 ADDED_IN_3: dict[str, tuple[str, ...]] = {"qc_record": ("station",)}
-ADDED = {2: ADDED_IN_2, 3: ADDED_IN_3}
-IMMUTABLE = ("qc_record", "qc_characteristic", "qc_schema")
+ADDED_IN_4: dict[str, tuple[str, ...]] = {"qc_record": ("previous_sha256", "record_sha256", "report_sha256",
+                                                        "equipment", "ambient", "flagged", "identified_by",
+                                                        "rejudge_reason")}
+ADDED = {2: ADDED_IN_2, 3: ADDED_IN_3, 4: ADDED_IN_4}
+# A second person's approval of a unit's record (``qc release``): a row of its own, never changed.
+release_table = Table(
+    "qc_release", metadata,
+    Column("id", Integer, primary_key=True, autoincrement=True),
+    Column("uid", String(36), nullable=False, unique=True),
+    Column("record_uid", String(36), nullable=False, index=True),
+    Column("serial", String(64), nullable=False, index=True),
+    Column("approver", String(128), nullable=False),
+    Column("identified_by", String(32), nullable=False),
+    Column("released", String(40), nullable=False),
+    Column("station", String(128)),
+    Column("note", Text),
+)
+TABLES_IN_4 = ("qc_release",)
+IMMUTABLE = ("qc_record", "qc_characteristic", "qc_schema", "qc_release")
+INIT_COMMAND = "python -m rig qc db init --db ADMIN_URL --grant STATION_ROLE (docs/qc.md, \"Station set-up\")"
 PASSWORD_ADVICE = ("name the database without one (postgresql://USER@HOST:PORT/DB) and keep the password in "
                    "~/.pgpass (mode 0600), a pg_service.conf service (postgresql:///?service=NAME), PGPASSWORD, "
                    "or the station's station.toml readable by its owner only (docs/qc.md, \"Station set-up\")")
@@ -144,6 +174,40 @@ class RecordStatus(StrEnum):
 
 class RecordsError(BadInput):
     """A records database that cannot be opened or written (named without credentials)."""
+
+
+class SchemaMismatch(RecordsError):
+    """The database answered but holds no QC schema, or another version of it."""
+
+
+class TooPrivileged(RecordsError):
+    """The station's database role could rewrite records (it owns the tables, is a
+    superuser, or holds UPDATE, DELETE or TRUNCATE): a station writes with INSERT and SELECT only."""
+
+
+@dataclass(frozen=True)
+class Equipment:
+    """One item of measuring equipment a record was measured with.  Today the rig knows its
+    DAQ calibration file only (``sha256``); transducer serials, certificates and their due
+    dates come from the metrology's calibration records (rig.qc.calibration) when it has them."""
+    name: str                         # "DAQ calibration file", "force transducer" …
+    serial: str | None = None
+    certificate: str | None = None    # the calibration certificate's number
+    due: str | None = None            # the next calibration's date (ISO)
+    sha256: str | None = None         # the calibration file's hash, where the item is a file
+
+
+@dataclass(frozen=True)
+class Release:
+    """A second person's approval of a record (``qc release``)."""
+    uid: str
+    record_uid: str
+    serial: str
+    approver: str
+    identified_by: str
+    released: str
+    station: str | None = None
+    note: str | None = None
 
 
 class Unreachable(RecordsError):
@@ -205,6 +269,20 @@ class QcRecord:
     k: float | None = None            # the guard band's coverage factor
     details: dict[str, Any] = field(default_factory=dict)   # further facts about the run
     station: str | None = None        # the station that measured; None: written before stations were named
+    previous_sha256: str | None = None   # the station's previous record's hash: set by the database's writer
+    record_sha256: str | None = None     # this record's hash (None: not yet stored, or stored before version 4)
+    report_sha256: str | None = None     # the report written with it
+    equipment: tuple[Equipment, ...] = ()
+    ambient: dict[str, Any] | None = None        # None: the rig reports no ambient conditions
+    flagged: dict[str, list[str]] = field(default_factory=dict)   # experiment → the session's flags on its capture
+    identified_by: str | None = None     # login, pin or typed: how the station knew the operator
+    rejudge_reason: str | None = None    # a re-judgement: why (its operator and time say who and when)
+
+    @property
+    def archive_id(self) -> str:
+        """What names the measurement in an archive, in place of a machine path: the
+        station (or rig) and the session folder's name."""
+        return f"{self.station or self.rig}/{Path(self.session).name}"
 
     def acceptance(self, c: CharacteristicRecord) -> tuple[float | None, float | None]:
         """The acceptance limits of ISO 14253-1: the spec's limits moved in by k·σ."""
@@ -229,6 +307,10 @@ class QcRecord:
             "started": self.started, "finished": self.finished, "operator": self.operator, "rig": self.rig,
             "station": self.station, "measured_on": {"controller": self.controller, "daq": self.daq},
             "details": self.details, "session": self.session, "data_sha256": self.data_sha256,
+            "archive_id": self.archive_id, "identified_by": self.identified_by,
+            "rejudge_reason": self.rejudge_reason, "equipment": [asdict(q) for q in self.equipment],
+            "ambient": self.ambient, "flagged": self.flagged, "report_sha256": self.report_sha256,
+            "previous_sha256": self.previous_sha256, "record_sha256": self.record_sha256,
         }
 
     def to_journal(self) -> dict[str, Any]:
@@ -243,7 +325,8 @@ class QcRecord:
         fields["verdict"] = None if doc["verdict"] is None else Outcome(doc["verdict"])
         fields["status"] = RecordStatus(doc["status"])
         fields["diagnosis"], fields["notes"] = tuple(doc["diagnosis"]), tuple(doc["notes"])
-        return cls(**fields)
+        fields["equipment"] = tuple(Equipment(**q) for q in doc.get("equipment", ()))
+        return cls(**{k: v for k, v in fields.items() if k in cls.__dataclass_fields__})
 
 
 # ----- URLs and secrets ----------------------------------------------------------------------------------
@@ -341,17 +424,22 @@ class Records:
         self._secrets = secrets_for(url, password)
         self._pending = False    # the schema to be checked (made) with the first record
         self.unreachable: str | None = None   # why the server did not answer when opened (``reach_later``)
+        self.writer = False      # a station's writer: refused where its role could rewrite records
+        self._rights_checked = False
 
     @classmethod
     def open(cls, url: str, create: bool = False, defer: bool = False, *, password: str | None = None,
-             reach_later: bool = False) -> Records:
+             reach_later: bool = False, writer: bool = False) -> Records:
         """The records database at ``url``.  Without ``create`` only an existing one is
         opened (readers, ``identify batch --db``: a mistyped path must not start an empty
         one); with it a new one is made, and with ``defer`` too a new SQLite file is made
         only when the first record is added (a run that never started leaves nothing).
         ``password``: the station's, given to the driver as a connection argument.
         ``reach_later``: a server that does not answer is no error (``unreachable`` says
-        why; the schema is checked with the first record), a refused login still is."""
+        why; the schema is checked with the first record), a refused login still is.
+        ``writer``: a station's (``qc run``, ``qc judge``, ``qc sync``): on PostgreSQL it never
+        makes or upgrades the schema (an administrator does: :func:`init_schema`) and is
+        refused (:class:`TooPrivileged`) where its role could rewrite records."""
         parsed = parse_url(url)
         pending = False
         if parsed.get_backend_name() == "sqlite":
@@ -379,11 +467,12 @@ class Records:
                 connect_args["password"] = password
             engine = create_engine(parsed, pool_pre_ping=True, connect_args=connect_args)
         records = cls(engine, parsed, password)
-        records._pending = pending
+        records._pending, records.writer = pending, writer
         if not pending:
             try:
                 with records._errors("cannot be opened"):
                     records._ensure_schema(create)
+                    records._check_writer()
             except Unreachable as exc:
                 if not reach_later:
                     records.close()
@@ -413,21 +502,29 @@ class Records:
         with self.engine.begin() as conn:
             if conn.dialect.name == "postgresql":
                 conn.execute(text("SELECT pg_advisory_xact_lock(:key)"), {"key": PG_SCHEMA_LOCK})
+            admin_only = self.writer and conn.dialect.name == "postgresql"
             if not inspect(conn).has_table("qc_schema"):
-                if not create:
-                    raise RecordsError(f"{self.name} is not a QC records database (no qc_schema table)")
+                if not create or admin_only:
+                    raise SchemaMismatch(f"{self.name} is not a QC records database (no qc_schema table)"
+                                         + (f"; an administrator makes it: {INIT_COMMAND}" if admin_only else ""))
                 metadata.create_all(conn)
                 _create_triggers(conn)
                 conn.execute(schema_table.insert().values(version=SCHEMA_VERSION))
                 return
             versions = conn.execute(select(schema_table.c.version)).scalars().all()
             if versions and max(versions) < SCHEMA_VERSION and set(versions) <= set(range(1, SCHEMA_VERSION)):
+                # PostgreSQL: the administrator's command (create, not a station's writer) upgrades;
+                # a reader or a station is told who does.
+                if conn.dialect.name == "postgresql" and (admin_only or not create):
+                    raise SchemaMismatch(f"records database {self.name} has schema version {max(versions)}; this "
+                                         f"program reads and writes version {SCHEMA_VERSION}: an administrator "
+                                         f"upgrades it ({INIT_COMMAND})")
                 _upgrade(conn, max(versions))
                 return
         if not versions or max(versions) != SCHEMA_VERSION:   # {1, 2, 3}: upgraded from 1 to 2 and 3
-            raise RecordsError(f"records database {self.name} has schema version "
-                               f"{', '.join(map(str, versions)) or 'none'}; this program reads and writes "
-                               f"version {SCHEMA_VERSION}")
+            raise SchemaMismatch(f"records database {self.name} has schema version "
+                                 f"{', '.join(map(str, versions)) or 'none'}; this program reads and writes "
+                                 f"version {SCHEMA_VERSION}")
 
     def add(self, record: QcRecord) -> bool:
         """The record and its characteristics, in one transaction; False (and nothing
@@ -438,9 +535,15 @@ class Records:
                     Path(str(self.url.database)).parent.mkdir(parents=True, exist_ok=True)
                 self._ensure_schema(create=True)
             self._pending = False
+        with self._errors("cannot be opened"):
+            self._check_writer()
         with self._errors("refused the record"), self.engine.begin() as conn:
+            record = self._chained(conn, record)
             row = {k: v for k, v in record.__dict__.items() if k != "characteristics"}
             row["files"] = json.dumps(record.files, sort_keys=True)
+            row["equipment"] = json.dumps([asdict(q) for q in record.equipment])
+            row["ambient"] = None if record.ambient is None else json.dumps(record.ambient, sort_keys=True)
+            row["flagged"] = json.dumps(record.flagged, sort_keys=True)
             row["controller"] = None if record.controller is None else json.dumps(record.controller, sort_keys=True)
             row["details"] = json.dumps(record.details, sort_keys=True)
             row["diagnosis"] = json.dumps(list(record.diagnosis))
@@ -457,6 +560,54 @@ class Records:
                     {"record_id": key, "position": i, **c.__dict__}
                     for i, c in enumerate(record.characteristics)])
         return True
+
+    def _chained(self, conn: Connection, record: QcRecord) -> QcRecord:
+        """The record with the hash of its station's last record and its own hash, within
+        the transaction that writes it (one writer per station: SQLite's write lock, taken
+        at BEGIN, or PostgreSQL's advisory lock on the station)."""
+        station = record_table.c.station
+        if conn.dialect.name == "postgresql":
+            conn.execute(text("SELECT pg_advisory_xact_lock(:key, hashtext(:station))"),
+                         {"key": PG_CHAIN_LOCK, "station": record.station or ""})
+        mine = station.is_(None) if record.station is None else station == record.station
+        previous = conn.execute(select(record_table.c.record_sha256).where(mine)
+                                .order_by(record_table.c.id.desc()).limit(1)).scalar()
+        chained = replace(record, previous_sha256=previous, record_sha256=None)
+        return replace(chained, record_sha256=record_sha256(chained))
+
+    def rights(self) -> Rights:
+        """What this connection's role may do to the records' tables (PostgreSQL)."""
+        with self._errors("cannot be read"), self.engine.connect() as conn:
+            return _rights(conn)
+
+    def _check_writer(self) -> None:
+        """A station's writer on PostgreSQL: refused where its role could rewrite records
+        (checked once, when the server first answers)."""
+        if not self.writer or self._rights_checked or self.url.get_backend_name() != "postgresql" or self._pending:
+            return
+        with self.engine.connect() as conn:
+            rights = _rights(conn)
+        self._rights_checked = True
+        if rights.could_rewrite:
+            raise TooPrivileged(f"records database {self.name}: role {rights.role} {rights.why()}; a station "
+                                f"writes with INSERT and SELECT only, as a role that owns nothing "
+                                f"({INIT_COMMAND})")
+        if not rights.may_write:
+            raise RecordsError(f"records database {self.name}: role {rights.role} may not "
+                               f"{' and '.join(rights.missing)}; an administrator grants it ({INIT_COMMAND})")
+
+    def add_release(self, release: Release) -> None:
+        with self._errors("cannot be opened"):
+            self._check_writer()
+        with self._errors("refused the release"), self.engine.begin() as conn:
+            conn.execute(release_table.insert().values(**asdict(release)))
+
+    def releases(self, serial: str | None = None) -> list[Release]:
+        query = select(release_table).order_by(release_table.c.id)
+        if serial is not None:
+            query = query.where(release_table.c.serial == serial)
+        with self._errors("cannot be read"), self.engine.connect() as conn:
+            return [Release(**{k: r[k] for k in Release.__dataclass_fields__}) for r in conn.execute(query).mappings()]
 
     def find(self, serial: str | None = None, since: str | None = None, station: str | None = None) -> list[QcRecord]:
         """Records in the order they were written, optionally of one serial number, of
@@ -502,6 +653,89 @@ class Records:
             return [_record(row, ()) for row in conn.execute(query).mappings()]
 
 
+WRITTEN = ("qc_record", "qc_characteristic", "qc_release")   # a station inserts into these, and reads all four
+SEQUENCES = ("qc_record", "qc_release")                       # their ids: INSERT needs USAGE on the sequence
+
+
+@dataclass(frozen=True)
+class Rights:
+    """What a PostgreSQL role may do to the records' tables."""
+    role: str
+    superuser: bool
+    owns: tuple[str, ...]            # tables it owns (or a role it is a member of owns): it may disable triggers
+    changes: tuple[str, ...]         # "UPDATE on qc_record" …: privileges a station must not hold
+    missing: tuple[str, ...]         # "INSERT on qc_record" …: privileges a station needs and lacks
+
+    @property
+    def could_rewrite(self) -> bool:
+        return self.superuser or bool(self.owns) or bool(self.changes)
+
+    @property
+    def may_write(self) -> bool:
+        return not self.missing
+
+    def why(self) -> str:
+        parts = (["is a superuser (it may disable the triggers)"] if self.superuser else []) + (
+            [f"owns {', '.join(self.owns)} (an owner may disable their triggers and rewrite records)"]
+            if self.owns else []) + ([f"holds {', '.join(self.changes)}"] if self.changes else [])
+        return " and ".join(parts)
+
+
+def _rights(conn: Connection) -> Rights:
+    role, superuser = conn.execute(text("SELECT current_user, rolsuper FROM pg_roles WHERE rolname = current_user")
+                                   ).one()
+    owns, changes, missing = [], [], []
+    for table in IMMUTABLE:
+        row = conn.execute(text(
+            "SELECT pg_has_role(current_user, c.relowner, 'MEMBER'), has_table_privilege(c.oid, 'UPDATE'), "
+            "has_table_privilege(c.oid, 'DELETE'), has_table_privilege(c.oid, 'TRUNCATE'), "
+            "has_table_privilege(c.oid, 'INSERT'), has_table_privilege(c.oid, 'SELECT') "
+            "FROM pg_class c WHERE c.oid = to_regclass(:t)"), {"t": table}).first()
+        if row is None:
+            missing.append(f"the table {table} (not there)")
+            continue
+        owner, update, delete, truncate, insert, select_ = row
+        if owner:
+            owns.append(table)
+        changes += [f"{what} on {table}" for what, held in (("UPDATE", update), ("DELETE", delete),
+                                                              ("TRUNCATE", truncate)) if held]
+        if not select_:
+            missing.append(f"SELECT on {table}")
+        if table in WRITTEN and not insert:
+            missing.append(f"INSERT on {table}")
+    for table in SEQUENCES:
+        usage = conn.execute(text("SELECT has_sequence_privilege(pg_get_serial_sequence(:t, 'id'), 'USAGE')"),
+                             {"t": table}).scalar()
+        if not usage:
+            missing.append(f"USAGE on the id sequence of {table}")
+    return Rights(role, bool(superuser), tuple(owns), tuple(changes), tuple(missing))
+
+
+def init_schema(url: str, grant: tuple[str, ...] = (), password: str | None = None) -> tuple[str, int, Rights | None]:
+    """An administrator's work (``qc db init``): the schema made (or upgraded) by the role
+    ``url`` connects as, which then owns it, and each station role in ``grant`` given
+    INSERT and SELECT only.  Returns the database's name, its schema version and, on
+    PostgreSQL, the administrator's own rights (to say that it owns the tables)."""
+    records = Records.open(url, create=True, password=password)
+    try:
+        with records._errors("refused the grant"), records.engine.begin() as conn:
+            if conn.dialect.name != "postgresql":
+                if grant:
+                    raise RecordsError(f"--grant: {records.name} is an SQLite file; its rights are the file's "
+                                       "(a station's own folder)")
+                return records.name, SCHEMA_VERSION, None
+            for role in grant:
+                quoted = conn.dialect.identifier_preparer.quote(role)
+                conn.exec_driver_sql(f"GRANT SELECT ON {', '.join(IMMUTABLE)} TO {quoted}")
+                conn.exec_driver_sql(f"GRANT INSERT ON {', '.join(WRITTEN)} TO {quoted}")
+                for table in SEQUENCES:
+                    sequence = conn.execute(text("SELECT pg_get_serial_sequence(:t, 'id')"), {"t": table}).scalar()
+                    conn.exec_driver_sql(f"GRANT USAGE ON SEQUENCE {sequence} TO {quoted}")
+            return records.name, SCHEMA_VERSION, _rights(conn)
+    finally:
+        records.close()
+
+
 def _record(row: Any, characteristics: tuple[CharacteristicRecord, ...]) -> QcRecord:
     fields = {k: row[k] for k in QcRecord.__dataclass_fields__ if k in row}
     fields["files"] = json.loads(row["files"])
@@ -510,6 +744,9 @@ def _record(row: Any, characteristics: tuple[CharacteristicRecord, ...]) -> QcRe
     fields["controller"] = json.loads(row["controller"]) if row["controller"] else None
     fields["details"] = json.loads(row["details"]) if row["details"] else {}
     fields["simulated"] = bool(row["simulated"])
+    fields["equipment"] = tuple(Equipment(**q) for q in json.loads(row["equipment"])) if row.get("equipment") else ()
+    fields["ambient"] = json.loads(row["ambient"]) if row.get("ambient") else None
+    fields["flagged"] = json.loads(row["flagged"]) if row.get("flagged") else {}
     fields["verdict"] = None if row["verdict"] is None else Outcome(row["verdict"])
     fields["status"] = RecordStatus(row["status"])
     return QcRecord(characteristics=characteristics, **{k: v for k, v in fields.items() if k != "characteristics"})
@@ -541,6 +778,9 @@ def _upgrade(conn: Connection, version: int) -> None:
                 for index in metadata.tables[table].indexes:
                     if name in index.columns:
                         index.create(conn)
+        if added == 4:
+            metadata.create_all(conn, tables=[release_table])
+            _create_triggers(conn, TABLES_IN_4)
         conn.execute(schema_table.insert().values(version=added))
 
 
@@ -556,6 +796,12 @@ def _unreachable(exc: SQLAlchemyError) -> bool:
         return False
     state = getattr(orig, "sqlstate", None)
     if state is None:
+        # psycopg gives no SQLSTATE for an error while connecting; the server's own FATAL
+        # (a refused login, no such database) says it answered, so it was reached, unless
+        # it is starting up or shutting down (not reachable, as yet).
+        words = str(orig)
+        if "FATAL:" in words and not any(w in words for w in ("starting up", "shutting down", "not yet accepting")):
+            return False
         return any(t.__name__ == "OperationalError" for t in type(orig).__mro__)
     return str(state).startswith("08") or state in ("57P01", "57P02", "57P03")
 
@@ -570,10 +816,11 @@ def _sqlite_connect(dbapi_connection: Any, _record: Any) -> None:
     cursor.close()
 
 
-def _create_triggers(conn: Connection) -> None:
-    """Records are never changed or deleted, whoever connects."""
+def _create_triggers(conn: Connection, tables: tuple[str, ...] = IMMUTABLE) -> None:
+    """Records are never changed or deleted by a role that does not own the tables (an
+    owner or a superuser may disable triggers: a station's role is neither)."""
     if conn.dialect.name == "sqlite":
-        for table in IMMUTABLE:
+        for table in tables:
             for action in ("UPDATE", "DELETE"):
                 conn.exec_driver_sql(
                     f"CREATE TRIGGER {table}_no_{action.lower()} BEFORE {action} ON {table} "
@@ -582,6 +829,6 @@ def _create_triggers(conn: Connection) -> None:
         conn.exec_driver_sql(
             "CREATE OR REPLACE FUNCTION qc_refuse_change() RETURNS trigger LANGUAGE plpgsql AS "
             "$$ BEGIN RAISE EXCEPTION 'QC records are never changed or deleted'; END $$")
-        for table in IMMUTABLE:
+        for table in tables:
             conn.exec_driver_sql(f"CREATE TRIGGER {table}_immutable BEFORE UPDATE OR DELETE OR TRUNCATE ON {table} "
                                  "FOR EACH STATEMENT EXECUTE FUNCTION qc_refuse_change()")

@@ -14,6 +14,7 @@ from __future__ import annotations
 import base64
 import html
 import io
+from pathlib import Path
 
 import matplotlib
 
@@ -108,8 +109,39 @@ def loops_figure(evaluation: Evaluation) -> str | None:
     return _png(fig)
 
 
+IDENTIFIED = {"login": "identified by the station: OS login", "pin": "identified by the station: PIN",
+              "typed": "typed, not identified by a station"}
+
+
+RELEASE = {"required": "required by the spec: a second person approves this record (python -m rig qc release "
+                        "SERIAL); the database holds the release, not this report",
+           None: "not required by the spec"}
+
+
+def ambient_text(ambient: dict | None) -> str:
+    """The ambient conditions as the report states them; the rig's controller and DAQ
+    report none (docs/rig-interfaces.md: the gas temperature is the damper's, not the room's)."""
+    if not ambient:
+        return "not reported by the rig"
+    return ", ".join(f"{k} {v}" for k, v in sorted(ambient.items()))
+
+
+def _css_string(text: str) -> str:
+    """A CSS string literal: quotes and backslashes escaped, '<' too (it sits inside <style>)."""
+    escaped = text.replace("\\", "\\\\").replace('"', '\\"').replace("<", "\\3C ").replace("\n", " ")
+    return f'"{escaped}"'
+
+
 def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -> str:
-    e = html.escape
+    def e(text: str) -> str:
+        """Escaped, and without a path of the station's disk: the session folder is named by
+        its archive id, the station's folder (a retest command's --out) as STATION_DIR."""
+        text = str(text)
+        if len(Path(record.session).parts) > 2:     # a real folder in a station's folder, not "/" itself
+            text = text.replace(record.session, record.archive_id)
+            text = text.replace(str(Path(record.session).parent), "STATION_DIR")
+        return html.escape(text)
+
     verdict = record.verdict or f"no verdict ({record.status})"
     colour = verdict_colours(record.verdict).text
     descriptions = {c.name: c.description for c in spec.characteristics}
@@ -139,18 +171,30 @@ def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -
     if loops:
         figures += f"<h2>Work loops: measured and identified model</h2><img alt='work loops' src='{loops}'>"
     controller = ", ".join(f"{k} {v}" for k, v in (record.controller or {}).items()) or "not identified"
-    trace = [("serial", record.serial), ("operator", record.operator), ("rig", record.rig),
+    operator = f"{record.operator} ({IDENTIFIED.get(record.identified_by or '', 'identification not recorded')})"
+    trace = [("serial", record.serial), ("station", record.station or "not named"), ("operator", operator),
+             ("rig", record.rig),
              ("measured on", "a SIMULATOR, not hardware" if record.simulated else "hardware (no peer named "
                                                                                    "itself a simulator)"),
              ("controller", controller), ("DAQ *IDN?", record.daq or "not identified"),
              ("measured", f"{record.started or '—'} … {record.finished or '—'}"), ("judged", record.judged),
              ("status", record.status), ("software", record.software),
+             ("ambient conditions", ambient_text(record.ambient)),
              ("spec", f"{record.spec_name} {record.spec_version}"), ("spec sha256", record.spec_sha256),
              ("calibration sha256", record.calibration_sha256 or "—"),
              ("register map sha256", record.register_map_sha256 or "—"),
-             ("session", record.session), ("record", record.uid), ("re-judges record", record.rejudges or "—")]
+             ("archive id", record.archive_id), ("record", record.uid), ("re-judges record", record.rejudges or "—")]
     trace += [(f"sha256 {name}", digest) for name, digest in sorted(record.files.items())]
     notes = "".join(f"<li>{e(n)}</li>" for n in record.notes if n != record.reason)
+    equipment = "".join(
+        f"<tr><td>{e(q.name)}</td><td>{e(q.serial or '—')}</td><td>{e(q.certificate or '—')}</td>"
+        f"<td>{e(q.due or '—')}</td><td class=hash>{e(q.sha256 or '—')}</td></tr>" for q in record.equipment) or (
+        "<tr><td colspan=5>none recorded</td></tr>")
+    if record.flagged:
+        findings += ("<div class='box flagged'><h2>Flagged captures</h2><p>The session captured these experiments "
+                     "anyway and flagged them; the verdict uses them as captured.</p><ul>" + "".join(
+                         f"<li><b>{e(label)}</b>: {e('; '.join(flags))}</li>"
+                         for label, flags in sorted(record.flagged.items())) + "</ul></div>")
     watermark = ("<div class=watermark aria-hidden=true>SIMULATED</div><div class=simbanner>SIMULATED: measured on "
                  "a simulator, not on hardware. Not a production record.</div>") if record.simulated else ""
     # A re-judgement says so where the eye lands first: the title, the header and a box
@@ -160,7 +204,18 @@ def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -
         findings = (f"<div class=box><h2>Re-judgement</h2><p>This report judges again the measurement of record "
                     f"<code>{e(record.rejudges)}</code> ({e(record.started or '—')} … {e(record.finished or '—')}), "
                     f"with spec {e(record.spec_name)} {e(record.spec_version)}. That record and its report are "
-                    "kept unchanged.</p></div>") + findings
+                    f"kept unchanged.</p><p>Re-judged by <b>{e(operator)}</b> at {e(record.judged)}; why: "
+                    f"{e(record.rejudge_reason or 'no reason given')}.</p></div>") + findings
+    head = f"{kind} — unit {record.serial} — station {record.station or record.rig} — record {record.uid}"
+    header = (f"<table class=head><tr><th>station</th><td>{e(record.station or 'not named')}</td>"
+              f"<th>operator</th><td>{e(operator)}</td></tr>"
+              f"<tr><th>archive id</th><td>{e(record.archive_id)}</td><th>software</th>"
+              f"<td>{e(record.software)}</td></tr>"
+              f"<tr><th>record</th><td>{e(record.uid)}</td><th>judged</th><td>{e(record.judged)}</td></tr>"
+              f"<tr><th>ambient</th><td>{e(ambient_text(record.ambient))}</td><th>equipment</th>"
+              f"<td>{len(record.equipment)} item{'s' * (len(record.equipment) != 1)} (below)</td></tr>"
+              f"<tr><th>release</th><td colspan=3>{e(RELEASE.get(record.details.get('release'), RELEASE[None]))}"
+              "</td></tr></table>")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
 <title>{kind} {e(record.serial)}: {e(verdict)}{' (SIMULATED)' if record.simulated else ''}\
@@ -183,11 +238,24 @@ img {{ max-width: 100%; }}
    watermark repeats on every printed page. */
 * {{ -webkit-print-color-adjust: exact; print-color-adjust: exact; }}
 h2 {{ break-after: avoid; }} img, tr {{ break-inside: avoid; }}
-.trace td {{ font-family: "DejaVu Sans Mono", monospace; font-size: 11px;
+.trace td, td.hash {{ font-family: "DejaVu Sans Mono", monospace; font-size: 11px;
   word-break: break-all; }}
+table.head {{ margin-bottom: 12px; }} table.head th {{ width: 11%; color: #555; }}
+.flagged {{ border-left-color: #b26a00; }}
+/* Every printed page: a running head naming the unit, station and record, page numbers,
+   and for a simulated record SIMULATED in the margin too (the fixed watermark repeats). */
+@page {{ size: A4; margin: 16mm 12mm 16mm 12mm;
+  @top-left {{ content: {_css_string(head)}; font-size: 8pt; color: #555; }}
+  @top-right {{ content: {_css_string('SIMULATED' if record.simulated else '')}; font-size: 9pt;
+    font-weight: bold; color: #c62828; }}
+  @bottom-left {{ content: {_css_string('archive id ' + record.archive_id)}; font-size: 8pt; color: #555; }}
+  @bottom-right {{ content: "page " counter(page) " of " counter(pages); font-size: 8pt; color: #555; }} }}
+@media print {{ body {{ margin: 0; max-width: none; }}
+  .watermark {{ font-size: 104px; top: 42%; }} }}
 </style></head><body>
 {watermark}
 <h1>{kind} — unit {e(record.serial)}{f' (re-judges record {e(record.rejudges)})' if record.rejudges else ''}</h1>
+{header}
 <div class="verdict">{e(verdict)}</div>
 <p>Spec <b>{e(record.spec_name)} {e(record.spec_version)}</b> ({e(spec.title)}); guard band k = {spec.k:g}:
 PASS when value ± kσ lies inside the limits, that is the value inside the acceptance limits (the limits moved
@@ -200,6 +268,9 @@ in by kσ); FAIL when value ∓ kσ lies outside (ISO 14253-1).</p>
 {'<h2>Which σ the verdict used</h2><ul>' + sigma_notes + '</ul>' if sigma_notes else ''}
 {figures}
 {'<h2>Notes</h2><ul>' + notes + '</ul>' if notes else ''}
+<h2>Measuring equipment</h2>
+<table><tr><th>item</th><th>serial</th><th>certificate</th><th>calibration due</th><th>sha256</th></tr>
+{equipment}</table>
 <h2>Traceability</h2>
 <table class="trace">{''.join(f'<tr><th>{e(k)}</th><td>{e(str(v))}</td></tr>' for k, v in trace)}</table>
 </body></html>

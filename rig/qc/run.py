@@ -17,7 +17,7 @@ database is opened before the rig moves, so a bad URL or a wrong password costs 
 from __future__ import annotations
 
 import datetime as _dt
-import getpass
+import hashlib
 import io
 import json
 import shlex
@@ -39,6 +39,7 @@ from rig.errors import BadInput
 from rig.events import Kind, Subscriber
 from rig.planning.prediction import NOT_MEASURED, predict_s
 from rig.qc.characteristics import check_model
+from rig.qc.commissioning import configuration, require_commissioned
 from rig.qc.evaluate import Evaluation, evaluate
 from rig.qc.judge import Outcome
 from rig.qc.present import shown
@@ -46,7 +47,8 @@ from rig.qc.queue import Outbox
 from rig.qc.records import CharacteristicRecord, QcRecord, Records, RecordStatus, default_url
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
-from rig.qc.trace import SessionTrace, now_utc, software_version, trace_session
+from rig.qc.station import identify_operator, load_station_config, read_pin
+from rig.qc.trace import SessionTrace, measuring_equipment, now_utc, software_version, trace_session
 from rig.session.acquisition import ExperimentRecord
 from rig.session.run import (
     Prepared,
@@ -67,8 +69,8 @@ EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
 class QcOptions:
     spec: str
     serial: str
-    shaker: str
-    daq: str
+    shaker: str | None              # None: the station's (station.toml)
+    daq: str | None
     out: Path                       # the station's folder: one session folder per unit, and the default database
     db: str | None = None
     operator: str | None = None
@@ -78,6 +80,7 @@ class QcOptions:
     rig_config: str | None = None
     calibration: str | None = None
     register_map: str | None = None
+    pin: str | None = None          # a PIN station's operator PIN (None: asked on the terminal)
 
 
 @dataclass
@@ -96,6 +99,7 @@ class QcSubscribers:
     predicted: Callable[[Prediction], None] | None = None       # the time left, predicted again after an experiment
     after_session: Callable[[RunResult], object] | None = None  # the session over, its links closed; judging next
     concluded: Callable[[QcRecord, float, Path, str], None] | None = None   # a verdict: record, k, report, database
+    ask_pin: Callable[[], str] | None = None                    # a PIN station's: how its operator enters the PIN
 
 
 @dataclass(frozen=True)
@@ -128,7 +132,8 @@ def terminal(console: Console) -> QcSubscribers:
     """``rig qc run``'s subscribers: the session's lines and the summary in the terminal."""
     # the re-prediction is said by the session's terminal progress (a prediction event, with the time left)
     return QcSubscribers(say=lambda text: console.print(text, highlight=False), attach=terminal_progress(console),
-                         concluded=lambda record, k, report, database: _print_summary(record, k, report, database))
+                         concluded=lambda record, k, report, database: _print_summary(record, k, report, database),
+                         ask_pin=read_pin)
 
 
 def qc_run(opt: QcOptions, console: Console) -> int:
@@ -146,7 +151,22 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
     spec = load_spec(opt.spec)
     spec.check_serial(opt.serial)
     check_model(spec)
-    operator, rig_id = opt.operator or getpass.getuser(), opt.rig_id or socket.gethostname()
+    station = load_station_config(opt.out)
+    opt = replace(opt, shaker=opt.shaker or station.shaker, daq=opt.daq or station.daq,
+                  calibration=opt.calibration or station.calibration)
+    if not opt.shaker or not opt.daq:
+        raise BadInput("--shaker and --daq are needed (or shaker and daq in the station's station.toml)")
+    if station.is_station:   # a production station: commissioned for exactly this configuration
+        require_commissioned(opt.out, configuration(opt.out, station, opt.db, opt.shaker, opt.daq, opt.calibration,
+                                                    spec.sha256))
+    pin = opt.pin
+    if station.identify == "pin" and station.is_station and pin is None and opt.operator is None:
+        if to.ask_pin is None:   # never a prompt on a terminal nobody watches while a window waits
+            raise BadInput(f"{station.path}: the station identifies its operator by PIN, which this front end "
+                           "does not ask for; run python -m rig qc run in a terminal")
+        pin = to.ask_pin()
+    who = identify_operator(station, opt.operator, pin)
+    operator, rig_id = who.operator, opt.rig_id or socket.gethostname()
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     run_options = RunOptions(plan=spec.source, shaker=opt.shaker, daq=opt.daq,
                              out=Path(opt.out) / f"{opt.serial}-{stamp}", periods=opt.periods,
@@ -165,7 +185,7 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
             to.before_session(prep)
         started = now_utc()
         identity: dict[str, Any] = dict(serial=opt.serial, operator=operator, rig=rig_id, started=started,
-                                        station=records.station or rig_id)
+                                        station=records.station or rig_id, identified_by=who.by)
         records.begin(run_options.out, spec, identity)   # in the station's journal until it ends
         running: list[SessionRunner] = []   # the session's runner: its links' timing and its bus
         decide = decider(spec, prep, to.predicted, lambda: running[0] if running else None)
@@ -288,15 +308,23 @@ def stopping_note(result: RunResult, prep: Prepared) -> str:
 
 
 def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str | None,
-             create_db: bool = False) -> int:
+             create_db: bool = False, reason: str | None = None, out: Path | None = None,
+             pin: str | None = None) -> int:
     """Judge stored data again (a new spec, a new model): a new record that refers to the
-    first, in an existing database (``create_db``: a new one where none is)."""
+    first, in an existing database (``create_db``: a new one where none is).  The station
+    is ``out``'s, else the session folder's own (a session lies in its station's folder):
+    its station.toml names the database and its password and identifies who re-judges;
+    ``reason``: why, on record."""
     spec = load_spec(spec_source)
     check_model(spec)
     session = Path(session_dir).resolve()
     if not (session / "dataset.json").is_file():
         raise BadInput(f"{session_dir}: not a session or dataset folder (no dataset.json)")
-    records = Records.open(db or default_url(session.parent), create=create_db)
+    folder = Path(out) if out is not None else session.parent
+    station = load_station_config(folder)
+    who = identify_operator(station, operator, pin)
+    records = Records.open(db or station.db or default_url(folder), create=create_db, password=station.password,
+                           writer=True)
     try:
         trace = trace_session(session)
         first = records.first_for_data(trace.data_sha256)
@@ -309,12 +337,15 @@ def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str 
         retest = rejudge_remedy(spec)
         # The measurement is the first record's: its times, not the session files' (which
         # said 14:19:09 where the first record said 14:19:08 for the same measurement).
+        # Who judged is who judges now (the first record keeps its own operator); the
+        # station is the first record's (its chain), or the one judging data never recorded.
         record = judged_record(spec, trace, evaluation, retest, rejudges=first.uid if first else None,
                                simulated=bool(first and first.simulated), serial=serial,
-                               operator=first.operator if first else operator or getpass.getuser(),
-                               rig=rig, started=first.started if first else trace.started,
+                               operator=who.operator, identified_by=who.by, rig=rig,
+                               started=first.started if first else trace.started,
                                finished=first.finished if first else trace.finished,
-                               station=first.station if first else None)
+                               station=first.station if first else station.name,
+                               rejudge_reason=reason if first else None)
         tag = f"{record.judged.replace(':', '').replace('-', '')[:15]}-{record.uid[:8]}"
         return _conclude(records, record, spec, evaluation, session / f"qc-report-{tag}.html",
                          session / f"qc-record-{tag}.json", _print_summary)
@@ -334,6 +365,7 @@ def _conclude(records: Records | Outbox, record: QcRecord, spec: Spec, evaluatio
     """The report rendered first (a failure there costs no record), then the record
     stored, then the files: a killed process leaves a verdict in the database or nowhere."""
     html = render_report(record, spec, evaluation)
+    record = replace(record, report_sha256=hashlib.sha256(html.encode()).hexdigest())
     records.add(record)
     atomic_write_bytes(report, html.encode())
     atomic_write_bytes(record_file, (json.dumps(_document(record), indent=2) + "\n").encode())
@@ -353,8 +385,10 @@ def _document(record: QcRecord) -> dict:
 
 def _store(records: Records | Outbox, record: QcRecord, spec: Spec) -> QcRecord:
     """A run without a verdict: on record all the same, with a report that says why."""
+    html = render_report(record, spec, None)
+    record = replace(record, report_sha256=hashlib.sha256(html.encode()).hexdigest())
     records.add(record)
-    atomic_write_bytes(Path(record.session) / "qc-report.html", render_report(record, spec, None).encode())
+    atomic_write_bytes(Path(record.session) / "qc-report.html", html.encode())
     atomic_write_bytes(Path(record.session) / "qc-record.json",
                        (json.dumps(_document(record), indent=2) + "\n").encode())
     return record
@@ -373,11 +407,14 @@ def _base(spec: Spec, trace: SessionTrace, uid: str | None = None, *, simulated:
     details: dict[str, Any] = {"connections": list(trace.peers)} if len(trace.peers) > 1 else {}
     if trace.generated:
         details["generated"] = "the data were generated by the simulator, not measured"
+    if spec.release_required:
+        details["release"] = "required"     # the spec's: a second person's qc release before the unit ships
     return dict(uid=uid or str(uuid.uuid4()), judged=now_utc(), software=software_version(), spec_name=spec.name,
                 spec_version=spec.version, spec_sha256=spec.sha256, calibration_sha256=trace.calibration_sha256,
                 register_map_sha256=trace.register_map_sha256, session=trace.path, data_sha256=trace.data_sha256,
                 files=trace.files, simulated=simulated or trace.simulated, controller=peers.get("controller"),
-                daq=peers.get("daq"), k=spec.k, details=details, **identity)
+                daq=peers.get("daq"), k=spec.k, details=details, equipment=measuring_equipment(trace),
+                flagged=trace.flagged, **identity)
 
 
 def _unjudged(spec: Spec, session: Path, status: RecordStatus, reason: str, outcome: dict[str, Any] | None = None,
@@ -423,3 +460,6 @@ def _print_summary(record: QcRecord, k: float, report: Path, database: str) -> N
     if record.remedy:
         print(f"  remedy: {record.remedy}")
     print(f"report {report}; record {record.uid} in {database}")
+    if record.details.get("release") == "required" and record.verdict is not None:
+        print(f"release required by the spec: a second person runs python -m rig qc release {record.serial} "
+              f"--out {report.parent.parent}")     # the report lies in the session folder, in the station's

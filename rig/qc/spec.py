@@ -45,7 +45,7 @@ OPTIONAL: dict[str, tuple[str, ...]] = {
 }
 COMMON_KEYS = ("name", "kind", "unit", "nominal", "low", "high", "tolerance_percent", "u_cal", "description", "title")
 TOP_KEYS = ("name", "version", "title", "serial_pattern", "k", "periods", "capture", "identification", "steady_state",
-            "experiment", "characteristic", "diagnosis")
+            "experiment", "characteristic", "diagnosis", "release")
 DIRECTIONS = ("low", "high")
 
 
@@ -97,6 +97,7 @@ class Spec:
     plan: Plan
     characteristics: tuple[Characteristic, ...]
     causes: dict[tuple[str, str], str] = field(default_factory=dict)   # (characteristic, low|high) → cause
+    release_required: bool = False    # ``release = true``: a unit needs a second person's qc release
 
     def check_serial(self, serial: str) -> str:
         if not re.fullmatch(self.serial_pattern, serial):
@@ -169,13 +170,16 @@ def load_spec(source: str) -> Spec:
     start = ident.get("start")
     if start is not None:
         start = str((path.parent / str(start)).resolve())
+    release = doc.get("release", False)
+    if not isinstance(release, bool):
+        raise SpecError(f"{where}: release must be true (a second person releases each unit: qc release) or false")
     return Spec(name=_str(doc, "name", where), version=str(_str(doc, "version", where)),
                 title=str(doc.get("title", "")), source=str(path), text=text,
                 sha256=hashlib.sha256(path.read_bytes()).hexdigest(), serial_pattern=pattern, k=k,
                 model=str(ident.get("model", "2dof")), estimate=tuple(estimate),
                 grid_points=int(_number(ident, "grid_points", f"{where}, [identification]", default=800)),
                 start=start, steady_state=_steady_state(doc, where), plan=plan, characteristics=characteristics,
-                causes=causes)
+                causes=causes, release_required=release)
 
 
 def _steady_state(doc: dict[str, Any], where: str) -> SteadyStateCriteria:

@@ -8,10 +8,12 @@ import datetime as _dt
 import hashlib
 import json
 import subprocess
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import cache
 from importlib import metadata
 from pathlib import Path
+
+from rig.qc.records import Equipment
 
 JOURNAL = "journal/daq-raw.bin"
 CALIBRATION = "config/daq-calibration.toml"
@@ -32,20 +34,29 @@ def as_utc(stamp: str | None) -> str | None:
 
 @cache
 def software_version() -> str:
-    """The package version and, run from a git checkout, its commit (+ ``.dirty``)."""
+    """The software release as an auditor reads it: ``release TAG`` where the checkout is
+    a tagged commit without changes, else ``VERSION development build, commit C`` (and
+    ``with uncommitted changes``); an installed package without git: ``release VERSION``."""
     try:
         version = metadata.version("damper-rig")
     except metadata.PackageNotFoundError:
         version = "unknown"
     here = Path(__file__).resolve().parent
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", *args], cwd=here, capture_output=True, text=True, timeout=5).stdout.strip()
+
     try:
-        commit = subprocess.run(["git", "rev-parse", "--short=12", "HEAD"], cwd=here, capture_output=True,
-                                text=True, timeout=5).stdout.strip()
-        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here,
-                               capture_output=True, text=True, timeout=5).stdout.strip()
+        commit = git("rev-parse", "--short=12", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no")
+        tag = git("describe", "--tags", "--exact-match", "HEAD")
     except (OSError, subprocess.SubprocessError):
-        return version
-    return f"{version}+g{commit}{'.dirty' if dirty else ''}" if commit else version
+        return f"release {version}"
+    if not commit:
+        return f"release {version}"
+    if tag and not dirty:
+        return f"release {tag}"
+    return f"{version} development build, commit {commit}" + (" with uncommitted changes" if dirty else "")
 
 
 def sha256(path: Path) -> str | None:
@@ -69,6 +80,7 @@ class SessionTrace:
     finished: str | None
     peers: tuple[dict, ...] = ()          # session.json's: who answered on the links, per connection
     generated: bool = False               # dataset.json says the simulator generated the data
+    flagged: dict[str, list[str]] = field(default_factory=dict)   # experiment → its capture's flags (dataset.json)
 
     @property
     def simulated(self) -> bool:
@@ -88,6 +100,17 @@ def trace_session(session: Path) -> SessionTrace:
     meta = json.loads(meta_path.read_text()) if meta_path.is_file() else {}
     peers = tuple(p for p in meta.get("peers", []) if isinstance(p, dict))
     generator = str(manifest.get("source", {}).get("generator", ""))
+    flagged = {str(e["label"]): [str(f) for f in e["flags"]] for e in manifest["experiments"] if e.get("flags")}
     return SessionTrace(str(session), files, fingerprint, sha256(session / CALIBRATION), sha256(session / REGISTER_MAP),
                         as_utc(meta.get("started")), as_utc(meta.get("finished")), peers,
-                        generated=generator.startswith("simulator"))
+                        generated=generator.startswith("simulator"), flagged=flagged)
+
+
+def measuring_equipment(trace: SessionTrace) -> tuple[Equipment, ...]:
+    """The measuring equipment a record names.  Today: the DAQ calibration file the session
+    used, by its hash (the rig knows no transducer serials).  This is the hook for the
+    metrology's calibration records (rig.qc.calibration): each transducer with its serial,
+    certificate and due date goes in here as an Equipment entry."""
+    if trace.calibration_sha256 is None:
+        return ()
+    return (Equipment("DAQ calibration file (gain and offset of the four channels)", sha256=trace.calibration_sha256),)
