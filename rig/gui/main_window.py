@@ -116,8 +116,7 @@ class MainWindow(QtWidgets.QMainWindow):
             QcDone: self._on_qc_done, SafeStopIncomplete: self._on_safe_stop_incomplete}
         try:
             self.station = Station(shaker, daq, self.queue.put, rig_config=args.rig_config,
-                                   calibration=args.calibration, register_map=args.register_map,
-                                   speed=args.speed if args.simulate else 1.0)
+                                   calibration=args.calibration, register_map=args.register_map)
         except BaseException:
             if self.simulated:
                 self.simulated.stop()
@@ -428,7 +427,7 @@ class MainWindow(QtWidgets.QMainWindow):
         progress = self.plan.progress
         current = progress.current if progress is not None and self.station.sessions.running else None
         if current is not None:
-            if current.status in ("settling", "capturing"):
+            if current.status in ("settling", "capturing") and current.spec is not None:
                 return current.label, current.spec.frequency_hz, ""
             return None, None, "no excitation running"
         manual = self.station.manual

@@ -3,9 +3,9 @@ function ``rig qc run`` calls, run by the console's session worker with the wind
 subscribers (rig.gui.session_worker): the same checks, session, identification,
 judgement, record, report and exit status, through the one session lifecycle.
 
-What the QC panel shows comes from typed data only: its progress from the session's
-events and the re-prediction of the time left (:class:`QcTracker`), its verdict and
-table from the stored record (:func:`done_from`).
+What the QC panel shows comes from typed data only: its progress from the session's one
+progress (:class:`QcTracker` renders it), its verdict and table from the stored record
+(:func:`done_from`).
 """
 
 from __future__ import annotations
@@ -20,11 +20,11 @@ from rig.events import Event, Kind, Message
 from rig.qc.judge import Outcome
 from rig.qc.present import shown
 from rig.qc.run import EXIT_BY_VERDICT, Prediction, QcOptions, QcOutcome
+from rig.session.session_progress import SessionProgress
 
 # What the operator is told to do: an INCONCLUSIVE unit is neither passed nor failed, it is tested again.
 SHOWN = {Outcome.PASS: "PASS", Outcome.FAIL: "FAIL", Outcome.INCONCLUSIVE: "RETEST"}
 VERDICT_BY_EXIT = {code: outcome for outcome, code in EXIT_BY_VERDICT.items()}
-RUNNING_SHARE = 0.95     # of its estimate, the most a running experiment counts as done before it is written
 
 
 @dataclass(frozen=True)
@@ -115,66 +115,39 @@ def ended(request: QcRequest, reason: str, report: Path | None, bug: bool) -> Qc
 
 class QcTracker:
     """A queued subscriber of the unit's session: its progress as :class:`QcProgress`,
-    from the rig time predicted per experiment (the session's own estimates, on record
-    in session.json), the events and the rig time the running experiment has taken so
-    far (the session's clock at its measured pace, at most 95 % of its estimate until it
-    is written); after each captured experiment the time left is predicted again from the
-    parameters identified so far (:meth:`predicted`)."""
+    rendered from the session's one :class:`~rig.session.session_progress.SessionProgress`
+    (its fraction done and rig time left, which the re-prediction after each captured
+    experiment updates through the bus: :meth:`predicted` only names the experiments it
+    followed)."""
 
-    def __init__(self, estimates_s: dict[str, float], post: Callable[[Message], None],
-                 clock: Callable[[], float], pace: Callable[[], float]) -> None:
-        self.estimates = dict(estimates_s)
-        self.order = list(estimates_s)
-        self.post, self.clock, self.pace = post, clock, pace
-        self.done: set[str] = set()
-        self.current: str | None = None
-        self.started: dict[str, float] = {}    # each experiment's first event, on the session's clock
-        self.phase = ""
+    def __init__(self, progress: SessionProgress, post: Callable[[Message], None]) -> None:
+        self.progress, self.post = progress, post
+        self.order = [label for label, r in progress.experiments.items() if r.note != "earlier"]
         self.after = ""
         self._lock = threading.Lock()  # the bus's thread and the session's (predicted) both call in
         self._emit("session started: the first experiment")
 
     def __call__(self, e: Event) -> None:
         with self._lock:
-            if e.experiment is not None and e.experiment in self.estimates:
-                if e.kind in (Kind.PHASE, Kind.PROGRESS):
-                    self.started.setdefault(e.experiment, self.clock())
-                    self.current, self.phase = e.experiment, str(e.data["phase"])
-                elif e.kind in (Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED):
-                    self.done.add(e.experiment)
-                else:
-                    return
-            elif e.kind != Kind.SESSION_END:
-                return
             if e.kind == Kind.SESSION_END:
                 judging = "; identifying and judging the unit" if e.data["exit_code"] == 0 else ""
                 self._emit(f"session {e.data['message']}{judging}")
-            else:
+            elif e.kind in (Kind.PHASE, Kind.PROGRESS, Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED, Kind.LINK,
+                            Kind.PREDICTION):
                 self._emit(self._doing())
 
     def predicted(self, prediction: Prediction) -> None:
-        """The rest of the plan re-predicted (rig.qc.run.decider): its estimates scaled to it."""
+        """The rest of the plan re-predicted (rig.qc.run.decider): after which experiments."""
         with self._lock:
-            rest = [label for label in self.order if label not in prediction.after]
-            total = sum(self.estimates[label] for label in rest)
-            if total > 0:
-                for label in rest:
-                    self.estimates[label] *= prediction.rig_left_s / total
             self.after = ", ".join(prediction.after)
             self._emit(self._doing())
 
     def _doing(self) -> str:
-        if self.current is None:
-            return "session started: the first experiment"
-        number = self.order.index(self.current) + 1
-        return f"experiment {number} of {len(self.order)} ({self.current}): {self.phase}"
+        current = self.progress.current
+        if current is None:
+            return "between experiments" if self.progress.rig_done_s() else "session started: the first experiment"
+        number = self.order.index(current.label) + 1
+        return f"experiment {number} of {len(self.order)} ({current.label}): {current.status}"
 
     def _emit(self, text: str) -> None:
-        total = sum(self.estimates.values())
-        done = sum(self.estimates[label] for label in self.done)
-        # begun, not yet written (an experiment's file is written while the next one moves)
-        now, pace = self.clock(), self.pace()
-        running = sum(min((now - t0) * pace, RUNNING_SHARE * self.estimates[label])
-                      for label, t0 in self.started.items() if label not in self.done)
-        fraction = min((done + running) / total, 1.0) if total > 0 else 0.0
-        self.post(QcProgress(fraction, max(total - done - running, 0.0), text, self.after))
+        self.post(QcProgress(self.progress.fraction_done(), self.progress.rig_left_s(), text, self.after))

@@ -48,10 +48,10 @@ from rig.session.run import (
 
 class SessionWorker:
     def __init__(self, post: Callable[[Message], None], manual: ManualControl, emergency: EmergencyStop,
-                 heartbeat: Heartbeat, config_files: dict[str, str | None], speed: float,
+                 heartbeat: Heartbeat, config_files: dict[str, str | None],
                  captured: Callable[[RunResult, RunOptions], None]) -> None:
         self.post, self.manual, self.emergency, self.heartbeat = post, manual, emergency, heartbeat
-        self.config_files, self.speed, self.captured = config_files, speed, captured
+        self.config_files, self.captured = config_files, captured
         self.runner: SessionRunner | None = None      # the session's, while one runs
         self.closing = False                          # the window is closing: no links taken back
         self._stop_reason: str | None = None          # a stop asked for before the runner existed
@@ -115,9 +115,7 @@ class SessionWorker:
         self.manual.release()
 
     def _opened(self, ctx: SessionContext, opt: RunOptions, qc: bool) -> None:
-        prep = ctx.runner.prep
-        progress = PlanProgress(prep.plan, prep.config, ctx.session.meta["date"], self.speed, ctx.session.completed())
-        self.post(SessionOpened(ctx.session.path, progress, opt, qc))
+        self.post(SessionOpened(ctx.session.path, PlanProgress(ctx.progress), opt, qc))
 
     # ----- a plan ---------------------------------------------------------------------------------------------
     def _run_plan(self, opt: RunOptions, identify: bool) -> None:
@@ -161,7 +159,7 @@ class SessionWorker:
         def attach(ctx: SessionContext) -> list[Subscriber]:
             folder.append(ctx.session.path)
             self._opened(ctx, ctx.runner.prep.options, qc=True)
-            self._tracker = QcTracker(ctx.estimates_s, self.post, ctx.rig_clock, ctx.current_pace)
+            self._tracker = QcTracker(ctx.progress, self.post)
             return [self._tracker]
 
         def predicted(prediction: Prediction) -> None:

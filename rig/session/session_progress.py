@@ -155,9 +155,10 @@ class SessionProgress:
         if e.kind == Kind.PREDICTION:
             self._repredicted(float(d["rig_time_left_s"]))
             return None
-        r = self.experiments.get(e.experiment or "")
-        if r is None:
+        found = self.experiments.get(e.experiment or "")
+        if found is None:
             return None
+        r = found
         if e.kind == Kind.PHASE:
             phase = str(d["phase"])
             if phase in ACTIVE:
