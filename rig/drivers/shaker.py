@@ -384,9 +384,9 @@ class Shaker:
         patience = self.reconnect_s if patience_s is None else patience_s
         if not self._lock.acquire(timeout=-1 if lock_timeout_s is None else max(lock_timeout_s, 0.0)):
             lost = self._lost_since
+            # Said the same way each time, so that a window logs it once, not once a second
             raise ShakerLinkError(f"Modbus link to {self.url} busy with another request" if lost is None else
-                                  f"Modbus link to {self.url} lost {self.clock.monotonic() - lost:.0f} s ago: "
-                                  "another request is reconnecting it")
+                                  f"Modbus link to {self.url} lost: another request is reconnecting it")
         try:
             if self._given_up:   # this outage has had its whole reconnect time already: one quick try each
                 patience = min(patience, GIVEN_UP_TRY_S)

@@ -19,7 +19,9 @@ from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERNAL
 from rig.events import Event, Kind, Message
 from rig.qc.judge import Outcome
 from rig.qc.present import shown
+from rig.qc.records import QcRecord
 from rig.qc.run import EXIT_BY_VERDICT, Prediction, QcOptions, QcOutcome
+from rig.qc.spec import Spec
 from rig.session.session_progress import SessionProgress
 
 # What the operator is told to do: an INCONCLUSIVE unit is neither passed nor failed, it is tested again.
@@ -57,6 +59,7 @@ class QcRow:
     limits: str
     acceptance: str
     sigma: str = ""
+    origin: str = ""     # measured (on an experiment's samples) or predicted (from the identified model)
 
 
 @dataclass(frozen=True)
@@ -83,22 +86,47 @@ class QcDone(Message):
     simulated: bool = False            # the record says a peer named itself a simulator
     reason: str = ""                   # why there is no verdict (refused, aborted, error)
     retest_periods: int | None = None  # RETEST: the periods of the retest
+    trace: str = ""                    # who, by which rules (spec, its revision and hash), at which k
 
 
-def done_from(request: QcRequest, outcome: QcOutcome, retest_periods: int) -> QcDone:
+def origin(spec: Spec, name: str) -> str:
+    """Where a characteristic's value comes from, as its kind says: measured on an
+    experiment's samples, identified (the model fitted to the measured experiments), or
+    predicted (a test no experiment ran, a drop, simulated with the identified model).
+    The first word is the label the QC tab shows beside the name."""
+    c = next((c for c in spec.characteristics if c.name == name), None)
+    if c is None:
+        return ""
+    if c.kind == "loop_energy" and c.args.get("experiment") in {e.letter for e in spec.plan.experiments}:
+        return f"measured: on experiment {c.args['experiment']}'s samples"
+    if c.kind == "drop_peak_force":
+        return "predicted: a drop test simulated with the identified model, not measured"
+    return "identified: from the model fitted to the measured experiments"
+
+
+def trace(record: QcRecord, k: float) -> str:
+    """Who judged by which rules, at which coverage factor: the verdict's traceability line."""
+    k_used = record.k if record.k is not None else k
+    return (f"Operator {record.operator} · spec {record.spec_name} revision {record.spec_version} (sha256 "
+            f"{record.spec_sha256[:12]}…) · values ± kσ with k = {k_used:g}")
+
+
+def done_from(request: QcRequest, outcome: QcOutcome, spec: Spec) -> QcDone:
     """The panel's verdict, table and causes from the record the test stored."""
     record = outcome.record
     verdict = VERDICT_BY_EXIT.get(outcome.exit_code) if record.verdict is not None else None
     if verdict is None:
         return QcDone(request.serial, outcome.exit_code, "ABORTED", outcome.report, simulated=record.simulated,
-                      reason=record.reason or f"exit status {outcome.exit_code}")
+                      reason=record.reason or f"exit status {outcome.exit_code}", trace=trace(record, outcome.k))
     rows = []
     for c in record.characteristics:
         s = shown(record, c, outcome.k)
-        rows.append(QcRow(s.outcome, s.title, s.value, s.limits, s.acceptance, f"{s.sigma} {s.basis}".strip()))
+        rows.append(QcRow(s.outcome, s.title, s.value, s.limits, s.acceptance, f"{s.sigma} {s.basis}".strip(),
+                          origin(spec, c.name)))
     return QcDone(request.serial, outcome.exit_code, SHOWN[verdict], outcome.report, rows=rows,
                   causes=list(record.diagnosis), remedy=record.remedy or "", simulated=record.simulated,
-                  retest_periods=retest_periods if verdict is Outcome.INCONCLUSIVE else None)
+                  retest_periods=spec.retest_periods() if verdict is Outcome.INCONCLUSIVE else None,
+                  trace=trace(record, outcome.k))
 
 
 def refused(request: QcRequest, reason: str) -> QcDone:

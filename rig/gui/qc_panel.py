@@ -84,6 +84,9 @@ class QcPanel(QtWidgets.QWidget):
         self.step = QtWidgets.QLabel("")
         self.step.setObjectName("qcStep")
         self.step.setWordWrap(True)
+        self.trace = QtWidgets.QLabel("")
+        self.trace.setObjectName("qcTrace")
+        self.trace.setWordWrap(True)            # operator, spec revision and hash, k: beside the values
         self.causes = QtWidgets.QLabel("")
         self.causes.setObjectName("qcCauses")
         self.causes.setWordWrap(True)           # the likely cause in full, never clipped
@@ -110,6 +113,7 @@ class QcPanel(QtWidgets.QWidget):
         layout.addWidget(self.progress)
         layout.addWidget(self.causes)
         layout.addWidget(self.report)
+        layout.addWidget(self.trace)
         layout.addWidget(self.table, 1)
         none = verdict_colours(None)
         self._paint("—", (none.banner, none.banner_text))
@@ -143,6 +147,7 @@ class QcPanel(QtWidgets.QWidget):
                             "python -m rig qc run, in this console's session.")
         self.report.setText("")
         self.causes.setText("")
+        self.trace.setText("")
         self.table.setRowCount(0)
         self.progress.setValue(0)
         self.step.setText("starting: the spec's checks, then the links")
@@ -182,13 +187,16 @@ class QcPanel(QtWidgets.QWidget):
         if done.simulated:
             lines.append("SIMULATED: measured on a simulator, not a production record")
         self.causes.setText("\n".join(lines))
+        self.trace.setText(done.trace)
         self._fill(done)
         self.set_running(False)
 
     def _fill(self, done: QcDone) -> None:
         self.table.setRowCount(len(done.rows))
         for i, row in enumerate(done.rows):
-            for j, text in enumerate((row.title, row.value, row.limits, row.acceptance, row.outcome)):
+            # what is a prediction of the identified model (a drop test) says so beside its name
+            title = row.title + (f" ({row.origin.split(':', 1)[0]})" if row.origin else "")
+            for j, text in enumerate((title, row.value, row.limits, row.acceptance, row.outcome)):
                 item = QtWidgets.QTableWidgetItem(text)
                 if j:
                     item.setTextAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
@@ -199,6 +207,8 @@ class QcPanel(QtWidgets.QWidget):
                     item.setForeground(QtGui.QColor(verdict_colours(text).text))
                 if j == 1 and row.sigma:
                     item.setToolTip(f"σ {row.sigma}")
+                if j == 0 and row.origin:
+                    item.setToolTip(row.origin)
                 self.table.setItem(i, j, item)
         QtCore.QTimer.singleShot(0, self._fit_rows)
 

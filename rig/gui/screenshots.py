@@ -49,11 +49,6 @@ def shoot(window: MainWindow, path: Path) -> Path:
     return path
 
 
-def status_of(window: MainWindow, row: int) -> str:
-    progress = window.plan.progress
-    return progress.rows[row].status if progress is not None else ""
-
-
 def capturing(window: MainWindow, row: int) -> bool:
     """A capture under way, and the table saying so (what the screenshot must show): g's
     three periods at 0.2 Hz take 15 s of rig time, several of the console's status reads."""

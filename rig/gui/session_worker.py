@@ -182,7 +182,7 @@ class SessionWorker:
             if not shaker_url or not daq_url:
                 raise BadInput("give the controller's and the DAQ's addresses (--shaker, --daq) or --simulate")
             outcome = test_unit(request.options(shaker_url, daq_url, self.config_files), to)
-            done = done_from(request, outcome, load_spec(request.spec).retest_periods())
+            done = done_from(request, outcome, load_spec(request.spec))
         except (BadInput, InputError) as exc:
             done = refused(request, str(exc))
         except RigError as exc:
