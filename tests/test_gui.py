@@ -355,8 +355,11 @@ def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path
     # The table as the report shows it (every number with its unit), the likely cause in full.
     table = window.qc.table
     rows = [[table.item(i, j).text() for j in range(table.columnCount())] for i in range(table.rowCount())]
-    assert len(rows) == 5 and rows[1][0] == "Damping force at 0.3 m/s" and rows[1][4] == "FAIL"
-    assert all(cell.endswith((" bar", " N", " J", " kN", " %")) for row in rows for cell in row[1:4])
+    assert len(rows) == 5 and rows[1][0] == "Damping force at 0.3 m/s (identified)" and rows[1][4] == "FAIL"
+    assert rows[4][0] == "Drop-test peak force (predicted)"           # a simulated drop, said so
+    trace = find(window, QtWidgets.QLabel, "qcTrace").text()        # who, which rules, which k: beside the values
+    assert trace.startswith("Operator ") and " revision 1.2.0 (sha256 " in trace and "k = " in trace
+    assert all(cell.endswith((" bar abs.", " N", " J", " kN", " %")) for row in rows for cell in row[1:4])
     causes = find(window, QtWidgets.QLabel, "qcCauses").text()
     assert "Damping force at 0.3 m/s too low: orifice wear or wrong oil" in causes and "SIMULATED" in causes
     # The record `rig qc run` writes, with the same verdict (RETEST is the INCONCLUSIVE's remedy).

@@ -12,11 +12,12 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERNAL
 from rig.events import Event, Kind, Message
+from rig.gui.units import GAS_PRESSURE_UNIT
 from rig.qc.judge import Outcome
 from rig.qc.present import shown
 from rig.qc.records import QcRecord
@@ -59,7 +60,7 @@ class QcRow:
     limits: str
     acceptance: str
     sigma: str = ""
-    origin: str = ""     # measured (on an experiment's samples) or predicted (from the identified model)
+    origin: str = ""     # measured, identified or predicted (a key of ORIGINS)
 
 
 @dataclass(frozen=True)
@@ -89,19 +90,19 @@ class QcDone(Message):
     trace: str = ""                    # who, by which rules (spec, its revision and hash), at which k
 
 
+ORIGINS = {"measured": "on the experiment's own samples",
+           "identified": "from the model fitted to the measured experiments",
+           "predicted": "a test no experiment ran (a drop) simulated with the identified model, not measured"}
+
+
 def origin(spec: Spec, name: str) -> str:
-    """Where a characteristic's value comes from, as its kind says: measured on an
-    experiment's samples, identified (the model fitted to the measured experiments), or
-    predicted (a test no experiment ran, a drop, simulated with the identified model).
-    The first word is the label the QC tab shows beside the name."""
+    """Where a characteristic's value comes from, as its kind says (a key of ORIGINS)."""
     c = next((c for c in spec.characteristics if c.name == name), None)
     if c is None:
         return ""
     if c.kind == "loop_energy" and c.args.get("experiment") in {e.letter for e in spec.plan.experiments}:
-        return f"measured: on experiment {c.args['experiment']}'s samples"
-    if c.kind == "drop_peak_force":
-        return "predicted: a drop test simulated with the identified model, not measured"
-    return "identified: from the model fitted to the measured experiments"
+        return "measured"
+    return "predicted" if c.kind == "drop_peak_force" else "identified"
 
 
 def trace(record: QcRecord, k: float) -> str:
@@ -119,8 +120,11 @@ def done_from(request: QcRequest, outcome: QcOutcome, spec: Spec) -> QcDone:
         return QcDone(request.serial, outcome.exit_code, "ABORTED", outcome.report, simulated=record.simulated,
                       reason=record.reason or f"exit status {outcome.exit_code}", trace=trace(record, outcome.k))
     rows = []
+    kinds = {c.name: c.kind for c in spec.characteristics}
     for c in record.characteristics:
-        s = shown(record, c, outcome.k)
+        # the spec's "bar" of a gas pressure is absolute: named as every other screen names it
+        named = replace(c, unit=GAS_PRESSURE_UNIT) if kinds.get(c.name) == "gas_pressure" and c.unit == "bar" else c
+        s = shown(record, named, outcome.k)
         rows.append(QcRow(s.outcome, s.title, s.value, s.limits, s.acceptance, f"{s.sigma} {s.basis}".strip(),
                           origin(spec, c.name)))
     return QcDone(request.serial, outcome.exit_code, SHOWN[verdict], outcome.report, rows=rows,

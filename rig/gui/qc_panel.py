@@ -10,7 +10,7 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from rig.gui.qc import SHOWN, QcDone, QcProgress, QcRequest
+from rig.gui.qc import ORIGINS, SHOWN, QcDone, QcProgress, QcRequest
 from rig.qc.present import verdict_colours
 
 TESTING = ("#e3f2fd", "#0d47a1")                     # (background, text) while a unit is tested
@@ -195,7 +195,7 @@ class QcPanel(QtWidgets.QWidget):
         self.table.setRowCount(len(done.rows))
         for i, row in enumerate(done.rows):
             # what is a prediction of the identified model (a drop test) says so beside its name
-            title = row.title + (f" ({row.origin.split(':', 1)[0]})" if row.origin else "")
+            title = row.title + (f" ({row.origin})" if row.origin else "")
             for j, text in enumerate((title, row.value, row.limits, row.acceptance, row.outcome)):
                 item = QtWidgets.QTableWidgetItem(text)
                 if j:
@@ -208,7 +208,7 @@ class QcPanel(QtWidgets.QWidget):
                 if j == 1 and row.sigma:
                     item.setToolTip(f"σ {row.sigma}")
                 if j == 0 and row.origin:
-                    item.setToolTip(row.origin)
+                    item.setToolTip(f"{row.origin}: {ORIGINS[row.origin]}")
                 self.table.setItem(i, j, item)
         QtCore.QTimer.singleShot(0, self._fit_rows)
 

@@ -17,6 +17,7 @@ from rig.drivers.estop import EstopDone
 from rig.drivers.registers import ControllerState
 from rig.drivers.shaker import ShakerStatus
 from rig.gui.state_strip import CHECK_RIG, hydraulics_on, short_link_error
+from rig.gui.units import supply_text
 
 
 @dataclass(frozen=True)
@@ -77,7 +78,7 @@ class TripLatch:
     def banner(self, st: ShakerStatus | None, link_error: str | None) -> Banner:
         """The banner's line and Reset…, from the latch and the controller as last read."""
         # What the actuator does now, from the registers: held only with pressure behind it.
-        bar = f"{st.hydraulic_pressure_pa / 1e5:.0f} bar" if st is not None else ""
+        bar = supply_text(st) if st is not None else ""
         held = (f"hydraulics OFF ({bar}): the actuator is not held" if st is not None and not hydraulics_on(st)
                 else f"the controller holds the position ({bar})" if st is not None
                 else "the controller's state is not known (no answer)")
