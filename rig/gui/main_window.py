@@ -55,8 +55,8 @@ from rig.gui.station import Station, session_options
 from rig.gui.trip import TripLatch
 from rig.planning.plans import comma_list, load_plan
 from rig.qc.spec import load_spec
+from rig.session.preparation import RunOptions
 from rig.session.progress import describe
-from rig.session.run import RunOptions
 
 REDRAW_HZ = 30
 BANNER_ALARM, BANNER_NO_ANSWER, BANNER_CLEAR = COLOURS[ControllerState.ALARM], "#e65100", "#2e7d32"

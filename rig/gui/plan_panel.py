@@ -179,7 +179,7 @@ class PlanPanel(QtWidgets.QWidget):
     runRequested = QtCore.Signal()
     resumeRequested = QtCore.Signal(str)
     abortRequested = QtCore.Signal()
-    _previewed = QtCore.Signal(int, object, object)     # preview number, Plan, PlanProgress (from its thread)
+    _previewed = QtCore.Signal(int, object, object)     # preview number, Plan, PlanProgress or why not (its thread)
 
     def __init__(self, config: RigConfig, plan: str, experiments: str | None, out: Path,
                  parent: QtWidgets.QWidget | None = None) -> None:
@@ -317,16 +317,23 @@ class PlanPanel(QtWidgets.QWidget):
         threading.Thread(target=self._estimate, args=(number, plan), name="plan-preview", daemon=True).start()
 
     def _estimate(self, number: int, plan: Plan) -> None:
-        """The preview's times, in its thread."""
-        progress = PlanProgress.preview(plan, self.config)
+        """The preview's times, in its thread: the one prediction (rig.planning.prediction)."""
+        result: PlanProgress | str
         try:
-            self._previewed.emit(number, plan, progress)
-        except RuntimeError:
-            pass    # the panel was closed while the times were computed: nobody to show them to
+            result = PlanProgress.preview(plan, self.config)
+        except Exception as exc:  # noqa: BLE001 — said where the times would be; Run checks the plan again
+            result = f"plan: its rig time could not be predicted ({type(exc).__name__}: {exc})"
+        try:
+            self._previewed.emit(number, plan, result)
+        except RuntimeError:      # the panel was closed while the times were computed: nobody to show them to
+            return
 
-    def _show_preview(self, number: int, plan: Plan, progress: PlanProgress) -> None:
+    def _show_preview(self, number: int, plan: Plan, progress: PlanProgress | str) -> None:
         if number != self._preview_number or (self.progress is not None and self.progress.ended is None):
             return          # a later edit, or a session started meanwhile
+        if isinstance(progress, str):
+            self.eta.setText(progress)
+            return
         self.show_progress(progress)
         self.progress = None
         self.eta.setText(f"{len(plan.experiments)} experiments as listed, about "

@@ -1,13 +1,13 @@
 """The session worker (no Qt here): one session at a time on the ``rig-session`` thread,
 a plan (what ``rig run`` would run) or a unit's QC test (what ``rig qc run`` would run,
 through :func:`rig.qc.run.test_unit`), both through
-:func:`rig.session.run.run_lifecycle`: links → session → safe stop.  The window is one
+:func:`rig.session.lifecycle.run_lifecycle`: links → session → safe stop.  The window is one
 more subscriber of the session's events (queued: the acquisition never waits on it),
 and the status poller reads the session's links while it runs.
 
 Abort, the E-STOP and the window closing reach the session through
 :meth:`SessionWorker.request_stop`, which hands the reason to the runner
-(:meth:`rig.session.run.SessionRunner.request_stop`), or keeps it for the runner
+(:meth:`rig.session.runner.SessionRunner.request_stop`), or keeps it for the runner
 about to exist.
 """
 
@@ -23,6 +23,7 @@ from rich.console import Console
 from rich.text import Text
 
 from identify.errors import InputError
+from identify.exit_codes import EXIT_OK
 from rig.drivers.daq import Daq
 from rig.drivers.shaker import Shaker
 from rig.errors import BadInput, RigError
@@ -34,16 +35,10 @@ from rig.gui.plan_state import PlanProgress
 from rig.gui.qc import QcDone, QcRequest, QcStarted, QcTracker, done_from, ended, refused
 from rig.qc.run import Prediction, QcSubscribers, test_unit
 from rig.qc.spec import load_spec
-from rig.session.run import (
-    EXIT_OK,
-    Prepared,
-    RunOptions,
-    RunResult,
-    SessionContext,
-    SessionRunner,
-    prepare,
-    run_lifecycle,
-)
+from rig.session.lifecycle import SessionContext, run_lifecycle
+from rig.session.outcome import RunResult
+from rig.session.preparation import Prepared, RunOptions, prepare
+from rig.session.runner import SessionRunner
 
 
 class SessionWorker:

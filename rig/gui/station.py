@@ -36,7 +36,7 @@ from rig.gui.fitting import Fitting, IdentifySettings
 from rig.gui.manual import Heartbeat, ManualControl
 from rig.gui.session_worker import SessionWorker
 from rig.gui.status_poller import StatusPoller
-from rig.session.run import RunOptions
+from rig.session.preparation import RunOptions
 
 
 class Station:
