@@ -307,7 +307,7 @@ def test_the_console_table_comes_from_the_stored_record():
     assert done.shown == "FAIL" and done.simulated and done.causes == ["Gas precharge too low: a gas leak"]
     assert done.retest_periods is None and done.report == Path("/tmp/x/qc-report.html")
     # traceable beside the values: who, which rules (revision and hash), which k
-    assert done.trace == (f"Operator {stored.operator} · spec {stored.spec_name} revision {stored.spec_version} "
+    assert done.trace == (f"Operator {stored.operator} (the login name: no operator typed) · spec {stored.spec_name} revision {stored.spec_version} "
                           f"(sha256 {stored.spec_sha256[:12]}…) · values ± kσ with k = 2")
     aborted = replace(stored, verdict=None, status="ABORTED", characteristics=(), reason="session interrupted")
     done = done_from(QcRequest("SN-0042"), QcOutcome(130, aborted, outcome.report, 2.0, "x"), SPEC)

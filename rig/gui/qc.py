@@ -92,7 +92,8 @@ class QcDone(Message):
 
 ORIGINS = {"measured": "on the experiment's own samples",
            "identified": "from the model fitted to the measured experiments",
-           "predicted": "a test no experiment ran (a drop) simulated with the identified model, not measured"}
+           "predicted": "a test the plan does not run (a drop, an excitation of its own) simulated with the "
+                        "identified model, not measured"}
 
 
 def origin(spec: Spec, name: str) -> str:
@@ -100,15 +101,17 @@ def origin(spec: Spec, name: str) -> str:
     c = next((c for c in spec.characteristics if c.name == name), None)
     if c is None:
         return ""
-    if c.kind == "loop_energy" and c.args.get("experiment") in {e.letter for e in spec.plan.experiments}:
-        return "measured"
+    if c.kind == "loop_energy":     # measured where the plan runs its experiment, else simulated
+        return "measured" if c.args.get("experiment") in {e.letter for e in spec.plan.experiments} else "predicted"
     return "predicted" if c.kind == "drop_peak_force" else "identified"
 
 
-def trace(record: QcRecord, k: float) -> str:
-    """Who judged by which rules, at which coverage factor: the verdict's traceability line."""
+def trace(record: QcRecord, k: float, typed: bool = True) -> str:
+    """Who judged by which rules, at which coverage factor: the verdict's traceability line
+    (``typed``: the operator's name was typed, not taken from the login)."""
     k_used = record.k if record.k is not None else k
-    return (f"Operator {record.operator} · spec {record.spec_name} revision {record.spec_version} (sha256 "
+    who = record.operator if typed else f"{record.operator} (the login name: no operator typed)"
+    return (f"Operator {who} · spec {record.spec_name} revision {record.spec_version} (sha256 "
             f"{record.spec_sha256[:12]}…) · values ± kσ with k = {k_used:g}")
 
 
@@ -118,7 +121,8 @@ def done_from(request: QcRequest, outcome: QcOutcome, spec: Spec) -> QcDone:
     verdict = VERDICT_BY_EXIT.get(outcome.exit_code) if record.verdict is not None else None
     if verdict is None:
         return QcDone(request.serial, outcome.exit_code, "ABORTED", outcome.report, simulated=record.simulated,
-                      reason=record.reason or f"exit status {outcome.exit_code}", trace=trace(record, outcome.k))
+                      reason=record.reason or f"exit status {outcome.exit_code}",
+                      trace=trace(record, outcome.k, request.operator is not None))
     rows = []
     kinds = {c.name: c.kind for c in spec.characteristics}
     for c in record.characteristics:
@@ -130,7 +134,7 @@ def done_from(request: QcRequest, outcome: QcOutcome, spec: Spec) -> QcDone:
     return QcDone(request.serial, outcome.exit_code, SHOWN[verdict], outcome.report, rows=rows,
                   causes=list(record.diagnosis), remedy=record.remedy or "", simulated=record.simulated,
                   retest_periods=spec.retest_periods() if verdict is Outcome.INCONCLUSIVE else None,
-                  trace=trace(record, outcome.k))
+                  trace=trace(record, outcome.k, request.operator is not None))
 
 
 def refused(request: QcRequest, reason: str) -> QcDone:

@@ -157,10 +157,12 @@ class QcPanel(QtWidgets.QWidget):
 
     def show_progress(self, progress: QcProgress) -> None:
         self.progress.setValue(round(1000 * progress.fraction))
-        left = "" if progress.rig_left_s is None else \
-            f" — about {int(progress.rig_left_s // 60)}:{int(progress.rig_left_s % 60):02d} min:s of rig time left"
+        # no time left while a link is lost, as the plan tab and the terminal (one progress: the session's)
+        left = " — time left not known while a link is lost" if progress.rig_left_s is None else \
+            f" — about {int(progress.rig_left_s // 60)}:{int(progress.rig_left_s % 60):02d} m:s of rig time left"
         basis = (f" (predicted again after {progress.predicted_after} from the parameters identified so far)"
-                 if progress.predicted_after else " (the session's prediction for a nominal unit)" if left else "")
+                 if progress.predicted_after else " (the session's prediction for a nominal unit)"
+                 if progress.rig_left_s is not None else "")
         self.step.setText(f"{progress.text}{left}{basis}")
 
     def show_done(self, done: QcDone) -> None:
