@@ -301,14 +301,16 @@ def test_the_console_table_comes_from_the_stored_record():
     outcome = QcOutcome(1, stored, Path("/tmp/x/qc-report.html"), 2.0, "sqlite:///x")
     done = done_from(QcRequest("SN-0042"), outcome, SPEC)
     (row,) = done.rows
-    cells = shown(stored, stored.characteristics[0], 2.0)
+    # the gas pressure's "bar" is absolute: the console names it so, as its plots do
+    cells = shown(stored, replace(stored.characteristics[0], unit="bar abs."), 2.0)
     assert (row.title, row.value, row.limits, row.acceptance, row.outcome) == (
         cells.title, cells.value, cells.limits, cells.acceptance, "FAIL")
     assert done.shown == "FAIL" and done.simulated and done.causes == ["Gas precharge too low: a gas leak"]
     assert done.retest_periods is None and done.report == Path("/tmp/x/qc-report.html")
     # traceable beside the values: who, which rules (revision and hash), which k
-    assert done.trace == (f"Operator {stored.operator} (the login name: no operator typed) · spec {stored.spec_name} revision {stored.spec_version} "
-                          f"(sha256 {stored.spec_sha256[:12]}…) · values ± kσ with k = 2")
+    assert done.trace == (f"Operator {stored.operator} (the login name: no operator typed) · spec "
+                          f"{stored.spec_name} revision {stored.spec_version} (sha256 {stored.spec_sha256[:12]}…) · "
+                          "values ± kσ with k = 2")
     aborted = replace(stored, verdict=None, status="ABORTED", characteristics=(), reason="session interrupted")
     done = done_from(QcRequest("SN-0042"), QcOutcome(130, aborted, outcome.report, 2.0, "x"), SPEC)
     assert (done.shown, done.exit_code, done.reason, done.rows) == ("ABORTED", 130, "session interrupted", [])
