@@ -25,7 +25,7 @@ from rig.planning.criterion import DAQ_LAG_S
 from rig.planning.plans import Plan, comma_list, load_plan
 from rig.session.session_progress import ACTIVE, ExperimentProgress
 
-STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "skipped": "#ffe0b2", "interrupted": "#ffe0b2",
+STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "aborted": "#ffcdd2", "skipped": "#ffe0b2", "interrupted": "#ffe0b2",
                   "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb", "stopping": "#e3f2fd"}
 UNITS = {"stroke_mm": "mm", "force_N": "N", "pressure_bar": "bar", "gas_temperature_C": "°C"}
 TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "left\n[rig m:s]")
@@ -400,7 +400,8 @@ class PlanPanel(QtWidgets.QWidget):
             unread = silent and r.status in ("moving", "settling", "capturing", "stopping")
             stopping = self.stopping is not None and progress.ended is None and r.status in ACTIVE
             text = f"safe stop under way (was {r.status_text()})" if stopping else r.status_text()
-            status.setText(text + (" — the controller is not answering" if unread else ""))
+            # the count stands where it was last read: said so, beside "Settling: –" below
+            status.setText(text + (" when last read — the controller is not answering" if unread else ""))
             status.setBackground(QtGui.QColor(STATUS_COLOURS["stopping" if stopping else r.status]
                                               if (stopping or r.status in STATUS_COLOURS) else "#ffffff"))
             # no time left while stopping, nor while the controller is not read (the count stands still)

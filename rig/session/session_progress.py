@@ -72,7 +72,7 @@ class ExperimentProgress:
     label: str
     estimate_s: float                      # rig time predicted (re-predicted: scaled)
     spec: ExperimentSpec | None = None     # None: only its estimate is known (a terminal given estimates alone)
-    status: str = PENDING                  # pending, moving, settling, capturing, stopping, done, skipped, failed…
+    status: str = PENDING                  # pending, moving, settling, capturing, stopping, done, skipped, aborted…
     cycles: int = 0
     fraction: float = 0.0
     note: str = ""
@@ -147,9 +147,12 @@ class SessionProgress:
         if e.kind == Kind.SESSION_END:
             self.ended = str(d.get("message", ""))
             self.exit_status = ExitStatus(d["exit_status"]) if d.get("exit_status") else None
+            # an experiment the session's end cut short ends as the session did (aborted beside "Session aborted")
+            cut = {ExitStatus.INTERRUPTED: "interrupted", ExitStatus.ABORTED: "aborted"}.get(
+                self.exit_status, "failed") if self.exit_status is not None else "failed"
             for r in self.experiments.values():
                 if r.status in ACTIVE:
-                    r.status = "interrupted" if self.exit_status is ExitStatus.INTERRUPTED else "failed"
+                    r.status = cut
                     r.finished = self.rig_clock()
             return None
         if e.kind == Kind.PREDICTION:
