@@ -26,7 +26,8 @@ from rig.planning.plans import Plan, comma_list, load_plan
 from rig.session.session_progress import ACTIVE, ExperimentProgress
 
 STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "aborted": "#ffcdd2", "skipped": "#ffe0b2",
-                  "interrupted": "#ffe0b2", "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb", "stopping": "#e3f2fd"}
+                  "interrupted": "#ffe0b2", "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb",
+                  "stopping": "#e3f2fd"}
 UNITS = {"stroke_mm": "mm", "force_N": "N", "pressure_bar": "bar", "gas_temperature_C": "°C"}
 TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "left\n[rig m:s]")
 # Under the drift criterion the changes are for information: grey under their threshold, pale orange over it, never
