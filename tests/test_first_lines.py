@@ -9,10 +9,12 @@ from pathlib import Path
 import pytest
 from rich.console import Console
 
-import rig.session.run as run_module
+import rig.session.lifecycle as lifecycle
+import rig.session.terminal as terminal
 from rig.drivers.shaker import ShakerLinkError
 from rig.events import Event, EventBus, Kind
-from rig.session.run import RunOptions, _ordered, execute, prepare
+from rig.session.lifecycle import _ordered
+from rig.session.run import RunOptions, execute, prepare
 
 ADDRESSES = {"shaker": "tcp://127.0.0.1:1", "daq": "socket://127.0.0.1:1"}
 
@@ -25,7 +27,7 @@ def test_the_first_line_comes_before_the_links_are_tried(tmp_path, monkeypatch):
     def dead(*args: object, **kwargs: object) -> None:
         raise ShakerLinkError("nothing answers at tcp://127.0.0.1:1 (injected)")
 
-    monkeypatch.setattr(run_module, "connect", dead)
+    monkeypatch.setattr(lifecycle, "connect", dead)
     out = io.StringIO()
     with pytest.raises(ShakerLinkError):
         execute(prepare(options(tmp_path)), Console(file=out, width=300))
@@ -35,7 +37,7 @@ def test_the_first_line_comes_before_the_links_are_tried(tmp_path, monkeypatch):
 
 
 def test_ordering_says_it_begins_how_far_it_is_and_what_it_found(tmp_path, monkeypatch):
-    monkeypatch.setattr(run_module, "ORDERING_PROGRESS_S", 0.0)     # every step said
+    monkeypatch.setattr(lifecycle, "ORDERING_PROGRESS_S", 0.0)     # every step said
     prep = prepare(options(tmp_path, experiments=["j", "n", "l"], order="thermal"))
     bus, said, events = EventBus(), [], []
 
@@ -63,7 +65,7 @@ def test_a_plan_run_as_listed_is_not_ordered_and_says_nothing_of_it(tmp_path):
 
 def test_early_lines_print_the_sessions_log_lines_until_the_progress_takes_over():
     out = io.StringIO()
-    early = run_module._EarlyLines(Console(file=out, width=300))
+    early = terminal._EarlyLines(Console(file=out, width=300))
     early(Event(Kind.LOG, None, {"message": "ordering: 3 of 14 experiments' successors predicted (4 s)",
                                  "ordering": True}, time=1.0))
     early(Event(Kind.LOG, None, {"message": "session aborted: … (before anything moved)"}, time=1.5))   # said last

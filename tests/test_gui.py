@@ -355,8 +355,12 @@ def test_qc_mode_gives_the_verdict_of_rig_qc_run_with_its_report(qtbot, tmp_path
     # The table as the report shows it (every number with its unit), the likely cause in full.
     table = window.qc.table
     rows = [[table.item(i, j).text() for j in range(table.columnCount())] for i in range(table.rowCount())]
-    assert len(rows) == 5 and rows[1][0] == "Damping force at 0.3 m/s" and rows[1][4] == "FAIL"
-    assert all(cell.endswith((" bar", " N", " J", " kN", " %")) for row in rows for cell in row[1:4])
+    assert len(rows) == 5 and rows[1][0] == "Damping force at 0.3 m/s (identified)" and rows[1][4] == "FAIL"
+    assert rows[4][0] == "Drop-test peak force (predicted)"           # a simulated drop, said so
+    assert rows[3][0] == "Energy dissipated per cycle (predicted)"    # an excitation the plan does not run
+    trace = find(window, QtWidgets.QLabel, "qcTrace").text()        # who, which rules, which k: beside the values
+    assert trace.startswith("Operator ") and " revision 1.2.0 (sha256 " in trace and "k = " in trace
+    assert all(cell.endswith((" bar abs.", " N", " J", " kN", " %")) for row in rows for cell in row[1:4])
     causes = find(window, QtWidgets.QLabel, "qcCauses").text()
     assert "Damping force at 0.3 m/s too low: orifice wear or wrong oil" in causes and "SIMULATED" in causes
     # The record `rig qc run` writes, with the same verdict (RETEST is the INCONCLUSIVE's remedy).
@@ -548,7 +552,7 @@ def test_the_daq_line_gives_the_measured_pace_with_its_clock(qtbot):
 
 
 def test_a_controller_lost_mid_run_keeps_the_daq_and_ends_in_a_safe_stop_said_incomplete(qtbot, tmp_path,
-                                                                                        relaxed_config, monkeypatch):
+                                                                                        relaxed_config):
     """The controller's Modbus server goes away during an experiment and does not come back:
     the console says so in one short line (the driver's words in the log), shows the
     operator's Abort under way, and after the session's end says that its safe stop did not
@@ -580,7 +584,9 @@ def test_a_controller_lost_mid_run_keeps_the_daq_and_ends_in_a_safe_stop_said_in
     if window.station.sessions.running:                 # the session may have ended on its own meanwhile
         assert "safe stop under way" in experiments.item(0, 4).text()
         assert experiments.item(0, 5).text() == ""      # no time left while stopping
-        assert "Safe stop under way" in find(window, QtWidgets.QLabel, "sessionEta").text()
+        # the controller is not answering: the stop is asked for, its steps not said to be under way
+        eta = find(window, QtWidgets.QLabel, "sessionEta").text()
+        assert eta.startswith("Safe stop asked for") and "not confirmed" in eta, eta
 
     qtbot.waitUntil(lambda: not window.station.sessions.running, timeout=HANG_MS)
     qtbot.waitUntil(lambda: strip.text().startswith("SAFE STOP INCOMPLETE"), timeout=HANG_MS)
@@ -597,10 +603,10 @@ def test_a_controller_lost_mid_run_keeps_the_daq_and_ends_in_a_safe_stop_said_in
     assert {"runPlanButton", "resumeButton", "hydraulicsOnButton"} <= set(disabled), disabled
     assert window.minimumSizeHint().width() <= 1280
 
-    monkeypatch.setattr(QtWidgets.QMessageBox, "question", lambda *a, **k: QtWidgets.QMessageBox.StandardButton.Yes)
-    qtbot.mouseClick(find(window, QtWidgets.QPushButton, "resetButton"), QtCore.Qt.MouseButton.LeftButton)
-    qtbot.waitUntil(lambda: strip.text().startswith("NOT READ"), timeout=HANG_MS)
-    assert "runPlanButton" in motion_disabled(window)       # still: the controller is not read
+    # Nothing reads the controller: no reset is offered that nothing could check, and the banner says why.
+    reset = find(window, QtWidgets.QPushButton, "resetButton")
+    assert not reset.isEnabled() and "not answering" in reset.toolTip()
+    assert "Reset…" not in banner.text() and "nothing confirms the rig at rest" in banner.text()
     closed(qtbot, window)
 
 

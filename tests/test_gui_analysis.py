@@ -1,4 +1,4 @@
-"""What the live view and the plan table compute, without Qt or a rig."""
+"""What the live view computes and the session's progress the plan table renders, without Qt or a rig."""
 
 from __future__ import annotations
 
@@ -13,6 +13,7 @@ from rig.events import Event
 from rig.gui import analysis
 from rig.gui.plan_state import PlanProgress
 from rig.planning.plans import load_plan
+from rig.session.session_progress import ExperimentProgress, SessionProgress, predicted_cycles_left
 
 
 def test_loop_energy_of_a_viscous_damper_is_pi_c_omega_a_squared():
@@ -37,19 +38,29 @@ def test_cycles_left_from_a_geometric_decay():
     thresholds = {"stroke_mm": 0.02, "pressure_bar": 0.0005}
     history = [(10, {"stroke_mm": 0.001, "pressure_bar": 0.004}), (20, {"stroke_mm": 0.001, "pressure_bar": 0.002})]
     # halves every 10 cycles: 0.002 → 0.0005 takes 20 more
-    assert analysis.predicted_cycles_left(history, thresholds, 3, 1500) == 20
-    assert analysis.predicted_cycles_left(history[:1], thresholds, 3, 1500) is None
+    assert predicted_cycles_left(history, thresholds, 3, 1500) == 20
+    assert predicted_cycles_left(history[:1], thresholds, 3, 1500) is None
     growing = [(10, {"stroke_mm": 0.001, "pressure_bar": 0.001}), (20, {"stroke_mm": 0.001, "pressure_bar": 0.002})]
-    assert analysis.predicted_cycles_left(growing, thresholds, 3, 1500) is None
+    assert predicted_cycles_left(growing, thresholds, 3, 1500) is None
     settled = [(2, {"stroke_mm": 0.001, "pressure_bar": 0.0001})]
-    assert analysis.predicted_cycles_left(settled, thresholds, 3, 1500) == 1     # the minimum still to come
+    assert predicted_cycles_left(settled, thresholds, 3, 1500) == 1     # the minimum still to come
+
+
+def plan_progress(letters: list[str], date: str, config, pace: float = 1.0, clock=None) -> PlanProgress:
+    """A plan table's progress of these experiments of the standard plan, its estimates the one prediction's."""
+    from rig.planning.prediction import predict
+
+    plan = load_plan("standard").select(letters)
+    estimates = {f"{date}{d.letter}": d.total_s for d in predict(plan, config)}
+    specs = {f"{date}{e.letter}": e for e in plan.experiments}
+    session = SessionProgress(estimates, pace, clock or (lambda: 0.0), specs=specs, config=config)
+    return PlanProgress(session, fed=False)
 
 
 def test_plan_rows_follow_the_events_and_the_eta_scales_with_what_was_measured():
     now = [0.0]
     config = load_rig_config()
-    progress = PlanProgress(load_plan("standard").select(["j", "n"]), config, "261122", speed=50.0,
-                            clock=lambda: now[0])
+    progress = plan_progress(["j", "n"], "261122", config, pace=50.0, clock=lambda: now[0])
     j, n = progress.rows
     assert [r.status_text() for r in progress.rows] == ["pending", "pending"]
     assert math.isclose(progress.session_left_s(), (j.estimate_s + n.estimate_s) / 50)
@@ -61,9 +72,12 @@ def test_plan_rows_follow_the_events_and_the_eta_scales_with_what_was_measured()
     now[0] = j.estimate_s / 10                          # took 5x longer than at 50x
     progress.apply(Event("experiment-done", "261122j", {"flags": []}))
     assert j.status_text() == "done"
-    assert math.isclose(progress.left_s(n), n.estimate_s / 10)
+    # the rest scaled by the ratio as far as the done ones are the session (their share of the estimate)
+    share = j.estimate_s / (j.estimate_s + n.estimate_s)
+    assert math.isclose(progress.rig_left_s(n), n.estimate_s * (1 + 4 * share))
     progress.apply(Event("phase", "261122n", {"phase": "settling"}))
-    progress.apply(Event("session-end", None, {"message": "interrupted (SIGINT)", "exit_code": EXIT_INTERRUPTED}))
+    progress.apply(Event("session-end", None, {"message": "interrupted (SIGINT)", "exit_code": EXIT_INTERRUPTED,
+                                               "exit_status": "interrupted"}))
     assert n.status == "interrupted" and progress.session_left_s() == 0.0
 
 
@@ -86,7 +100,6 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     from identify.notation import significant
     from rig.config import DEFAULT_RIG_CONFIG
     from rig.gui.plan_panel import INFO_OVER, INFO_UNDER, SteadyStateView
-    from rig.gui.plan_state import ExperimentRow
 
     config = load_rig_config(DEFAULT_RIG_CONFIG)
     assert config.steady_state.drift is not None
@@ -94,12 +107,14 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     view = SteadyStateView(config)
     qtbot.addWidget(view)
     assert "drift criterion decides" in view.title()
-    row = ExperimentRow(load_plan("standard").experiments[0], "261124a", 100.0)
+    row = ExperimentProgress("261124a", 100.0, load_plan("standard").experiments[0])
     change = {"stroke_mm": 1e-4, "force_N": 0.5, "pressure_bar": 0.002, "gas_temperature_C": 0.04}
     row.settling = [(40, change | {"bias_sigma": 4 * fraction}), (50, change | {"bias_sigma": 2 * fraction})]
     row.status, row.cycles = "settling", 50
+    session = SessionProgress({"261124a": 100.0}, specs={"261124a": row.spec}, config=config)
+    session.experiments["261124a"] = row
     view.show_row(row)
-    view.show_count(row)
+    view.show_count(row, session.cycles_left(row))
     assert f"up to {significant(2 * fraction)} σ; captures below {fraction:g} σ" in view.bound.text()
     # The bound is over its limit: the deciding line says not steady, and no bar is green beside it.
     assert view.bound.text().startswith("NOT STEADY") and "#2e7d32" not in view.bound.styleSheet()
@@ -127,7 +142,7 @@ def test_the_steady_state_view_shows_the_criterion_that_decides(qtbot):
     assert view.title() == "Steady state (change criterion)" and not view.bound.isVisibleTo(view)
     row.settling = [(40, dict(change)), (50, {k: v / 2 for k, v in change.items()})]
     view.show_row(row)
-    view.show_count(row)
+    view.show_count(row, 10)
     assert "predicted cycles left:" in view.cycles.text() and view.bars[3].property("colour") == "#fb8c00"
 
 
@@ -157,23 +172,21 @@ def test_the_time_left_and_the_settling_view_count_the_same_cycles(qtbot):
     """Under the drift criterion the table's rig time left for the settling experiment
     comes from the cycles its bias bound's decay predicts, as the settling view says them
     (it came from the change thresholds, already met: '0:02' beside '257 cycles left')."""
-    from dataclasses import replace
 
     from rig.config import DEFAULT_RIG_CONFIG
     from rig.gui.plan_panel import SteadyStateView
-    from rig.gui.plan_state import PlanProgress
 
     config = load_rig_config(DEFAULT_RIG_CONFIG)
     fraction = config.steady_state.drift.fraction
     plan = load_plan("standard")
-    progress = PlanProgress(replace(plan, experiments=plan.experiments[:1]), config, "261124")
+    progress = plan_progress([plan.experiments[0].letter], "261124", config)
     (row,) = progress.rows
     change = {"stroke_mm": 1e-5, "force_N": 0.01, "pressure_bar": 1e-5, "gas_temperature_C": 1e-4}   # all met
     row.settling = [(40, change | {"bias_sigma": 4 * fraction}), (50, change | {"bias_sigma": 2 * fraction})]
     row.status, row.cycles, row.started = "settling", 50, 0.0
     view = SteadyStateView(config)
     qtbot.addWidget(view)
-    view.show_count(row)
+    view.show_count(row, progress.cycles_left(row))
     assert "predicted cycles left: 10" in view.cycles.text()
     ss, f = config.steady_state, row.spec.frequency_hz
     assert progress.rig_left_s(row) == pytest.approx((10 + row.spec.periods) / f + ss.ramp_time_s)

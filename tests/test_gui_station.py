@@ -30,7 +30,7 @@ class FakeShaker:
     fail: bool = False
     interlock: object = None
 
-    def status(self) -> SimpleNamespace:
+    def status(self, patience_s: float | None = None) -> SimpleNamespace:
         if self.fail:
             raise ShakerLinkError("controller at tcp://x:1 not answering")
         return SimpleNamespace(state=self.state, alarm="none", position_m=0.133, hydraulic_pressure_pa=2e7)

@@ -258,45 +258,65 @@ def test_the_report_has_titles_acceptance_limits_units_and_a_sigma_note_per_char
 
 # ----- the console's QC panel, from the session's events and the stored record -------------------------
 def test_the_console_progress_follows_the_session_and_its_re_prediction():
+    """The QC tab renders the session's one progress (rig.session.session_progress), which the
+    bus feeds before the tab hears an event."""
+    from rig.session.session_progress import SessionProgress
+
     posted: list[QcProgress] = []
     now = [0.0]                               # the session's clock [s]; the links at 10x
-    tracker = QcTracker({"261126l": 100.0, "261126v": 200.0}, posted.append, lambda: now[0], lambda: 10.0)
+    progress = SessionProgress({"261126l": 100.0, "261126v": 200.0}, lambda: 10.0, lambda: now[0])
+    tracker = QcTracker(progress, posted.append)
+
+    def hear(e: Event) -> None:               # the bus: the progress inline, then the tab (queued)
+        progress(e)
+        tracker(e)
+
     assert posted[-1].fraction == 0 and posted[-1].rig_left_s == 300 and not posted[-1].predicted_after
-    tracker(Event(Kind.PHASE, "261126l", {"phase": "moving", "target_mm": 40.0}))
+    hear(Event(Kind.PHASE, "261126l", {"phase": "moving", "target_mm": 40.0}))
     assert posted[-1].text == "experiment 1 of 2 (261126l): moving"
     now[0] = 5.0                              # 50 rig seconds into l
-    tracker(Event(Kind.PROGRESS, "261126l", {"phase": "settling", "cycles": 3, "change": {}}))
+    hear(Event(Kind.PROGRESS, "261126l", {"phase": "settling", "cycles": 3, "change": {}}))
     assert posted[-1].fraction == pytest.approx(50 / 300) and posted[-1].rig_left_s == pytest.approx(250)
     assert "settling" in posted[-1].text
     now[0] = 30.0                             # longer than its estimate: at most 95 % of it until written
-    tracker(Event(Kind.PROGRESS, "261126l", {"phase": "capturing", "fraction": 0.5}))
+    hear(Event(Kind.PROGRESS, "261126l", {"phase": "capturing", "fraction": 0.5}))
     assert posted[-1].fraction == pytest.approx(95 / 300) and "capturing" in posted[-1].text
-    tracker(Event(Kind.PHASE, "261126v", {"phase": "moving", "target_mm": 133.0}))   # begun before l is written
+    hear(Event(Kind.PHASE, "261126v", {"phase": "moving", "target_mm": 133.0}))   # begun before l is written
     assert posted[-1].fraction == pytest.approx(95 / 300)                           # l still counts
-    tracker(Event(Kind.EXPERIMENT_DONE, "261126l", {"file": "l.csv", "samples": 1, "lost": 0, "flags": []}))
-    assert posted[-1].fraction == pytest.approx(1 / 3) and posted[-1].rig_left_s == pytest.approx(200)
+    hear(Event(Kind.EXPERIMENT_DONE, "261126l", {"file": "l.csv", "samples": 1, "lost": 0, "flags": []}))
+    # l took 3x its estimate (300 rig s): v is expected longer, as far as l is the session (a third)
+    v_left = 200 * (1 + (3 - 1) * 100 / 300)
+    assert posted[-1].rig_left_s == pytest.approx(v_left) and posted[-1].fraction == pytest.approx(100 / (100 + v_left))
     assert "experiment 2 of 2" in posted[-1].text
     # A faulty unit: the rest of the plan predicted again from the parameters identified so far.
+    hear(Event(Kind.PREDICTION, None, {"rig_time_left_s": 450.0, "basis": "the parameters identified from 261126l",
+                                       "message": "…"}))
     tracker.predicted(Prediction(("261126l",), ("damping_force_N",), 450.0))
     assert posted[-1].rig_left_s == pytest.approx(450) and posted[-1].predicted_after == "261126l"
     assert posted[-1].fraction == pytest.approx(100 / 550)
-    tracker(Event(Kind.LOG, None, {"message": "anything"}))      # nothing the panel shows
-    assert len(posted) == 7
+    said = len(posted)
+    hear(Event(Kind.LOG, None, {"message": "anything"}))      # nothing the panel shows
+    assert len(posted) == said
 
 
 def test_the_console_table_comes_from_the_stored_record():
     stored = replace(record("SN-0042", "abc"), k=2.0, simulated=True,
                      diagnosis=("Gas precharge too low: a gas leak",))
     outcome = QcOutcome(1, stored, Path("/tmp/x/qc-report.html"), 2.0, "sqlite:///x")
-    done = done_from(QcRequest("SN-0042"), outcome, retest_periods=12)
+    done = done_from(QcRequest("SN-0042"), outcome, SPEC)
     (row,) = done.rows
-    cells = shown(stored, stored.characteristics[0], 2.0)
+    # the gas pressure's "bar" is absolute: the console names it so, as its plots do
+    cells = shown(stored, replace(stored.characteristics[0], unit="bar abs."), 2.0)
     assert (row.title, row.value, row.limits, row.acceptance, row.outcome) == (
         cells.title, cells.value, cells.limits, cells.acceptance, "FAIL")
     assert done.shown == "FAIL" and done.simulated and done.causes == ["Gas precharge too low: a gas leak"]
     assert done.retest_periods is None and done.report == Path("/tmp/x/qc-report.html")
+    # traceable beside the values: who, which rules (revision and hash), which k
+    assert done.trace == (f"Operator {stored.operator} (the login name: no operator typed) · spec "
+                          f"{stored.spec_name} revision {stored.spec_version} (sha256 {stored.spec_sha256[:12]}…) · "
+                          "values ± kσ with k = 2")
     aborted = replace(stored, verdict=None, status="ABORTED", characteristics=(), reason="session interrupted")
-    done = done_from(QcRequest("SN-0042"), QcOutcome(130, aborted, outcome.report, 2.0, "x"), retest_periods=12)
+    done = done_from(QcRequest("SN-0042"), QcOutcome(130, aborted, outcome.report, 2.0, "x"), SPEC)
     assert (done.shown, done.exit_code, done.reason, done.rows) == ("ABORTED", 130, "session interrupted", [])
 
 

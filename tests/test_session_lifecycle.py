@@ -173,7 +173,7 @@ def test_a_bug_in_the_durations_is_an_internal_error_on_record(vrig, tmp_path, m
     def broken(*args, **kwargs):
         raise ZeroDivisionError("injected bug")
 
-    monkeypatch.setattr("rig.session.run.predict", broken)
+    monkeypatch.setattr("rig.session.runner.predict", broken)
     result, meta = run(vrig, tmp_path / "s")
     assert (result.exit_code, type(result.error)) == (EXIT_INTERNAL, ZeroDivisionError)
     assert meta["status"] == "aborted: internal error: ZeroDivisionError: injected bug (before anything moved)"

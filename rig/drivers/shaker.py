@@ -34,6 +34,11 @@ EXCEPTION_NAMES = {1: "illegal function", 2: "illegal data address", 3: "illegal
 RTU_BAUDRATE = 115200
 
 
+# Once a request has waited a lost link's whole reconnect time in vain, each later one in
+# the same outage gets this long: a safe stop's steps after an abort on a lost link took a
+# reconnect time each, and the console said the stop had not completed 1 min 47 s after the loss.
+GIVEN_UP_TRY_S = 0.5
+
 class ShakerError(RigFault):
     """The controller refused a command or reported an alarm."""
 
@@ -170,6 +175,11 @@ class Shaker:
         self.reconnect_s, self.on_event = reconnect_s, on_event
         self._client = client if client is not None else modbus_client(address, timeout_s)
         self._lock = threading.RLock()
+        # One outage, said once: when it began (the shaker's clock; None while the link
+        # answers) and whether a request has given up on it yet.  Every later request that
+        # fails in the same outage says how long it has lasted, never a shorter patience.
+        self._lost_since: float | None = None
+        self._given_up = False
         self._heartbeat_stop = threading.Event()
         self._heartbeat: threading.Thread | None = None
         self._beat = 0
@@ -239,8 +249,11 @@ class Shaker:
         self.close()
 
     # ----- commands ----------------------------------------------------------------------
-    def status(self) -> ShakerStatus:
-        raw = self._read("inputs")
+    def status(self, patience_s: float | None = None) -> ShakerStatus:
+        """The controller's state; ``patience_s``: how long a lost link is reconnected for
+        (default the reconnect time; a status poll's is short: it must not hold the link's
+        lock against the session's commands for a whole reconnect time)."""
+        raw = self._read("inputs", patience_s, lock_timeout_s=patience_s)
         state, alarm = int(raw["state"]), int(raw["alarm"])
         if state >= len(self.map.states):
             raise ShakerError(f"the controller at {self.url} reports state word {state}, which its register map "
@@ -337,11 +350,12 @@ class Shaker:
             self.interlock.check(what)
 
     # ----- register access ---------------------------------------------------------------
-    def _read(self, table: str) -> dict[str, float]:
+    def _read(self, table: str, patience_s: float | None = None, lock_timeout_s: float | None = None
+              ) -> dict[str, float]:
         fields = self.map.table(table)
         first, last = fields[0].address, fields[-1].address
         reader = {"inputs": "read_input_registers", "holding": "read_holding_registers"}[table]
-        words = self._call(reader, first, count=last - first + 1)
+        words = self._call(reader, first, count=last - first + 1, patience_s=patience_s, lock_timeout_s=lock_timeout_s)
         return {f.name: f.decode(words[f.address - first]) for f in fields}
 
     def _write_holding(self, values: dict[str, float], patience_s: float | None = None) -> None:
@@ -361,11 +375,21 @@ class Shaker:
     def _write_coil(self, name: str, value: bool) -> None:
         self._call("write_coil", self.map.field(name).address, bool(value), what=f"{name}={int(value)}")
 
-    def _call(self, method: str, *args, what: str = "", patience_s: float | None = None, **kwargs):
+    def _call(self, method: str, *args, what: str = "", patience_s: float | None = None,
+              lock_timeout_s: float | None = None, **kwargs):
         """One request; a lost link is reconnected for ``patience_s`` (default: the
-        reconnect time), 0 giving up at once without a word (the heartbeat's way)."""
+        reconnect time), 0 giving up at once without a word (the heartbeat's way).
+        ``lock_timeout_s``: how long to wait for another thread's request (default: as
+        long as it takes; a status poll does not wait out another's reconnect)."""
         patience = self.reconnect_s if patience_s is None else patience_s
-        with self._lock:
+        if not self._lock.acquire(timeout=-1 if lock_timeout_s is None else max(lock_timeout_s, 0.0)):
+            lost = self._lost_since
+            # Said the same way each time, so that a window logs it once, not once a second
+            raise ShakerLinkError(f"Modbus link to {self.url} busy with another request" if lost is None else
+                                  f"Modbus link to {self.url} lost: another request is reconnecting it")
+        try:
+            if self._given_up:   # this outage has had its whole reconnect time already: one quick try each
+                patience = min(patience, GIVEN_UP_TRY_S)
             deadline = None
             delay = 0.05
             while True:
@@ -374,19 +398,20 @@ class Shaker:
                 except (ModbusException, OSError) as exc:
                     # pymodbus reports a dead peer either way (ConnectionResetError, broken
                     # pipe, timeouts): all of them are a lost link, never a crash.
-                    deadline = deadline or self.clock.monotonic() + patience
-                    if self.clock.monotonic() >= deadline:
-                        # patience 0 (the heartbeat) tried once: no reconnect time to speak of
-                        waited = f" and not back within {patience:g} s" if patience > 0 else ""
-                        raise ShakerLinkError(f"Modbus link to {self.url} lost{waited} ({exc})") from None
-                    if delay == 0.05:
+                    now = self.clock.monotonic()
+                    if self._lost_since is None and patience > 0:   # the heartbeat's one try says nothing
+                        self._lost_since = now
                         self.on_event(LinkNotice("controller", LinkCondition.LOST,
                                                   f"Modbus link to {self.url} lost ({exc}); reconnecting"))
+                    deadline = deadline or now + patience
+                    if now >= deadline:
+                        raise ShakerLinkError(self._not_back(patience, now, exc)) from None
                     self._reconnect()
                     self.clock.sleep(delay)
                     delay = min(2 * delay, 1.0)
                     continue
-                if deadline is not None:
+                if self._lost_since is not None:
+                    self._lost_since, self._given_up = None, False
                     self.on_event(LinkNotice("controller", LinkCondition.BACK, f"Modbus link to {self.url} back"))
                 if result.isError():
                     code = int(getattr(result, "exception_code", 0) or 0)
@@ -395,6 +420,21 @@ class Shaker:
                 if method == "read_device_information":
                     return result.information
                 return result.bits if method.endswith("coils") else result.registers
+        finally:
+            self._lock.release()
+
+    def _not_back(self, patience: float, now: float, exc: BaseException) -> str:
+        """Why a request gave up: the first time in an outage, the reconnect time it waited;
+        after that, how long the outage has lasted (a safe stop's quick tries said "not back
+        within 0.5 s" beside "within 20 s", as if the link had been waited for less)."""
+        if self._lost_since is None:      # patience 0 (the heartbeat) tried once: no reconnect time to speak of
+            return f"Modbus link to {self.url} lost ({exc})"
+        if not self._given_up and patience >= self.reconnect_s:    # a poll's short patience is not giving up
+            self._given_up = True
+            return f"Modbus link to {self.url} lost and not back within {patience:g} s ({exc})"
+        if not self._given_up:
+            return f"Modbus link to {self.url} lost {now - self._lost_since:.0f} s ago, not back yet ({exc})"
+        return f"Modbus link to {self.url} still not back, {now - self._lost_since:.0f} s after it was lost ({exc})"
 
     def _reconnect(self) -> None:
         try:

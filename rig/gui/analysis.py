@@ -1,11 +1,11 @@
-"""What the live view derives from the samples and the settling events (no Qt here):
-the work loop's energy per cycle, the stroke velocity, and how many cycles settling
-still needs.  SI inside; the callers convert at the display."""
+"""What the live view derives from the samples (no Qt here): the work loop's energy per
+cycle, the stroke velocity, the samples drawn.  SI inside; the callers convert at the
+display.  Settling (its cycles left) is the session's progress's to count
+(rig.session.session_progress), never recounted here."""
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -56,28 +56,3 @@ def velocity_m_s(stroke_m: np.ndarray, rate_hz: float, frequency_hz: float | Non
         v[span:-span] = (stroke_m[2 * span:] - stroke_m[:-2 * span]) * rate_hz / (2 * span)
         v[:span], v[-span:] = v[span], v[-span - 1]
     return v
-
-
-def predicted_cycles_left(history: Sequence[tuple[int, Mapping[str, float]]], thresholds: Mapping[str, float],
-                          min_cycles: int, max_cycles: int) -> int | None:
-    """Cycles until every channel's cycle-to-cycle change is below its threshold, from the
-    last two settling reports (change taken to decay geometrically per cycle).  None
-    while that cannot be told (one report, or a channel not decaying)."""
-    if not history:
-        return None
-    cycles, change = history[-1]
-    floor = max(min_cycles - cycles, 0)
-    over = [c for c in thresholds if change.get(c, math.inf) >= thresholds[c]]
-    if not over:
-        return floor
-    if len(history) < 2:
-        return None
-    cycles0, change0 = history[-2]
-    left = 0.0
-    for c in over:
-        a, b = change0.get(c, math.nan), change[c]
-        if not (a > 0 and b > 0 and b < a) or cycles <= cycles0:
-            return None
-        rate = math.log(b / a) / (cycles - cycles0)          # per cycle, negative
-        left = max(left, math.log(thresholds[c] / b) / rate)
-    return int(min(max(math.ceil(left), floor), max(max_cycles - cycles, 0)))

@@ -18,13 +18,15 @@ from identify.model import DEFAULT_ESTIMATE
 from rig.gui.fit_view import fill_parameter_table, parameter_table
 from rig.gui.fitting import IdentifySettings
 from rig.gui.plotting import labelled
+from rig.gui.units import GAS_PRESSURE_UNIT
 from rig.session.progress import log_text
 
 EXPERIMENT_COLUMNS = ("experiment", "f [Hz]", "static [mm]", "amplitude [mm]", "periods", "settle cycles",
                       "steady", "lost samples", "flags")
 # (column, axis label, scale from the file's unit to the axis', colour): the live view's units and colours
 PLOTTED = (("stroke_mm", "stroke [mm]", 1.0, "#1f77b4"), ("force_N", "force [kN]", 1e-3, "#d62728"),
-           ("pressure_bar", "gas p [bar abs.]", 1.0, "#2ca02c"), ("gas_temperature_C", "gas T [°C]", 1.0, "#9467bd"))
+           ("pressure_bar", f"gas p [{GAS_PRESSURE_UNIT}]", 1.0, "#2ca02c"),
+           ("gas_temperature_C", "gas T [°C]", 1.0, "#9467bd"))
 FLAGS_COLUMN = EXPERIMENT_COLUMNS.index("flags")
 
 

@@ -13,6 +13,7 @@ from rig.drivers.registers import ControllerState
 from rig.drivers.shaker import ShakerStatus
 from rig.gui.manual import ManualControl
 from rig.gui.messages import Snapshot
+from rig.gui.units import supply_text
 
 STATE_COLOURS = {ControllerState.OFF: "#666666", ControllerState.IDLE: "#1f77b4", ControllerState.MOVING: "#ff7f0e",
                  ControllerState.AT_STATIC: "#1f77b4", ControllerState.RUNNING: "#2ca02c",
@@ -67,7 +68,7 @@ class ControllerPanel(QtWidgets.QGroupBox):
         f["position"].setText(f"{st.position_m * 1e3:.2f} mm")
         f["force"].setText(f"{st.force_n / 1e3:.2f} kN")
         f["cycles"].setText(f"{st.cycles} since RUN" if st.state is ControllerState.RUNNING else str(st.cycles))
-        f["supply"].setText(f"{st.hydraulic_pressure_pa / 1e5:.0f} bar")
+        f["supply"].setText(supply_text(st))
         # Who feeds it, from which links were read: the session's while one runs, else the console's.
         feeder = "the session's link" if snap.session else "the console's link"
         f["watchdog"].setText(f"{self.watchdog_s:g} s, fed by {feeder}" if snap.heartbeat_ok

@@ -17,8 +17,9 @@ from identify.notation import plus_minus, rounded, significant, unit_text
 from identify.result import CORRELATION_REPORT, RELATIVE_STD_WARNING
 from rig.gui.fits import FitSummary
 from rig.gui.plotting import labelled
+from rig.gui.units import GAS_PRESSURE_UNIT
 
-UNITS = {"stroke_mm": "mm", "pressure_bar": "bar", "gas_temperature_C": "°C", "force_N": "N"}
+UNITS = {"stroke_mm": "mm", "pressure_bar": GAS_PRESSURE_UNIT, "gas_temperature_C": "°C", "force_N": "N"}
 NAMES = {"stroke_mm": "stroke", "pressure_bar": "gas pressure", "gas_temperature_C": "gas temperature",
          "force_N": "force"}
 PARAMETER_COLUMNS = ("parameter", "value", "± σ", "% σ", "unit", "start", "moved")

@@ -1,5 +1,5 @@
 """Fits for the console (no Qt here): identification right after a session (the same
-:func:`rig.session.run.fit_session` as ``rig run --identify``), a re-fit of a stored session
+:func:`rig.session.fitting.fit_session` as ``rig run --identify``), a re-fit of a stored session
 with another model or start file, and the 1-dof/2-dof comparison of ``identify
 compare`` (both on the stroke, 1-dof estimating θ5, θ6, θ7).
 
@@ -58,7 +58,7 @@ class FitSummary:
 # ----- the jobs (run in the fit process) -------------------------------------------------------------
 def session_fit(session: Any, opt: Any, captured: list[Experiment], progress: Progress) -> FitSummary:
     """``rig run --identify``'s fit: RESULT.json and report.txt written into the session."""
-    from rig.session.run import fit_session
+    from rig.session.fitting import fit_session
 
     return FitSummary.of(fit_session(session, opt.model, opt.params, opt.estimate, captured, progress))
 

@@ -13,7 +13,8 @@ from rig.events import Message
 from rig.gui import fits
 from rig.gui.fits import FitRunner
 from rig.gui.messages import ComparisonDone, FitDone, FitProgress, Notice
-from rig.session.run import RunOptions, RunResult
+from rig.session.outcome import RunResult
+from rig.session.preparation import RunOptions
 
 
 @dataclass(frozen=True)

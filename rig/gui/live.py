@@ -26,6 +26,7 @@ from rig.drivers.daq import Daq
 from rig.gui import analysis
 from rig.gui.messages import Snapshot
 from rig.gui.plotting import labelled
+from rig.gui.units import GAS_PRESSURE_UNIT
 
 WINDOWS_S = (2.0, 10.0, 60.0)
 HISTORY_S = 60.0
@@ -33,7 +34,7 @@ RATE_WINDOW_S = 2.0                 # the DAQ's pace is measured over this much 
 # (title, unit, scale from the DAQ's engineering unit to the axis unit, colour)
 # Short names: four stacked plots leave a label about 120 px, and longer ones ran into each other.
 TRACES = (("stroke", "mm", 1.0, "#1f77b4"), ("force", "kN", 1e-3, "#d62728"),
-          ("gas p", "bar abs.", 1.0, "#2ca02c"), ("gas T", "°C", 1.0, "#9467bd"))
+          ("gas p", GAS_PRESSURE_UNIT, 1.0, "#2ca02c"), ("gas T", "°C", 1.0, "#9467bd"))
 LOOP_POINTS = 4000                  # a loop is drawn with at most this many points
 TRACE_BUCKETS = 1000                # a trace: min and max of at most this many buckets (wider than the plot)
 RANGE_PAD = 0.08                    # of the span, above and below the data

@@ -49,13 +49,14 @@ from rig.gui.options import ConsoleOptions
 from rig.gui.plan_panel import PlanPanel
 from rig.gui.qc import QcDone, QcProgress, QcRequest, QcStarted, refused
 from rig.gui.qc_panel import QcPanel
-from rig.gui.state_strip import CHECK_RIG, COLOURS, RigState, StateStrip, hydraulics_on, short_link_error
+from rig.gui.simulated import SimulatedRig
+from rig.gui.state_strip import COLOURS, RigState, StateStrip
 from rig.gui.station import Station, session_options
+from rig.gui.trip import TripLatch
 from rig.planning.plans import comma_list, load_plan
 from rig.qc.spec import load_spec
+from rig.session.preparation import RunOptions
 from rig.session.progress import describe
-from rig.session.run import RunOptions
-from rig.virtual import VirtualRig
 
 REDRAW_HZ = 30
 BANNER_ALARM, BANNER_NO_ANSWER, BANNER_CLEAR = COLOURS[ControllerState.ALARM], "#e65100", "#2e7d32"
@@ -68,7 +69,6 @@ GIL_SWITCH_S = 0.0005
 # waits on the link's lock while the session's command reconnects, up to reconnect_s, 20 s).
 STALE_READ_S = 2.0
 SILENT = f"no answer to the status read for {STALE_READ_S:g} s (it waits on the link)"
-SIMULATOR_NICE = 5
 
 
 def application() -> QtWidgets.QApplication:
@@ -98,12 +98,9 @@ class MainWindow(QtWidgets.QMainWindow):
             ShakerAddress.parse(args.shaker)
         if args.daq:
             check_daq_address(args.daq)
-        self.simulated: VirtualRig | None = None
+        self.simulated = SimulatedRig(args) if args.simulate else None
         shaker, daq = args.shaker, args.daq
-        if args.simulate:
-            # The simulated hardware yields the CPU to the console, as real hardware would not need it.
-            self.simulated = VirtualRig(speed=args.speed, params=args.params, faults=list(args.faults),
-                                        unit=args.unit, nice=SIMULATOR_NICE)
+        if self.simulated is not None:
             shaker, daq = self.simulated.modbus_url, self.simulated.daq_url
         # Everything the rig side says, one typed record each (rig.events.Message), handled by type.
         self.queue: queue.Queue[Message] = queue.Queue()
@@ -116,17 +113,14 @@ class MainWindow(QtWidgets.QMainWindow):
             QcDone: self._on_qc_done, SafeStopIncomplete: self._on_safe_stop_incomplete}
         try:
             self.station = Station(shaker, daq, self.queue.put, rig_config=args.rig_config,
-                                   calibration=args.calibration, register_map=args.register_map,
-                                   speed=args.speed if args.simulate else 1.0)
+                                   calibration=args.calibration, register_map=args.register_map)
         except BaseException:
             if self.simulated:
                 self.simulated.stop()
             raise
         self.status: ShakerStatus | None = None
-        self.estop_text: str | None = None          # latched until the operator resets
-        self.alarm_latched: str | None = None       # an alarm seen, latched here until the operator resets
+        self.trip = TripLatch(self.station.config.limits.watchdog_timeout_s)   # latched until the operator resets
         self.link_error: str | None = None
-        self.unsafe_stop: str | None = None         # a session's safe stop did not complete: latched until Reset…
         self.interrupted_by: int | None = None      # SIGINT or SIGTERM closed the window (exit 130)
         self._closing = False
         self._last_redraw = 0.0
@@ -210,6 +204,7 @@ class MainWindow(QtWidgets.QMainWindow):
         for key in ESTOP_KEYS:
             shortcut = QtGui.QShortcut(QtGui.QKeySequence(key), self)
             shortcut.setContext(QtCore.Qt.ShortcutContext.ApplicationShortcut)
+            shortcut.setAutoRepeat(False)     # a key held down is one press, not a stream of them
             shortcut.activated.connect(self.estop)
 
         self.banner = QtWidgets.QLabel("No alarm")
@@ -218,16 +213,11 @@ class MainWindow(QtWidgets.QMainWindow):
         self.banner.setWordWrap(True)
         self.reset_button = QtWidgets.QPushButton("Reset…")
         self.reset_button.setObjectName("resetButton")
-        self.reset_button.setToolTip("clear a latched trip (asks for confirmation)")
         self.reset_button.clicked.connect(lambda: self.reset_alarm(confirm=True))
         banner_row = QtWidgets.QHBoxLayout()
         banner_row.addWidget(self.banner, 1)
         banner_row.addWidget(self.reset_button)
-        unit = f", unit {args.unit}" if args.unit else ""
-        self.sim_label = QtWidgets.QLabel(
-            f"SIMULATED RIG (python -m simulator serve, asked for {args.speed:g}× real time{unit}; not hardware)"
-            if self.simulated
-            else "")
+        self.sim_label = QtWidgets.QLabel(self.simulated.line if self.simulated is not None else "")
         self.sim_label.setObjectName("simulatedLabel")
         self.sim_label.setStyleSheet("background: #fff3cd; color: #7a5200; font-weight: bold; padding: 3px")
         self.sim_label.setVisible(self.simulated is not None)
@@ -273,7 +263,8 @@ class MainWindow(QtWidgets.QMainWindow):
         """The Live, Fit and Sessions views."""
         st = self.station
 
-        self.live = LiveView(st.config.daq_rate_hz, st.config.min_span, args.speed if self.simulated else 1.0)
+        self.live = LiveView(st.config.daq_rate_hz, st.config.min_span,
+                             self.simulated.asked_pace if self.simulated is not None else 1.0)
         self.fit_view = FitView()
         self.fit_view.compareRequested.connect(self.compare)
         self.browser = SessionBrowser(Path(args.out))
@@ -299,7 +290,7 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def estop(self) -> None:
         self.station.emergency.press()
-        self.estop_text = f"E-STOP at {_dt.datetime.now():%H:%M:%S}: STOP and hydraulics off sent"
+        self.trip.estop_pressed(_dt.datetime.now())
         self._say("E-STOP pressed", "error")
         self._show_banner()
 
@@ -307,10 +298,10 @@ class MainWindow(QtWidgets.QMainWindow):
         # The E-STOP's latch (rig.drivers.estop) holds every motion command in the drivers; the strip and
         # the controls show it, and an alarm seen, until the operator confirms the reset.
         latch = self.station.emergency.latch
-        trip = latch.reason if latch.latched else "E-STOP" if self.estop_text else self.alarm_latched
+        trip = latch.reason if latch.latched else "E-STOP" if self.trip.estop_text else self.trip.alarm_latched
         running = self.station.sessions.running
         return RigState(self.status, trip, self.link_error, self.station.manual.shaker is not None or running,
-                        running, self.unsafe_stop)
+                        running, self.trip.unsafe_stop)
 
     def _show_state(self) -> None:
         """The strip and which motion controls are allowed, from the same state."""
@@ -336,13 +327,12 @@ class MainWindow(QtWidgets.QMainWindow):
 
     def reset_alarm(self, confirm: bool = True) -> None:
         if confirm:
-            what = (f"The safe stop did not complete ({self.unsafe_stop}); {CHECK_RIG}" if self.unsafe_stop
-                    else self.estop_text or (f"alarm: {self.status.alarm}" if self.status else "alarm"))
+            what = self.trip.confirm_text(self.status)
             answer = QtWidgets.QMessageBox.question(
                 self, "Reset the trip?", f"{what}\n\nReset only once the cause is known and the rig is safe. Reset?")
             if answer != QtWidgets.QMessageBox.StandardButton.Yes:
                 return
-        self.estop_text = self.alarm_latched = self.unsafe_stop = None
+        self.trip.reset()
         self.station.emergency.confirm_reset()
         if self.status is not None and self.status.state is ControllerState.ALARM:
             self.manual._do(self.station.manual.reset_alarm())
@@ -428,7 +418,7 @@ class MainWindow(QtWidgets.QMainWindow):
         progress = self.plan.progress
         current = progress.current if progress is not None and self.station.sessions.running else None
         if current is not None:
-            if current.status in ("settling", "capturing"):
+            if current.status in ("settling", "capturing") and current.spec is not None:
                 return current.label, current.spec.frequency_hz, ""
             return None, None, "no excitation running"
         manual = self.station.manual
@@ -467,11 +457,9 @@ class MainWindow(QtWidgets.QMainWindow):
         self.status = item.status
         self.link_error = item.error
         st = item.status
-        tripped = st is not None and st.state is ControllerState.ALARM
-        if st is not None and tripped and (was is None or was.state is not ControllerState.ALARM):
-            # A trip outside a session (a manual sine) has no acquisition event to log it.
-            self._say(f"controller tripped: {st.alarm}", "error")
-            self.alarm_latched = st.alarm
+        tripped = self.trip.seen(st, was)      # a trip outside a session (a manual sine) has no event to log it
+        if tripped is not None:
+            self._say(tripped, "error")
         if self.plan.progress is not None and self.station.sessions.running:
             # The stream's sample count read with the status drives every count shown, in this
             # frame, as long as the controller was read running (cycles are not counted on a
@@ -527,9 +515,7 @@ class MainWindow(QtWidgets.QMainWindow):
     def _on_safe_stop_incomplete(self, item: SafeStopIncomplete) -> None:
         """A session's safe stop left steps undone: no reading says the rig is at rest, so
         the banner and the strip say so, latched until the operator confirms the reset."""
-        steps = ", ".join(f.split(":", 1)[0] for f in item.failures)
-        self.unsafe_stop = f"{steps} not confirmed at {_dt.datetime.now():%H:%M:%S}"
-        self._say(f"SAFE STOP INCOMPLETE: {steps} not confirmed; {CHECK_RIG}", "error")
+        self._say(self.trip.safe_stop_incomplete(item.failures, _dt.datetime.now()), "error")
         self._show_banner()
 
     def _on_fit_progress(self, item: FitProgress) -> None:
@@ -544,13 +530,8 @@ class MainWindow(QtWidgets.QMainWindow):
         self.fit_view.show_comparison(item.results)
 
     def _on_estop_done(self, item: EstopDone) -> None:
-        took = f"{item.elapsed_s * 1e3:.0f} ms"
-        if item.failures:
-            self.estop_text = f"E-STOP INCOMPLETE ({took}): {'; '.join(item.failures)}"
-            self._say(self.estop_text, "error")
-        else:
-            self._say(f"E-STOP done in {took} from the press: STOP and hydraulics off written and answered by the "
-                      f"controller ({item.line}); the registers read next say what it does")
+        text, failed = self.trip.estop_done(item)
+        self._say(text, "error" if failed else "info")
         self._show_banner()
 
     def _on_latch_changed(self, item: LatchChanged) -> None:
@@ -573,41 +554,14 @@ class MainWindow(QtWidgets.QMainWindow):
                   "info" if item.shown in ("PASS", "FAIL", "RETEST") else "error")
 
     def _show_banner(self, link_error: str | None = None) -> None:
-        st, link_error = self.status, link_error or self.link_error
-        # What the actuator does now, from the registers: held only with pressure behind it.
-        bar = f"{st.hydraulic_pressure_pa / 1e5:.0f} bar" if st is not None else ""
-        held = (f"hydraulics OFF ({bar}): the actuator is not held" if st is not None and not hydraulics_on(st)
-                else f"the controller holds the position ({bar})" if st is not None
-                else "the controller's state is not known (no answer)")
-        # alarm: from the readings (the controller's state register) and the console's latch
-        alarm_read = st is not None and st.state is ControllerState.ALARM
-        alarm = bool(self.estop_text) or alarm_read or self.alarm_latched is not None or self.unsafe_stop is not None
-        watchdog = self.station.config.limits.watchdog_timeout_s
-        if self.unsafe_stop:
-            # Whether the controller is read now is the strip's and the panel's to say.
-            now = f" The controller now reads {st.state}, {held}." if st is not None else ""
-            text = f"SAFE STOP DID NOT COMPLETE ({self.unsafe_stop}): {CHECK_RIG}.{now} Reset… once it is safe"
-        elif self.estop_text:
-            text = f"{self.estop_text} — {held}. Reset… once the rig is safe"
-        elif alarm:
-            which = st.alarm if st is not None and alarm_read else \
-                f"{self.alarm_latched}, latched here (the controller reads {st.state if st else '?'})"
-            text = f"ALARM: {which} — {held}; find the cause, then Reset…"
-        elif link_error:
-            # The software E-STOP reaches the rig through the controller's Modbus port too.
-            text = (f"Controller not answering: {short_link_error(link_error)}. Its watchdog should stop the "
-                    f"shaker {watchdog:g} s after the link is lost. The E-STOP button goes over Modbus too and may "
-                    "not reach it: use the hard-wired E-stop if the rig moves")
-        elif st is None:
-            text = "No alarm known: the controller is not read (not connected)"
-        else:
-            text = "No alarm"
-        colour = BANNER_ALARM if alarm else BANNER_NO_ANSWER if st is None else BANNER_CLEAR
-        self.banner.setText(text)
-        self.banner.setStyleSheet(f"background: {colour if alarm else 'transparent'}; color: "
-                                  f"{'white' if alarm else colour}; font-size: {'14pt' if alarm else '10pt'}; "
-                                  "font-weight: bold; padding: 4px")
-        self.reset_button.setEnabled(alarm)
+        banner = self.trip.banner(self.status, link_error or self.link_error)
+        colour = BANNER_ALARM if banner.alarm else BANNER_NO_ANSWER if not banner.read else BANNER_CLEAR
+        self.banner.setText(banner.text)
+        self.banner.setStyleSheet(f"background: {colour if banner.alarm else 'transparent'}; color: "
+                                  f"{'white' if banner.alarm else colour}; font-size: "
+                                  f"{'14pt' if banner.alarm else '10pt'}; font-weight: bold; padding: 4px")
+        self.reset_button.setEnabled(banner.reset)
+        self.reset_button.setToolTip(banner.reset_why)
 
     def _log_event(self, e: Event) -> None:
         text = f"{e.experiment}: {describe(e)}" if e.experiment else describe(e)

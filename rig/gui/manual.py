@@ -27,7 +27,7 @@ from rig.drivers.shaker import Shaker, ShakerLinkError, ShakerStatus, check_wave
 from rig.errors import BadInput, RigError
 from rig.events import LinkCondition, LinkNotice, Message
 from rig.gui.messages import LinkState, Notice
-from rig.session.run import Links, close_links
+from rig.session.links import Links, close_links
 
 CONSOLE_RECONNECT_S = 2.0
 
@@ -100,26 +100,31 @@ class ManualControl:
             self.open_estop_line(shaker_url)
             shaker.connect()        # limits written, watchdog on and fed: if this program dies, the rig holds
         except ShakerLinkError as exc:
-            close_links(Links(shaker, daq, "", None))
+            self._close(shaker, daq)
             problem = wrong_peer_or(exc, shaker_url, daq_url, self.register_map)
             if problem is exc:   # swapped or wrong addresses: no DAQ is where the DAQ's address points
                 self._daq_alone(daq_url)
             raise problem from None
         except BaseException:
-            close_links(Links(shaker, daq, "", None))
+            self._close(shaker, daq)
             raise
         try:
             identity = daq.open()
             peers = Peers(shaker.identify(), identity)
             daq.start()             # the live view streams whenever no session does
         except (ShakerLinkError, DaqError) as exc:
-            close_links(Links(shaker, daq, "", None))
+            self._close(shaker, daq)
             raise wrong_peer_or(exc, shaker_url, daq_url, self.register_map) from None
         except BaseException:
-            close_links(Links(shaker, daq, "", None))
+            self._close(shaker, daq)
             raise
         self.shaker, self.daq = shaker, daq
         self.post(LinkState(True, f"controller {shaker_url}, DAQ {daq_url} ({identity})", peers.simulated))
+
+    def _close(self, shaker: Shaker, daq: Daq) -> None:
+        """Links that failed to open, closed again; a step that failed is said, not swallowed."""
+        for failure in close_links(Links(shaker, daq, "", None)):
+            self.post(Notice(f"closing the links after the failed connect: {failure}", "error"))
 
     def _daq_alone(self, daq_url: str) -> None:
         """The controller did not answer: the DAQ is read all the same, for it is the one
@@ -143,8 +148,9 @@ class ManualControl:
             if link is not None:
                 try:
                     link.close()
-                except Exception:  # noqa: BLE001 — closing must not hide why the links went
-                    pass
+                except Exception as exc:  # noqa: BLE001 — closing must not hide why the links went: said beside it
+                    self.post(Notice(f"closing the console's {'controller' if link is shaker else 'DAQ'} link "
+                                     f"failed: {exc}", "error"))
 
     def disconnect(self) -> Future:
         def job() -> None:

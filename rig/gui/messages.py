@@ -12,7 +12,8 @@ from rig.drivers.shaker import ShakerStatus
 from rig.events import Message
 from rig.gui.fits import FitSummary
 from rig.gui.plan_state import PlanProgress
-from rig.session.run import RunOptions, RunResult
+from rig.session.outcome import RunResult
+from rig.session.preparation import RunOptions
 
 
 @dataclass(frozen=True)

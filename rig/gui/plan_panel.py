@@ -3,8 +3,9 @@ after it; the table of experiments with their state and time left; Run, Abort (a
 stop) and Resume; and the steady-state indicator of the experiment settling now.
 
 One source per number: the table's state, the settling count, the capture's progress and
-the times left are drawn together, from the same rows (:class:`PlanProgress`), in the
-same frame as each event that changes them.  Every time says its clock and its unit."""
+the times left are drawn together, from the session's one progress
+(:class:`~rig.session.session_progress.SessionProgress`, through :class:`PlanProgress`),
+in the same frame as each event that changes them.  Every time says its clock and its unit."""
 
 from __future__ import annotations
 
@@ -18,13 +19,15 @@ from PySide6 import QtCore, QtGui, QtWidgets
 from identify.notation import at_place, significant
 from rig.config import CHANNELS, RigConfig
 from rig.events import Event
-from rig.gui.plan_state import ACTIVE, ExperimentRow, PlanProgress, deciding
+from rig.gui.plan_state import PlanProgress
 from rig.gui.state_strip import short_link_error
 from rig.planning.criterion import DAQ_LAG_S
 from rig.planning.plans import Plan, comma_list, load_plan
+from rig.session.session_progress import ACTIVE, ExperimentProgress
 
-STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "skipped": "#ffe0b2", "interrupted": "#ffe0b2",
-                  "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb", "stopping": "#e3f2fd"}
+STATUS_COLOURS = {"done": "#c8e6c9", "failed": "#ffcdd2", "aborted": "#ffcdd2", "skipped": "#ffe0b2",
+                  "interrupted": "#ffe0b2", "moving": "#e3f2fd", "settling": "#fff9c4", "capturing": "#bbdefb",
+                  "stopping": "#e3f2fd"}
 UNITS = {"stroke_mm": "mm", "force_N": "N", "pressure_bar": "bar", "gas_temperature_C": "°C"}
 TABLE_COLUMNS = ("exp.", "static\n[mm]", "ampl.\n[mm]", "freq.\n[Hz]", "state", "left\n[rig m:s]")
 # Under the drift criterion the changes are for information: grey under their threshold, pale orange over it, never
@@ -48,9 +51,9 @@ def clock_text(seconds: float, clock: str) -> str:
     return f"{clock} {_clock(seconds)} {unit}"
 
 
-def capture_text(row: ExperimentRow) -> str:
+def capture_text(row: ExperimentProgress) -> str:
     """A capture's progress in periods, from the row's fraction (the acquisition's event)."""
-    periods = row.spec.periods
+    periods = row.spec.periods if row.spec is not None else 1
     period = min(int(row.fraction * periods) + 1, periods)
     return f"capturing period {period} of {periods} ({100 * row.fraction:.0f} % of the capture)"
 
@@ -125,7 +128,7 @@ class SteadyStateView(QtWidgets.QGroupBox):
             bar.setStyleSheet("")
         self.bound.setText("")
 
-    def show_row(self, row: ExperimentRow | None) -> None:
+    def show_row(self, row: ExperimentProgress | None) -> None:
         """The changes against their thresholds at the row's last settling report."""
         if row is None or not row.settling:
             return
@@ -157,8 +160,9 @@ class SteadyStateView(QtWidgets.QGroupBox):
                 f"{self.drift.fraction:g} σ" if bound is not None else "waiting for the first blocks"))
             self.bound.setStyleSheet(f"color: {DRIFT_PASS if passed else DRIFT_WAIT}; font-weight: bold")
 
-    def show_count(self, row: ExperimentRow | None) -> None:
-        """The settling count and what follows it, from the same row as the plan table."""
+    def show_count(self, row: ExperimentProgress | None, left: int | None = None) -> None:
+        """The settling count and the cycles ``left`` (the session's progress has them), from the
+        same row as the plan table."""
         ss = self.config.steady_state
         if row is None or row.status not in ("settling", "capturing") or not row.cycles:
             self.cycles.setText("Settling: –" if row is None else f"{row.label}: {row.status_text()}")
@@ -166,7 +170,6 @@ class SteadyStateView(QtWidgets.QGroupBox):
         if row.status == "capturing":
             self.cycles.setText(f"{row.label}: settled after {row.cycles} cycles; {capture_text(row)}")
             return
-        left = row.cycles_left(deciding(self.config), ss.min_cycles, ss.max_cycles)
         after_run = ss.ramp_time_s + DAQ_LAG_S
         self.cycles.setText(f"{row.label}: settling {row.cycles} cycles, counted from {after_run:g} s (rig time) "
                             f"after RUN (min {ss.min_cycles}, max {ss.max_cycles}); "
@@ -177,7 +180,7 @@ class PlanPanel(QtWidgets.QWidget):
     runRequested = QtCore.Signal()
     resumeRequested = QtCore.Signal(str)
     abortRequested = QtCore.Signal()
-    _previewed = QtCore.Signal(int, object, object)     # preview number, Plan, PlanProgress (from its thread)
+    _previewed = QtCore.Signal(int, object, object)     # preview number, Plan, PlanProgress or why not (its thread)
 
     def __init__(self, config: RigConfig, plan: str, experiments: str | None, out: Path,
                  parent: QtWidgets.QWidget | None = None) -> None:
@@ -185,7 +188,7 @@ class PlanPanel(QtWidgets.QWidget):
         self.config, self.out = config, out
         self.progress: PlanProgress | None = None
         self.stopping: str | None = None          # why the running session's safe stop was asked for
-        self._rows: list[ExperimentRow] = []
+        self._rows: list[ExperimentProgress] = []
         self._preview_number = 0
         self._previewed.connect(self._show_preview)
         form = QtWidgets.QFormLayout()
@@ -315,20 +318,27 @@ class PlanPanel(QtWidgets.QWidget):
         threading.Thread(target=self._estimate, args=(number, plan), name="plan-preview", daemon=True).start()
 
     def _estimate(self, number: int, plan: Plan) -> None:
-        """The preview's times, in its thread."""
-        progress = PlanProgress(plan, self.config, "", 1.0)
+        """The preview's times, in its thread: the one prediction (rig.planning.prediction)."""
+        result: PlanProgress | str
         try:
-            self._previewed.emit(number, plan, progress)
-        except RuntimeError:
-            pass    # the panel was closed while the times were computed: nobody to show them to
+            result = PlanProgress.preview(plan, self.config)
+        except Exception as exc:  # noqa: BLE001 — said where the times would be; Run checks the plan again
+            result = f"plan: its rig time could not be predicted ({type(exc).__name__}: {exc})"
+        try:
+            self._previewed.emit(number, plan, result)
+        except RuntimeError:      # the panel was closed while the times were computed: nobody to show them to
+            return
 
-    def _show_preview(self, number: int, plan: Plan, progress: PlanProgress) -> None:
+    def _show_preview(self, number: int, plan: Plan, progress: PlanProgress | str) -> None:
         if number != self._preview_number or (self.progress is not None and self.progress.ended is None):
             return          # a later edit, or a session started meanwhile
+        if isinstance(progress, str):
+            self.eta.setText(progress)
+            return
         self.show_progress(progress)
         self.progress = None
-        self.eta.setText(f"{len(plan.experiments)} experiments, about "
-                         f"{clock_text(sum(r.estimate_s for r in self._rows), 'rig time')}")
+        self.eta.setText(f"{len(plan.experiments)} experiments as listed, about "
+                         f"{clock_text(progress.estimate_s, 'rig time')} ({progress.basis})")
 
     # ----- running ---------------------------------------------------------------------------------
     def set_running(self, running: bool) -> None:
@@ -356,8 +366,9 @@ class PlanPanel(QtWidgets.QWidget):
         self._rows = progress.rows
         self.table.setRowCount(len(progress.rows))
         for i, r in enumerate(progress.rows):
-            cells = (r.label or r.spec.letter, f"{r.spec.static_position_mm:g}", f"{r.spec.amplitude_mm:g}",
-                     f"{r.spec.frequency_hz:g}")
+            spec = r.spec
+            assert spec is not None    # a plan's rows carry their experiment
+            cells = (r.label, f"{spec.static_position_mm:g}", f"{spec.amplitude_mm:g}", f"{spec.frequency_hz:g}")
             for j, text in enumerate(cells):
                 item = QtWidgets.QTableWidgetItem(text)
                 if j:
@@ -383,28 +394,41 @@ class PlanPanel(QtWidgets.QWidget):
         progress = self.progress
         if progress is None:
             return
+        # Not read, or not being told: the link is lost (the bus says so) or the status poll has no answer.
+        silent = progress.unread is not None or bool(progress.session.gone)
         for i, r in enumerate(progress.rows):
             status = _item(self.table, i, 4)
-            unread = progress.unread is not None and r.status in ("moving", "settling", "capturing", "stopping")
+            unread = silent and r.status in ("moving", "settling", "capturing", "stopping")
             stopping = self.stopping is not None and progress.ended is None and r.status in ACTIVE
             text = f"safe stop under way (was {r.status_text()})" if stopping else r.status_text()
-            status.setText(text + (" — the controller is not answering" if unread else ""))
+            # the count stands where it was last read: said so, beside "Settling: –" below
+            status.setText(text + (" when last read — the controller is not answering" if unread else ""))
             status.setBackground(QtGui.QColor(STATUS_COLOURS["stopping" if stopping else r.status]
                                               if (stopping or r.status in STATUS_COLOURS) else "#ffffff"))
             # no time left while stopping, nor while the controller is not read (the count stands still)
             _item(self.table, i, 5).setText("" if r.status == "done" or stopping else "–" if unread
                                             else _clock(progress.rig_left_s(r)))
         current = progress.current
-        if self.stopping is not None and progress.ended is None:
-            self.steady.cycles.setText("Settling: – (the session's safe stop is under way)")
+        stopping = self.stopping is not None and progress.ended is None
+        if stopping or (silent and progress.ended is None):
+            # The last report's changes are not the rig's now: no table of them beside a count that stands still.
+            self.steady.clear()
+            self.steady.cycles.setText("Settling: – (the session's safe stop is under way)" if stopping else
+                                       "Settling: – (not counted while the controller is not answering)")
         else:
-            self.steady.show_count(current)
+            self.steady.show_count(current, progress.cycles_left(current) if current is not None else None)
         capturing = current is not None and current.status == "capturing" and self.stopping is None
         self.capture.setVisible(capturing)
         if current is not None and capturing:
             self.capture.setValue(int(round(100 * current.fraction)))
             self.capture.setFormat(f"{current.label}: {capture_text(current)}")
-        if progress.ended is None and self.stopping is not None:
+        if stopping and silent:
+            watchdog = self.config.limits.watchdog_timeout_s
+            self.eta.setText(f"Safe stop asked for ({self.stopping}); the controller is not answering, so its fade "
+                             f"out, STOP and hydraulics off are not confirmed: its watchdog stops the shaker "
+                             f"{watchdog:g} s after its last message. No time left is shown")
+            self.eta.setToolTip("")
+        elif stopping:
             self.eta.setText(f"Safe stop under way ({self.stopping}): fade out, STOP, hydraulics off; no time left "
                              "is shown until the session has ended")
             self.eta.setToolTip("")
@@ -416,12 +440,12 @@ class PlanPanel(QtWidgets.QWidget):
             head = head if len(head) <= ENDED_CHARS else head[:ENDED_CHARS].rsplit(" ", 1)[0]
             self.eta.setText(whole if head == whole else f"{head} … (the whole status: the log below)")
             self.eta.setToolTip(whole)
-        elif progress.unread is not None:
+        elif silent:
             self.eta.setText("Session: time left not known while the controller is not answering")
             self.eta.setToolTip("")
         else:
-            wall = progress.session_left_s()
-            self.eta.setText(f"Session: about {clock_text(wall, 'wall')} left "
-                             f"({clock_text(wall / progress.wall_per_rig_s(), 'rig time')})"
+            wall, rig = progress.session_left_s(), progress.session_rig_left_s()
+            self.eta.setText(f"Session: about {clock_text(wall or 0.0, 'wall')} left "
+                             f"({clock_text(rig or 0.0, 'rig time')})"
                              + (f"; {current.label}: {clock_text(progress.rig_left_s(current), 'rig time')}"
                                 if current else ""))

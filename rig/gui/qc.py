@@ -3,28 +3,31 @@ function ``rig qc run`` calls, run by the console's session worker with the wind
 subscribers (rig.gui.session_worker): the same checks, session, identification,
 judgement, record, report and exit status, through the one session lifecycle.
 
-What the QC panel shows comes from typed data only: its progress from the session's
-events and the re-prediction of the time left (:class:`QcTracker`), its verdict and
-table from the stored record (:func:`done_from`).
+What the QC panel shows comes from typed data only: its progress from the session's one
+progress (:class:`QcTracker` renders it), its verdict and table from the stored record
+(:func:`done_from`).
 """
 
 from __future__ import annotations
 
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERNAL
 from rig.events import Event, Kind, Message
+from rig.gui.units import GAS_PRESSURE_UNIT
 from rig.qc.judge import Outcome
 from rig.qc.present import shown
+from rig.qc.records import QcRecord
 from rig.qc.run import EXIT_BY_VERDICT, Prediction, QcOptions, QcOutcome
+from rig.qc.spec import Spec
+from rig.session.session_progress import SessionProgress
 
 # What the operator is told to do: an INCONCLUSIVE unit is neither passed nor failed, it is tested again.
 SHOWN = {Outcome.PASS: "PASS", Outcome.FAIL: "FAIL", Outcome.INCONCLUSIVE: "RETEST"}
 VERDICT_BY_EXIT = {code: outcome for outcome, code in EXIT_BY_VERDICT.items()}
-RUNNING_SHARE = 0.95     # of its estimate, the most a running experiment counts as done before it is written
 
 
 @dataclass(frozen=True)
@@ -57,6 +60,7 @@ class QcRow:
     limits: str
     acceptance: str
     sigma: str = ""
+    origin: str = ""     # measured, identified or predicted (a key of ORIGINS)
 
 
 @dataclass(frozen=True)
@@ -83,22 +87,54 @@ class QcDone(Message):
     simulated: bool = False            # the record says a peer named itself a simulator
     reason: str = ""                   # why there is no verdict (refused, aborted, error)
     retest_periods: int | None = None  # RETEST: the periods of the retest
+    trace: str = ""                    # who, by which rules (spec, its revision and hash), at which k
 
 
-def done_from(request: QcRequest, outcome: QcOutcome, retest_periods: int) -> QcDone:
+ORIGINS = {"measured": "on the experiment's own samples",
+           "identified": "from the model fitted to the measured experiments",
+           "predicted": "a test the plan does not run (a drop, an excitation of its own) simulated with the "
+                        "identified model, not measured"}
+
+
+def origin(spec: Spec, name: str) -> str:
+    """Where a characteristic's value comes from, as its kind says (a key of ORIGINS)."""
+    c = next((c for c in spec.characteristics if c.name == name), None)
+    if c is None:
+        return ""
+    if c.kind == "loop_energy":     # measured where the plan runs its experiment, else simulated
+        return "measured" if c.args.get("experiment") in {e.letter for e in spec.plan.experiments} else "predicted"
+    return "predicted" if c.kind == "drop_peak_force" else "identified"
+
+
+def trace(record: QcRecord, k: float, typed: bool = True) -> str:
+    """Who judged by which rules, at which coverage factor: the verdict's traceability line
+    (``typed``: the operator's name was typed, not taken from the login)."""
+    k_used = record.k if record.k is not None else k
+    who = record.operator if typed else f"{record.operator} (the login name: no operator typed)"
+    return (f"Operator {who} · spec {record.spec_name} revision {record.spec_version} (sha256 "
+            f"{record.spec_sha256[:12]}…) · values ± kσ with k = {k_used:g}")
+
+
+def done_from(request: QcRequest, outcome: QcOutcome, spec: Spec) -> QcDone:
     """The panel's verdict, table and causes from the record the test stored."""
     record = outcome.record
     verdict = VERDICT_BY_EXIT.get(outcome.exit_code) if record.verdict is not None else None
     if verdict is None:
         return QcDone(request.serial, outcome.exit_code, "ABORTED", outcome.report, simulated=record.simulated,
-                      reason=record.reason or f"exit status {outcome.exit_code}")
+                      reason=record.reason or f"exit status {outcome.exit_code}",
+                      trace=trace(record, outcome.k, request.operator is not None))
     rows = []
+    kinds = {c.name: c.kind for c in spec.characteristics}
     for c in record.characteristics:
-        s = shown(record, c, outcome.k)
-        rows.append(QcRow(s.outcome, s.title, s.value, s.limits, s.acceptance, f"{s.sigma} {s.basis}".strip()))
+        # the spec's "bar" of a gas pressure is absolute: named as every other screen names it
+        named = replace(c, unit=GAS_PRESSURE_UNIT) if kinds.get(c.name) == "gas_pressure" and c.unit == "bar" else c
+        s = shown(record, named, outcome.k)
+        rows.append(QcRow(s.outcome, s.title, s.value, s.limits, s.acceptance, f"{s.sigma} {s.basis}".strip(),
+                          origin(spec, c.name)))
     return QcDone(request.serial, outcome.exit_code, SHOWN[verdict], outcome.report, rows=rows,
                   causes=list(record.diagnosis), remedy=record.remedy or "", simulated=record.simulated,
-                  retest_periods=retest_periods if verdict is Outcome.INCONCLUSIVE else None)
+                  retest_periods=spec.retest_periods() if verdict is Outcome.INCONCLUSIVE else None,
+                  trace=trace(record, outcome.k, request.operator is not None))
 
 
 def refused(request: QcRequest, reason: str) -> QcDone:
@@ -115,66 +151,39 @@ def ended(request: QcRequest, reason: str, report: Path | None, bug: bool) -> Qc
 
 class QcTracker:
     """A queued subscriber of the unit's session: its progress as :class:`QcProgress`,
-    from the rig time predicted per experiment (the session's own estimates, on record
-    in session.json), the events and the rig time the running experiment has taken so
-    far (the session's clock at its measured pace, at most 95 % of its estimate until it
-    is written); after each captured experiment the time left is predicted again from the
-    parameters identified so far (:meth:`predicted`)."""
+    rendered from the session's one :class:`~rig.session.session_progress.SessionProgress`
+    (its fraction done and rig time left, which the re-prediction after each captured
+    experiment updates through the bus: :meth:`predicted` only names the experiments it
+    followed)."""
 
-    def __init__(self, estimates_s: dict[str, float], post: Callable[[Message], None],
-                 clock: Callable[[], float], pace: Callable[[], float]) -> None:
-        self.estimates = dict(estimates_s)
-        self.order = list(estimates_s)
-        self.post, self.clock, self.pace = post, clock, pace
-        self.done: set[str] = set()
-        self.current: str | None = None
-        self.started: dict[str, float] = {}    # each experiment's first event, on the session's clock
-        self.phase = ""
+    def __init__(self, progress: SessionProgress, post: Callable[[Message], None]) -> None:
+        self.progress, self.post = progress, post
+        self.order = [label for label, r in progress.experiments.items() if r.note != "earlier"]
         self.after = ""
         self._lock = threading.Lock()  # the bus's thread and the session's (predicted) both call in
         self._emit("session started: the first experiment")
 
     def __call__(self, e: Event) -> None:
         with self._lock:
-            if e.experiment is not None and e.experiment in self.estimates:
-                if e.kind in (Kind.PHASE, Kind.PROGRESS):
-                    self.started.setdefault(e.experiment, self.clock())
-                    self.current, self.phase = e.experiment, str(e.data["phase"])
-                elif e.kind in (Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED):
-                    self.done.add(e.experiment)
-                else:
-                    return
-            elif e.kind != Kind.SESSION_END:
-                return
             if e.kind == Kind.SESSION_END:
                 judging = "; identifying and judging the unit" if e.data["exit_code"] == 0 else ""
                 self._emit(f"session {e.data['message']}{judging}")
-            else:
+            elif e.kind in (Kind.PHASE, Kind.PROGRESS, Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED, Kind.LINK,
+                            Kind.PREDICTION):
                 self._emit(self._doing())
 
     def predicted(self, prediction: Prediction) -> None:
-        """The rest of the plan re-predicted (rig.qc.run.decider): its estimates scaled to it."""
+        """The rest of the plan re-predicted (rig.qc.run.decider): after which experiments."""
         with self._lock:
-            rest = [label for label in self.order if label not in prediction.after]
-            total = sum(self.estimates[label] for label in rest)
-            if total > 0:
-                for label in rest:
-                    self.estimates[label] *= prediction.rig_left_s / total
             self.after = ", ".join(prediction.after)
             self._emit(self._doing())
 
     def _doing(self) -> str:
-        if self.current is None:
-            return "session started: the first experiment"
-        number = self.order.index(self.current) + 1
-        return f"experiment {number} of {len(self.order)} ({self.current}): {self.phase}"
+        current = self.progress.current
+        if current is None:
+            return "between experiments" if self.progress.rig_done_s() else "session started: the first experiment"
+        number = self.order.index(current.label) + 1
+        return f"experiment {number} of {len(self.order)} ({current.label}): {current.status}"
 
     def _emit(self, text: str) -> None:
-        total = sum(self.estimates.values())
-        done = sum(self.estimates[label] for label in self.done)
-        # begun, not yet written (an experiment's file is written while the next one moves)
-        now, pace = self.clock(), self.pace()
-        running = sum(min((now - t0) * pace, RUNNING_SHARE * self.estimates[label])
-                      for label, t0 in self.started.items() if label not in self.done)
-        fraction = min((done + running) / total, 1.0) if total > 0 else 0.0
-        self.post(QcProgress(fraction, max(total - done - running, 0.0), text, self.after))
+        self.post(QcProgress(self.progress.fraction_done(), self.progress.rig_left_s(), text, self.after))

@@ -10,7 +10,7 @@ from pathlib import Path
 
 from PySide6 import QtCore, QtGui, QtWidgets
 
-from rig.gui.qc import SHOWN, QcDone, QcProgress, QcRequest
+from rig.gui.qc import ORIGINS, SHOWN, QcDone, QcProgress, QcRequest
 from rig.qc.present import verdict_colours
 
 TESTING = ("#e3f2fd", "#0d47a1")                     # (background, text) while a unit is tested
@@ -84,6 +84,9 @@ class QcPanel(QtWidgets.QWidget):
         self.step = QtWidgets.QLabel("")
         self.step.setObjectName("qcStep")
         self.step.setWordWrap(True)
+        self.trace = QtWidgets.QLabel("")
+        self.trace.setObjectName("qcTrace")
+        self.trace.setWordWrap(True)            # operator, spec revision and hash, k: beside the values
         self.causes = QtWidgets.QLabel("")
         self.causes.setObjectName("qcCauses")
         self.causes.setWordWrap(True)           # the likely cause in full, never clipped
@@ -110,6 +113,7 @@ class QcPanel(QtWidgets.QWidget):
         layout.addWidget(self.progress)
         layout.addWidget(self.causes)
         layout.addWidget(self.report)
+        layout.addWidget(self.trace)
         layout.addWidget(self.table, 1)
         none = verdict_colours(None)
         self._paint("—", (none.banner, none.banner_text))
@@ -143,6 +147,7 @@ class QcPanel(QtWidgets.QWidget):
                             "python -m rig qc run, in this console's session.")
         self.report.setText("")
         self.causes.setText("")
+        self.trace.setText("")
         self.table.setRowCount(0)
         self.progress.setValue(0)
         self.step.setText("starting: the spec's checks, then the links")
@@ -152,10 +157,12 @@ class QcPanel(QtWidgets.QWidget):
 
     def show_progress(self, progress: QcProgress) -> None:
         self.progress.setValue(round(1000 * progress.fraction))
-        left = "" if progress.rig_left_s is None else \
-            f" — about {int(progress.rig_left_s // 60)}:{int(progress.rig_left_s % 60):02d} min:s of rig time left"
+        # no time left while a link is lost, as the plan tab and the terminal (one progress: the session's)
+        left = " — time left not known while a link is lost" if progress.rig_left_s is None else \
+            f" — about {int(progress.rig_left_s // 60)}:{int(progress.rig_left_s % 60):02d} m:s of rig time left"
         basis = (f" (predicted again after {progress.predicted_after} from the parameters identified so far)"
-                 if progress.predicted_after else " (the session's prediction for a nominal unit)" if left else "")
+                 if progress.predicted_after else " (the session's prediction for a nominal unit)"
+                 if progress.rig_left_s is not None else "")
         self.step.setText(f"{progress.text}{left}{basis}")
 
     def show_done(self, done: QcDone) -> None:
@@ -182,13 +189,16 @@ class QcPanel(QtWidgets.QWidget):
         if done.simulated:
             lines.append("SIMULATED: measured on a simulator, not a production record")
         self.causes.setText("\n".join(lines))
+        self.trace.setText(done.trace)
         self._fill(done)
         self.set_running(False)
 
     def _fill(self, done: QcDone) -> None:
         self.table.setRowCount(len(done.rows))
         for i, row in enumerate(done.rows):
-            for j, text in enumerate((row.title, row.value, row.limits, row.acceptance, row.outcome)):
+            # what is a prediction of the identified model (a drop test) says so beside its name
+            title = row.title + (f" ({row.origin})" if row.origin else "")
+            for j, text in enumerate((title, row.value, row.limits, row.acceptance, row.outcome)):
                 item = QtWidgets.QTableWidgetItem(text)
                 if j:
                     item.setTextAlignment(QtCore.Qt.AlignmentFlag.AlignRight | QtCore.Qt.AlignmentFlag.AlignVCenter)
@@ -199,6 +209,8 @@ class QcPanel(QtWidgets.QWidget):
                     item.setForeground(QtGui.QColor(verdict_colours(text).text))
                 if j == 1 and row.sigma:
                     item.setToolTip(f"σ {row.sigma}")
+                if j == 0 and row.origin:
+                    item.setToolTip(f"{row.origin}: {ORIGINS[row.origin]}")
                 self.table.setItem(i, j, item)
         QtCore.QTimer.singleShot(0, self._fit_rows)
 

@@ -1,5 +1,5 @@
-"""``make screenshots``: the console's main views as PNG files, from a real session on the
-simulated rig (offscreen): idle (connected, at rest), settling, a capture in progress, the
+"""``make screenshots``: the console's main views as PNG files at 1280 px, from a real
+session on the simulated rig (offscreen): idle (connected, at rest), settling, a capture in progress, the
 fit view with the 1-dof/2-dof comparison, the session browser, an alarm (an e-stop trip
 during a manual sine), the console's E-STOP during a manual sine, a link lost mid-run (the
 controller gone during an experiment, then the session's end), and QC mode at 1280 px (a
@@ -26,6 +26,8 @@ from PySide6 import QtCore, QtWidgets  # noqa: E402
 from rig.drivers.registers import ControllerState
 from rig.gui.main_window import MainWindow, application  # noqa: E402
 
+WIDTH = 1280     # px: every view at the narrowest screen the console is made for
+
 
 def wait(what: str, condition: Callable[[], bool], timeout_s: float = 120.0) -> None:
     app = application()
@@ -47,11 +49,6 @@ def shoot(window: MainWindow, path: Path) -> Path:
     window.grab().save(str(path))
     print(f"wrote {path}")
     return path
-
-
-def status_of(window: MainWindow, row: int) -> str:
-    progress = window.plan.progress
-    return progress.rows[row].status if progress is not None else ""
 
 
 def capturing(window: MainWindow, row: int) -> bool:
@@ -86,7 +83,7 @@ def qc_view(speed: float, out: Path, sessions: Path) -> None:
     it settles, then its FAIL with the table and the likely cause."""
     qc = MainWindow.from_args(["--simulate", "--speed", f"{speed:g}", "--unit", "worn-orifice", "--out",
                                str(sessions)])
-    qc.resize(1280, 1024)
+    qc.resize(WIDTH, 1024)
     qc.show()
     wait("the connection", lambda: qc.status is not None)
     qc.qc.serial.setText("SN-0042")
@@ -130,6 +127,7 @@ def session_views(args: argparse.Namespace, out: Path, sessions: Path) -> None:
     """idle, settling, capturing, fit and browser, from one session of j and g."""
     window = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--experiments", "j,g",
                                    "--out", str(sessions)])
+    window.resize(WIDTH, 1000)
     window.show()
     wait("the connection", lambda: window.status is not None)
     wait("the DAQ's rate measured", lambda: "× real time" in window.live.health.text(), 60)
@@ -162,6 +160,7 @@ def alarm_view(args: argparse.Namespace, out: Path, sessions: Path) -> None:
     """An alarm: the e-stop trips 10 s (simulated) into a manual sine."""
     alarm = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--fault", "estop@run+10",
                                   "--out", str(sessions)])
+    alarm.resize(WIDTH, 1000)
     alarm.show()
     manual_sine(alarm)
     wait("the trip", lambda: alarm.status is not None and alarm.status.state is ControllerState.ALARM, 60)
@@ -173,6 +172,7 @@ def alarm_view(args: argparse.Namespace, out: Path, sessions: Path) -> None:
 def estop_view(args: argparse.Namespace, out: Path, sessions: Path) -> None:
     """The console's E-STOP pressed during a manual sine: STOP and hydraulics off, latched."""
     estop = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--out", str(sessions)])
+    estop.resize(WIDTH, 1000)
     estop.show()
     manual_sine(estop)
     wait("the sine", lambda: estop.status is not None and estop.status.state is ControllerState.RUNNING and
@@ -192,7 +192,7 @@ def lost_link_view(args: argparse.Namespace, out: Path, sessions: Path) -> None:
     session has ended (aborted, the safe stop incomplete, the DAQ read alone)."""
     window = MainWindow.from_args(["--simulate", "--speed", f"{args.speed:g}", "--experiments", "j",
                                    "--fault", "modbus-down@run+20=100000", "--out", str(sessions)])
-    window.resize(1280, 1000)
+    window.resize(WIDTH, 1000)
     window.show()
     wait("the connection", lambda: window.status is not None)
     window.plan.identify.setChecked(False)

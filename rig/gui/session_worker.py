@@ -1,13 +1,13 @@
 """The session worker (no Qt here): one session at a time on the ``rig-session`` thread,
 a plan (what ``rig run`` would run) or a unit's QC test (what ``rig qc run`` would run,
 through :func:`rig.qc.run.test_unit`), both through
-:func:`rig.session.run.run_lifecycle`: links → session → safe stop.  The window is one
+:func:`rig.session.lifecycle.run_lifecycle`: links → session → safe stop.  The window is one
 more subscriber of the session's events (queued: the acquisition never waits on it),
 and the status poller reads the session's links while it runs.
 
 Abort, the E-STOP and the window closing reach the session through
 :meth:`SessionWorker.request_stop`, which hands the reason to the runner
-(:meth:`rig.session.run.SessionRunner.request_stop`), or keeps it for the runner
+(:meth:`rig.session.runner.SessionRunner.request_stop`), or keeps it for the runner
 about to exist.
 """
 
@@ -23,6 +23,7 @@ from rich.console import Console
 from rich.text import Text
 
 from identify.errors import InputError
+from identify.exit_codes import EXIT_OK
 from rig.drivers.daq import Daq
 from rig.drivers.shaker import Shaker
 from rig.errors import BadInput, RigError
@@ -34,24 +35,18 @@ from rig.gui.plan_state import PlanProgress
 from rig.gui.qc import QcDone, QcRequest, QcStarted, QcTracker, done_from, ended, refused
 from rig.qc.run import Prediction, QcSubscribers, test_unit
 from rig.qc.spec import load_spec
-from rig.session.run import (
-    EXIT_OK,
-    Prepared,
-    RunOptions,
-    RunResult,
-    SessionContext,
-    SessionRunner,
-    prepare,
-    run_lifecycle,
-)
+from rig.session.lifecycle import SessionContext, run_lifecycle
+from rig.session.outcome import RunResult
+from rig.session.preparation import Prepared, RunOptions, prepare
+from rig.session.runner import SessionRunner
 
 
 class SessionWorker:
     def __init__(self, post: Callable[[Message], None], manual: ManualControl, emergency: EmergencyStop,
-                 heartbeat: Heartbeat, config_files: dict[str, str | None], speed: float,
+                 heartbeat: Heartbeat, config_files: dict[str, str | None],
                  captured: Callable[[RunResult, RunOptions], None]) -> None:
         self.post, self.manual, self.emergency, self.heartbeat = post, manual, emergency, heartbeat
-        self.config_files, self.speed, self.captured = config_files, speed, captured
+        self.config_files, self.captured = config_files, captured
         self.runner: SessionRunner | None = None      # the session's, while one runs
         self.closing = False                          # the window is closing: no links taken back
         self._stop_reason: str | None = None          # a stop asked for before the runner existed
@@ -115,9 +110,7 @@ class SessionWorker:
         self.manual.release()
 
     def _opened(self, ctx: SessionContext, opt: RunOptions, qc: bool) -> None:
-        prep = ctx.runner.prep
-        progress = PlanProgress(prep.plan, prep.config, ctx.session.meta["date"], self.speed, ctx.session.completed())
-        self.post(SessionOpened(ctx.session.path, progress, opt, qc))
+        self.post(SessionOpened(ctx.session.path, PlanProgress(ctx.progress), opt, qc))
 
     # ----- a plan ---------------------------------------------------------------------------------------------
     def _run_plan(self, opt: RunOptions, identify: bool) -> None:
@@ -161,7 +154,7 @@ class SessionWorker:
         def attach(ctx: SessionContext) -> list[Subscriber]:
             folder.append(ctx.session.path)
             self._opened(ctx, ctx.runner.prep.options, qc=True)
-            self._tracker = QcTracker(ctx.estimates_s, self.post, ctx.rig_clock, ctx.current_pace)
+            self._tracker = QcTracker(ctx.progress, self.post)
             return [self._tracker]
 
         def predicted(prediction: Prediction) -> None:
@@ -184,7 +177,7 @@ class SessionWorker:
             if not shaker_url or not daq_url:
                 raise BadInput("give the controller's and the DAQ's addresses (--shaker, --daq) or --simulate")
             outcome = test_unit(request.options(shaker_url, daq_url, self.config_files), to)
-            done = done_from(request, outcome, load_spec(request.spec).retest_periods())
+            done = done_from(request, outcome, load_spec(request.spec))
         except (BadInput, InputError) as exc:
             done = refused(request, str(exc))
         except RigError as exc:

@@ -16,6 +16,7 @@ from PySide6 import QtCore, QtGui, QtWidgets
 
 from rig.drivers.registers import ControllerState
 from rig.drivers.shaker import ShakerStatus
+from rig.gui.units import supply_text
 
 # Supply pressure from which the hydraulics count as on: the register is the one
 # reading that tells, whatever the coil was last written (a lost supply reads 0 bar).
@@ -80,7 +81,7 @@ class RigState:
         if st is None:
             parts.append("HYDRAULICS ?" + (f" ({short_link_error(self.link_error)})" if self.link_error else ""))
         else:
-            parts.append(f"HYDRAULICS {'ON' if hydraulics_on(st) else 'OFF'}  {st.hydraulic_pressure_pa / 1e5:.0f} bar")
+            parts.append(f"HYDRAULICS {'ON' if hydraulics_on(st) else 'OFF'}  {supply_text(st)}")
             if self.trip is not None and st.state is not ControllerState.ALARM:
                 parts.append(f"controller {st.state}")
         return "   ·   ".join(parts)

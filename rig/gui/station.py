@@ -36,13 +36,13 @@ from rig.gui.fitting import Fitting, IdentifySettings
 from rig.gui.manual import Heartbeat, ManualControl
 from rig.gui.session_worker import SessionWorker
 from rig.gui.status_poller import StatusPoller
-from rig.session.run import RunOptions
+from rig.session.preparation import RunOptions
 
 
 class Station:
     def __init__(self, shaker_url: str | None, daq_url: str | None, post: Callable[[Message], None], *,
-                 rig_config: str | None = None, calibration: str | None = None, register_map: str | None = None,
-                 speed: float = 1.0) -> None:
+                 rig_config: str | None = None, calibration: str | None = None, register_map: str | None = None
+                 ) -> None:
         self.post = post
         self.config_files = {"rig_config": rig_config, "calibration": calibration, "register_map": register_map}
         self.config: RigConfig = load_rig_config(rig_config)
@@ -55,7 +55,7 @@ class Station:
         self.manual = ManualControl(self.config, cal, registers, self.emergency.latch, post, self.heartbeat,
                                     lambda: self.sessions.running, self.emergency.open_line)
         self.manual.urls = (shaker_url, daq_url)
-        self.sessions = SessionWorker(post, self.manual, self.emergency, self.heartbeat, self.config_files, speed,
+        self.sessions = SessionWorker(post, self.manual, self.emergency, self.heartbeat, self.config_files,
                                       self.fits.identify)
         self.poller = StatusPoller(self.links, post, lambda: self.heartbeat.ok)
 

@@ -15,6 +15,11 @@ from rig.events import Message
 from rig.gui.messages import Snapshot
 
 STATUS_PERIOD_S = 0.25
+# A read neither waits out another thread's reconnect (the session's command holds the link
+# for up to its reconnect time, 20 s) nor reconnects for long itself: the poll is what the
+# window shows, and a read stuck for 20 s left it showing nothing new while the session's
+# safe stop waited on the poll's reconnect in turn.
+POLL_PATIENCE_S = 0.5
 CONTROLLER_NOT_CONNECTED = "the controller is not connected; the DAQ alone is read"
 
 # Which links to read: (the controller, the DAQ, whether they are a session's); None: none held.
@@ -39,7 +44,7 @@ class StatusPoller:
         if shaker is not None:
             error = None
             try:
-                status = shaker.status()
+                status = shaker.status(patience_s=POLL_PATIENCE_S)
             except Exception as exc:  # noqa: BLE001 — shown as the link's state
                 error = str(exc)
         if daq is None:

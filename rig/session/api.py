@@ -101,10 +101,9 @@ class Session:
         def progress(ctx: SessionContext) -> list[Subscriber]:
             self._folder = ctx.session
             if self._progress == "bar" or (self._progress == "auto" and _in_notebook()):
-                return [ProgressBar(ctx.estimates_s)]
+                return [ProgressBar(ctx.progress)]
             if self._progress:
-                return [ConsoleProgress(rig._console, ctx.estimates_s, ctx.current_pace, ctx.rig_clock,
-                                        ctx.runner.acquisition.pace_reading)]
+                return [ConsoleProgress(rig._console, ctx.progress, pace_reading=ctx.runner.acquisition.pace_reading)]
             return []
 
         self._result = result = run_lifecycle(self._prepared, rig._console, links=rig._links,

@@ -2,11 +2,9 @@
 :func:`describe`, an event in a sentence (the terminal, the console's log pane, the
 session browser's view of session.log).
 
-One line per phase, settling and capture progress, and the session's ETA: the rig
-time announced at the start comes from the plan's per-experiment estimates; while the
-session runs, the time left is corrected by how long the finished experiments took
-against their estimates, as far as they are the session, and given in wall clock at
-the links' pace (a simulator's speed, corrected from the session's own streams).
+One line per phase, settling and capture progress, and the session's ETA, rendered
+from the session's one :class:`~rig.session.session_progress.SessionProgress` (which
+computes the time left; nothing here does).
 """
 
 from __future__ import annotations
@@ -21,9 +19,10 @@ from rich.console import Console
 from rich.markup import escape
 
 from rig.drivers.registers import ControllerState
-from rig.events import Event, Kind, LinkCondition, Phase
+from rig.events import Event, Kind, Phase
 from rig.session.acquisition import PaceReading
 from rig.session.outcome import ExitStatus
+from rig.session.session_progress import SessionProgress
 from rig.session.storage import read_log
 
 # How the settling change of each channel is said: its word, unit and decimals (the
@@ -170,43 +169,37 @@ def log_text(path: Path) -> str:
 class ConsoleProgress:
     """Queued subscriber: the session in sentences, each line under the experiment it
     belongs to (``[ 2/14] 261126e``, the experiment's place in the session: an
-    experiment's file is written while the next one moves), and the session's ETA (wall
-    clock, from the rig-time estimate corrected by what is done)."""
+    experiment's file is written while the next one moves), and the session's ETA,
+    rendered from the session's one :class:`SessionProgress` (its wall time left at the
+    measured pace)."""
 
-    def __init__(self, console: Console, estimates_s: dict[str, float], pace: float | Callable[[], float] = 1.0,
-                 rig_clock: Callable[[], float] = time.monotonic,
+    def __init__(self, console: Console, estimates_s: dict[str, float] | SessionProgress,
+                 pace: float | Callable[[], float] = 1.0, rig_clock: Callable[[], float] = time.monotonic,
                  pace_reading: Callable[[], PaceReading] | None = None) -> None:
-        # pace: the links' rig seconds per second, or where to read it as the session
-        # corrects it from its streams (Acquisition.current_pace); rig_clock: the
-        # acquisition's (a test's in-process simulator runs on its own); pace_reading:
-        # the pace with what measured it (Acquisition.pace_reading), for the last line
-        self.console, self.estimates, self.rig_clock = console, estimates_s, rig_clock
-        self._pace = pace if callable(pace) else lambda: pace
-        self._pace_reading = pace_reading or (lambda: PaceReading(self._pace(), "the pace given"))
-        self.rig_started = rig_clock()
-        self.total, self.done, self.done_s = len(estimates_s), 0, 0.0
-        self.number = {label: i + 1 for i, label in enumerate(estimates_s)}
+        # estimates_s: the session's progress (a lifecycle's, fed by its bus), or the rig
+        # time per experiment to keep one here from the events this subscriber is given;
+        # pace, rig_clock: the latter's (see SessionProgress); pace_reading: the pace with
+        # what measured it (Acquisition.pace_reading), for the last line
+        self.console = console
+        self._own = not isinstance(estimates_s, SessionProgress)
+        self.progress = estimates_s if isinstance(estimates_s, SessionProgress) else \
+            SessionProgress(estimates_s, pace, rig_clock)
+        progress = self.progress
+        self._pace_reading = pace_reading or (lambda: PaceReading(progress.pace(), "the pace given"))
+        labels = [r.label for r in progress.experiments.values() if r.note != "earlier"]
+        self.total = len(labels)
+        self.number = {label: i + 1 for i, label in enumerate(labels)}
         self._captured = 0.0
         self._criterion_said: set[str | None] = set()
-        self._gone: dict[str, None] = {}   # links lost and not back ("controller", "DAQ"): no rig time after
         plural = "s" if self.total != 1 else ""
-        console.print(f"session: {self.total} experiment{plural}, about {_min_s(sum(estimates_s.values()))} min:s of "
+        console.print(f"session: {self.total} experiment{plural}, about {_min_s(progress.announced_s)} min:s of "
                       "rig time", highlight=False)
 
     def _eta(self) -> str:
-        """The rig time left, corrected from the progress made, at the links' pace.
-
-        The experiments done took ``ratio`` times their estimate; the rest is scaled by
-        that ratio only as far as the done ones are the session (their share of the
-        estimate): one experiment's settling is tens of per cent off either way (a busy
-        host's late hold end), the whole plan's much less, and a first short experiment
-        that ran fast said -40 % where the announcement had been right."""
-        if not self.done_s:
-            return ""
-        total, pace = sum(self.estimates.values()), self._pace()
-        ratio = (self.rig_clock() - self.rig_started) * pace / self.done_s
-        left = (total - self.done_s) * (1 + (ratio - 1) * self.done_s / total) / pace
-        return f" About {_min_s(left)} left (m:s of wall clock)."
+        """The wall time left, as the session's progress has it (not said while it is not known)."""
+        left = self.progress.wall_left_s()
+        return "" if left is None or not self.progress.rig_done_s() else \
+            f" About {_min_s(left)} left (m:s of wall clock)."
 
     def _head(self, label: str | None) -> str:
         width = 2 * len(str(self.total)) + 3 + 8
@@ -218,13 +211,8 @@ class ConsoleProgress:
         def say(text: str, style: str = "") -> None:
             self.console.print(f"{self._head(e.experiment)} {text}", style=style, highlight=False)
 
-        if e.kind == Kind.LINK and e.data.get("state") in (LinkCondition.LOST, LinkCondition.GONE):
-            self._gone[e.data["link"]] = None
-        elif e.kind == Kind.LINK and e.data.get("state") == LinkCondition.BACK:
-            self._gone.pop(e.data["link"], None)
-        if e.kind in (Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED):
-            self.done += 1
-            self.done_s += self.estimates.get(e.experiment or "", 0.0)
+        if self._own:
+            self.progress(e)
         if e.kind == Kind.PHASE:
             self._captured = 0.0
             if e.data["phase"] != Phase.ALARM:          # the alarm event that follows says it, in red
@@ -244,48 +232,58 @@ class ConsoleProgress:
         elif e.kind == Kind.EXPERIMENT_DONE:
             say(f"[green]{describe(e)}[/green]{self._eta()}")
         elif e.kind == Kind.PREDICTION:   # the rest predicted again (qc run: from the unit's own parameters)
-            left = e.data["rig_time_left_s"] / self._pace()
-            say(f"{escape(describe(e))} About {_min_s(left)} left (m:s of wall clock).")
+            left = self.progress.wall_left_s()
+            said = "" if left is None else f" About {_min_s(left)} left (m:s of wall clock)."
+            say(f"{escape(describe(e))}{said}")
         elif e.kind == Kind.SESSION_END:
-            took, announced, pace = self.rig_clock() - self.rig_started, sum(self.estimates.values()), \
-                self._pace_reading()
-            if pace.rig_s_per_s > 1.0 and self._gone:   # no reading of the rig's time after the link went
-                self.console.print(f"session took {_min_s(took)} min:s of this computer's clock; its rig time is not "
-                                   f"known: the {' and the '.join(self._gone)} link was lost, and the pace measured "
-                                   f"before ({pace}) says nothing of the time after; announced {_min_s(announced)}",
-                                   highlight=False)
-            elif pace.rig_s_per_s > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
-                self.console.print(f"session took {_min_s(took)} min:s of this computer's clock; at {pace}, about "
-                                   f"{_min_s(took * pace.rig_s_per_s)} min:s of rig time; announced "
-                                   f"{_min_s(announced)}", highlight=False)
-            else:
-                self.console.print(f"session took {_min_s(took)} min:s of rig time; announced {_min_s(announced)}",
-                                   highlight=False)
+            self._last_line()
         elif e.kind in (Kind.LOG, Kind.PACE_PROBE, Kind.HOLD, Kind.HOLD_END, Kind.CAPTURE_WINDOW):
             say(describe(e), "dim")
         elif e.kind in (Kind.LINK, Kind.ALARM, Kind.EXPERIMENT_FAILED):
             say(describe(e), "red")
 
+    def _last_line(self) -> None:
+        progress = self.progress
+        took, announced, pace = progress.rig_clock() - progress.rig_started, progress.announced_s, \
+            self._pace_reading()
+        if pace.rig_s_per_s > 1.0 and progress.gone:   # no reading of the rig's time after the link went
+            self.console.print(f"session took {_min_s(took)} min:s of this computer's clock; its rig time is not "
+                               f"known: the {' and the '.join(progress.gone)} link was lost, and the pace measured "
+                               f"before ({pace}) says nothing of the time after; announced {_min_s(announced)}",
+                               highlight=False)
+        elif pace.rig_s_per_s > 1.0:   # links faster than the rig's time: its minutes, from the measured pace
+            self.console.print(f"session took {_min_s(took)} min:s of this computer's clock; at {pace}, about "
+                               f"{_min_s(took * pace.rig_s_per_s)} min:s of rig time; announced "
+                               f"{_min_s(announced)}", highlight=False)
+        else:
+            self.console.print(f"session took {_min_s(took)} min:s of rig time; announced {_min_s(announced)}",
+                               highlight=False)
+
 
 class ProgressBar:
     """Queued subscriber for notebooks: one bar over the session's rig time (a widget in
-    Jupyter, text elsewhere), advancing as experiments end and naming the running one."""
+    Jupyter, text elsewhere), rendered from the session's :class:`SessionProgress`: what
+    is done and what is left, the running experiment named."""
 
-    def __init__(self, estimates_s: dict[str, float]) -> None:
+    def __init__(self, progress: SessionProgress | dict[str, float]) -> None:
         from tqdm.auto import tqdm  # only notebooks and scripts that ask for the bar load it
 
-        self.estimates = estimates_s
-        self.bar = tqdm(total=round(sum(estimates_s.values())), unit="s", desc="session",
+        self._own = not isinstance(progress, SessionProgress)
+        self.progress = progress if isinstance(progress, SessionProgress) else SessionProgress(progress)
+        self.bar = tqdm(total=round(self.progress.announced_s), unit="s", desc="session",
                         bar_format="{desc}: {percentage:3.0f}%|{bar}| {n_fmt}/{total_fmt} s of rig time")
 
     def __call__(self, e: Event) -> None:
+        if self._own:
+            self.progress(e)
         if e.kind == Kind.PHASE and e.experiment:
             extra = f" {e.data['cycles']} cycles" if "cycles" in e.data else ""
             self.bar.set_description(f"{e.experiment} {e.data['phase']}{extra}")
-        elif e.kind in (Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED):
-            self.bar.update(round(self.estimates.get(e.experiment or "", 0.0)))
-        elif e.kind == Kind.PREDICTION:    # the rest predicted again: the bar's end moves with it
-            self.bar.total = self.bar.n + round(e.data["rig_time_left_s"])
+        elif e.kind in (Kind.EXPERIMENT_DONE, Kind.EXPERIMENT_FAILED, Kind.PREDICTION):
+            done, left = self.progress.rig_done_s(), self.progress.rig_left_s()
+            if left is not None:
+                self.bar.total = round(done + left)
+            self.bar.n = min(round(done), self.bar.total)
             self.bar.refresh()
         elif e.kind == Kind.SESSION_END:
             self.bar.set_description(str(e.data.get("message", "ended")))
