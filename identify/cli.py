@@ -34,6 +34,7 @@ from identify.fit import DEFAULT_POINTS, GridChoice, choose_grid, fit_experiment
 from identify.model import DEFAULT_ESTIMATE, CompiledModel, load_model
 from identify.parameters import Parameters, load_document
 from identify.periodic import PeriodicSolver
+from identify.plans import Purpose
 from identify.preparation import model_columns, prepare_periodic, resolve_outputs
 from identify.result import FitResult, failed_document, write_document
 from identify.trajectory import is_transient
@@ -161,6 +162,12 @@ def run_fit(args: argparse.Namespace) -> int:
     return EXIT_INTERRUPTED if interrupted else EXIT_OK if result.converged else EXIT_NOT_CONVERGED
 
 
+def _purpose(dataset: str) -> Purpose | None:
+    """What the plan of the dataset's session was designed for (dataset.json's ``purpose``)."""
+    manifest = read_manifest(dataset).manifest
+    return Purpose.from_document(manifest["purpose"], f"{dataset}/dataset.json") if "purpose" in manifest else None
+
+
 def _fit_job(args: argparse.Namespace, console: Console) -> _FitJob:
     """Model, data, start and grid, each checked before the (slow) fit; the grid said."""
     model = load_model(args.model)
@@ -168,9 +175,18 @@ def _fit_job(args: argparse.Namespace, console: Console) -> _FitJob:
     labels = _chosen_labels(args.dataset, args.experiments)
     ds = read_dataset(args.dataset, model_columns(model, outputs), labels)
     params = _load_params(model, args.params)
+    purpose = _purpose(args.dataset)
     estimate = _csv_list(args.estimate)
+    if args.estimate is None and purpose is not None and purpose.model in (args.model, model.name):
+        estimate = list(purpose.estimate)
+        console.print(f"estimating {', '.join(estimate)}: what the plan was designed for ({purpose.use.value}; "
+                      f"--estimate to choose others)", highlight=False)
+    elif purpose is not None and (departure := purpose.departure(estimate or [])):
+        console.print(departure, highlight=False)
     if not estimate:
-        raise UsageError("--estimate names no parameter")
+        raise UsageError("--estimate names no parameter" if args.estimate is not None else
+                         "--estimate: name the parameters to fit (the dataset's plan states no purpose to take them "
+                         "from)")
     params.copy().set_estimated(estimate)  # names checked before the (slower) folding
     scheme, n_given, oversample_given, taken = _grid_args(args)
     choice = choose_grid(model, ds.select(labels), outputs, n_given, scheme, oversample_given)
@@ -656,7 +672,8 @@ def build_parser() -> argparse.ArgumentParser:
     fit = sub.add_parser("fit", help="estimate parameters from periodic experiments")
     fit.add_argument("dataset", help="dataset folder (dataset.json + CSVs)")
     model_args(fit)
-    fit.add_argument("--estimate", required=True, help="comma-separated parameters (names or aliases)")
+    fit.add_argument("--estimate", help="comma-separated parameters (names or aliases); default: those the "
+                                        "session's plan was designed for (dataset.json's purpose)")
     fit.add_argument("--output", required=True, help="RESULT.json to write")
     fit.add_argument("--experiments", help="comma-separated labels or letters (default: all periodic)")
     fit.add_argument("--outputs", help="fitted output columns (default: the model's, e.g. stroke_mm,pressure_bar)")

@@ -207,7 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--calibration", help="DAQ calibration TOML of this rig")
     run.add_argument("--model", default="2dof", help="model for --identify")
     run.add_argument("--params", help="start values and priors for --identify (default: nominal)")
-    run.add_argument("--estimate", default=",".join(DEFAULT_ESTIMATE["2dof"]), help="parameters for --identify")
+    run.add_argument("--estimate", help="parameters for --identify (default: those the plan was designed for, its "
+                                        "[purpose]; else " + ",".join(DEFAULT_ESTIMATE["2dof"]) + " for 2dof)")
     run.add_argument("--date", help="label date yymmdd (default: today)")
     run.add_argument("--unit", default="unknown", help="serial number of the damper under test")
     run.set_defaults(func=cmd_run)

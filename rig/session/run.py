@@ -84,7 +84,7 @@ class RunOptions:
     register_map: str | None = None
     model: str = "2dof"
     params: str | None = None
-    estimate: list[str] = field(default_factory=lambda: list(DEFAULT_ESTIMATE["2dof"]))
+    estimate: list[str] = field(default_factory=list)   # empty: the plan's purpose, else the model's default
     date: str | None = None
     unit_serial: str = "unknown"
     order: str | None = None                # thermal or fixed; None: the plan's, and a --experiments list as given
@@ -170,9 +170,18 @@ def prepare(opt: RunOptions) -> Prepared:
         # with; a list of experiments the operator typed runs as typed unless --order thermal).
         order = opt.order or ("fixed" if opt.experiments else plan.order)
         plan = replace(plan, order=order)
+    opt = replace(opt, estimate=opt.estimate or designed_estimate(plan, opt.model))
     if opt.identify:
         _check_identification(opt)
     return Prepared(opt, shaker_url, daq_url, config, calibration, register_map, plan, stored)
+
+
+def designed_estimate(plan: Plan, model: str) -> list[str]:
+    """The parameters a fit of this plan's data estimates when none are named: those the
+    plan was designed for (its purpose, for the same model), else the model's default."""
+    if plan.purpose is not None and plan.purpose.model == model:
+        return list(plan.purpose.estimate)
+    return list(DEFAULT_ESTIMATE.get(model, ()))
 
 
 def _check_identification(opt: RunOptions) -> None:
@@ -309,7 +318,8 @@ class SessionRunner:
                                      peers=self._peers(),
                                      identify={"model": opt.model, "estimate": opt.estimate,
                                                "params": str(Path(opt.params).resolve()) if opt.params else None}
-                                     if opt.identify else None)
+                                     if opt.identify else None,
+                                     purpose=plan.purpose.to_document() if plan.purpose else None)
         return session
 
     def _peers(self) -> dict[str, Any] | None:
@@ -798,12 +808,25 @@ def fit_session(session: Session, model_name: str, params_file: str | Path | Non
     return result
 
 
+def purpose_departure(manifest: dict[str, Any], estimate: list[str]) -> str | None:
+    """The warning a fit's first line carries where it holds a parameter the session's plan
+    was designed for at its prior (None without a purpose, or where it fits them all)."""
+    from identify.plans import Purpose
+
+    if "purpose" not in manifest:
+        return None
+    return Purpose.from_document(manifest["purpose"], "dataset.json").departure(estimate)
+
+
 def identify_session(session: Session, opt: RunOptions, console: Console, captured: list[Experiment]) -> int:
     """``rig run --identify``: fit in memory right after the capture, print the report."""
     from identify.errors import IdentifyError
 
     command = (f"python -m identify fit {session.path} --model {opt.model} --estimate {','.join(opt.estimate)}"
                + (f" --params {opt.params}" if opt.params else "") + " --output RESULT.json")
+    departure = purpose_departure(session.manifest, opt.estimate)
+    if departure:
+        console.print(departure, highlight=False)
     console.print(f"identifying {', '.join(opt.estimate)} ({opt.model}) on the session's periodic experiments; "
                   f"same as: {command}", highlight=False)
     try:
