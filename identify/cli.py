@@ -425,11 +425,15 @@ def run_drop(args: argparse.Namespace) -> int:
 
 def _drop_warnings(fitted, discrepancy) -> list[str]:
     """What the σ printed does not cover, said before the figures."""
+    from identify.drop import LANDING_PARAMETERS
+
     lines = []
-    held = fitted.held_at_prior([p for p in ("theta3",) if p in fitted.model.parameter_names])
+    held = fitted.held_at_prior([p for p in LANDING_PARAMETERS if p in fitted.model.parameter_names])
     if held:
-        lines.append(f"warning: {', '.join(held)} (the orifice's damping) held at its prior by this fit: a landing's "
-                     f"orifice force depends on it and its error is in no σ (fit it: rig design --predict drop)")
+        what = ", ".join(f"{p} ({LANDING_PARAMETERS[p]})" for p in held)
+        lines.append(f"warning: this fit held {what} at the prior: a landing's force depends on "
+                     f"{'it' if len(held) == 1 else 'them'} and the error there is in no σ (a plan from rig design "
+                     f"--predict drop fits them)")
     if not fitted.converged:
         lines.append(f"warning: {fitted.source}: the fit did not converge; the prediction is of its last iterate")
     if discrepancy is None:

@@ -251,7 +251,8 @@ def build_parser() -> argparse.ArgumentParser:
     des.add_argument("--accuracy", type=float, default=0.02, help="--predict: relative σ wanted (default 0.02)")
     des.add_argument("--discrepancy", type=float, default=0.0,
                      help="--predict: relative model-discrepancy σ of the drop (from a type test; default 0)")
-    des.add_argument("--estimate", help="--predict: estimated parameters (default theta3,theta4,theta6,theta16)")
+    des.add_argument("--estimate", help="--predict: estimated parameters (default theta3,theta4,theta5,theta6,theta8,"
+                                        "theta16)")
     des.add_argument("--no-worse-than", metavar="PLAN", help="--target: every σ at most this plan's (standard or "
                                                               "PLAN.toml)")
     des.add_argument("--sigma", help="--target: the σ wanted, SI, one per parameter (comma-separated)")

@@ -341,8 +341,11 @@ def qc_goal(spec_source: str) -> Goal:
 
 # --predict drop: the paper's test of predictive power (350 kg landing at 0.5 m/s).  θ3
 # is estimated: the drop's orifice force is a third of its peak, and the paper's
-# prediction failed because shaker speeds could not fix θ3.
-DROP_ESTIMATE = ("theta3", "theta4", "theta6", "theta16")
+# prediction failed because shaker speeds could not fix θ3.  θ5 (the gas charge) and θ8
+# (the seals' friction) too: a production unit's own charge and friction are in the
+# landing's force at contact, and held at their priors they left a −2 % bias on the
+# plant's good units (benchmarks/bench_drop.py --goal; +0.1 % with them, same plan).
+DROP_ESTIMATE = ("theta3", "theta4", "theta5", "theta6", "theta8", "theta16")
 DROP_MASS_KG = 350.0
 DROP_VELOCITY_M_S = 0.5
 
@@ -524,7 +527,7 @@ def _say(designed: Designed, goal: Goal, out: Path) -> None:
     combined = goal.combined_sigma(designed.sigma)
     for k, nm in enumerate(goal.quantities.names):
         beside = f"  ({ref.name} {ref.sigma[k] / goal.scales[k]:.3g})" if ref else ""
-        with_delta = "" if goal.discrepancy is None else (
+        with_delta = "" if goal.discrepancy is None or not np.any(goal.discrepancy) else (
             f"; with the model discrepancy {goal.discrepancy[k] / goal.scales[k]:.3g} {goal.units[k]}: "
             f"{combined[k] / goal.scales[k]:.3g} {goal.units[k]}, the σ designed for "
             f"{math.hypot(goal.targets[k], goal.discrepancy[k]) / goal.scales[k]:.3g} {goal.units[k]}")

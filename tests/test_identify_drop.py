@@ -19,12 +19,12 @@ from identify.plans import ExperimentSpec
 ROOT = Path(__file__).resolve().parents[1]
 # The experiment rig design --predict drop requires: the drop's stroke at its speed.
 ENVELOPE = ExperimentSpec("e", "envelope", 79.0, 80.0, 1.0, periods=2)
-ESTIMATE = ["theta3", "theta4", "theta6", "theta16"]
+ESTIMATE = ["theta3", "theta4", "theta5", "theta6", "theta8", "theta16"]   # the drop plan's purpose
 
 
 def _fitted_folder(out: Path, damper, seed: int) -> Path:
     """The envelope experiment of ``damper`` generated (with its drop record), fitted for
-    θ3, θ4, θ6, θ16 from the example start; RESULT.json in the folder."""
+    the drop plan's parameters from the example start; RESULT.json in the folder."""
     from simulator.generate import generate
 
     generate(out, [ENVELOPE], damper, periods=None, rate_hz=1000.0, seed=seed, drop=True, date="261128")
@@ -124,6 +124,21 @@ def _one_line_refusal(capsys, argv: list[str], words: str) -> None:
     err = capsys.readouterr().err
     assert code == 2, err
     assert words in err and len(err.strip().splitlines()) == 1
+
+
+def test_a_fit_that_held_a_landing_parameter_at_its_prior_says_so_first(tmp_path, capsys):
+    from identify.dataset import read_dataset
+    from simulator.generate import generate
+    from simulator.truth import load_truth
+
+    folder = generate(tmp_path / "d", [ENVELOPE], load_truth(), periods=None, rate_hz=1000.0, seed=5, date="261128")
+    model = load_model("2dof")
+    start = Parameters.from_file(model, ROOT / "examples" / "start-2dof.json")
+    fit_experiments(model, read_dataset(folder).select(kind="periodic"), start,
+                    ["theta4", "theta6", "theta16"]).write_json(tmp_path / "R.json")
+    assert identify_main(["drop", str(tmp_path / "R.json"), "--discrepancy", "0.02"]) == 0
+    first = capsys.readouterr().out.splitlines()[0]
+    assert first.startswith("warning: this fit held theta3 (the orifice's damping), theta5") and "theta8" in first
 
 
 def test_bad_input_is_refused_in_one_line(model_world, tmp_path, capsys):

@@ -16,7 +16,7 @@ from rig.design import Designed, drop_goal, parameter_goal, plan_text
 from rig.planning.plans import Plan, PlanError, load_plan
 from rig.session.run import RunOptions, prepare
 
-DROP_SET = ("theta3", "theta4", "theta6", "theta16")
+DROP_SET = ("theta3", "theta4", "theta5", "theta6", "theta8", "theta16")
 
 
 def _designed_plan(tmp_path: Path, goal) -> Path:
@@ -81,11 +81,11 @@ def test_the_session_dataset_keeps_the_purpose_and_identify_fit_takes_it(tmp_pat
     code = identify_main(["fit", str(data), "--params", start, "--output", str(tmp_path / "r.json"), "--quiet"])
     err = capsys.readouterr().err
     assert code == 0, err
-    assert err.splitlines()[0].startswith("estimating theta3, theta4, theta6, theta16: what the plan was designed")
+    assert err.splitlines()[0].startswith(f"estimating {', '.join(DROP_SET)}: what the plan was designed")
     assert json.loads((tmp_path / "r.json").read_text())["covariance"]["estimated"] == list(DROP_SET)
     code = identify_main(["fit", str(data), "--params", start, "--estimate", "theta4,theta6,theta16",
                           "--output", str(tmp_path / "r3.json"), "--quiet"])
     first = capsys.readouterr().err.splitlines()[0]
     assert code == 0
-    assert first.startswith("warning: the plan was designed for theta3, theta4, theta6, theta16") and \
-        "holds theta3 at its prior value" in first
+    assert first.startswith(f"warning: the plan was designed for {', '.join(DROP_SET)}") and \
+        "holds theta3, theta5, theta8 at their prior values" in first
