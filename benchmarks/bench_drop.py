@@ -56,7 +56,6 @@ from identify.model import CompiledModel, load_model
 from identify.parameters import Parameters
 from identify.periodic import ConvergenceError, PeriodicSolver
 from identify.preparation import prepare_periodic
-from identify.transient import drop_test
 from rig.planning.plans import load_plan
 
 N_GRID = 800
@@ -163,39 +162,17 @@ def type_test_discrepancy(model: CompiledModel, choice: ModelChoice, theta: np.n
     return from_errors(errors, f"each of {len(groups)} groups left out in turn")
 
 
-def _peak(y: np.ndarray) -> float:
-    """Largest sample refined by a parabola, so that it varies smoothly with θ."""
-    i = int(np.clip(np.argmax(y), 1, len(y) - 2))
-    f0, f1, f2 = y[i - 1], y[i], y[i + 1]
-    c = f0 - 2 * f1 + f2
-    return float(f1 - (f2 - f0) ** 2 / (8 * c)) if c < 0 else float(f1)
-
-
 def predict_drop(model: CompiledModel, theta: np.ndarray, estimated: list[str], cov: np.ndarray,
                  t: np.ndarray) -> Prediction:
-    fi = model.output_index("force_N")
+    """``identify drop``'s prediction (identify/drop.py), the fit's σ alone: the
+    discrepancy is added per table column."""
+    from identify.drop import Fitted, Landing
+    from identify.drop import predict_drop as drop_prediction
 
-    def run(th: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        tr = drop_test(model, th, DROP_MASS_KG, DROP_VELOCITY_M_S, t)
-        return tr.outputs[fi], tr.states[0]
-
-    force, stroke = run(theta)
-    # Forward differences at 1e-3 of each parameter (an integrated response: smaller steps
-    # meet the integrator's tolerance), as rig/qc/characteristics.py propagates the drop.
-    Jf = np.empty((len(t), len(estimated)))
-    Jpf, Jps = np.empty(len(estimated)), np.empty(len(estimated))
-    for k, name in enumerate(estimated):
-        i = model.parameter_index(name)
-        h = 1e-3 * (abs(theta[i]) or 1.0)
-        up = theta.copy()
-        up[i] += h
-        f2, s2 = run(up)
-        Jf[:, k] = (f2 - force) / h
-        Jpf[k] = (_peak(f2) - _peak(force)) / h
-        Jps[k] = (_peak(s2) - _peak(stroke)) / h
-    fstd = np.sqrt(np.maximum(np.einsum("ij,jk,ik->i", Jf, cov, Jf), 0.0))
-    return Prediction(force, stroke, fstd, _peak(force), float(np.sqrt(max(Jpf @ cov @ Jpf, 0.0))),
-                      _peak(stroke), float(np.sqrt(max(Jps @ cov @ Jps, 0.0))))
+    fitted = Fitted(model, theta, tuple(estimated), cov, False, True, "fit")
+    p = drop_prediction(fitted, Landing(DROP_MASS_KG, DROP_VELOCITY_M_S, float(t[-1])), t)
+    return Prediction(p.force_N, p.stroke_m, p.force_std, p.peak_force.value, p.peak_force.fit_std,
+                      p.peak_stroke.value, p.peak_stroke.fit_std)
 
 
 def _key(e) -> tuple[float, float, float]:

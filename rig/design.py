@@ -52,6 +52,7 @@ from identify.design import (
     parameter_quantities,
     sigmas,
 )
+from identify.drop import peak
 from identify.errors import ComputationError
 from identify.files import atomic_write_bytes
 from identify.model import CompiledModel, load_model
@@ -412,11 +413,7 @@ def envelope_experiment(config: RigConfig, peak_stroke_m: float) -> ExperimentSp
 def drop_peak_stroke(model: CompiledModel, theta: np.ndarray, mass_kg: float, velocity_m_s: float) -> float:
     """Largest stroke of the drop test (first compression), parabola-refined."""
     t = np.arange(0.0, 1.0 + 1.25e-4, 2.5e-4)
-    q = drop_test(model, theta, mass_kg, velocity_m_s, t).states[0]
-    i = int(np.clip(np.argmax(q), 1, len(q) - 2))
-    q0, q1, q2 = q[i - 1], q[i], q[i + 1]
-    c = q0 - 2 * q1 + q2
-    return float(q1 - (q2 - q0) ** 2 / (8 * c)) if c < 0 else float(q1)
+    return peak(drop_test(model, theta, mass_kg, velocity_m_s, t).states[0])
 
 
 def plan_text(designed: Designed, goal: Goal, command: str) -> str:
