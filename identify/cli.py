@@ -1,4 +1,4 @@
-"""``python -m identify``: fit, compare, friction, predict, report, batch.
+"""``python -m identify``: fit, compare, friction, predict, drop, report, batch.
 
 Exit status: 0 success (a fit converged); 1 a fit did not converge — the iteration cap
 (``--max-iterations``), the time limit (``--time-limit``) or a failed line search —
@@ -34,6 +34,7 @@ from identify.fit import DEFAULT_POINTS, GridChoice, choose_grid, fit_experiment
 from identify.model import DEFAULT_ESTIMATE, CompiledModel, load_model
 from identify.parameters import Parameters, load_document
 from identify.periodic import PeriodicSolver
+from identify.plans import Purpose
 from identify.preparation import model_columns, prepare_periodic, resolve_outputs
 from identify.result import FitResult, failed_document, write_document
 from identify.sinks import BatchState, DeliveryState
@@ -162,6 +163,12 @@ def run_fit(args: argparse.Namespace) -> int:
     return EXIT_INTERRUPTED if interrupted else EXIT_OK if result.converged else EXIT_NOT_CONVERGED
 
 
+def _purpose(dataset: str) -> Purpose | None:
+    """What the plan of the dataset's session was designed for (dataset.json's ``purpose``)."""
+    manifest = read_manifest(dataset).manifest
+    return Purpose.from_document(manifest["purpose"], f"{dataset}/dataset.json") if "purpose" in manifest else None
+
+
 def _fit_job(args: argparse.Namespace, console: Console) -> _FitJob:
     """Model, data, start and grid, each checked before the (slow) fit; the grid said."""
     model = load_model(args.model)
@@ -169,9 +176,18 @@ def _fit_job(args: argparse.Namespace, console: Console) -> _FitJob:
     labels = _chosen_labels(args.dataset, args.experiments)
     ds = read_dataset(args.dataset, model_columns(model, outputs), labels)
     params = _load_params(model, args.params)
+    purpose = _purpose(args.dataset)
     estimate = _csv_list(args.estimate)
+    if args.estimate is None and purpose is not None and purpose.model in (args.model, model.name):
+        estimate = list(purpose.estimate)
+        console.print(f"estimating {', '.join(estimate)}: what the plan was designed for ({purpose.use.value}; "
+                      f"--estimate to choose others)", highlight=False)
+    elif purpose is not None and (departure := purpose.departure(estimate or [])):
+        console.print(departure, highlight=False)
     if not estimate:
-        raise UsageError("--estimate names no parameter")
+        raise UsageError("--estimate names no parameter" if args.estimate is not None else
+                         "--estimate: name the parameters to fit (the dataset's plan states no purpose to take them "
+                         "from)")
     params.copy().set_estimated(estimate)  # names checked before the (slower) folding
     scheme, n_given, oversample_given, taken = _grid_args(args)
     choice = choose_grid(model, ds.select(labels), outputs, n_given, scheme, oversample_given)
@@ -340,6 +356,109 @@ def run_predict(args: argparse.Namespace) -> int:
     atomic_write_bytes(Path(args.output), csv_bytes(cols))
     print(f"wrote {args.output} ({len(t)} samples, columns {', '.join(cols)})")
     return EXIT_OK
+
+
+def run_drop(args: argparse.Namespace) -> int:
+    """The virtual drop test of a fit (identify/drop.py): the peaks with σ, the histories
+    as CSV and a figure, beside a measured drop when one is given."""
+    from identify import drop
+
+    fitted = drop.load_fitted(args.result, args.model)
+    asked = {"mass_kg": args.mass, "velocity_m_s": args.velocity, "duration_s": args.duration}
+    measured = drop.read_measured(args.measured, args.duration) if args.measured else None
+    if measured is not None and measured.landing is not None:
+        differs = [f"{k} {v:g} (the record's {getattr(measured.landing, k):g})" for k, v in asked.items()
+                   if v is not None and k != "duration_s" and v != getattr(measured.landing, k)]
+        if differs:
+            raise UsageError(f"--measured {args.measured}: a drop of other conditions than asked: "
+                             f"{', '.join(differs)}; leave them out to predict the record's")
+        landing = measured.landing
+    else:
+        landing = drop.Landing(**{k: v for k, v in asked.items() if v is not None})
+    if args.discrepancy is not None:
+        discrepancy: drop.DropDiscrepancy | None = drop.DropDiscrepancy.given(args.discrepancy)
+        units: list[drop.TypeTestUnit] = []
+    elif args.type_test:
+        discrepancy, units = drop.type_test(fitted, args.type_test)
+    else:
+        discrepancy, units = None, []
+    for out in (args.plot, args.csv):
+        if out and not Path(out).resolve().parent.is_dir():
+            raise UsageError(f"{out}: folder {Path(out).resolve().parent} does not exist")
+    t = measured.t if measured is not None else None
+    pred = drop.predict_drop(fitted, landing, t, discrepancy)
+    for line in _drop_warnings(fitted, discrepancy):
+        print(line)
+    print(f"drop test: {landing.describe()}; model {fitted.model.name} from {fitted.source} "
+          f"({', '.join(fitted.estimated)} estimated, {'residual-based' if fitted.residual_based else 'noise'} "
+          f"covariance)")
+    for u in units:
+        stroke = f", stroke {100 * u.stroke_error:+.2f} %" if u.stroke_error is not None else ""
+        print(f"  type-test unit {u.source}: measured peak force {100 * u.force_error:+.2f} %{stroke} "
+              f"against its fit's prediction")
+    for name, pk, scale, unit, d in (("peak force", pred.peak_force, 1e-3, "kN",
+                                      discrepancy.force if discrepancy else None),
+                                     ("peak stroke", pred.peak_stroke, 1e3, "mm",
+                                      discrepancy.stroke if discrepancy else None)):
+        parts = f"fit σ {pk.fit_std * scale:.3g} {unit}"
+        if d is not None:
+            parts += f", discrepancy {pk.discrepancy_std * scale:.3g} {unit} ({100 * d.relative:.3g} %, {d.source})"
+        print(f"{name:12s} {notation.plus_minus(pk.value * scale, pk.std * scale, unit)}   ({parts})")
+    if measured is not None:
+        _drop_against(pred, measured)
+    if args.csv:
+        cols = {"time_s": pred.t, "force_N": pred.force_N, "force_sigma_N": pred.force_std,
+                "stroke_mm": pred.stroke_m * 1e3, "stroke_sigma_mm": pred.stroke_std * 1e3,
+                "pressure_bar": pred.pressure_Pa * 1e-5, "pressure_sigma_bar": pred.pressure_std * 1e-5}
+        if pred.temperature_K is not None:
+            cols["gas_temperature_C"] = pred.temperature_K - 273.15
+        atomic_write_bytes(Path(args.csv), csv_bytes(cols))
+        print(f"wrote {args.csv} ({len(pred.t)} samples; *_sigma: one σ, fit and discrepancy)")
+    if args.plot:
+        from identify.figures import drop_figure
+
+        title = (f"drop test {landing.describe()}: model {fitted.model.name}, peak force "
+                 f"{notation.plus_minus(pred.peak_force.value / 1e3, pred.peak_force.std / 1e3, 'kN')}"
+                 + ("" if discrepancy else "\n(no model discrepancy given: the band is the fit's σ alone)"))
+        print(f"figure {drop_figure(pred, measured, title, Path(args.plot))}")
+    return EXIT_OK
+
+
+def _drop_warnings(fitted, discrepancy) -> list[str]:
+    """What the σ printed does not cover, said before the figures."""
+    from identify.drop import LANDING_PARAMETERS
+
+    lines = []
+    held = fitted.held_at_prior([p for p in LANDING_PARAMETERS if p in fitted.model.parameter_names])
+    if held:
+        what = ", ".join(f"{p} ({LANDING_PARAMETERS[p]})" for p in held)
+        lines.append(f"warning: this fit held {what} at the prior: a landing's force depends on "
+                     f"{'it' if len(held) == 1 else 'them'} and the error there is in no σ (a plan from rig design "
+                     f"--predict drop fits them)")
+    if not fitted.converged:
+        lines.append(f"warning: {fitted.source}: the fit did not converge; the prediction is of its last iterate")
+    if discrepancy is None:
+        lines.append("note: no model discrepancy given (--discrepancy REL or --type-test DIR…): σ is the fit's "
+                     "alone and covers no model error")
+    return lines
+
+
+def _drop_against(pred, measured) -> None:
+    """The measured drop's peaks beside the prediction, in σ of the prediction."""
+    from identify.drop import peak
+
+    rows = [("force", pred.peak_force, measured.force_N, 1e-3, "kN", pred.force_N)]
+    if measured.stroke_m is not None:
+        rows.append(("stroke", pred.peak_stroke, measured.stroke_m, 1e3, "mm", pred.stroke_m))
+    for name, pk, series, scale, unit, history in rows:
+        m = peak(series)
+        err = pk.value - m
+        within = "within" if abs(err) <= 2 * pk.std else "OUTSIDE"
+        rms = float(np.sqrt(np.mean((history - series) ** 2)))
+        print(f"measured peak {name} {m * scale:.4g} {unit} ({measured.source}): predicted "
+              f"{100 * err / m:+.2f} % ({err / pk.std:+.2g} σ, {within} 2σ); {name} history RMS error "
+              f"{rms * scale:.3g} {unit}" if pk.std > 0 else
+              f"measured peak {name} {m * scale:.4g} {unit} ({measured.source}): predicted {100 * err / m:+.2f} %")
 
 
 def run_friction(args: argparse.Namespace) -> int:
@@ -559,7 +678,8 @@ def build_parser() -> argparse.ArgumentParser:
     fit = sub.add_parser("fit", help="estimate parameters from periodic experiments")
     fit.add_argument("dataset", help="dataset folder (dataset.json + CSVs)")
     model_args(fit)
-    fit.add_argument("--estimate", required=True, help="comma-separated parameters (names or aliases)")
+    fit.add_argument("--estimate", help="comma-separated parameters (names or aliases); default: those the "
+                                        "session's plan was designed for (dataset.json's purpose)")
     fit.add_argument("--output", required=True, help="RESULT.json to write")
     fit.add_argument("--experiments", help="comma-separated labels or letters (default: all periodic)")
     fit.add_argument("--outputs", help="fitted output columns (default: the model's, e.g. stroke_mm,pressure_bar)")
@@ -590,6 +710,26 @@ def build_parser() -> argparse.ArgumentParser:
     pred.add_argument("--experiment", required=True, help="label (or letter) of the experiment")
     pred.add_argument("--output", required=True, help="CSV to write")
     pred.set_defaults(func=run_predict)
+
+    dr = sub.add_parser("drop", help="virtual drop test of a fit: a mass landing on the damper, peaks with σ")
+    dr.add_argument("result", help="RESULT.json of a fit of a thermo-mechanical damper model (2dof)")
+    dr.add_argument("--model", help="the model, where RESULT.json names a user model (path/file.py:ClassName)")
+    dr.add_argument("--mass", type=float, metavar="KG", help="dropped mass (default 350 kg, the paper's)")
+    dr.add_argument("--velocity", type=float, metavar="M_S",
+                    help="speed at contact with the extended damper (default 0.5 m/s, the paper's landing)")
+    dr.add_argument("--duration", type=float, metavar="S", help="record length (default 2.5 s)")
+    delta = dr.add_mutually_exclusive_group()
+    delta.add_argument("--discrepancy", type=float, metavar="REL",
+                       help="model discrepancy σ_δ relative to each quantity (0.026 = 2.6 %%)")
+    delta.add_argument("--type-test", nargs="+", metavar="DIR",
+                       help="reference units (dataset folders with their drop record, and their RESULT.json or "
+                            "shaker data to fit as RESULT.json was): σ_δ from their peak errors")
+    dr.add_argument("--measured", metavar="DROP",
+                    help="a measured drop to compare with: a dataset folder with a drop record (its mass and "
+                         "velocity are used) or a CSV (time_s, force_N[, stroke_mm, pressure_bar])")
+    dr.add_argument("--plot", metavar="PNG", help="figure: force, stroke, pressure with the 2σ band")
+    dr.add_argument("--csv", metavar="OUT", help="force, stroke and pressure histories with their σ")
+    dr.set_defaults(func=run_drop)
 
     fr = sub.add_parser("friction", help="theta8-theta10 from the force jumps at velocity reversals (paper Fig. 7)")
     fr.add_argument("dataset")

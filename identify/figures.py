@@ -228,3 +228,35 @@ def friction_figure(result, path: Path) -> Path:
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def drop_figure(pred, measured, title: str, path: Path) -> Path:
+    """The virtual drop test (:class:`identify.drop.DropPrediction`): force, stroke and
+    pressure against time, each with its 2σ band (fit and model discrepancy), the
+    measured drop (:class:`identify.drop.MeasuredDrop`) over it when there is one."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    panels = [("force [kN]", pred.force_N, pred.force_std, 1e-3, measured.force_N if measured else None),
+              ("stroke [mm]", pred.stroke_m, pred.stroke_std, 1e3, measured.stroke_m if measured else None),
+              ("gas pressure [bar]", pred.pressure_Pa, pred.pressure_std, 1e-5,
+               measured.pressure_Pa if measured else None)]
+    fig, axes = plt.subplots(3, 1, figsize=(7, 7.5), sharex=True)
+    for ax, (label, y, std, scale, meas) in zip(axes, panels, strict=True):
+        ax.fill_between(pred.t, (y - 2 * std) * scale, (y + 2 * std) * scale, color="C0", alpha=0.25, lw=0,
+                        label="predicted ± 2σ (fit and model discrepancy)")
+        ax.plot(pred.t, y * scale, color="C0", lw=1.2, label="predicted")
+        if meas is not None:
+            ax.plot(measured.t, meas * scale, color="k", lw=0.8, ls="--", label="measured")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.3)
+    axes[-1].set_xlabel("time from contact [s]")
+    axes[0].legend(fontsize=8, loc="upper right")
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path

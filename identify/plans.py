@@ -2,11 +2,71 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
+from enum import StrEnum
+from typing import Any
 
 from identify.errors import InputError
 
 CAPTURES = ("steady", "transient")
+
+
+class Use(StrEnum):
+    """What a designed plan is for (``rig design``'s goal)."""
+
+    PARAMETERS = "parameters"      # --target: the named parameters to a σ
+    PREDICT_DROP = "predict-drop"  # --predict drop: the landing's peaks to an accuracy
+    QC = "qc"                      # --qc-spec: a spec's characteristics within its tolerances
+
+
+@dataclass(frozen=True)
+class Purpose:
+    """What a plan was designed for, written into the plan file (``[purpose]``) and from
+    there into a session's dataset.json: the model and the parameters its σ were
+    predicted for, which the fit of its data takes by default, and its use.  A fit
+    that leaves one of them at its prior departs from the design (:meth:`held_at_prior`)."""
+
+    use: Use
+    model: str
+    estimate: tuple[str, ...]
+
+    def to_document(self) -> dict[str, Any]:
+        return {"use": self.use.value, "model": self.model, "estimate": list(self.estimate)}
+
+    @classmethod
+    def from_document(cls, doc: Any, source: str) -> Purpose:
+        if not isinstance(doc, dict):
+            raise PlanError(f"{source}: purpose must be a table of use, model and estimate")
+        unknown = sorted(set(doc) - {"use", "model", "estimate"})
+        if unknown:
+            raise PlanError(f"{source}: purpose has unknown key {unknown[0]!r} (known: use, model, estimate)")
+        try:
+            use = Use(str(doc.get("use")))
+        except ValueError:
+            raise PlanError(f"{source}: purpose use {doc.get('use')!r} is not one of "
+                            f"{', '.join(u.value for u in Use)}") from None
+        model, estimate = doc.get("model"), doc.get("estimate")
+        if not isinstance(model, str) or not model:
+            raise PlanError(f"{source}: purpose model must be a model's name")
+        if not isinstance(estimate, list) or not estimate or not all(isinstance(x, str) and x for x in estimate):
+            raise PlanError(f"{source}: purpose estimate must be a non-empty list of parameter names")
+        return cls(use, model, tuple(estimate))
+
+    def held_at_prior(self, estimated: Iterable[str]) -> list[str]:
+        """The parameters this plan was designed for that a fit estimating ``estimated`` leaves out."""
+        chosen = set(estimated)
+        return [p for p in self.estimate if p not in chosen]
+
+    def departure(self, estimated: Iterable[str]) -> str | None:
+        """The sentence a fit's first line carries where it leaves a designed-for parameter
+        at its prior (None where it fits them all)."""
+        held = self.held_at_prior(estimated)
+        if not held:
+            return None
+        return (f"warning: the plan was designed for {', '.join(self.estimate)} ({self.use.value}); this fit holds "
+                f"{', '.join(held)} at {'its prior value' if len(held) == 1 else 'their prior values'}, and an error "
+                f"there is in no σ")
 
 
 class PlanError(InputError):

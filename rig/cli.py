@@ -207,7 +207,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--calibration", help="DAQ calibration TOML of this rig")
     run.add_argument("--model", default="2dof", help="model for --identify")
     run.add_argument("--params", help="start values and priors for --identify (default: nominal)")
-    run.add_argument("--estimate", default=",".join(DEFAULT_ESTIMATE["2dof"]), help="parameters for --identify")
+    run.add_argument("--estimate", help="parameters for --identify (default: those the plan was designed for, its "
+                                        "[purpose]; else " + ",".join(DEFAULT_ESTIMATE["2dof"]) + " for 2dof)")
     run.add_argument("--date", help="label date yymmdd (default: today)")
     run.add_argument("--unit", default="unknown", help="serial number of the damper under test")
     run.set_defaults(func=cmd_run)
@@ -250,7 +251,8 @@ def build_parser() -> argparse.ArgumentParser:
     des.add_argument("--accuracy", type=float, default=0.02, help="--predict: relative σ wanted (default 0.02)")
     des.add_argument("--discrepancy", type=float, default=0.0,
                      help="--predict: relative model-discrepancy σ of the drop (from a type test; default 0)")
-    des.add_argument("--estimate", help="--predict: estimated parameters (default theta3,theta4,theta6,theta16)")
+    des.add_argument("--estimate", help="--predict: estimated parameters (default theta3,theta4,theta5,theta6,theta8,"
+                                        "theta16)")
     des.add_argument("--no-worse-than", metavar="PLAN", help="--target: every σ at most this plan's (standard or "
                                                               "PLAN.toml)")
     des.add_argument("--sigma", help="--target: the σ wanted, SI, one per parameter (comma-separated)")

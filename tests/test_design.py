@@ -159,6 +159,7 @@ def test_rig_design_writes_a_plan_rig_run_accepts(tmp_path: Path, capsys: pytest
     assert plan.experiments and not check_plan(plan, load_rig_config(None))
     text = out.read_text()
     assert "standard σ" in text and "rig time (predicted)" in text
+    assert plan.purpose is not None and plan.purpose.estimate == ("theta4", "theta6", "theta16")
 
 
 @pytest.mark.parametrize("argv", [

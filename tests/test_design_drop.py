@@ -28,12 +28,12 @@ def test_the_envelope_experiment_spans_the_drops_stroke_at_the_drops_velocity_wi
 
 def test_drop_goal_targets_leave_the_discrepancy_its_share_and_name_the_remaining_risk():
     goal = drop_goal("2dof", None, None, 0.03, 0.02, load_rig_config())
-    assert goal.estimate == ("theta3", "theta4", "theta6", "theta16")
+    assert goal.estimate == ("theta3", "theta4", "theta5", "theta6", "theta8", "theta16")
     force_n, stroke_m = goal.targets / math.sqrt(0.03**2 - 0.02**2)
     assert 3e3 < force_n < 6e3 and 0.05 < stroke_m < 0.12   # 350 kg at 0.5 m/s on the nominal damper
     assert stroke_m == pytest.approx(drop_peak_stroke(goal.model, goal.params.vector(), 350.0, 0.5), rel=1e-9)
     assert goal.required and goal.required[0].group == "envelope"
-    assert goal.quantities.jacobian.shape == (2, 4) and np.all(np.isfinite(goal.quantities.jacobian))
+    assert goal.quantities.jacobian.shape == (2, 6) and np.all(np.isfinite(goal.quantities.jacobian))
     assert abs(goal.quantities.jacobian[0, 0]) > 0   # θ3 moves the peak force: it is estimated for a reason
     assert any("discrepancy" in r for r in goal.risks) and any("prior values" in r for r in goal.risks)
 

@@ -8,7 +8,6 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from identify.model import DEFAULT_ESTIMATE
 from rig.events import Message
 from rig.gui import fits
 from rig.gui.fits import FitRunner
@@ -21,7 +20,7 @@ from rig.session.preparation import RunOptions
 class IdentifySettings:
     model: str = "2dof"
     params: str | None = None
-    estimate: list[str] = field(default_factory=lambda: list(DEFAULT_ESTIMATE["2dof"]))
+    estimate: list[str] = field(default_factory=list)   # empty: the plan's purpose, else the model's default
 
 
 class Fitting:

@@ -23,6 +23,7 @@ from typing import Any
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from identify.exit_codes import EXIT_INTERRUPTED
+from identify.model import DEFAULT_ESTIMATE
 from rig.drivers.daq import check_daq_address
 from rig.drivers.estop import EstopDone, LatchChanged
 from rig.drivers.registers import ControllerState
@@ -383,7 +384,7 @@ class MainWindow(QtWidgets.QMainWindow):
         result, folder = self.fit_view.result, self.fit_view.folder
         if folder is None:
             return
-        estimate = result.estimated if result is not None and result.model == "2dof" else IdentifySettings().estimate
+        estimate = result.estimated if result is not None and result.model == "2dof" else DEFAULT_ESTIMATE["2dof"]
         self.fit_view.progress.setText("fitting 1-dof and 2-dof to the stroke…")
         self.station.fits.compare(folder, IdentifySettings("2dof", None, list(estimate)))
 

@@ -117,6 +117,7 @@ class SessionWorker:
         result: RunResult | None = None
         try:
             prep = prepare(opt)                      # refused here: nothing written, nothing sent
+            opt = prep.options                       # the parameters to fit: the plan's purpose where not named
             self._take_rig(prep)
 
             def attach(ctx: SessionContext) -> list[Subscriber]:

@@ -13,8 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from identify.errors import InputError
 from identify.parameters import Parameters
-from identify.plans import CAPTURES, STANDARD_SET, ExperimentSpec
+from identify.plans import CAPTURES, STANDARD_SET, ExperimentSpec, Purpose
 from rig.config import RigConfig
 from rig.drivers.shaker import check_waveform
 from rig.errors import BadInput
@@ -24,7 +25,7 @@ from rig.planning.settling import DRIFT_DRAWS, PAUSE_S, Conditioning, Hold, pred
 from rig.tomlfile import read_toml
 
 EXPERIMENT_KEYS = {"label", "group", "static_mm", "amplitude_mm", "frequency_Hz", "waveform", "periods", "capture"}
-PLAN_KEYS = {"name", "periods", "order", "experiment", "capture"}
+PLAN_KEYS = {"name", "periods", "order", "experiment", "capture", "purpose"}
 
 
 class PlanError(BadInput):
@@ -44,6 +45,7 @@ class Plan:
     experiments: tuple[ExperimentSpec, ...]
     text: str = ""
     order: str = "fixed"
+    purpose: Purpose | None = None   # what a designed plan is for (its [purpose] table)
 
     def select(self, letters: list[str] | None) -> Plan:
         if not letters:
@@ -130,7 +132,11 @@ def load_plan(source: str) -> Plan:
     order = str(doc.get("order", "fixed"))
     if order not in ORDERS:
         raise PlanError(f"plan {path}: order {order!r} is not one of {', '.join(ORDERS)}")
-    return Plan(str(doc.get("name", path.stem)), tuple(experiments), text, order)
+    try:
+        purpose = Purpose.from_document(doc["purpose"], f"plan {path}") if "purpose" in doc else None
+    except InputError as exc:   # identify's words, the rig's refusal (exit 2 like every plan error)
+        raise PlanError(str(exc)) from None
+    return Plan(str(doc.get("name", path.stem)), tuple(experiments), text, order, purpose)
 
 
 def check_plan(plan: Plan, config: RigConfig) -> list[str]:

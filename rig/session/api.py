@@ -147,10 +147,17 @@ class Session:
                  params: str | Path | None = None) -> FitResult:
         """Fit the captured experiments (the same :class:`~identify.result.FitResult` as
         ``identify.fit``); RESULT.json and report.txt go into the session folder.
-        ``estimate``: by default a built-in model's set (``identify.model.DEFAULT_ESTIMATE``)."""
+        ``estimate``: by default those the plan was designed for (its purpose, for this
+        model), else a built-in model's set (``identify.model.DEFAULT_ESTIMATE``)."""
+        from identify.plans import Purpose
+
         if self._folder is None:
             raise RuntimeError("nothing captured yet: run() the session first")
         captured: list[Experiment] = self._result.captured if self._result is not None else []
+        doc = self._folder.manifest.get("purpose")
+        purpose = Purpose.from_document(doc, "dataset.json") if doc else None
+        if estimate is None and purpose is not None and purpose.model == model:
+            estimate = purpose.estimate
         if estimate is None and model not in DEFAULT_ESTIMATE:
             raise BadInput(f"model {model}: name the parameters to estimate (estimate=[...])")
         names = list(estimate) if estimate is not None else list(DEFAULT_ESTIMATE[model])

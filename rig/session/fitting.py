@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from rich.console import Console
@@ -46,12 +46,25 @@ def fit_session(session: Session, model_name: str, params_file: str | Path | Non
     return result
 
 
+def purpose_departure(manifest: dict[str, Any], estimate: list[str]) -> str | None:
+    """The warning a fit's first line carries where it holds a parameter the session's plan
+    was designed for at its prior (None without a purpose, or where it fits them all)."""
+    from identify.plans import Purpose
+
+    if "purpose" not in manifest:
+        return None
+    return Purpose.from_document(manifest["purpose"], "dataset.json").departure(estimate)
+
+
 def identify_session(session: Session, opt: RunOptions, console: Console, captured: list[Experiment]) -> int:
     """``rig run --identify``: fit in memory right after the capture, print the report."""
     from identify.errors import IdentifyError
 
     command = (f"python -m identify fit {session.path} --model {opt.model} --estimate {','.join(opt.estimate)}"
                + (f" --params {opt.params}" if opt.params else "") + " --output RESULT.json")
+    departure = purpose_departure(session.manifest, opt.estimate)
+    if departure:
+        console.print(departure, highlight=False)
     console.print(f"identifying {', '.join(opt.estimate)} ({opt.model}) on the session's periodic experiments; "
                   f"same as: {command}", highlight=False)
     try:

@@ -35,7 +35,7 @@ class RunOptions:
     register_map: str | None = None
     model: str = "2dof"
     params: str | None = None
-    estimate: list[str] = field(default_factory=lambda: list(DEFAULT_ESTIMATE["2dof"]))
+    estimate: list[str] = field(default_factory=list)   # empty: the plan's purpose, else the model's default
     date: str | None = None
     unit_serial: str = "unknown"
     order: str | None = None                # thermal or fixed; None: the plan's, and a --experiments list as given
@@ -114,9 +114,18 @@ def prepare(opt: RunOptions) -> Prepared:
         # with; a list of experiments the operator typed runs as typed unless --order thermal).
         order = opt.order or ("fixed" if opt.experiments else plan.order)
         plan = replace(plan, order=order)
+    opt = replace(opt, estimate=opt.estimate or designed_estimate(plan, opt.model))
     if opt.identify:
         _check_identification(opt)
     return Prepared(opt, shaker_url, daq_url, config, calibration, register_map, plan, stored)
+
+
+def designed_estimate(plan: Plan, model: str) -> list[str]:
+    """The parameters a fit of this plan's data estimates when none are named: those the
+    plan was designed for (its purpose, for the same model), else the model's default."""
+    if plan.purpose is not None and plan.purpose.model == model:
+        return list(plan.purpose.estimate)
+    return list(DEFAULT_ESTIMATE.get(model, ()))
 
 
 def _check_identification(opt: RunOptions) -> None:

@@ -69,7 +69,8 @@ class SessionRunner:
                                      peers=self._peers(),
                                      identify={"model": opt.model, "estimate": opt.estimate,
                                                "params": str(Path(opt.params).resolve()) if opt.params else None}
-                                     if opt.identify else None)
+                                     if opt.identify else None,
+                                     purpose=plan.purpose.to_document() if plan.purpose else None)
         return session
 
     def _peers(self) -> dict[str, Any] | None:

@@ -73,9 +73,11 @@ class Session:
     @classmethod
     def create(cls, path: Path, *, plan_source: str, letters: list[str], periods: int | None, date: str | None,
                snapshot: dict[str, str], unit: dict[str, str], endpoints: dict[str, str],
-               identify: dict[str, Any] | None = None, peers: dict[str, Any] | None = None) -> Session:
+               identify: dict[str, Any] | None = None, peers: dict[str, Any] | None = None,
+               purpose: dict[str, Any] | None = None) -> Session:
         """``identify``: the fit asked for after the capture, kept so that a resume after a
-        crash still does it."""
+        crash still does it.  ``purpose``: what the plan was designed for (its ``[purpose]``),
+        kept in dataset.json, where ``identify fit`` takes its parameters by default."""
         path = Path(path)
         cls.check_new(path)
         try:
@@ -95,6 +97,8 @@ class Session:
             meta["peers"] = [peers]
         manifest = {"format": FORMAT, "name": f"shaker session {meta['date']} ({plan_source} plan)", "unit": unit,
                     "experiments": []}
+        if purpose:
+            manifest["purpose"] = purpose
         _mark_simulated(manifest, peers)
         session = cls(path, meta, manifest)
         write_manifest(path, manifest)
