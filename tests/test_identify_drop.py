@@ -18,7 +18,7 @@ from identify.plans import ExperimentSpec
 
 ROOT = Path(__file__).resolve().parents[1]
 # The experiment rig design --predict drop requires: the drop's stroke at its speed.
-ENVELOPE = ExperimentSpec("e", "envelope", 79.0, 80.0, 1.0, periods=2)
+ENVELOPE = ExperimentSpec("e", "envelope", 80.0, 79.0, 1.0, periods=2)   # 1 mm clear of the top-out stop
 ESTIMATE = ["theta3", "theta4", "theta5", "theta6", "theta8", "theta16"]   # the drop plan's purpose
 
 
@@ -154,8 +154,8 @@ def test_bad_input_is_refused_in_one_line(model_world, tmp_path, capsys):
     _one_line_refusal(capsys, ["drop", str(tmp_path / "failed.json")], "line search failed")
     _one_line_refusal(capsys, ["drop", str(result), "--mass", "-3"], "positive")
     _one_line_refusal(capsys, ["drop", str(result), "--discrepancy", "1.5"], "--discrepancy")
-    # The measured drop was released at rest: predicting 0.5 m/s beside it compares nothing.
-    _one_line_refusal(capsys, ["drop", str(result), "--measured", str(model_world), "--velocity", "0.5"],
+    # The measured drop landed at the paper's 0.5 m/s: predicting 0.3 m/s beside it compares nothing.
+    _one_line_refusal(capsys, ["drop", str(result), "--measured", str(model_world), "--velocity", "0.3"],
                       "other conditions")
     _one_line_refusal(capsys, ["drop", str(result), "--type-test", str(tmp_path / "nowhere")], "not a folder")
 
@@ -165,7 +165,7 @@ def test_a_measured_drop_is_predicted_at_its_own_conditions_and_compared(model_w
                           "--duration", "1.5", "--discrepancy", "0.01"])
     out = capsys.readouterr().out
     assert code == 0
-    assert "released on the damper at rest, 1.5 s" in out
+    assert "landing at 0.5 m/s, 1.5 s" in out
     line = next(x for x in out.splitlines() if x.startswith("measured peak force"))
     assert "within 2σ" in line
     assert np.isfinite(float(line.split("predicted ")[1].split(" %")[0]))

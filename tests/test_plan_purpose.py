@@ -22,7 +22,7 @@ DROP_SET = ("theta3", "theta4", "theta5", "theta6", "theta8", "theta16")
 def _designed_plan(tmp_path: Path, goal) -> Path:
     """The plan file rig design writes for ``goal`` (the design itself is the slow part,
     tests/test_design.py; here one envelope experiment stands for its result)."""
-    plan = Plan("designed", (ExperimentSpec("e", "envelope", 79.0, 80.0, 1.0, periods=2),), "", "fixed")
+    plan = Plan("designed", (ExperimentSpec("e", "envelope", 80.0, 79.0, 1.0, periods=2),), "", "fixed")
     sigma = goal.targets * 0.5 if np.all(np.isfinite(goal.targets)) else np.ones(len(goal.estimate))
     designed = Designed(plan, sigma, 53.0, True, None, plan.experiments, 1.0)
     out = tmp_path / "designed.toml"
@@ -58,7 +58,7 @@ def test_a_parameter_plan_states_its_targets_as_its_purpose(tmp_path):
 def test_a_broken_purpose_is_refused_in_one_line(tmp_path):
     path = tmp_path / "p.toml"
     path.write_text('name = "p"\n[purpose]\nuse = "landing"\nmodel = "2dof"\nestimate = ["theta4"]\n'
-                    '[[experiment]]\nlabel = "a"\nstatic_mm = 79\namplitude_mm = 80\nfrequency_Hz = 1\n')
+                    '[[experiment]]\nlabel = "a"\nstatic_mm = 80\namplitude_mm = 79\nfrequency_Hz = 1\n')
     with pytest.raises(PlanError, match="use 'landing' is not one of parameters, predict-drop, qc"):
         load_plan(str(path))
 
@@ -73,7 +73,7 @@ def test_the_session_dataset_keeps_the_purpose_and_identify_fit_takes_it(tmp_pat
                    snapshot={}, unit={"serial": "SN-1"}, endpoints={}, purpose=purpose.to_document())
     assert json.loads((tmp_path / "s" / "dataset.json").read_text())["purpose"] == purpose.to_document()
     # A dataset of that plan's experiment (generated offline) with the session's purpose.
-    data = generate(tmp_path / "d", [ExperimentSpec("e", "envelope", 79.0, 80.0, 1.0, periods=2)], load_truth(),
+    data = generate(tmp_path / "d", [ExperimentSpec("e", "envelope", 80.0, 79.0, 1.0, periods=2)], load_truth(),
                     periods=None, rate_hz=1000.0, seed=3, date="261128")
     manifest = json.loads((data / "dataset.json").read_text())
     (data / "dataset.json").write_text(json.dumps({**manifest, "purpose": purpose.to_document()}))
