@@ -108,6 +108,16 @@ def loops_figure(evaluation: Evaluation) -> str | None:
     return _png(fig)
 
 
+def equipment_table(equipment: list[dict[str, str]]) -> str:
+    """The calibration certificates a measurement was made under (rig.qc.calibration)."""
+    if not equipment:
+        return ""
+    cols = ("channel", "serial", "certificate", "calibrated", "due")
+    return ("<h2>Calibration certificates used</h2><table><tr>" + "".join(f"<th>{c}</th>" for c in cols) + "</tr>"
+            + "".join("<tr>" + "".join(f"<td>{html.escape(str(q.get(c, '—')))}</td>" for c in cols) + "</tr>"
+                      for q in equipment) + "</table>")
+
+
 def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -> str:
     e = html.escape
     verdict = record.verdict or f"no verdict ({record.status})"
@@ -202,5 +212,6 @@ in by kσ); FAIL when value ∓ kσ lies outside (ISO 14253-1).</p>
 {'<h2>Notes</h2><ul>' + notes + '</ul>' if notes else ''}
 <h2>Traceability</h2>
 <table class="trace">{''.join(f'<tr><th>{e(k)}</th><td>{e(str(v))}</td></tr>' for k, v in trace)}</table>
+{equipment_table(record.details.get("equipment", []))}
 </body></html>
 """

@@ -34,10 +34,12 @@ from rich.console import Console
 
 from identify.exit_codes import EXIT_INTERRUPTED, EXIT_OK
 from identify.files import atomic_write_bytes
+from rig.drivers.daq import probe_daq
 from rig.drivers.shaker import MotionInterlock
 from rig.errors import BadInput
 from rig.events import Kind, Subscriber
 from rig.planning.prediction import NOT_MEASURED, predict_s
+from rig.qc.calibration import CertificateError, is_certificate_file, load_certificates
 from rig.qc.characteristics import check_model
 from rig.qc.evaluate import Evaluation, evaluate
 from rig.qc.judge import Outcome
@@ -46,6 +48,7 @@ from rig.qc.queue import Outbox
 from rig.qc.records import CharacteristicRecord, QcRecord, Records, RecordStatus, default_url
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
+from rig.qc.studies import StudyInputError, gate
 from rig.qc.trace import SessionTrace, now_utc, software_version, trace_session
 from rig.session.acquisition import ExperimentRecord
 from rig.session.run import (
@@ -60,6 +63,7 @@ from rig.session.run import (
 )
 from rig.session.storage import Session
 
+STATION_CALIBRATION = "calibration.toml"   # a station folder's certificates, when --calibration names none
 EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
 
 
@@ -76,8 +80,9 @@ class QcOptions:
     periods: int | None = None      # the remedy for INCONCLUSIVE: more periods than the spec's
     reset_alarm: bool = False
     rig_config: str | None = None
-    calibration: str | None = None
+    calibration: str | None = None  # default: the station's OUT/calibration.toml where there is one
     register_map: str | None = None
+    study: str | None = None        # a run of a measurement-system study or master check: not gated by the check
 
 
 @dataclass
@@ -146,6 +151,9 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
     spec = load_spec(opt.spec)
     spec.check_serial(opt.serial)
     check_model(spec)
+    calibration = station_calibration(opt)
+    opt = replace(opt, calibration=calibration)
+    equipment = admit(opt, calibration)
     operator, rig_id = opt.operator or getpass.getuser(), opt.rig_id or socket.gethostname()
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     run_options = RunOptions(plan=spec.source, shaker=opt.shaker, daq=opt.daq,
@@ -217,11 +225,41 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
         evaluation.notes.append(stopping_note(result, prep))
         record = judged_record(spec, trace_session(session), evaluation, retest, rejudges=None, finished=finished,
                                **identity)
+        if equipment or opt.study:
+            record = replace(record, details={**record.details, **({"equipment": equipment} if equipment else {}),
+                                              **({"study": opt.study} if opt.study else {})})
         report = session / "qc-report.html"
         code = _conclude(records, record, spec, evaluation, report, session / "qc-record.json", to.concluded)
         return QcOutcome(code, record, report, spec.k, records.name)
     finally:
         records.close()
+
+
+def station_calibration(opt: QcOptions) -> str | None:
+    """``--calibration``, else the station folder's ``calibration.toml`` where there is one."""
+    if opt.calibration:
+        return opt.calibration
+    own = Path(opt.out) / STATION_CALIBRATION
+    return str(own) if own.is_file() else None
+
+
+def admit(opt: QcOptions, calibration: str | None) -> list[dict[str, str]]:
+    """Before anything moves or is recorded: the certificates in force and for the DAQ
+    that answers, and (for a production unit) today's master check passed; refused in
+    one line (exit 2) otherwise.  The certificates' data, for the record."""
+    if calibration is None or not is_certificate_file(calibration):
+        return []
+    certificates = load_certificates(calibration)
+    why = certificates.refusal(_dt.date.today(), None)
+    if why is None:
+        why = certificates.refusal(_dt.date.today(), probe_daq(opt.daq))
+    if why is not None:
+        raise CertificateError(f"qc run refused: {why}")
+    if opt.study is None:
+        state = gate(Path(opt.out), calibration)
+        if not state.allowed:
+            raise StudyInputError(f"qc run refused: {state.sentence}")
+    return certificates.equipment()
 
 
 def decider(spec: Spec, prep: Prepared, predicted: Callable[[Prediction], None] | None,

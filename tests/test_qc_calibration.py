@@ -1,0 +1,165 @@
+"""Calibration certificates as station data (rig.qc.calibration) and the daily master check
+(rig.qc.studies): the DAQ's coefficients read from the certificate file, an expired
+certificate or another DAQ refused in one line before anything moves or is recorded, the
+type-B uncertainty from sensitivity coefficients, and a load cell whose gain drifted 3 %
+caught by the master check (on data generated offline) before ``qc run`` judges a unit."""
+
+from __future__ import annotations
+
+import datetime as _dt
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from rig.cli import main
+from rig.config import CONFIG_DIR
+from rig.drivers.daq import Calibration
+from rig.qc.calibration import (
+    CertificateError,
+    load_certificates,
+    uncertainty_budget,
+)
+from rig.qc.evaluate import evaluate
+from rig.qc.spec import load_spec
+from rig.qc.studies import (
+    StudyRecord,
+    gate,
+    load_reference,
+    master_check,
+    master_check_policy,
+    new_uid,
+    store,
+)
+from simulator.generate import generate
+from simulator.truth import load_truth
+
+SAMPLE = CONFIG_DIR / "station-calibration-simulated.toml"
+MASTER = CONFIG_DIR / "master-simulated.toml"
+
+
+def test_the_daq_calibration_is_read_from_the_certificates_and_the_old_file_still_works():
+    new, old = Calibration.from_file(SAMPLE), Calibration.from_file()
+    assert new.names == old.names
+    assert np.array_equal(new.gain, old.gain) and np.array_equal(new.offset, old.offset)
+    certificates = load_certificates(SAMPLE)
+    force = certificates.certificate("force_N")
+    assert (force.serial, force.certificate, force.due) == ("LC-SIM-0001", "CAL-2026-0612", _dt.date(2027, 6, 12))
+    # U = 1 N at zero, 0.1 % of the reading above: u(e₀) = 0.5 N, u(e₁) ≈ 0.05 %
+    assert force.u_offset == pytest.approx(0.5) and force.u_gain == pytest.approx(5e-4, rel=1e-3)
+    assert [e["certificate"] for e in certificates.equipment()] == ["CAL-2026-0611", "CAL-2026-0612",
+                                                                     "CAL-2026-0613", "CAL-2026-0614"]
+
+
+def test_an_expired_certificate_or_another_daq_is_refused():
+    certificates = load_certificates(SAMPLE)
+    assert certificates.refusal(_dt.date(2026, 11, 28), "DAQ4,SIM0001,1.00,SIMULATOR") is None
+    why = certificates.refusal(_dt.date(2027, 6, 12), None)
+    assert why is not None and "CAL-2026-0611" in why and "expired on 2027-06-11" in why
+    why = certificates.refusal(_dt.date(2026, 11, 28), "DAQ4,SN-778,1.00")
+    assert why is not None and "'SN-778'" in why and "'SIM0001'" in why
+
+
+def expired_copy(tmp_path: Path) -> Path:
+    text = SAMPLE.read_text().replace("due = 2027-06-12\ngain = 1.0", "due = 2026-11-01\ngain = 1.0")
+    assert "due = 2026-11-01" in text
+    path = tmp_path / "expired.toml"
+    path.write_text(text)
+    return path
+
+
+def qc_run(tmp_path: Path, *extra: str) -> list[str]:
+    # Ports where nothing listens: a refusal must come before any link is tried.
+    return ["qc", "run", "--serial", "SN-0001", "--shaker", "tcp://127.0.0.1:9", "--daq", "socket://127.0.0.1:9",
+            "--out", str(tmp_path / "station"), *extra]
+
+
+def test_qc_run_on_an_expired_certificate_is_refused_in_one_line_with_nothing_recorded(tmp_path, capsys):
+    code = main(qc_run(tmp_path, "--calibration", str(expired_copy(tmp_path))))
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1, err
+    assert "CAL-2026-0612" in err and "LC-SIM-0001" in err and "expired on 2026-11-01" in err
+    assert not (tmp_path / "station").exists()      # no session, no record, no database, no queue
+
+
+def test_a_certificate_file_that_is_wrong_names_the_file_and_the_key(tmp_path):
+    bad = tmp_path / "bad.toml"
+    bad.write_text(SAMPLE.read_text().replace("due = 2027-06-12\ngain = 1.0", 'due = "soon"\ngain = 1.0'))
+    with pytest.raises(CertificateError, match=r"\[\[transducer\]\] 2: 'due' must be a TOML date"):
+        load_certificates(bad)
+
+
+def test_the_calibration_uncertainty_comes_from_sensitivity_coefficients():
+    """A characteristic y = 2·F + 0.5·p·F (F force, p pressure): its u_cal from the
+    certificates' u(e₀), u(e₁) and the sensitivities ∂y/∂eᵢ by finite differences, as the
+    GUM's law of propagation gives it by hand."""
+    certificates = load_certificates(SAMPLE)
+    F, p = np.array([400.0, 500.0]), np.array([6.0, 6.0])
+
+    def recompute(perturb):
+        f, q = (F, p) if perturb is None else (perturb("force_N", F), perturb("pressure_bar", p))
+        return {"y": float(np.mean(2 * f + 0.5 * q * f))}
+
+    budget = uncertainty_budget(recompute, certificates)["y"]
+    force, pressure = certificates.certificate("force_N"), certificates.certificate("pressure_bar")
+    c_f0, c_f1 = 2 + 0.5 * 6, float(np.mean((2 + 0.5 * 6) * F))   # per N of offset, per unit relative gain
+    c_p0, c_p1 = float(np.mean(0.5 * F)), float(np.mean(0.5 * 6 * F))
+    by_hand = np.sqrt((c_f0 * force.u_offset) ** 2 + (c_f1 * force.u_gain) ** 2
+                      + (c_p0 * pressure.u_offset) ** 2 + (c_p1 * pressure.u_gain) ** 2)
+    assert budget.u_cal == pytest.approx(by_hand, rel=1e-9)
+    assert {(c.channel, c.component) for c in budget.contributions if c.sensitivity == 0} == \
+        {("stroke_mm", "offset"), ("stroke_mm", "gain"), ("gas_temperature_C", "offset")}
+
+
+@pytest.fixture(scope="module")
+def master_values(tmp_path_factory) -> dict[str, dict[str, float | None]]:
+    """The master (the nominal unit) measured offline with the default spec's plan: once
+    as calibrated, once with its load cell reading 3 % high."""
+    spec = load_spec("default")
+    out = {}
+    for name, gain in (("calibrated", 0.0), ("drifted", 0.03)):
+        folder = generate(tmp_path_factory.mktemp(name), list(spec.plan.experiments), load_truth(), periods=None,
+                          seed=11, date="261128", serial="MU-0001", gain_error=(0.0, gain, 0.0, 0.0))
+        out[name] = {m.name: m.value for m in evaluate(spec, folder).measured}
+    return out
+
+
+def _store_check(folder: Path, passed: bool, summary: str, calibration: Path, at: _dt.datetime) -> None:
+    store(folder, StudyRecord(new_uid(), "check", at.isoformat(timespec="seconds"), "st-1", "default", "1.2.0", "x",
+                              str(calibration), ("MU-0001",), passed, {}, summary=summary))
+
+
+def test_a_drifted_load_cell_fails_the_master_check_and_qc_run_then_refuses(master_values, tmp_path, capsys):
+    spec = load_spec("default")
+    policy = master_check_policy(SAMPLE)
+    assert policy is not None and policy.fraction == 0.1
+    reference = load_reference(MASTER, spec)
+    ok = master_check(spec, reference, master_values["calibrated"], policy)
+    assert all(d.passed for d in ok), [(d.characteristic, d.deviation, d.limit) for d in ok]
+    drifted = master_check(spec, reference, master_values["drifted"], policy)
+    failed = {d.characteristic for d in drifted if not d.passed}
+    # the force-based characteristics drifted beyond 0.1·T; the drop test's peak force and
+    # the friction moved less than their limits (the friction: 3 % of 120 N against ±9 N)
+    assert {"damping_force_0.3_N", "dissipated_energy_J"} <= failed
+    assert failed <= {"damping_force_0.3_N", "dissipated_energy_J", "gas_precharge_bar", "friction_10bar_N",
+                      "drop_peak_force_kN"}
+
+    station = tmp_path / "station"
+    now = _dt.datetime.now(_dt.UTC)
+    assert not gate(station, SAMPLE).allowed and "no master check on record" in gate(station, SAMPLE).sentence
+    _store_check(station, False, "drifted: Damping force at 0.3 m/s +13.6 N (limit ±9)", SAMPLE, now)
+    state = gate(station, SAMPLE)
+    assert not state.allowed and "FAILED" in state.sentence and "Damping force" in state.sentence
+    files_before = sorted(p.name for p in station.rglob("*"))
+    code = main(qc_run(tmp_path, "--calibration", str(SAMPLE)))
+    err = capsys.readouterr().err
+    assert code == 2 and len(err.strip().splitlines()) == 1 and "master check" in err and "Damping force" in err, err
+    assert sorted(p.name for p in station.rglob("*")) == files_before    # nothing recorded
+    # a passed check today lets production through; yesterday's does not
+    _store_check(station, True, "every characteristic within its limit", SAMPLE, now + _dt.timedelta(seconds=1))
+    assert gate(station, SAMPLE).allowed
+    assert not gate(station, SAMPLE, now + _dt.timedelta(days=1, seconds=2)).allowed
+
+
+def test_a_station_without_certificates_is_not_gated(tmp_path):
+    assert gate(tmp_path, None).allowed and gate(tmp_path, CONFIG_DIR / "daq-calibration-datasheet.toml").allowed
