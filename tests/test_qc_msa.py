@@ -84,3 +84,58 @@ def test_the_randomised_order_holds_every_unit_and_repeat_once():
     order = msa.randomised_order([f"SN-{i:04d}" for i in range(10)], 2, seed=3)
     assert sorted(order) == sorted((f"SN-{i:04d}", k) for i in range(10) for k in (1, 2))
     assert order != sorted(order, key=lambda x: (x[1], x[0]))
+
+
+def test_studies_are_stored_once_reported_and_listed_by_history(tmp_path, monkeypatch, capsys):
+    """The study commands' second half on stand-in runs (each a record with the spec's
+    characteristics; the runs themselves are qc run's, tested elsewhere): a type 1 and a
+    type 3 study stored read-only in the station folder and in its database, with a
+    report, and listed by qc history."""
+    import dataclasses
+    import stat
+
+    from rig.cli import main
+    from rig.config import CONFIG_DIR
+    from rig.qc import msa_run
+    from rig.qc.judge import Outcome
+    from rig.qc.records import CharacteristicRecord, QcRecord, RecordStatus
+    from rig.qc.run import QcOptions
+    from rig.qc.studies import StudyInputError, stored
+
+    spec = load_spec("default")
+    rng = np.random.default_rng(2)
+    offsets: dict[str, float] = {}
+
+    def run(opt, serial, kind, say):
+        off = offsets.setdefault(serial, 0.02 * rng.standard_normal() if serial != "MU-0001" else 0.0)
+        chars = tuple(CharacteristicRecord(c.name, c.unit, c.nominal * (1 + off + 5e-4 * rng.standard_normal()),
+                                           0.01, 0.01, 0.0, c.low, c.high, c.nominal, Outcome.PASS, c.title)
+                      for c in spec.characteristics)
+        return QcRecord(str(rng.integers(1 << 60)), serial, "qe", "rig", None, None, "now", "x", spec.name,
+                        spec.version, spec.sha256, None, None, Outcome.PASS, RecordStatus.COMPLETE, "s", "d", {},
+                        chars, simulated=True)
+
+    monkeypatch.setattr(msa_run, "measure", run)
+    opt = QcOptions(spec="default", serial="MU-0001", shaker="tcp://127.0.0.1:9", daq="socket://127.0.0.1:9",
+                    out=tmp_path, rig_id="st-1", calibration=str(CONFIG_DIR / "station-calibration-simulated.toml"))
+    said: list[str] = []
+    reference = str(CONFIG_DIR / "master-simulated.toml")
+    with pytest.raises(StudyInputError, match="at least 25"):
+        msa_run.run_type1(opt, "MU-0001", reference, 24, said.append)
+    assert msa_run.run_type1(opt, "MU-0001", reference, 25, said.append) == msa_run.EXIT_GOALS_MET
+    assert msa_run.run_type3(dataclasses.replace(opt), [f"SN-{i:04d}" for i in range(10)], 2, said.append,
+                             lambda serial: None, seed=1) == msa_run.EXIT_GOALS_MET
+    assert any(line.startswith("  Gas pre-charge: n 25, Cg") for line in said)
+    assert any("%GRR" in line and "ndc" in line for line in said)
+    studies = stored(tmp_path)
+    assert [s.kind for s in studies] == ["type1", "type3"] and all(s.equipment for s in studies)
+    files = sorted((tmp_path / "qc-studies").glob("*.json"))
+    assert all(not p.stat().st_mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH) for p in files)
+    pages = sorted((tmp_path / "qc-studies").glob("*.html"))
+    assert len(pages) == 2 and "CAL-2026-0612" in pages[0].read_text() and "ANOVA tables" in pages[1].read_text()
+    assert len(list((tmp_path / "qc-studies").glob("*type1*.png"))) == len(spec.characteristics)
+    assert msa_run.report_for(studies[1], spec).count("<h3>") == len(spec.characteristics)
+    capsys.readouterr()
+    assert main(["qc", "history", "--out", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "Measurement-system studies and master checks (2)" in out and "station copy only" not in out

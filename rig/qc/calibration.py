@@ -38,14 +38,17 @@ computes the characteristic again from the channels so perturbed (:func:`uncerta
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
+import json
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from identify.files import atomic_write_bytes
 from rig.config import CHANNELS
 from rig.drivers.daq import Calibration
 from rig.errors import BadInput
@@ -243,3 +246,75 @@ def uncertainty_budget(recompute: Recompute, certificates: StationCalibration,
             for name in base:
                 rows[name].append(Contribution(channel, component, u, (up[name] - down[name]) / (2 * u)))
     return {name: Budget(name, value, tuple(rows[name])) for name, value in base.items()}
+
+
+# ----- today's characteristics: the identification done again on the perturbed channels -----------
+def identification_recompute(spec: Any, session: Path) -> Recompute:
+    """The spec's characteristics of the unit measured in ``session`` computed again, the
+    identification included, from its channels perturbed (what a calibration error of
+    a channel does to them).  Each call is one fit (about a second and a half)."""
+    from dataclasses import replace
+
+    from identify.fit import fit_experiments
+    from identify.parameters import Parameters
+    from rig.qc.characteristics import Identified, check_model, measure
+    from rig.qc.evaluate import periodic_experiments
+
+    model = check_model(spec)
+    experiments = periodic_experiments(model, session)
+    start = Parameters.from_file(model, spec.start) if spec.start else Parameters(model)
+
+    def recompute(perturb: Perturb | None) -> dict[str, float]:
+        runs = experiments
+        if perturb is not None:
+            runs = []
+            for e in experiments:
+                assert e.data is not None
+                data = e.data.copy()
+                for name in CHANNELS:
+                    if name in data:
+                        data[name] = perturb(name, data[name].to_numpy())
+                runs.append(replace(e, data=data))
+        fit = fit_experiments(model, runs, start.copy(), list(spec.estimate), n=spec.grid_points)
+        measured = measure(spec, model, Identified.from_fit(fit), runs)
+        missing = [m.name for m in measured if m.value is None]
+        if missing:
+            raise CertificateError(f"{session}: {', '.join(missing)} not computed from the perturbed channels "
+                                   "(the identification did not converge)")
+        return {m.name: float(m.value) for m in measured if m.value is not None}
+
+    return recompute
+
+
+# ----- derived once per certificate set, used by every run ------------------------------------------
+UNCERTAINTY_DIR = "qc-uncertainty"
+
+
+def _budget_file(folder: Path, spec_sha256: str, calibration: str | Path) -> Path:
+    digest = hashlib.sha256(Path(calibration).read_bytes()).hexdigest()
+    return Path(folder) / UNCERTAINTY_DIR / f"{spec_sha256[:12]}-{digest[:12]}.json"
+
+
+def store_budget(folder: Path, spec: Any, calibration: str | Path, session: Path,
+                 budget: dict[str, Budget]) -> Path:
+    """The derived u_cal of each characteristic for this spec and this certificate file
+    (a new certificate file, a new spec: derived again), the station's to use."""
+    path = _budget_file(folder, spec.sha256, calibration)
+    doc = {"spec": spec.name, "spec_sha256": spec.sha256, "calibration": str(calibration), "session": str(session),
+           "u_cal": {name: b.u_cal for name, b in budget.items()},
+           "contributions": {name: [asdict(c) for c in b.contributions] for name, b in budget.items()}}
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_bytes(path, (json.dumps(doc, indent=2) + "\n").encode())
+    return path
+
+
+def derived_u_cal(folder: Path, spec: Any, calibration: str | Path | None) -> tuple[dict[str, float], str] | None:
+    """The u_cal derived from these certificates for this spec, and the session it was
+    derived on; None where it has not been (``qc uncertainty``)."""
+    if calibration is None or not is_certificate_file(calibration):
+        return None
+    path = _budget_file(folder, spec.sha256, calibration)
+    if not path.is_file():
+        return None
+    doc = json.loads(path.read_text())
+    return {k: float(v) for k, v in doc["u_cal"].items()}, str(doc["session"])

@@ -91,6 +91,32 @@ def cmd_type3(args: argparse.Namespace) -> int:
                      mount_by_command(args.mount_command, _say), args.order_seed)
 
 
+def cmd_uncertainty(args: argparse.Namespace) -> int:
+    from rig.qc.calibration import (
+        identification_recompute,
+        is_certificate_file,
+        load_certificates,
+        store_budget,
+        uncertainty_budget,
+    )
+    from rig.qc.spec import load_spec
+
+    spec = load_spec(args.spec)
+    if not is_certificate_file(args.calibration):
+        raise BadInput(f"--calibration {args.calibration}: no [[transducer]] certificates to derive u_cal from")
+    budget = uncertainty_budget(identification_recompute(spec, Path(args.session)),
+                                load_certificates(args.calibration))
+    for c in spec.characteristics:
+        b = budget[c.name]
+        parts = ", ".join(f"{x.channel} {x.component} {x.u_characteristic:.2g}" for x in
+                          sorted(b.contributions, key=lambda x: -x.u_characteristic)[:3])
+        print(f"{c.shown}: u_cal {b.u_cal:.2g} {c.unit} from the certificates (the spec types {c.u_cal:g}); "
+              f"largest: {parts}")
+    if args.out:
+        print(f"stored for qc run: {store_budget(Path(args.out), spec, args.calibration, Path(args.session), budget)}")
+    return 0
+
+
 def cmd_judge(args: argparse.Namespace) -> int:
     from rig.qc.run import qc_judge
 
@@ -169,6 +195,7 @@ def cmd_history(args: argparse.Namespace) -> int:
     records = Records.open(url, password=config.password if config else None)
     try:
         everything = records.find(serial=args.serial, since=since, station=args.station)
+        records_studies = records.studies()
     finally:
         records.close()
     warning = _queue_warning(args, url)
@@ -223,6 +250,8 @@ def cmd_history(args: argparse.Namespace) -> int:
         if any(not c.meaningful for c in caps_found):
             console.print(f"(Cp), (Cpk): not meaningful, fewer than {MIN_CAPABILITY_N} units (AIAG SPC manual)",
                           highlight=False)
+    if not args.json:
+        _print_studies(records_studies, Path(args.out) if args.out else None)
     if args.chart:
         charts = control_charts(everything, Path(args.chart), args.include_simulated, args.baseline)
         for path in charts:
@@ -233,6 +262,34 @@ def cmd_history(args: argparse.Namespace) -> int:
                   file=sys.stderr)
             return EXIT_NOTHING_CHARTED
     return 0
+
+
+def _print_studies(in_database: list[dict], station: Path | None) -> None:
+    """The measurement-system studies and master checks: the database's and the station's
+    own copies (one not yet in the database says so)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from rig.qc.studies import stored
+
+    docs = {d["uid"]: (d, True) for d in in_database}
+    for study in stored(station) if station is not None else []:
+        docs.setdefault(study.uid, (study.to_json(), False))
+    if not docs:
+        return
+    table = Table(title=f"Measurement-system studies and master checks ({len(docs)})")
+    for col in ("finished (UTC)", "kind", "result", "units", "spec", "station", "summary", "study"):
+        table.add_column(col)
+    for d, in_db in sorted(docs.values(), key=lambda x: x[0]["at"]):
+        result = ("PASS" if d["passed"] else "FAIL") if d["kind"] == "check" else \
+            ("goals met" if d["passed"] else "goals missed")
+        table.add_row(d["at"][:19], d["kind"], result + (" SIMULATED" if d["simulated"] else ""),
+                      ", ".join(d["units"]), f"{d['spec_name']} {d['spec_version']}", d["station"] or "—",
+                      d["summary"], d["uid"][:8] + ("" if in_db else " (station copy only)"))
+    console = Console(soft_wrap=True)
+    if not console.is_terminal:
+        console = Console(soft_wrap=True, width=200)
+    console.print(table)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -293,6 +350,15 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     type3.add_argument("--order-seed", type=int, help="seed of the randomised order (default: a fresh one)")
     station_args(type3)
     type3.set_defaults(func=cmd_type3)
+
+    unc = qsub.add_parser("uncertainty", help="each characteristic's calibration uncertainty from the certificates "
+                                               "(GUM sensitivity coefficients on a measured session)")
+    unc.add_argument("session", help="a session folder of the unit (the master's) to derive it on")
+    unc.add_argument("--spec", default="default", help="default or QC.toml")
+    unc.add_argument("--calibration", required=True, help="the station's certificate file")
+    unc.add_argument("--out", metavar="STATION_DIR", help="store it for the station's qc run (in place of the spec's "
+                                                          "u_cal)")
+    unc.set_defaults(func=cmd_uncertainty)
 
     judge = qsub.add_parser("judge", help="judge stored data again: a new record referring to the first")
     judge.add_argument("session", help="session folder (or any dataset folder)")

@@ -36,7 +36,7 @@ class Evaluation:
 def evaluate(spec: Spec, session: Path) -> Evaluation:
     t0 = time.perf_counter()
     model = check_model(spec)
-    experiments = _periodic(model, session)
+    experiments = periodic_experiments(model, session)
     params = Parameters.from_file(model, spec.start) if spec.start else Parameters(model)
     notes: list[str] = []
     fit: FitResult | None = None
@@ -68,10 +68,10 @@ def evaluate_identified(spec: Spec, session: Path, identified: Identified, notes
     for the characteristics that come from them."""
     t0 = time.perf_counter()
     model = check_model(spec)
-    return _judge(spec, model, _periodic(model, session), None, identified, list(notes), t0)
+    return _judge(spec, model, periodic_experiments(model, session), None, identified, list(notes), t0)
 
 
-def _periodic(model: CompiledModel, session: Path) -> list[Experiment]:
+def periodic_experiments(model: CompiledModel, session: Path) -> list[Experiment]:
     columns = model_columns(model, resolve_outputs(model, None))
     return [e for e in read_dataset(session, columns).experiments if e.kind == "periodic"]
 

@@ -83,6 +83,28 @@ def _base(kind: str, spec: Spec, opt: QcOptions, units: tuple[str, ...], passed:
                        tuple(equipment(opt.calibration)), summary)
 
 
+def keep(opt: QcOptions, study: StudyRecord, say: Say) -> Path:
+    """The station's own copy first, then the records database (where it answers: the
+    station's copy stands for it otherwise, and ``qc history --out`` lists both)."""
+    from rig.qc.records import Records, RecordsError, default_url
+    from rig.qc.station import load_station_config
+
+    path = store(opt.out, study)
+    config = load_station_config(Path(opt.out))
+    url = opt.db or config.db or default_url(Path(opt.out))
+    try:
+        records = Records.open(url, create=True, password=config.password)
+        try:
+            records.add_study(study.uid, study.kind, study.at, study.station, (study.spec_name, study.spec_version,
+                              study.spec_sha256), study.passed, study.simulated, list(study.units), study.summary,
+                              study.to_json())
+        finally:
+            records.close()
+    except RecordsError as exc:
+        say(f"study not in the records database ({exc}); the station's copy: {path}")
+    return path
+
+
 def _prepare(opt: QcOptions) -> tuple[QcOptions, Spec]:
     spec = load_spec(opt.spec)
     opt = replace(opt, calibration=station_calibration(opt))
@@ -99,16 +121,27 @@ def run_check(opt: QcOptions, master: str, reference_file: str, say: Say) -> int
         raise StudyInputError(f"qc check: the calibration {opt.calibration or '(datasheet)'} sets no [master_check] "
                               "(fraction of the tolerance): give the station's certificate file")
     spec.check_serial(master)
-    record = measure(opt, master, "check", say)
+    # A judged run without values (the identification did not converge: a drifted
+    # transducer can make the channels disagree with any model) fails the check; a
+    # session that ended without data (no record of characteristics) says nothing of drift.
+    record = test_unit(replace(opt, serial=master, study="check"), _quiet()).record
+    if not record.characteristics:
+        raise RunWithoutVerdict(f"the master check's run ended without data ({record.status}"
+                                f"{': ' + record.reason if record.reason else ''}); record {record.uid}")
     drifts = master_check(spec, reference, {c.name: c.value for c in record.characteristics}, policy)
     failed = [d for d in drifts if not d.passed]
+    unmeasured = [d.title for d in failed if d.deviation is None]
+    why = next((n for n in record.notes if n.startswith("identification")), "no value")
     summary = ("every characteristic within its limit" if not failed else
-               "drifted: " + ", ".join(f"{d.title} {d.deviation:+.4g} {d.unit} (limit ±{d.limit:.3g})"
-                                       if d.deviation is not None else f"{d.title} not measured" for d in failed))
+               "; ".join(filter(None, [
+                   "drifted: " + ", ".join(f"{d.title} {d.deviation:+.4g} {d.unit} (limit ±{d.limit:.3g})"
+                                           for d in failed if d.deviation is not None)
+                   if len(unmeasured) < len(failed) else "",
+                   f"not measured ({why}): {', '.join(unmeasured)}" if unmeasured else ""])))
     result = {d.characteristic: {"title": d.title, "unit": d.unit, "value": d.value, "reference": d.reference,
                                  "limit": d.limit, "passed": d.passed} for d in drifts}
     study = _base("check", spec, opt, (master,), not failed, result, [record], summary)
-    path = store(opt.out, study)
+    path = keep(opt, study, say)
     say(f"master check of {master}: {'PASS' if not failed else 'FAIL'}: {summary} "
         f"(limits ±{policy.fraction:g}·T of the reference; {path})")
     for d in drifts:
@@ -148,7 +181,7 @@ def run_type1(opt: QcOptions, master: str, reference_file: str, runs: int, say: 
                   records, summary)
     charts = {r.characteristic: run_chart(spec, r, [x.value for x in table if x.characteristic == r.characteristic])
               for r in results}
-    path = store(opt.out, study)
+    path = keep(opt, study, say)
     report = _write_report(Path(opt.out), study, type1_html(spec, study, results, charts), charts)
     for r in results:
         say(type1_line(spec, r))
@@ -215,7 +248,7 @@ def run_type3(opt: QcOptions, units: list[str], repeats: int, say: Say, mount: C
                   {"rows": [r.__dict__ for r in table], "order": order,
                    "figures": [{**r.__dict__, "anova": [a.__dict__ for a in r.anova]} for r in results]},
                   records, summary)
-    path = store(opt.out, study)
+    path = keep(opt, study, say)
     report = _write_report(Path(opt.out), study, type3_html(spec, study, results), {})
     for r in results:
         say(type3_line(spec, r))
@@ -269,6 +302,7 @@ h1 {{ font-size: 22px; margin: 0 0 10px 0; }} h2 {{ font-size: 17px; margin: 22p
 table {{ border-collapse: collapse; width: 100%; font-size: 13px; margin-bottom: 8px; }}
 td, th {{ border-bottom: 1px solid #ddd; padding: 4px 8px; text-align: left; vertical-align: top; }}
 td.num {{ text-align: right; white-space: nowrap; font-variant-numeric: tabular-nums; }}
+table.fig th {{ text-align: right; }} table.fig th:first-child, table.fig th.text {{ text-align: left; }}
 .miss {{ color: #c62828; font-weight: bold; }}
 img {{ max-width: 100%; }}
 .simbanner {{ background: #c62828; color: #fff; font-weight: bold; padding: 6px 12px; margin-bottom: 10px; }}
@@ -308,8 +342,9 @@ def type1_html(spec: Spec, study: StudyRecord, results: list[msa.Type1], charts:
     body = (f"<p>Master {html.escape(study.units[0])} measured {results[0].n if results else 0} times. "
             "Cg = 0.2·T/(6s), Cgk = (0.1·T − |bias|)/(3s), goal ≥ 1.33 (VDA 5; Bosch booklet 10); the bias "
             "against the reference value with its one-sample t-test (AIAG MSA: significant at p &lt; 0.05).</p>"
-            "<table><tr><th>characteristic</th><th>unit</th><th>reference</th><th>T</th><th>mean</th><th>s</th>"
-            "<th>Cg</th><th>Cgk</th><th>bias</th><th>t / p</th><th>bias</th></tr>" + rows_html + "</table>"
+            "<table class=fig><tr><th>characteristic</th><th class=text>unit</th><th>reference</th><th>T</th>"
+            "<th>mean</th><th>s</th><th>Cg</th><th>Cgk</th><th>bias</th><th>t / p</th><th class=text>bias test</th>"
+            "</tr>" + rows_html + "</table>"
             "<h2>Run charts</h2>" + "".join(_img(png, f"run chart {name}") for name, png in charts.items()))
     return _page(f"Type 1 study — master {study.units[0]}", study, body)
 
@@ -323,8 +358,9 @@ def type3_html(spec: Spec, study: StudyRecord, results: list[msa.Type3]) -> str:
                       f"{_num(r.pv, '.3g')}{_num(r.tv, '.3g')}{_num(r.tolerance, '.4g')}"
                       f"<td class='num{miss}'>{r.grr_tolerance_percent:.1f} %</td>"
                       f"<td class=num>{r.grr_tv_percent:.1f} %</td><td class='num{miss}'>{r.ndc:.1f}</td></tr>")
-        anova_html += (f"<h3>{html.escape(c.shown)} [{html.escape(c.unit)}]</h3><table><tr><th>source</th><th>df</th>"
-                       "<th>SS</th><th>MS</th><th>F</th><th>p</th></tr>"
+        anova_html += (f"<h3>{html.escape(c.shown)} [{html.escape(c.unit)}]</h3>"
+                       "<table class=fig style='width: 70%'><tr><th>source</th><th>df</th><th>SS</th><th>MS</th>"
+                       "<th>F</th><th>p</th></tr>"
                        + "".join(f"<tr><td>{a.source}</td><td class=num>{a.df}</td>{_num(a.ss, '.4g')}"
                                  f"{_num(a.ms, '.4g')}<td class=num>{'' if a.f is None else f'{a.f:.2f}'}</td>"
                                  f"<td class=num>{'' if a.p is None else f'{a.p:.3g}'}</td></tr>" for a in r.anova)
@@ -334,7 +370,8 @@ def type3_html(spec: Spec, study: StudyRecord, results: list[msa.Type3]) -> str:
             "influence (AIAG MSA, ANOVA method; statsmodels). EV = √MS<sub>error</sub> (repeatability, = GRR), "
             "PV = √((MS<sub>unit</sub> − MS<sub>error</sub>)/r), TV = √(GRR² + PV²); %GRR of T = 100·6·GRR/T, "
             "ndc = 1.41·PV/GRR. Goals: %GRR ≤ 10 % of T, ndc ≥ 5.</p>"
-            "<table><tr><th>characteristic</th><th>unit</th><th>EV (GRR)</th><th>PV</th><th>TV</th><th>T</th>"
+            "<table class=fig><tr><th>characteristic</th><th class=text>unit</th><th>EV (GRR)</th><th>PV</th>"
+            "<th>TV</th><th>T</th>"
             "<th>%GRR of T</th><th>%GRR of TV</th><th>ndc</th></tr>" + rows_html + "</table>"
             "<h2>ANOVA tables</h2>" + anova_html
             + "<p>Order of the runs: " + html.escape(", ".join(f"{u}#{k}" for u, k in study.result["order"])) + "</p>")

@@ -39,7 +39,7 @@ from rig.drivers.shaker import MotionInterlock
 from rig.errors import BadInput
 from rig.events import Kind, Subscriber
 from rig.planning.prediction import NOT_MEASURED, predict_s
-from rig.qc.calibration import CertificateError, is_certificate_file, load_certificates
+from rig.qc.calibration import CertificateError, derived_u_cal, is_certificate_file, load_certificates
 from rig.qc.characteristics import check_model
 from rig.qc.evaluate import Evaluation, evaluate
 from rig.qc.judge import Outcome
@@ -154,6 +154,11 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
     calibration = station_calibration(opt)
     opt = replace(opt, calibration=calibration)
     equipment = admit(opt, calibration)
+    derived = derived_u_cal(Path(opt.out), spec, calibration)
+    if derived is not None:   # GUM type B from the certificates (qc uncertainty), in place of the spec's figures
+        u_cal, derived_on = derived
+        spec = replace(spec, characteristics=tuple(replace(c, u_cal=u_cal.get(c.name, c.u_cal))
+                                                   for c in spec.characteristics))
     operator, rig_id = opt.operator or getpass.getuser(), opt.rig_id or socket.gethostname()
     stamp = _dt.datetime.now().strftime("%Y%m%d-%H%M%S")
     run_options = RunOptions(plan=spec.source, shaker=opt.shaker, daq=opt.daq,
@@ -226,8 +231,10 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
         record = judged_record(spec, trace_session(session), evaluation, retest, rejudges=None, finished=finished,
                                **identity)
         if equipment or opt.study:
-            record = replace(record, details={**record.details, **({"equipment": equipment} if equipment else {}),
-                                              **({"study": opt.study} if opt.study else {})})
+            record = replace(record, details={
+                **record.details, **({"equipment": equipment} if equipment else {}),
+                **({"study": opt.study} if opt.study else {}),
+                **({"u_cal": {"from": "calibration certificates", "derived on": derived_on}} if derived else {})})
         report = session / "qc-report.html"
         code = _conclude(records, record, spec, evaluation, report, session / "qc-record.json", to.concluded)
         return QcOutcome(code, record, report, spec.k, records.name)
