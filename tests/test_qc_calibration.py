@@ -20,16 +20,14 @@ from rig.qc.calibration import (
     load_certificates,
     uncertainty_budget,
 )
-from rig.qc.evaluate import evaluate
+from rig.qc.evaluate import STUDY_FIT_ITERATIONS, evaluate
 from rig.qc.spec import load_spec
 from rig.qc.studies import (
-    StudyRecord,
     gate,
     load_reference,
     master_check,
     master_check_policy,
     new_uid,
-    store,
 )
 from simulator.generate import generate
 from simulator.truth import load_truth
@@ -120,34 +118,51 @@ def master_values(tmp_path_factory) -> dict[str, dict[str, float | None]]:
     for name, gain in (("calibrated", 0.0), ("drifted", 0.03)):
         folder = generate(tmp_path_factory.mktemp(name), list(spec.plan.experiments), load_truth(), periods=None,
                           seed=11, date="261128", serial="MU-0001", gain_error=(0.0, gain, 0.0, 0.0))
-        out[name] = {m.name: m.value for m in evaluate(spec, folder).measured}
+        out[name] = {m.name: m.value for m in evaluate(spec, folder, STUDY_FIT_ITERATIONS).measured}
     return out
 
 
-def _store_check(folder: Path, passed: bool, summary: str, calibration: Path, at: _dt.datetime) -> None:
-    store(folder, StudyRecord(new_uid(), "check", at.isoformat(timespec="seconds"), "st-1", "default", "1.2.0", "x",
-                              str(calibration), ("MU-0001",), passed, {}, summary=summary))
+def _master_run(values: dict[str, float | None]):
+    """qc run's outcome of the master, as the master check gets it from test_unit."""
+    from types import SimpleNamespace
+
+    from rig.qc.judge import Outcome
+    from rig.qc.records import CharacteristicRecord, QcRecord, RecordStatus
+
+    spec = load_spec("default")
+    chars = tuple(CharacteristicRecord(c.name, c.unit, values[c.name], 0.01, 0.01, 0.0, c.low, c.high, c.nominal,
+                                       Outcome.PASS, c.title) for c in spec.characteristics)
+    record = QcRecord(new_uid(), "MU-0001", "qe", "rig", None, None, "now", "x", spec.name, spec.version, spec.sha256,
+                      None, None, Outcome.PASS, RecordStatus.COMPLETE, "s", "d", {}, chars, simulated=True)
+    return lambda opt, subscribers: SimpleNamespace(record=record)
 
 
-def test_a_drifted_load_cell_fails_the_master_check_and_qc_run_then_refuses(master_values, tmp_path, capsys):
+def test_a_drifted_load_cell_fails_the_master_check_and_qc_run_then_refuses(master_values, tmp_path, capsys,
+                                                                           monkeypatch):
+    from rig.qc import msa_run
+    from rig.qc.run import QcOptions
+
     spec = load_spec("default")
     policy = master_check_policy(SAMPLE)
     assert policy is not None and policy.fraction == 0.1
     reference = load_reference(MASTER, spec)
     ok = master_check(spec, reference, master_values["calibrated"], policy)
     assert all(d.passed for d in ok), [(d.characteristic, d.deviation, d.limit) for d in ok]
-    drifted = master_check(spec, reference, master_values["drifted"], policy)
-    failed = {d.characteristic for d in drifted if not d.passed}
-    # the force-based characteristics drifted beyond 0.1·T; the drop test's peak force and
-    # the friction moved less than their limits (the friction: 3 % of 120 N against ±9 N)
-    assert {"damping_force_0.3_N", "dissipated_energy_J"} <= failed
-    assert failed <= {"damping_force_0.3_N", "dissipated_energy_J", "gas_precharge_bar", "friction_10bar_N",
-                      "drop_peak_force_kN"}
 
     station = tmp_path / "station"
-    now = _dt.datetime.now(_dt.UTC)
     assert not gate(station, SAMPLE).allowed and "no master check on record" in gate(station, SAMPLE).sentence
-    _store_check(station, False, "drifted: Damping force at 0.3 m/s +13.6 N (limit ±9)", SAMPLE, now)
+    opt = QcOptions(spec="default", serial="MU-0001", shaker="tcp://127.0.0.1:9", daq="socket://127.0.0.1:9",
+                    out=station, calibration=str(SAMPLE))
+    said: list[str] = []
+    monkeypatch.setattr(msa_run, "test_unit", _master_run(master_values["drifted"]))
+    assert msa_run.run_check(opt, "MU-0001", str(MASTER), said.append) == msa_run.EXIT_GOALS_MISSED
+    # the force-based characteristics drifted beyond 0.1·T and are named; the drop test's
+    # peak force and the friction moved less than their limits (friction: 3.6 N of ±9 N)
+    first = said[0]
+    assert first.startswith("master check of MU-0001: FAIL: drifted: ") and "Damping force at 0.3 m/s +" in first \
+        and "Energy dissipated per cycle +" in first and "Drop-test peak force" not in first, first
+    assert {line.split(":")[0].strip() for line in said if line.startswith("  DRIFT")} >= \
+        {"DRIFT Damping force at 0.3 m/s", "DRIFT Energy dissipated per cycle"}
     state = gate(station, SAMPLE)
     assert not state.allowed and "FAILED" in state.sentence and "Damping force" in state.sentence
     files_before = sorted(p.name for p in station.rglob("*"))
@@ -155,10 +170,11 @@ def test_a_drifted_load_cell_fails_the_master_check_and_qc_run_then_refuses(mast
     err = capsys.readouterr().err
     assert code == 2 and len(err.strip().splitlines()) == 1 and "master check" in err and "Damping force" in err, err
     assert sorted(p.name for p in station.rglob("*")) == files_before    # nothing recorded
-    # a passed check today lets production through; yesterday's does not
-    _store_check(station, True, "every characteristic within its limit", SAMPLE, now + _dt.timedelta(seconds=1))
+    # the load cell recalibrated: the check passes, production goes on today, not tomorrow
+    monkeypatch.setattr(msa_run, "test_unit", _master_run(master_values["calibrated"]))
+    assert msa_run.run_check(opt, "MU-0001", str(MASTER), said.append) == msa_run.EXIT_GOALS_MET
     assert gate(station, SAMPLE).allowed
-    assert not gate(station, SAMPLE, now + _dt.timedelta(days=1, seconds=2)).allowed
+    assert not gate(station, SAMPLE, _dt.datetime.now(_dt.UTC) + _dt.timedelta(days=1)).allowed
 
 
 def test_a_station_without_certificates_is_not_gated(tmp_path):

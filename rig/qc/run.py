@@ -41,7 +41,7 @@ from rig.events import Kind, Subscriber
 from rig.planning.prediction import NOT_MEASURED, predict_s
 from rig.qc.calibration import CertificateError, derived_u_cal, is_certificate_file, load_certificates
 from rig.qc.characteristics import check_model
-from rig.qc.evaluate import Evaluation, evaluate
+from rig.qc.evaluate import FIT_ITERATIONS, STUDY_FIT_ITERATIONS, Evaluation, evaluate
 from rig.qc.judge import Outcome
 from rig.qc.present import shown
 from rig.qc.queue import Outbox
@@ -216,7 +216,7 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
             to.say(f"[red]QC run ABORTED: session {result.status}; no verdict[/red]")
             return QcOutcome(result.exit_code, record, session / "qc-report.html", spec.k, records.name)
         try:
-            evaluation = evaluate(spec, session)
+            evaluation = evaluate(spec, session, STUDY_FIT_ITERATIONS if opt.study else FIT_ITERATIONS)
         except BaseException as exc:
             status = RecordStatus.ABORTED if isinstance(exc, KeyboardInterrupt) else RecordStatus.ERROR
             record = _store(records, _unjudged(spec, session, status, f"judging ended: {exc!r}", finished=finished,
