@@ -179,3 +179,20 @@ def test_a_drifted_load_cell_fails_the_master_check_and_qc_run_then_refuses(mast
 
 def test_a_station_without_certificates_is_not_gated(tmp_path):
     assert gate(tmp_path, None).allowed and gate(tmp_path, CONFIG_DIR / "daq-calibration-datasheet.toml").allowed
+
+
+def test_a_derived_u_cal_is_kept_per_spec_and_certificate_file(tmp_path):
+    from rig.qc.calibration import Budget, Contribution, derived_u_cal, store_budget
+
+    spec = load_spec("default")
+    budget = {c.name: Budget(c.name, c.nominal, (Contribution("force_N", "offset", 0.5, 0.01 * (i + 1)),))
+              for i, c in enumerate(spec.characteristics)}
+    assert derived_u_cal(tmp_path, spec, SAMPLE) is None          # not derived yet: the spec's u_cal stands
+    store_budget(tmp_path, spec, SAMPLE, tmp_path / "MU-0001-x", budget)
+    got = derived_u_cal(tmp_path, spec, SAMPLE)
+    assert got is not None and got[1] == str(tmp_path / "MU-0001-x")
+    assert got[0] == {name: pytest.approx(b.u_cal) for name, b in budget.items()}
+    other = tmp_path / "recalibrated.toml"
+    other.write_text(SAMPLE.read_text().replace("CAL-2026-0612", "CAL-2026-0999"))
+    assert derived_u_cal(tmp_path, spec, other) is None            # a new certificate: derived again
+    assert derived_u_cal(tmp_path, spec, CONFIG_DIR / "daq-calibration-datasheet.toml") is None
