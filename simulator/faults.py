@@ -75,6 +75,8 @@ def parse_fault(text: str) -> Fault:
             if not value_text or ":" not in value_text:
                 raise FaultError(f"fault {text!r}: {kind} needs =CHANNEL:{'RATE' if kind == 'drift' else 'REL'}")
             ch, rate = value_text.split(":", 1)
+            if ch not in CHANNEL_NAMES and not ch.isdigit():
+                raise FaultError(f"fault {text!r}: channel {ch!r} is none of 0…3, {', '.join(CHANNEL_NAMES)}")
             channel = CHANNEL_NAMES.index(ch) if ch in CHANNEL_NAMES else int(ch)
             if not 0 <= channel <= 3:
                 raise FaultError(f"fault {text!r}: channel {channel} is not 0…3")

@@ -196,3 +196,20 @@ def test_a_derived_u_cal_is_kept_per_spec_and_certificate_file(tmp_path):
     other.write_text(SAMPLE.read_text().replace("CAL-2026-0612", "CAL-2026-0999"))
     assert derived_u_cal(tmp_path, spec, other) is None            # a new certificate: derived again
     assert derived_u_cal(tmp_path, spec, CONFIG_DIR / "daq-calibration-datasheet.toml") is None
+
+
+def test_the_gain_fault_names_its_channel_by_number_or_name():
+    from simulator.faults import FaultError, parse_fault
+    from simulator.sensors import SensorSet
+
+    fault = parse_fault("gain=force_N:0.03")
+    assert (fault.kind, fault.channel, fault.value, fault.at_s) == ("gain", 1, 0.03, None)
+    assert parse_fault("gain=1:0.03@run+2").after_run
+    with pytest.raises(FaultError, match="channel 'forc' is none of"):
+        parse_fault("gain=forc:0.03")
+    # what the fault sets: the channel reads 1.03 times the truth
+    truth = np.array([[0.1], [400.0], [6e5], [293.15]])
+    plain, drifted = SensorSet(noise_scale=0.0), SensorSet(noise_scale=0.0, gain_error=(0.0, 0.03, 0.0, 0.0))
+    f0 = plain.engineering(plain.counts(truth, np.zeros(1))[0])[1, 0]
+    f1 = drifted.engineering(drifted.counts(truth, np.zeros(1))[0])[1, 0]
+    assert f1 == pytest.approx(1.03 * f0, abs=1.0)    # within a count (1 N)
