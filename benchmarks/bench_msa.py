@@ -26,6 +26,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 from rig.config import CONFIG_DIR  # noqa: E402
+from rig.errors import RigFault  # noqa: E402
 from rig.qc.msa_run import run_check, run_type1, run_type3  # noqa: E402
 from rig.qc.run import QcOptions  # noqa: E402
 
@@ -101,6 +102,9 @@ def main() -> int:
             code |= run_type3(options(units[0]), units, args.repeats, say,
                               lambda serial: sim.serve(["--unit", "good", "--unit-seed", str(int(serial[3:]))]),
                               seed=43)
+    except RigFault as exc:      # a run without values: the study is not made (said, not a traceback)
+        print(f"stopped: {exc}", flush=True)
+        return 3
     finally:
         sim.stop()
     return code
