@@ -353,11 +353,12 @@ def type3_html(spec: Spec, study: StudyRecord, results: list[msa.Type3]) -> str:
     rows_html, anova_html = "", ""
     for r in results:
         c = next(x for x in spec.characteristics if x.name == r.characteristic)
-        miss = " miss" if not r.acceptable else ""
+        grr_miss = " miss" if r.grr_tolerance_percent > msa.GRR_GOAL_PERCENT else ""
+        ndc_miss = " miss" if r.ndc < msa.NDC_GOAL else ""
         rows_html += (f"<tr><td>{html.escape(c.shown)}</td><td>{html.escape(c.unit)}</td>{_num(r.ev, '.3g')}"
                       f"{_num(r.pv, '.3g')}{_num(r.tv, '.3g')}{_num(r.tolerance, '.4g')}"
-                      f"<td class='num{miss}'>{r.grr_tolerance_percent:.1f} %</td>"
-                      f"<td class=num>{r.grr_tv_percent:.1f} %</td><td class='num{miss}'>{r.ndc:.1f}</td></tr>")
+                      f"<td class='num{grr_miss}'>{r.grr_tolerance_percent:.1f} %</td>"
+                      f"<td class=num>{r.grr_tv_percent:.1f} %</td><td class='num{ndc_miss}'>{r.ndc:.1f}</td></tr>")
         anova_html += (f"<h3>{html.escape(c.shown)} [{html.escape(c.unit)}]</h3>"
                        "<table class=fig style='width: 70%'><tr><th>source</th><th>df</th><th>SS</th><th>MS</th>"
                        "<th>F</th><th>p</th></tr>"
