@@ -77,7 +77,7 @@ def _tolerances(spec: Spec) -> dict[str, float]:
 
 def _base(kind: str, spec: Spec, opt: QcOptions, units: tuple[str, ...], passed: bool, result: dict,
           records: list[QcRecord], summary: str) -> StudyRecord:
-    return StudyRecord(new_uid(), kind, _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"), opt.rig_id,
+    return StudyRecord(new_uid(), kind, _dt.datetime.now(_dt.UTC).isoformat(timespec="microseconds"), opt.rig_id,
                        spec.name, spec.version, spec.sha256, opt.calibration, units, passed, result,
                        tuple(r.uid for r in records), any(r.simulated for r in records),
                        tuple(equipment(opt.calibration)), summary)

@@ -146,7 +146,7 @@ class StudyRecord:
 
     uid: str
     kind: str
-    at: str                          # ISO 8601, UTC: when it ended
+    at: str                          # ISO 8601, UTC, to the microsecond: when it ended (the order of two in one second)
     station: str | None
     spec_name: str
     spec_version: str
