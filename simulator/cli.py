@@ -337,7 +337,7 @@ def build_parser() -> argparse.ArgumentParser:
     serve.add_argument("--fault", action="append", default=[], metavar="KIND[@T][=V]",
                        help="inject a fault (repeatable): corrupt=P, drop=P, overflow@T=N, stall@T=D, "
                             "disconnect@T, modbus-down@T=D, hydraulic-loss@T[=D], estop@T, drift=CH:RATE[@T], "
-                            "servo-drift@T=MM_PER_S; "
+                            "gain=CH:REL[@T], servo-drift@T=MM_PER_S; "
                             "T in simulated s, or run+T for T s after the first RUN")
     serve.add_argument("--state", metavar="FILE.json",
                        help="keep FILE.json up to date for a program driving the simulator: the endpoints once "

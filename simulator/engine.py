@@ -254,6 +254,12 @@ class VirtualRig:
         elif f.kind == "servo-drift":
             self._servo_drift = (t, value * 1e-3)
             self.log.record(t, f"fault: servo valve null drifts, actuator creeps {value:g} mm/s")
+        elif f.kind == "gain":
+            assert f.channel is not None  # parse_fault sets it for every gain fault
+            gains = list(self.sensors.gain_error)
+            gains[f.channel] = value
+            self.sensors.gain_error = tuple(gains)
+            self.log.record(t, f"fault: channel {f.channel} gain off by {value:+g} (relative)")
         elif f.kind == "drift":
             assert f.channel is not None  # parse_fault sets it for every drift
             self.sensors.drift_per_s[f.channel] = value

@@ -18,6 +18,9 @@ repeated) or built with :func:`parse_fault`:
 ``hydraulic-loss@T[=D]`` at T s the supply pressure is lost (for D s, else for good)
 ``estop@T``         at T s the emergency stop is pressed
 ``drift=CH:RATE[@T]`` from T s, channel CH drifts by RATE engineering units per s
+``gain=CH:REL[@T]`` from T s (else from the start), channel CH reads (1 + REL) times the
+                    truth: a transducer whose gain drifted since its calibration (CH a
+                    channel's number 0…3 or name, e.g. ``gain=force_N:0.03``)
 ``servo-drift@T=RATE`` from T s the servo valve's null drifts: the actuator creeps
                     away from its command at RATE mm/s (what trips the stroke limit)
 ==================  ==========================================================
@@ -33,7 +36,8 @@ from dataclasses import dataclass, field
 from simulator.errors import SimulatorError
 
 KINDS = ("corrupt", "drop", "overflow", "stall", "disconnect", "modbus-down", "hydraulic-loss", "estop", "drift",
-         "servo-drift")
+         "servo-drift", "gain")
+CHANNEL_NAMES = ("stroke_mm", "force_N", "pressure_bar", "gas_temperature_C")   # the DAQ's channels, in order
 _TIMED = {"overflow", "stall", "disconnect", "modbus-down", "hydraulic-loss", "estop", "servo-drift"}
 _TIME = r"(?:run\+)?[0-9.eE+-]+"
 _SYNTAX = re.compile(rf"^(?P<kind>[a-z-]+)(?:@(?P<at>{_TIME}))?(?:=(?P<value>[^@]+))?(?:@(?P<at2>{_TIME}))?$")
@@ -53,8 +57,8 @@ class Fault:
 
     def __str__(self) -> str:
         when = f"@{'run+' if self.after_run else ''}{self.at_s:g}" if self.at_s is not None else ""
-        if self.kind == "drift":
-            return f"drift={self.channel}:{self.value:g}{when}"
+        if self.kind in ("drift", "gain"):
+            return f"{self.kind}={self.channel}:{self.value:g}{when}"
         return f"{self.kind}{when}" + (f"={self.value:g}" if self.value is not None else "")
 
 
@@ -67,11 +71,13 @@ def parse_fault(text: str) -> Fault:
     after_run = bool(at_text and at_text.startswith("run+"))
     try:
         at = float(at_text.removeprefix("run+")) if at_text is not None else None
-        if kind == "drift":
+        if kind in ("drift", "gain"):
             if not value_text or ":" not in value_text:
-                raise FaultError(f"fault {text!r}: drift needs =CHANNEL:RATE")
+                raise FaultError(f"fault {text!r}: {kind} needs =CHANNEL:{'RATE' if kind == 'drift' else 'REL'}")
             ch, rate = value_text.split(":", 1)
-            channel = int(ch)
+            if ch not in CHANNEL_NAMES and not ch.isdigit():
+                raise FaultError(f"fault {text!r}: channel {ch!r} is none of 0…3, {', '.join(CHANNEL_NAMES)}")
+            channel = CHANNEL_NAMES.index(ch) if ch in CHANNEL_NAMES else int(ch)
             if not 0 <= channel <= 3:
                 raise FaultError(f"fault {text!r}: channel {channel} is not 0…3")
             return Fault(kind, at, float(rate), channel, after_run)

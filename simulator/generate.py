@@ -49,12 +49,14 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper | Plant
              rate_hz: float = 2000.0, seed: int = 0, drop: bool = False, date: str | None = None,
              actuator: Actuator | None = None, noise_scale: float = 1.0, name: str | None = None,
              serial: str = "SIM-0001", capture: str = "steady", ramp_s: float = RAMP_S,
-             drop_velocity_m_s: float = DROP_VELOCITY_M_S) -> Path:
+             drop_velocity_m_s: float = DROP_VELOCITY_M_S,
+             gain_error: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0)) -> Path:
     """Write the dataset folder ``out`` and return its path.
 
     Labels are ``date + letter`` as in the paper; ``truth.json`` beside the manifest
     holds the simulated parameters (the plant: its constants) for round-trip checks.
-    ``periods`` None captures each experiment's own number of periods.  A
+    ``periods`` None captures each experiment's own number of periods.  ``gain_error``:
+    each transducer's relative gain error (the ``gain`` fault of a served rig).  A
     :class:`PlantDamper` runs the plan in order, the wall's heat and the dissolved gas
     carried from one experiment to the next.  ``capture`` "transient" records each
     experiment from RUN on: the model started at rest at its static position with the
@@ -84,7 +86,7 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper | Plant
         plant = (run_plan_from_run(damper, plan, actuator, times, ramp_s) if all(transient)
                  else run_plan(damper, plan, actuator, times, SETTLE_S))
     for i, spec in enumerate(plan):
-        sensors = SensorSet(seed=seed * 1000 + i, noise_scale=noise_scale)
+        sensors = SensorSet(seed=seed * 1000 + i, noise_scale=noise_scale, gain_error=gain_error)
         k_periods = spec.periods if periods is None else periods
         t = times[i]
         if plant is not None:
@@ -105,7 +107,7 @@ def generate(out: str | Path, plan: list[ExperimentSpec], damper: Damper | Plant
             entry["over_range_samples"] = over
         entries.append(entry)
     if drop:
-        sensors = SensorSet(seed=seed * 1000 + 999, noise_scale=noise_scale)
+        sensors = SensorSet(seed=seed * 1000 + 999, noise_scale=noise_scale, gain_error=gain_error)
         t = np.arange(int(DROP_DURATION_S * rate_hz)) / rate_hz
         if isinstance(damper, PlantDamper):
             rec = simulate_drop(mass_kg=DROP_MASS_KG, velocity_m_s=drop_velocity_m_s, duration_s=float(t[-1]),

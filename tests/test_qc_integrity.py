@@ -368,6 +368,7 @@ def test_a_version_1_database_is_upgraded_without_changing_a_record(tmp_path):
                 for column in columns:
                     conn.execute(f"ALTER TABLE {table} DROP COLUMN {column}")
         conn.execute("DROP TABLE qc_release")
+        conn.execute("DROP TABLE qc_study")      # version 4's table, with its triggers
         conn.execute("DROP TRIGGER qc_schema_no_update")
         conn.execute("UPDATE qc_schema SET version = 1")
     (r,) = Records.open(str(path)).find()
@@ -375,4 +376,7 @@ def test_a_version_1_database_is_upgraded_without_changing_a_record(tmp_path):
         ("SN-0001", Outcome.PASS, False, None, None, None)
     assert r.characteristics[0].value == 450.0 and r.characteristics[0].title is None
     with sqlite3.connect(path) as conn:
-        assert sorted(v for (v,) in conn.execute("SELECT version FROM qc_schema")) == [1, 2, 3, 4]
+        assert sorted(v for (v,) in conn.execute("SELECT version FROM qc_schema")) == [1, 2, 3, 4, 5]
+        # the study table is back, and as immutable as the records
+        assert {n for (n,) in conn.execute("SELECT name FROM sqlite_master WHERE type = 'trigger'")} >= \
+            {"qc_study_no_update", "qc_study_no_delete"}

@@ -115,11 +115,13 @@ class Calibration:
         path = Path(path) if path else DEFAULT_CALIBRATION
         text, doc = read_toml(path, CalibrationError, "calibration ")
         try:
-            channels = doc["channel"]
+            # A station's certificate file (rig.qc.calibration) holds the coefficients in its
+            # [[transducer]] tables, one per channel, beside what the certificates say.
+            channels = doc["transducer"] if "transducer" in doc and "channel" not in doc else doc["channel"]
             if len(channels) != len(CHANNELS):
-                raise CalibrationError(f"calibration {path}: {len(channels)} [[channel]] tables, the DAQ has "
+                raise CalibrationError(f"calibration {path}: {len(channels)} channel tables, the DAQ has "
                                        f"{len(CHANNELS)}")
-            names = tuple(c["name"] for c in channels)
+            names = tuple(c.get("channel", c.get("name")) or c["name"] for c in channels)
             calibration = cls(str(path), names, tuple(c.get("unit", "") for c in channels),
                               np.array([float(c["gain"]) for c in channels]),
                               np.array([float(c["offset"]) for c in channels]), text)

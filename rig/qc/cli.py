@@ -36,8 +36,12 @@ import datetime as _dt
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rig.errors import BadInput
+
+if TYPE_CHECKING:
+    from rig.qc.run import QcOptions
 
 # The commands import what they need when they run: `python -m rig run` does not pay
 # for the database driver and matplotlib.
@@ -61,6 +65,64 @@ def cmd_run(args: argparse.Namespace) -> int:
                     reset_alarm=args.reset_alarm, rig_config=args.rig_config, calibration=args.calibration,
                     register_map=args.register_map)
     return qc_run(opt, Console(stderr=True, soft_wrap=True))
+
+
+def _study_options(args: argparse.Namespace, serial: str) -> QcOptions:
+    from rig.qc.run import QcOptions
+
+    return QcOptions(spec=args.spec, serial=serial, shaker=args.shaker, daq=args.daq, out=Path(args.out), db=args.db,
+                     operator=args.operator, rig_id=args.rig_id, rig_config=args.rig_config,
+                     calibration=args.calibration, register_map=args.register_map)
+
+
+def _say(text: str) -> None:
+    print(text, flush=True)
+
+
+def cmd_check(args: argparse.Namespace) -> int:
+    from rig.qc.msa_run import run_check
+
+    return run_check(_study_options(args, args.master), args.master, args.reference, _say)
+
+
+def cmd_type1(args: argparse.Namespace) -> int:
+    from rig.qc.msa_run import run_type1
+
+    return run_type1(_study_options(args, args.master), args.master, args.reference, args.runs, _say)
+
+
+def cmd_type3(args: argparse.Namespace) -> int:
+    from rig.qc.msa_run import mount_by_command, run_type3
+
+    units = [u.strip() for u in args.units.split(",") if u.strip()]
+    return run_type3(_study_options(args, units[0] if units else ""), units, args.repeats, _say,
+                     mount_by_command(args.mount_command, _say), args.order_seed)
+
+
+def cmd_uncertainty(args: argparse.Namespace) -> int:
+    from rig.qc.calibration import (
+        identification_recompute,
+        is_certificate_file,
+        load_certificates,
+        store_budget,
+        uncertainty_budget,
+    )
+    from rig.qc.spec import load_spec
+
+    spec = load_spec(args.spec)
+    if not is_certificate_file(args.calibration):
+        raise BadInput(f"--calibration {args.calibration}: no [[transducer]] certificates to derive u_cal from")
+    budget = uncertainty_budget(identification_recompute(spec, Path(args.session)),
+                                load_certificates(args.calibration))
+    for c in spec.characteristics:
+        b = budget[c.name]
+        parts = ", ".join(f"{x.channel} {x.component} {x.u_characteristic:.2g}" for x in
+                          sorted(b.contributions, key=lambda x: -x.u_characteristic)[:3])
+        print(f"{c.shown}: u_cal {b.u_cal:.2g} {c.unit} from the certificates (the spec types {c.u_cal:g}); "
+              f"largest: {parts}")
+    if args.out:
+        print(f"stored for qc run: {store_budget(Path(args.out), spec, args.calibration, Path(args.session), budget)}")
+    return 0
 
 
 def cmd_judge(args: argparse.Namespace) -> int:
@@ -164,6 +226,7 @@ def cmd_history(args: argparse.Namespace) -> int:
             return _verify(records, args)
         everything = records.find(serial=args.serial, since=since, station=args.station)
         released = {r.record_uid: r for r in records.releases(args.serial)}
+        records_studies = records.studies()
     finally:
         records.close()
     warning = _queue_warning(args, url)
@@ -221,6 +284,8 @@ def cmd_history(args: argparse.Namespace) -> int:
         if any(not c.meaningful for c in caps_found):
             console.print(f"(Cp), (Cpk): not meaningful, fewer than {MIN_CAPABILITY_N} units (AIAG SPC manual)",
                           highlight=False)
+    if not args.json:
+        _print_studies(records_studies, Path(args.out) if args.out else None)
     if args.chart:
         charts = control_charts(everything, Path(args.chart), args.include_simulated, args.baseline)
         for path in charts:
@@ -347,6 +412,34 @@ def cmd_release(args: argparse.Namespace) -> int:
     return 0
 
 
+def _print_studies(in_database: list[dict], station: Path | None) -> None:
+    """The measurement-system studies and master checks: the database's and the station's
+    own copies (one not yet in the database says so)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from rig.qc.studies import stored
+
+    docs = {d["uid"]: (d, True) for d in in_database}
+    for study in stored(station) if station is not None else []:
+        docs.setdefault(study.uid, (study.to_json(), False))
+    if not docs:
+        return
+    table = Table(title=f"Measurement-system studies and master checks ({len(docs)})")
+    for col in ("finished (UTC)", "kind", "result", "units", "spec", "station", "summary", "study"):
+        table.add_column(col)
+    for d, in_db in sorted(docs.values(), key=lambda x: x[0]["at"]):
+        result = ("PASS" if d["passed"] else "FAIL") if d["kind"] == "check" else \
+            ("goals met" if d["passed"] else "goals missed")
+        table.add_row(d["at"][:19], d["kind"], result + (" SIMULATED" if d["simulated"] else ""),
+                      ", ".join(d["units"]), f"{d['spec_name']} {d['spec_version']}", d["station"] or "—",
+                      d["summary"], d["uid"][:8] + ("" if in_db else " (station copy only)"))
+    console = Console(soft_wrap=True)
+    if not console.is_terminal:
+        console = Console(soft_wrap=True, width=200)
+    console.print(table)
+
+
 def add_parser(sub: argparse._SubParsersAction) -> None:
     """The ``qc`` command and its subcommands, under ``python -m rig``."""
     qc = sub.add_parser("qc", help="quality control: pass/fail runs on production dampers",
@@ -371,6 +464,50 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     run.add_argument("--calibration", help="DAQ calibration TOML of this rig")
     run.add_argument("--register-map", help="register map TOML")
     run.set_defaults(func=cmd_run)
+
+    def station_args(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--spec", default="default", help="default or QC.toml")
+        p.add_argument("--shaker", required=True, help="tcp://HOST:PORT or rtu:///dev/DEVICE")
+        p.add_argument("--daq", required=True, help="device path, socket://HOST:PORT or any pyserial URL")
+        p.add_argument("--out", required=True, help="the station's folder (its qc-studies/ holds the studies)")
+        p.add_argument("--db", help="records database URL without a password (as qc run)")
+        p.add_argument("--operator", help="who runs it (default: the login name)")
+        p.add_argument("--rig-id", help="this rig's name in the records (default: the host name)")
+        p.add_argument("--rig-config", help="limits TOML")
+        p.add_argument("--calibration", help="the station's certificate file (default: OUT/calibration.toml)")
+        p.add_argument("--register-map", help="register map TOML")
+
+    check = qsub.add_parser("check", help="the daily master check: the master unit against its reference values")
+    check.add_argument("--master", required=True, help="the master unit's serial")
+    check.add_argument("--reference", required=True, metavar="REF.toml", help="the master's reference values")
+    station_args(check)
+    check.set_defaults(func=cmd_check)
+
+    msa = qsub.add_parser("msa", help="measurement-system studies: type 1 (a master, Cg/Cgk), type 3 (units, %%GRR)")
+    msub = msa.add_subparsers(dest="msa_command", required=True)
+    type1 = msub.add_parser("type1", help="the master unit N times: Cg, Cgk, bias and its t-test, run charts")
+    type1.add_argument("--master", required=True, help="the master unit's serial")
+    type1.add_argument("--reference", required=True, metavar="REF.toml", help="the master's reference values")
+    type1.add_argument("--runs", type=_positive_int, default=25, help="runs (at least 25; default 25)")
+    station_args(type1)
+    type1.set_defaults(func=cmd_type1)
+    type3 = msub.add_parser("type3", help="units × repeats in a randomised order: %%GRR, ndc, ANOVA")
+    type3.add_argument("--units", required=True, help="comma-separated serials (at least 10)")
+    type3.add_argument("--repeats", type=_positive_int, default=2, help="repeats per unit (at least 2; default 2)")
+    type3.add_argument("--mount-command", help="run as COMMAND SERIAL before each run (a unit changer; default: "
+                                               "ask the operator to mount the unit and press Enter)")
+    type3.add_argument("--order-seed", type=int, help="seed of the randomised order (default: a fresh one)")
+    station_args(type3)
+    type3.set_defaults(func=cmd_type3)
+
+    unc = qsub.add_parser("uncertainty", help="each characteristic's calibration uncertainty from the certificates "
+                                               "(GUM sensitivity coefficients on a measured session)")
+    unc.add_argument("session", help="a session folder of the unit (the master's) to derive it on")
+    unc.add_argument("--spec", default="default", help="default or QC.toml")
+    unc.add_argument("--calibration", required=True, help="the station's certificate file")
+    unc.add_argument("--out", metavar="STATION_DIR", help="store it for the station's qc run (in place of the spec's "
+                                                          "u_cal)")
+    unc.set_defaults(func=cmd_uncertainty)
 
     judge = qsub.add_parser("judge", help="judge stored data again: a new record referring to the first")
     judge.add_argument("session", help="session folder (or any dataset folder)")

@@ -67,9 +67,10 @@ from rig.errors import BadInput
 from rig.qc.integrity import record_sha256
 from rig.qc.judge import Outcome
 
-SCHEMA_VERSION = 4            # 2: where measured (simulated, controller, daq), reason, k, details; titles; 3: station;
+SCHEMA_VERSION = 5            # 2: where measured (simulated, controller, daq), reason, k, details; titles; 3: station;
                               # 4: the hash chain, the report's hash, equipment, ambient, flagged captures, who and
                               # why (identified_by, rejudge_reason), releases
+                              # 5: measurement-system studies and master checks (qc_study)
 DEFAULT_FILE = "qc-records.sqlite"
 SQLITE_WAIT_S = 60.0          # a writer waits this long for another one's transaction
 PG_SCHEMA_LOCK = 0x5143_5245  # advisory lock key ("QCRE") held while the schema is created
@@ -136,6 +137,26 @@ characteristic_table = Table(
     Column("title", String(256)),                 # the spec's readable name of the characteristic
     Column("sigma_basis", String(16)),            # noise, residual or scatter: which σ the verdict used
 )
+# A measurement-system study (type 1, type 3) or a daily master check (rig.qc.studies):
+# immutable like the verdicts; ``document`` holds its figures and the uids of its runs' records.
+study_table = Table(
+    "qc_study", metadata,
+    Column("id", Integer, primary_key=True, autoincrement=True),
+    Column("uid", String(36), nullable=False, unique=True),
+    Column("kind", String(16), nullable=False),        # type1, type3, check
+    Column("at", String(40), nullable=False),          # when it ended (ISO 8601, UTC)
+    Column("station", String(128), index=True),
+    Column("spec_name", String(128), nullable=False),
+    Column("spec_version", String(64), nullable=False),
+    Column("spec_sha256", String(64), nullable=False),
+    Column("passed", Boolean, nullable=False),
+    Column("simulated", Boolean, nullable=False),
+    Column("units", Text, nullable=False),             # JSON list: the master, or a type 3's units
+    Column("summary", Text, nullable=False),
+    Column("document", Text, nullable=False),          # JSON: the whole study (rig.qc.studies.StudyRecord)
+)
+# Tables a schema version added (created, with their triggers, when an older database is upgraded).
+TABLES_ADDED = {5: ("qc_study",)}
 # Columns schema version 2 added to version 1's tables (a version 1 database is upgraded on open).
 ADDED_IN_2: dict[str, tuple[str, ...]] = {"qc_record": ("simulated", "controller", "daq", "reason", "k", "details"),
               "qc_characteristic": ("title", "sigma_basis")}
@@ -143,7 +164,7 @@ ADDED_IN_3: dict[str, tuple[str, ...]] = {"qc_record": ("station",)}
 ADDED_IN_4: dict[str, tuple[str, ...]] = {"qc_record": ("previous_sha256", "record_sha256", "report_sha256",
                                                         "equipment", "ambient", "flagged", "identified_by",
                                                         "rejudge_reason")}
-ADDED = {2: ADDED_IN_2, 3: ADDED_IN_3, 4: ADDED_IN_4}
+ADDED: dict[int, dict[str, tuple[str, ...]]] = {2: ADDED_IN_2, 3: ADDED_IN_3, 4: ADDED_IN_4, 5: {}}
 # A second person's approval of a unit's record (``qc release``): a row of its own, never changed.
 release_table = Table(
     "qc_release", metadata,
@@ -158,7 +179,7 @@ release_table = Table(
     Column("note", Text),
 )
 TABLES_IN_4 = ("qc_release",)
-IMMUTABLE = ("qc_record", "qc_characteristic", "qc_schema", "qc_release")
+IMMUTABLE = ("qc_record", "qc_characteristic", "qc_schema", "qc_release", "qc_study")
 INIT_COMMAND = "python -m rig qc db init --db ADMIN_URL --grant STATION_ROLE (docs/qc.md, \"Station set-up\")"
 PASSWORD_ADVICE = ("name the database without one (postgresql://USER@HOST:PORT/DB) and keep the password in "
                    "~/.pgpass (mode 0600), a pg_service.conf service (postgresql:///?service=NAME), PGPASSWORD, "
@@ -635,6 +656,32 @@ class Records:
                         outcome=Outcome(c["outcome"])))
         return [_record(r, tuple(chars.get(r["id"], []))) for r in rows]
 
+    def add_study(self, uid: str, kind: str, at: str, station: str | None, spec: tuple[str, str, str], passed: bool,
+                  simulated: bool, units: list[str], summary: str, document: dict[str, Any]) -> bool:
+        """A study or master check, once (False: the database holds its uid already)."""
+        if self._pending:
+            with self._errors("cannot be created"):
+                if self.url.get_backend_name() == "sqlite":
+                    Path(str(self.url.database)).parent.mkdir(parents=True, exist_ok=True)
+                self._ensure_schema(create=True)
+            self._pending = False
+        row = dict(uid=uid, kind=kind, at=at, station=station, spec_name=spec[0], spec_version=spec[1],
+                   spec_sha256=spec[2], passed=passed, simulated=simulated, units=json.dumps(units),
+                   summary=summary, document=json.dumps(document, sort_keys=True))
+        with self._errors("refused the study"), self.engine.begin() as conn:
+            insert = (postgresql.insert if conn.dialect.name == "postgresql" else sqlite.insert)(study_table)
+            key = conn.execute(insert.values(**row).on_conflict_do_nothing(index_elements=["uid"])
+                               .returning(study_table.c.id)).scalar()
+        return key is not None
+
+    def studies(self) -> list[dict[str, Any]]:
+        """Every study and master check, oldest first, as the documents stored."""
+        if self._pending:
+            return []
+        with self._errors("cannot be read"), self.engine.connect() as conn:
+            return [json.loads(r) for r in conn.execute(select(study_table.c.document).order_by(study_table.c.id))
+                    .scalars()]
+
     def first_for_data(self, data_sha256: str) -> QcRecord | None:
         if self._pending:
             return None
@@ -653,8 +700,8 @@ class Records:
             return [_record(row, ()) for row in conn.execute(query).mappings()]
 
 
-WRITTEN = ("qc_record", "qc_characteristic", "qc_release")   # a station inserts into these, and reads all four
-SEQUENCES = ("qc_record", "qc_release")                       # their ids: INSERT needs USAGE on the sequence
+WRITTEN = ("qc_record", "qc_characteristic", "qc_release", "qc_study")   # a station inserts into these, reads all
+SEQUENCES = ("qc_record", "qc_release", "qc_study")           # their ids: INSERT needs USAGE on the sequence
 
 
 @dataclass(frozen=True)
@@ -769,6 +816,9 @@ def _upgrade(conn: Connection, version: int) -> None:
     of where they were measured, or which station), no row changed; each version goes in as
     a row of its own (rows are immutable)."""
     for added in range(version + 1, SCHEMA_VERSION + 1):
+        for name in TABLES_ADDED.get(added, ()):
+            metadata.tables[name].create(conn)
+            _create_triggers(conn, (name,))
         for table, columns in ADDED[added].items():
             for name in columns:
                 column = metadata.tables[table].c[name]

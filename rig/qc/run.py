@@ -34,13 +34,15 @@ from rich.console import Console
 
 from identify.exit_codes import EXIT_INTERRUPTED, EXIT_OK
 from identify.files import atomic_write_bytes
+from rig.drivers.daq import probe_daq
 from rig.drivers.shaker import MotionInterlock
 from rig.errors import BadInput
 from rig.events import Kind, Subscriber
 from rig.planning.prediction import NOT_MEASURED, predict_s
+from rig.qc.calibration import CertificateError, derived_u_cal, is_certificate_file, load_certificates
 from rig.qc.characteristics import check_model
 from rig.qc.commissioning import configuration, require_commissioned
-from rig.qc.evaluate import Evaluation, evaluate
+from rig.qc.evaluate import FIT_ITERATIONS, STUDY_FIT_ITERATIONS, Evaluation, evaluate
 from rig.qc.judge import Outcome
 from rig.qc.present import shown
 from rig.qc.queue import Outbox
@@ -48,6 +50,7 @@ from rig.qc.records import CharacteristicRecord, QcRecord, Records, RecordStatus
 from rig.qc.report import render_report
 from rig.qc.spec import Spec, load_spec
 from rig.qc.station import identify_operator, load_station_config, read_pin
+from rig.qc.studies import StudyInputError, gate
 from rig.qc.trace import SessionTrace, measuring_equipment, now_utc, software_version, trace_session
 from rig.session.acquisition import ExperimentRecord
 from rig.session.run import (
@@ -62,6 +65,7 @@ from rig.session.run import (
 )
 from rig.session.storage import Session
 
+STATION_CALIBRATION = "calibration.toml"   # a station folder's certificates, when --calibration names none
 EXIT_BY_VERDICT = {Outcome.PASS: 0, Outcome.FAIL: 1, Outcome.INCONCLUSIVE: 4}
 
 
@@ -78,9 +82,10 @@ class QcOptions:
     periods: int | None = None      # the remedy for INCONCLUSIVE: more periods than the spec's
     reset_alarm: bool = False
     rig_config: str | None = None
-    calibration: str | None = None
+    calibration: str | None = None  # default: the station's OUT/calibration.toml where there is one
     register_map: str | None = None
     pin: str | None = None          # a PIN station's operator PIN (None: asked on the terminal)
+    study: str | None = None        # a run of a measurement-system study or master check: not gated by the check
 
 
 @dataclass
@@ -156,9 +161,17 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
                   calibration=opt.calibration or station.calibration)
     if not opt.shaker or not opt.daq:
         raise BadInput("--shaker and --daq are needed (or shaker and daq in the station's station.toml)")
+    calibration = station_calibration(opt)
+    opt = replace(opt, calibration=calibration)
     if station.is_station:   # a production station: commissioned for exactly this configuration
         require_commissioned(opt.out, configuration(opt.out, station, opt.db, opt.shaker, opt.daq, opt.calibration,
                                                     spec.sha256))
+    equipment = admit(opt, calibration)
+    derived = derived_u_cal(Path(opt.out), spec, calibration)
+    if derived is not None:   # GUM type B from the certificates (qc uncertainty), in place of the spec's figures
+        u_cal, derived_on = derived
+        spec = replace(spec, characteristics=tuple(replace(c, u_cal=u_cal.get(c.name, c.u_cal))
+                                                   for c in spec.characteristics))
     pin = opt.pin
     if station.identify == "pin" and station.is_station and pin is None and opt.operator is None:
         if to.ask_pin is None:   # never a prompt on a terminal nobody watches while a window waits
@@ -223,7 +236,7 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
             to.say(f"[red]QC run ABORTED: session {result.status}; no verdict[/red]")
             return QcOutcome(result.exit_code, record, session / "qc-report.html", spec.k, records.name)
         try:
-            evaluation = evaluate(spec, session)
+            evaluation = evaluate(spec, session, STUDY_FIT_ITERATIONS if opt.study else FIT_ITERATIONS)
         except BaseException as exc:
             status = RecordStatus.ABORTED if isinstance(exc, KeyboardInterrupt) else RecordStatus.ERROR
             record = _store(records, _unjudged(spec, session, status, f"judging ended: {exc!r}", finished=finished,
@@ -237,11 +250,43 @@ def test_unit(opt: QcOptions, to: QcSubscribers) -> QcOutcome:
         evaluation.notes.append(stopping_note(result, prep))
         record = judged_record(spec, trace_session(session), evaluation, retest, rejudges=None, finished=finished,
                                **identity)
+        if equipment or opt.study:
+            record = replace(record, details={
+                **record.details, **({"equipment": equipment} if equipment else {}),
+                **({"study": opt.study} if opt.study else {}),
+                **({"u_cal": {"from": "calibration certificates", "derived on": derived_on}} if derived else {})})
         report = session / "qc-report.html"
         code = _conclude(records, record, spec, evaluation, report, session / "qc-record.json", to.concluded)
         return QcOutcome(code, record, report, spec.k, records.name)
     finally:
         records.close()
+
+
+def station_calibration(opt: QcOptions) -> str | None:
+    """``--calibration``, else the station folder's ``calibration.toml`` where there is one."""
+    if opt.calibration:
+        return opt.calibration
+    own = Path(opt.out) / STATION_CALIBRATION
+    return str(own) if own.is_file() else None
+
+
+def admit(opt: QcOptions, calibration: str | None) -> list[dict[str, str]]:
+    """Before anything moves or is recorded: the certificates in force and for the DAQ
+    that answers, and (for a production unit) today's master check passed; refused in
+    one line (exit 2) otherwise.  The certificates' data, for the record."""
+    if calibration is None or not is_certificate_file(calibration):
+        return []
+    certificates = load_certificates(calibration)
+    why = certificates.refusal(_dt.date.today(), None)
+    if why is None:
+        why = certificates.refusal(_dt.date.today(), probe_daq(opt.daq))
+    if why is not None:
+        raise CertificateError(f"qc run refused: {why}")
+    if opt.study is None:
+        state = gate(Path(opt.out), calibration)
+        if not state.allowed:
+            raise StudyInputError(f"qc run refused: {state.sentence}")
+    return certificates.equipment()
 
 
 def decider(spec: Spec, prep: Prepared, predicted: Callable[[Prediction], None] | None,

@@ -81,6 +81,7 @@ class SessionTrace:
     peers: tuple[dict, ...] = ()          # session.json's: who answered on the links, per connection
     generated: bool = False               # dataset.json says the simulator generated the data
     flagged: dict[str, list[str]] = field(default_factory=dict)   # experiment → its capture's flags (dataset.json)
+    certificates: tuple[dict[str, str], ...] = ()   # the transducers' certificates the calibration file held
 
     @property
     def simulated(self) -> bool:
@@ -103,14 +104,28 @@ def trace_session(session: Path) -> SessionTrace:
     flagged = {str(e["label"]): [str(f) for f in e["flags"]] for e in manifest["experiments"] if e.get("flags")}
     return SessionTrace(str(session), files, fingerprint, sha256(session / CALIBRATION), sha256(session / REGISTER_MAP),
                         as_utc(meta.get("started")), as_utc(meta.get("finished")), peers,
-                        generated=generator.startswith("simulator"), flagged=flagged)
+                        generated=generator.startswith("simulator"), flagged=flagged,
+                        certificates=_certificates(session / CALIBRATION))
+
+
+def _certificates(calibration: Path) -> tuple[dict[str, str], ...]:
+    """The certificates of the calibration file the session copied (none for a datasheet's
+    file, or a session that kept no copy)."""
+    from rig.qc.calibration import CertificateError, equipment
+
+    if not calibration.is_file():
+        return ()
+    try:
+        return tuple(equipment(calibration))
+    except CertificateError:   # a copy that no longer reads as certificates names the file by its hash alone
+        return ()
 
 
 def measuring_equipment(trace: SessionTrace) -> tuple[Equipment, ...]:
-    """The measuring equipment a record names.  Today: the DAQ calibration file the session
-    used, by its hash (the rig knows no transducer serials).  This is the hook for the
-    metrology's calibration records (rig.qc.calibration): each transducer with its serial,
-    certificate and due date goes in here as an Equipment entry."""
-    if trace.calibration_sha256 is None:
-        return ()
-    return (Equipment("DAQ calibration file (gain and offset of the four channels)", sha256=trace.calibration_sha256),)
+    """The measuring equipment a record names: the calibration file the session used, by its
+    hash, and each transducer whose certificate it holds (rig.qc.calibration's
+    ``equipment()``: channel, serial, certificate, due)."""
+    files = () if trace.calibration_sha256 is None else (
+        Equipment("DAQ calibration file (gain and offset of the four channels)", sha256=trace.calibration_sha256),)
+    return files + tuple(Equipment(f"{c['channel']} transducer", serial=c.get("serial"),
+                                   certificate=c.get("certificate"), due=c.get("due")) for c in trace.certificates)
