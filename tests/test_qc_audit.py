@@ -297,6 +297,7 @@ def test_an_older_postgresql_schema_is_upgraded_by_the_administrator_only(pg_ser
     url = pg_server.records_database("older")
     with admin_connection(pg_server, "older") as conn:          # back to version 3, as an older program left it
         conn.execute("DROP TABLE qc_release")
+        conn.execute("DROP TABLE qc_study")                        # version 5's
         for column in ADDED_IN_4["qc_record"]:
             conn.execute(f"ALTER TABLE qc_record DROP COLUMN {column}")
         conn.execute("ALTER TABLE qc_schema DISABLE TRIGGER USER")

@@ -160,9 +160,11 @@ def test_a_drifted_load_cell_fails_the_master_check_and_qc_run_then_refuses(mast
     # peak force and the friction moved less than their limits (friction: 3.6 N of ±9 N)
     first = said[0]
     assert first.startswith("master check of MU-0001: FAIL: drifted: ") and "Damping force at 0.3 m/s +" in first \
-        and "Energy dissipated per cycle +" in first and "Drop-test peak force" not in first, first
-    assert {line.split(":")[0].strip() for line in said if line.startswith("  DRIFT")} >= \
-        {"DRIFT Damping force at 0.3 m/s", "DRIFT Energy dissipated per cycle"}
+        and "Drop-test peak force" not in first, first
+    # every characteristic of the default spec is identified from the force channel (the gas
+    # pre-charge too, through θ5): the damping force, the most sensitive, drifts past its limit
+    assert "DRIFT Damping force at 0.3 m/s" in {line.split(":")[0].strip() for line in said
+                                                if line.startswith("  DRIFT")}
     state = gate(station, SAMPLE)
     assert not state.allowed and "FAILED" in state.sentence and "Damping force" in state.sentence
     files_before = sorted(p.name for p in station.rglob("*"))
