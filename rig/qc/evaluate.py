@@ -33,13 +33,18 @@ class Evaluation:
     notes: list[str] = field(default_factory=list)  # fit warnings, or why there is no fit
 
 
-def evaluate(spec: Spec, session: Path) -> Evaluation:
+def evaluate(spec: Spec, session: Path, diagnose: bool = True) -> Evaluation:
+    """``diagnose`` False: no identification (a spec whose verdict rests on measurands
+    alone is judged without it, e.g. while its record still grows); the predicted
+    characteristics are then missing, which decides nothing."""
     t0 = time.perf_counter()
     model = check_model(spec)
     experiments = _periodic(model, session)
     params = Parameters.from_file(model, spec.start) if spec.start else Parameters(model)
     notes: list[str] = []
     fit: FitResult | None = None
+    if not diagnose and spec.model_free:
+        return _judge(spec, model, experiments, None, None, notes, t0, diagnosed=False)
     try:
         fit = fit_experiments(model, experiments, params, list(spec.estimate), n=spec.grid_points)
         notes += [_for_the_verdict(w, fit) for w in fit.warnings]
@@ -77,7 +82,11 @@ def _periodic(model: CompiledModel, session: Path) -> list[Experiment]:
 
 
 def _judge(spec: Spec, model: CompiledModel, experiments: list[Experiment], fit: FitResult | None,
-           identified: Identified | None, notes: list[str], t0: float) -> Evaluation:
+           identified: Identified | None, notes: list[str], t0: float, diagnosed: bool = True) -> Evaluation:
     measured = measure(spec, model, identified, experiments)
     notes += [f"{m.name}: {m.note}" for m in measured if m.note]
+    if spec.model_free and identified is None and diagnosed:
+        # the measurands decide; what only the model gives (the part to blame, the drop) is missing, and said so
+        notes.append("diagnosis missing: no converged identification; the verdict rests on the measured "
+                     "characteristics, the predicted ones have no value")
     return Evaluation(model, experiments, fit, measured, judge(spec, measured), time.perf_counter() - t0, notes)
