@@ -27,10 +27,10 @@ from _setup import ROOT  # first: one BLAS thread, set before numpy loads
 
 # isort: split
 import numpy as np
+from qc_units import capture, damper
 
 from identify.discrepancy import from_errors
 from identify.parameters import Parameters
-from qc_units import capture, damper
 from rig.qc.characteristics import check_model, drop_peak_force
 from rig.qc.evaluate import evaluate
 from rig.qc.spec import Characteristic, Spec, load_spec
@@ -94,7 +94,8 @@ def main() -> int:
                 print(f"  reference {i}: no prediction ({m.note})")
                 continue
             errors.append((m.value - truth) / truth)
-            print(f"  reference {i}: predicted {m.value:.4g} kN, own drop {truth:.4g} kN, error {100 * errors[-1]:+.2f} %")
+            print(f"  reference {i}: predicted {m.value:.4g} kN, own drop {truth:.4g} kN, "
+                  f"error {100 * errors[-1]:+.2f} %")
         if errors:
             d = from_errors(errors, f"{len(errors)} reference units' drops")
             print(f"  model discrepancy σ_δ = {100 * d.relative:.2f} % (discrepancy_percent)")

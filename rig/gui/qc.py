@@ -17,6 +17,7 @@ from pathlib import Path
 
 from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERNAL
 from rig.events import Event, Kind, Message
+from rig.qc import DEFAULT_SPEC
 from rig.qc.judge import Outcome
 from rig.qc.present import shown
 from rig.qc.run import EXIT_BY_VERDICT, Prediction, QcOptions, QcOutcome
@@ -30,7 +31,7 @@ RUNNING_SHARE = 0.95     # of its estimate, the most a running experiment counts
 @dataclass(frozen=True)
 class QcRequest:
     serial: str
-    spec: str = "default"
+    spec: str = DEFAULT_SPEC
     out: Path = Path("qc")             # the station's folder: a session folder per unit, and the records
     operator: str | None = None
     periods: int | None = None         # a retest's: more than the spec's

@@ -30,6 +30,7 @@ import sys
 from pathlib import Path
 
 from rig.errors import BadInput
+from rig.qc import DEFAULT_SPEC
 
 # The commands import what they need when they run: `python -m rig run` does not pay
 # for the database driver and matplotlib.
@@ -206,7 +207,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     qsub = qc.add_subparsers(dest="qc_command", required=True)
 
     run = qsub.add_parser("run", help="test one unit: plan, identification, verdict, record, report")
-    run.add_argument("--spec", default="default", help="default or QC.toml")
+    run.add_argument("--spec", default=DEFAULT_SPEC,
+                     help=f"a shipped spec ({DEFAULT_SPEC}: measurands at the axle, the default; default: the "
+                          "model-based one of before; transient; measurands-model) or QC.toml")
     run.add_argument("--serial", required=True, help="the unit's serial number (format set by the spec)")
     run.add_argument("--shaker", required=True, help="tcp://HOST:PORT or rtu:///dev/DEVICE")
     run.add_argument("--daq", required=True, help="device path, socket://HOST:PORT or any pyserial URL")
@@ -225,7 +228,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     judge = qsub.add_parser("judge", help="judge stored data again: a new record referring to the first")
     judge.add_argument("session", help="session folder (or any dataset folder)")
-    judge.add_argument("--spec", default="default", help="default or QC.toml")
+    judge.add_argument("--spec", help=f"a shipped spec or QC.toml (default: the spec of the data's first record, "
+                                      f"else {DEFAULT_SPEC})")
     judge.add_argument("--db", help="records database URL (default: qc-records.sqlite beside the session folder)")
     judge.add_argument("--operator", help="for data without an earlier record (default: the login name)")
     judge.add_argument("--create-db", action="store_true",
