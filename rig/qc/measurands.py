@@ -56,6 +56,7 @@ KINDS = ("gas_spring_pressure", "damping_force", "seal_friction", "cycle_energy"
 DIRECTIONS = ("compression", "rebound")
 HARMONICS = 6              # of the stroke's fit: a controller's sine with its distortion
 FULL_AMPLITUDE = 0.98      # a cycle counts when its stroke swing reaches this share of the last cycle's
+SETTLING_CYCLES = 1        # the first full-amplitude cycles left out (still settling from the ramp)
 
 
 @dataclass(frozen=True)
@@ -163,36 +164,42 @@ class MeasurandError(ValueError):
 
 # ---- the record's kinematics ------------------------------------------------------------------
 def kinematics(record: Record, harmonics: int = HARMONICS) -> tuple[np.ndarray, np.ndarray]:
-    """Stroke velocity and acceleration [m/s, m/s²] from a least-squares fit of the
-    stroke over the full-amplitude cycles: a quadratic drift and ``harmonics`` harmonics
-    of the stated frequency (the stroke's noise differentiated raw would swamp the
-    velocity points: 0.01 mm at 2 kHz is 0.01 m/s, and 1 m/s² of acceleration)."""
+    """Stroke velocity and acceleration [m/s, m/s²] in the full-amplitude cycles (NaN
+    outside them), each cycle's from a least-squares fit of the stroke over the cycle and
+    a quarter period either side (within the full cycles): a linear drift and ``harmonics`` harmonics of the
+    stated frequency.  Differentiated raw, the stroke's noise would swamp the velocity
+    points (0.01 mm at 2 kHz is 0.01 m/s, and 1 m/s² of acceleration); fitted cycle by
+    cycle, the fit follows what a controller's stroke still does after its ramp (its
+    mean settling, its amplitude) where one fit over the record would smear it."""
     if harmonics in record.cache:
         return record.cache[harmonics]
-    starts = full_cycles(record)
-    t0 = starts[0] if len(starts) else record.t[0]
-    sel = record.t >= t0 - 1e-9
+    period = 1.0 / record.frequency_hz
     w = 2 * np.pi * record.frequency_hz
-    tau = record.t - record.t[-1]
-
-    def design(deriv: int) -> np.ndarray:
-        cols = [np.ones_like(tau) * (deriv == 0), tau * (deriv == 0) + (deriv == 1), tau**2 * (deriv == 0)
-                + 2 * tau * (deriv == 1) + 2 * (deriv == 2)]
+    v, a = np.full(len(record.t), np.nan), np.full(len(record.t), np.nan)
+    starts = full_cycles(record)
+    for start in starts:
+        # a quarter period either side, within the full cycles (the ramp would bend the first cycle's fit)
+        lo, hi = max(start - period / 4, starts[0]), min(start + 1.25 * period, starts[-1] + period)
+        fit = (record.t >= lo - 1e-9) & (record.t < hi - 1e-9)
+        own = (record.t >= start - 1e-9) & (record.t < start + period - 1e-9)
+        tau = record.t - (start + period / 2)
+        cols = [[np.ones_like(tau), np.zeros_like(tau), np.zeros_like(tau)], [tau, np.ones_like(tau), 0 * tau]]
         for k in range(1, harmonics + 1):
-            c, s = np.cos(k * w * tau), np.sin(k * w * tau)
+            c, s_ = np.cos(k * w * tau), np.sin(k * w * tau)
             kw = k * w
-            cols += [[c, -kw * s, -kw**2 * c][deriv], [s, kw * c, -kw**2 * s][deriv]]
-        return np.column_stack(cols)
-
-    D = design(0)[sel]
-    coef = np.linalg.solve(D.T @ D, D.T @ record.stroke[sel])    # normal equations: well conditioned here
-    record.cache[harmonics] = (design(1) @ coef, design(2) @ coef)
-    return record.cache[harmonics]
+            cols += [[c, -kw * s_, -kw**2 * c], [s_, kw * c, -kw**2 * s_]]
+        D = np.column_stack([col[0][fit] for col in cols])
+        coef = np.linalg.solve(D.T @ D, D.T @ record.stroke[fit])    # normal equations: well conditioned here
+        v[own] = np.column_stack([col[1][own] for col in cols]) @ coef
+        a[own] = np.column_stack([col[2][own] for col in cols]) @ coef
+    record.cache[harmonics] = (v, a)
+    return v, a
 
 
 def full_cycles(record: Record) -> np.ndarray:
     """The start times of the whole cycles at full amplitude, counted back from the
-    record's end (the ramp of a transient capture left out), oldest first."""
+    record's end, oldest first: the ramp of a transient capture and the first cycle after
+    it left out."""
     period = 1.0 / record.frequency_hz
     t, q = record.t, record.stroke
     starts = []
@@ -207,7 +214,9 @@ def full_cycles(record: Record) -> np.ndarray:
             break
         starts.append(end - period)
         end -= period
-    return np.array(starts[::-1])
+    # The first cycle at full amplitude still settles from the ramp (a controller's stroke
+    # mean, the damper's own transient: 2 % off in the damping on the served plant): left out.
+    return np.array(starts[::-1][SETTLING_CYCLES:] if len(starts) > SETTLING_CYCLES + 1 else starts[::-1])
 
 
 def _cycle_of(times: np.ndarray, starts: np.ndarray, period: float) -> np.ndarray:
@@ -220,7 +229,7 @@ def _cycle_of(times: np.ndarray, starts: np.ndarray, period: float) -> np.ndarra
 
 def _crossings(x: np.ndarray, level: float, rising: bool | None) -> np.ndarray:
     """Indices i where x passes ``level`` between samples i and i+1 (rising, falling or both)."""
-    a, b = x[:-1] - level, x[1:] - level
+    a, b = x[:-1] - level, x[1:] - level     # NaN (outside the full cycles) crosses nothing
     up, down = (a < 0) & (b >= 0), (a > 0) & (b <= 0)
     return np.flatnonzero(up if rising is True else down if rising is False else up | down)
 
@@ -262,7 +271,7 @@ def per_cycle(d: Definition, record: Record, variant: str = "") -> np.ndarray:
         t = _at(record.t, record.stroke, i, d.stroke_m)
         return _per_cycle(p * d.temperature_k / temp, _cycle_of(t, starts, period), len(starts))
     if d.kind == "damping_force":
-        v, a = kinematics(record, HARMONICS // 2 if variant == "other" else HARMONICS)
+        v, a = kinematics(record, HARMONICS + 2 if variant == "other" else HARMONICS)
         sign = 1.0 if d.direction == "compression" else -1.0
         level = sign * d.velocity_m_s
         i = _crossings(v, level, None)
@@ -380,7 +389,7 @@ _FOLDING = {"gas_spring_pressure": "interpolation to the stated stroke",
             "seal_friction": "extrapolation to the reversal",
             "cycle_energy": "folding into cycles"}
 _OTHER = {"gas_spring_pressure": "with a quadratic interpolation",
-          "damping_force": f"with the stroke's fit of {HARMONICS // 2} harmonics instead of {HARMONICS}",
+          "damping_force": f"with the stroke's fit of {HARMONICS + 2} harmonics instead of {HARMONICS}",
           "seal_friction": "with a cubic instead of a quadratic extrapolation",
           "cycle_energy": "with the cycles starting half a period later"}
 
