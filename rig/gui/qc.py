@@ -18,6 +18,7 @@ from pathlib import Path
 from identify.exit_codes import EXIT_ABORTED, EXIT_BAD_INPUT, EXIT_INTERNAL
 from rig.events import Event, Kind, Message
 from rig.gui.units import GAS_PRESSURE_UNIT
+from rig.qc import DEFAULT_SPEC
 from rig.qc.judge import Outcome
 from rig.qc.present import shown
 from rig.qc.records import QcRecord
@@ -33,7 +34,7 @@ VERDICT_BY_EXIT = {code: outcome for outcome, code in EXIT_BY_VERDICT.items()}
 @dataclass(frozen=True)
 class QcRequest:
     serial: str
-    spec: str = "default"
+    spec: str = DEFAULT_SPEC
     out: Path = Path("qc")             # the station's folder: a session folder per unit, and the records
     operator: str | None = None
     periods: int | None = None         # a retest's: more than the spec's

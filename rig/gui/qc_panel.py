@@ -11,6 +11,7 @@ from pathlib import Path
 from PySide6 import QtCore, QtGui, QtWidgets
 
 from rig.gui.qc import ORIGINS, SHOWN, QcDone, QcProgress, QcRequest
+from rig.qc import DEFAULT_SPEC
 from rig.qc.present import verdict_colours
 
 TESTING = ("#e3f2fd", "#0d47a1")                     # (background, text) while a unit is tested
@@ -32,9 +33,9 @@ class QcPanel(QtWidgets.QWidget):
         self.serial.setPlaceholderText("scan or type the unit's serial number")
         self.serial.returnPressed.connect(self._test)
         form.addRow("Serial number", self.serial)
-        self.spec = QtWidgets.QLineEdit("default")
+        self.spec = QtWidgets.QLineEdit(DEFAULT_SPEC)
         self.spec.setObjectName("qcSpec")
-        self.spec.setToolTip("default, or a QC.toml spec file")
+        self.spec.setToolTip(f"{DEFAULT_SPEC} (the default), a shipped spec's name, or a QC.toml spec file")
         form.addRow("Spec", self.spec)
         self.operator = QtWidgets.QLineEdit()
         self.operator.setPlaceholderText("default: the login name")
@@ -119,7 +120,7 @@ class QcPanel(QtWidgets.QWidget):
         self._paint("—", (none.banner, none.banner_text))
 
     def _request(self, periods: int | None = None) -> QcRequest:
-        return QcRequest(self.serial.text().strip(), self.spec.text().strip() or "default",
+        return QcRequest(self.serial.text().strip(), self.spec.text().strip() or DEFAULT_SPEC,
                          Path(self.folder.text().strip() or str(self.out / "qc")),
                          self.operator.text().strip() or None, periods)
 

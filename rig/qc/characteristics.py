@@ -25,6 +25,7 @@ from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
 from identify.result import FitResult
 from identify.transient import drop_test
+from rig.qc.measuring import measured
 from rig.qc.spec import Characteristic, Spec, SpecError
 
 CELSIUS = 273.15
@@ -45,7 +46,11 @@ class Measured:
     std_fit: float | None    # from the fit's covariance, or from the scatter of the periods
     u_cal: float
     note: str = ""
-    basis: str | None = None  # which σ: "noise" or "residual" (the fit's), "scatter" (of the periods)
+    basis: str | None = None  # which σ: "noise" or "residual" (the fit's), "scatter" (of the periods), "budget"
+    definition: str = ""      # a measurand's: what is measured under which conditions (rig.qc.measurands)
+    budget: tuple[dict[str, object], ...] = ()   # a measurand's GUM budget rows, in its unit
+    cycles: int = 0           # a measurand's: the cycles it was measured over
+    predicted: bool = False   # from the identified model (shown, never decides)
 
 
 @dataclass(frozen=True)
@@ -99,6 +104,9 @@ def measure(spec: Spec, model: CompiledModel, identified: Identified | None,
     out = []
     run = {e.letter for e in spec.plan.experiments}
     for c in spec.characteristics:
+        if c.measurand:
+            out.append(measured(spec, c, experiments))
+            continue
         if c.kind == "loop_energy" and c.args["experiment"] in run:
             exp = next((e for e in experiments if e.label.endswith(c.args["experiment"])), None)
             if exp is None:
@@ -111,16 +119,17 @@ def measure(spec: Spec, model: CompiledModel, identified: Identified | None,
             continue
         else:
             value, std = _propagate(model, identified, model_function(model, c), c.kind == "drop_peak_force")
+            std = math.hypot(std, c.discrepancy * value)     # the model's own error (a type test's σ_δ)
             basis = identified.basis
         scale = c.si_factor
         std_fit = std / scale
         out.append(Measured(c.name, c.unit, value / scale, math.hypot(std_fit, c.u_cal), std_fit, c.u_cal,
-                            basis=basis))
+                            basis=basis, predicted=c.predicted))
     return out
 
 
 def _missing(c: Characteristic, why: str) -> Measured:
-    return Measured(c.name, c.unit, None, None, None, c.u_cal, why)
+    return Measured(c.name, c.unit, None, None, None, c.u_cal, why, predicted=c.predicted)
 
 
 def model_function(model: CompiledModel, c: Characteristic) -> Callable[[np.ndarray], float]:

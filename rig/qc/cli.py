@@ -39,6 +39,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rig.errors import BadInput
+from rig.qc import DEFAULT_SPEC
 
 if TYPE_CHECKING:
     from rig.qc.run import QcOptions
@@ -447,7 +448,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     qsub = qc.add_subparsers(dest="qc_command", required=True)
 
     run = qsub.add_parser("run", help="test one unit: plan, identification, verdict, record, report")
-    run.add_argument("--spec", default="default", help="default or QC.toml")
+    run.add_argument("--spec", default=DEFAULT_SPEC,
+                     help=f"a shipped spec ({DEFAULT_SPEC}: measurands at the axle, the default; default: the "
+                          "model-based one of before; transient; measurands-model) or QC.toml")
     run.add_argument("--serial", required=True, help="the unit's serial number (format set by the spec)")
     run.add_argument("--shaker", help="tcp://HOST:PORT or rtu:///dev/DEVICE (default: station.toml's shaker)")
     run.add_argument("--daq", help="device path, socket://HOST:PORT or any pyserial URL (default: station.toml's)")
@@ -511,7 +514,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     judge = qsub.add_parser("judge", help="judge stored data again: a new record referring to the first")
     judge.add_argument("session", help="session folder (or any dataset folder)")
-    judge.add_argument("--spec", default="default", help="default or QC.toml")
+    judge.add_argument("--spec", help=f"a shipped spec or QC.toml (default: the spec of the data's first record, "
+                                      f"else {DEFAULT_SPEC})")
     judge.add_argument("--db", help="records database URL (default: the station's station.toml, else "
                                     "qc-records.sqlite beside the session folder)")
     judge.add_argument("--operator", help="who re-judges, on a bench folder without station.toml (default: the "

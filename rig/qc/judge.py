@@ -4,7 +4,8 @@ A characteristic conforms (PASS) when value ± k·σ lies strictly inside its li
 not conform (FAIL) when value ∓ k·σ lies strictly outside, and is INCONCLUSIVE when the
 uncertainty interval straddles a limit — a value exactly on a limit is never a PASS.
 The unit's verdict is FAIL if any characteristic fails, else INCONCLUSIVE if any is
-inconclusive (the remedy is a retest with more periods), else PASS.  Each failed
+inconclusive, else PASS; a *predicted* characteristic (from the identified model) is
+judged and shown but never decides the verdict.  Each failed
 characteristic names its likely cause from the spec's table.
 """
 
@@ -76,7 +77,7 @@ def judge(spec: Spec, measured: list[Measured]) -> Judgement:
         outcome, direction = decide(m.value, m.std, c.low, c.high, spec.k)
         cause = spec.cause(c.name, direction) if outcome is Outcome.FAIL and direction else None
         judged.append(Judged(m, c.low, c.high, c.nominal, outcome, direction, cause, c.title))
-    outcomes = {j.outcome for j in judged}
+    outcomes = {j.outcome for j in judged if not j.measured.predicted}   # the model explains, it does not decide
     verdict = (Outcome.FAIL if Outcome.FAIL in outcomes else
                Outcome.INCONCLUSIVE if Outcome.INCONCLUSIVE in outcomes else Outcome.PASS)
     return Judgement(verdict, tuple(judged), spec.k)

@@ -19,7 +19,7 @@ from rig.qc.records import CharacteristicRecord, QcRecord
 
 # Which σ the verdict used, as the report and the console name it, and why that one.
 BASIS = {"noise": "noise only", "residual": "residual-based", "noise-misfit": "noise only, misfit found",
-         "scatter": "period scatter"}
+         "scatter": "period scatter", "budget": "GUM budget", "predicted": "predicted by the model"}
 WHY = {"noise": "the fit's residuals are at the level of the measurement noise (no model error found), so the "
                 "noise-only covariance of the fit is propagated",
        "residual": "the fit's residuals exceed the measurement noise (model error), so the residual-based "
@@ -28,7 +28,13 @@ WHY = {"noise": "the fit's residuals are at the level of the measurement noise (
        "noise-misfit": "the fit's residuals exceed the measurement noise, but the plan has too few experiments "
                        "for a residual-based covariance: the noise-only one is propagated and may understate σ",
        "scatter": "a measured quantity: σ is the scatter of the loop energy between the captured periods "
-                  "(standard error of their mean)"}
+                  "(standard error of their mean)",
+       "budget": "a measurand: σ is the combined standard uncertainty of its budget (the rows below in quadrature: "
+                 "the repeatability over the captured cycles, type A, and the transducers' calibration, the "
+                 "temperature correction and the interpolation to the stated condition, type B)",
+       "predicted": "predicted by the identified model, not measured: σ propagates the fit's covariance with the "
+                    "model discrepancy σ_δ of the spec's type test; shown and judged, it never decides the verdict"}
+PREDICTED = "predicted"   # the label a characteristic from the model carries wherever it is shown
 
 
 @dataclass(frozen=True)
@@ -103,7 +109,10 @@ def shown(record: QcRecord, c: CharacteristicRecord, k: float | None = None) -> 
             acceptance = f"< {at_place(high, place)} {u}"
     elif c.value is not None:
         value = plus_minus(c.value, None, c.unit)
-    return Shown(c.name, c.title or c.name, value, sigma, BASIS.get(c.sigma_basis or "", ""),
+    title = c.title or c.name
+    if c.sigma_basis == "predicted" and PREDICTED not in title.lower():
+        title += f" ({PREDICTED})"
+    return Shown(c.name, title, value, sigma, BASIS.get(c.sigma_basis or "", ""),
                  limits_text(c.nominal, c.low, c.high, c.unit), acceptance, c.outcome)
 
 
@@ -112,6 +121,9 @@ def sigma_note(c: CharacteristicRecord) -> str:
     if c.std is None or c.std_fit is None:
         return f"{c.title or c.name}: no σ (no value), so no verdict but INCONCLUSIVE"
     basis = c.sigma_basis or ""
+    if basis == "budget":
+        return (f"{c.title or c.name}: u {BASIS[basis]} — {WHY[basis]}; type A {rounded(c.std_fit, c.std_fit)[0]} "
+                f"{unit_text(c.unit)}, type B {rounded(c.u_cal, c.u_cal)[0] if c.u_cal else '0'} {unit_text(c.unit)}")
     parts = (f"σ = √(σ_fit² + u_cal²) with σ_fit {rounded(c.std_fit, c.std_fit)[0]} {unit_text(c.unit)} and the "
              f"rig's calibration u_cal {c.u_cal:g} {unit_text(c.unit)}")
     if basis not in WHY:

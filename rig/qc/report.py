@@ -132,6 +132,29 @@ def _css_string(text: str) -> str:
     return f'"{escaped}"'
 
 
+def budget_tables(record: QcRecord) -> str:
+    """Each measurand's GUM uncertainty budget, row by row (from the record's details),
+    with the combined standard uncertainty u and the expanded U = k·u."""
+    obtained = record.details.get("characteristics", {})
+    e = html.escape
+    out = []
+    for c in record.characteristics:
+        budget = obtained.get(c.name, {}).get("budget")
+        if not budget or c.std is None:
+            continue
+        u = unit_text(c.unit)
+        rows = "".join(f"<tr><td>{e(str(r['source']))}</td><td>{e(str(r['type']))}</td>"
+                       f"<td class=num>{float(r['u']):.2g} {e(u)}</td><td><small>{e(str(r['basis']))}</small></td></tr>"
+                       for r in budget)
+        k = record.k or 2.0
+        out.append(f"<h3>{e(c.title or c.name)} ({obtained[c.name].get('cycles', '?')} cycles)</h3>"
+                   f"<table><tr><th>source</th><th>type</th><th>u</th><th>how</th></tr>{rows}"
+                   f"<tr><th>combined u</th><td></td><td class=num><b>{c.std:.2g} {e(u)}</b></td><td></td></tr>"
+                   f"<tr><th>expanded U = k·u, k = {k:g}</th><td></td><td class=num><b>{k * c.std:.2g} {e(u)}</b>"
+                   f"</td><td></td></tr></table>")
+    return ("<h2>Uncertainty budgets (GUM)</h2>" + "".join(out)) if out else ""
+
+
 def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -> str:
     def e(text: str) -> str:
         """Escaped, and without a path of the station's disk: the session folder is named by
@@ -145,16 +168,21 @@ def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -
     verdict = record.verdict or f"no verdict ({record.status})"
     colour = verdict_colours(record.verdict).text
     descriptions = {c.name: c.description for c in spec.characteristics}
+    obtained = record.details.get("characteristics", {})
     rows = []
     for c in record.characteristics:
         s = shown(record, c, spec.k)
+        how = obtained.get(c.name, {})
+        definition = how.get("definition") or descriptions.get(c.name, "")
+        label = f"<i>{e(how['obtained'])}</i>: " if "obtained" in how else ""
         rows.append(
-            f"<tr><td><b>{e(s.title)}</b><br><small>{e(descriptions.get(c.name, ''))}<br>"
+            f"<tr><td><b>{e(s.title)}</b><br><small>{label}{e(definition)}<br>"
             f"<code>{e(s.name)}</code></small></td>"
             f"<td class=num>{e(s.value)}</td><td class=num>{e(s.sigma)}<br><small>{e(s.basis)}</small></td>"
             f"<td class=num>{e(s.limits)}</td><td class=num>{e(s.acceptance)}</td>"
             f"<td style='color:{verdict_colours(c.outcome).text};font-weight:bold'>{e(c.outcome)}</td></tr>")
     sigma_notes = "".join(f"<li>{e(sigma_note(c))}</li>" for c in record.characteristics)
+    budgets = budget_tables(record)
     findings = ""
     if record.reason:
         findings += f"<div class=box><h2>Why there is no verdict</h2><p>{e(record.reason)}</p></div>"
@@ -216,6 +244,8 @@ def render_report(record: QcRecord, spec: Spec, evaluation: Evaluation | None) -
               f"<td>{len(record.equipment)} item{'s' * (len(record.equipment) != 1)} (below)</td></tr>"
               f"<tr><th>release</th><td colspan=3>{e(RELEASE.get(record.details.get('release'), RELEASE[None]))}"
               "</td></tr></table>")
+    basis = (f" Revision {e(record.spec_version)}, sha256 <code>{e(record.spec_sha256[:16])}…</code>; basis: "
+             f"{e(str(record.details['spec_basis']))}" if record.details.get("spec_basis") else "")
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8">
 <title>{kind} {e(record.serial)}: {e(verdict)}{' (SIMULATED)' if record.simulated else ''}\
@@ -225,6 +255,7 @@ body {{ font-family: "DejaVu Sans", Arial, sans-serif; margin: 24px auto; max-wi
 .verdict {{ font-size: 56px; font-weight: bold; color: #fff; background: {colour}; padding: 10px 24px;
            border-radius: 8px; display: inline-block; }}
 h1 {{ font-size: 22px; margin: 0 0 10px 0; }} h2 {{ font-size: 17px; margin: 22px 0 6px 0; }}
+h3 {{ font-size: 14px; margin: 14px 0 4px 0; }}
 table {{ border-collapse: collapse; width: 100%; font-size: 13px; }}
 td, th {{ border-bottom: 1px solid #ddd; padding: 5px 8px; text-align: left; vertical-align: top; }}
 td.num {{ text-align: right; white-space: nowrap; font-variant-numeric: tabular-nums; }}
@@ -259,13 +290,14 @@ table.head {{ margin-bottom: 12px; }} table.head th {{ width: 11%; color: #555; 
 <div class="verdict">{e(verdict)}</div>
 <p>Spec <b>{e(record.spec_name)} {e(record.spec_version)}</b> ({e(spec.title)}); guard band k = {spec.k:g}:
 PASS when value ± kσ lies inside the limits, that is the value inside the acceptance limits (the limits moved
-in by kσ); FAIL when value ∓ kσ lies outside (ISO 14253-1).</p>
+in by kσ); FAIL when value ∓ kσ lies outside (ISO 14253-1).{basis}</p>
 {findings}
 <h2>Characteristics</h2>
 <table><tr><th>characteristic</th><th>value ± {spec.k:g}σ</th><th>σ (which)</th><th>limits (spec)</th>
 <th>acceptance limits</th><th>outcome</th></tr>
 {''.join(rows) or '<tr><td colspan=6>none: the run ended without a verdict</td></tr>'}</table>
 {'<h2>Which σ the verdict used</h2><ul>' + sigma_notes + '</ul>' if sigma_notes else ''}
+{budgets}
 {figures}
 {'<h2>Notes</h2><ul>' + notes + '</ul>' if notes else ''}
 <h2>Measuring equipment</h2>

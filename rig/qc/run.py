@@ -20,6 +20,7 @@ import datetime as _dt
 import hashlib
 import io
 import json
+import math
 import shlex
 import shutil
 import socket
@@ -39,16 +40,17 @@ from rig.drivers.shaker import MotionInterlock
 from rig.errors import BadInput
 from rig.events import Kind, Subscriber
 from rig.planning.prediction import NOT_MEASURED, predict_s
+from rig.qc import DEFAULT_SPEC
 from rig.qc.calibration import CertificateError, derived_u_cal, is_certificate_file, load_certificates
 from rig.qc.characteristics import check_model
 from rig.qc.commissioning import configuration, require_commissioned
 from rig.qc.evaluate import FIT_ITERATIONS, STUDY_FIT_ITERATIONS, Evaluation, evaluate
-from rig.qc.judge import Outcome
+from rig.qc.judge import Judgement, Outcome
 from rig.qc.present import shown
 from rig.qc.queue import Outbox
 from rig.qc.records import CharacteristicRecord, QcRecord, Records, RecordStatus, default_url
 from rig.qc.report import render_report
-from rig.qc.spec import Spec, load_spec
+from rig.qc.spec import SPECS_DIR, Spec, load_spec
 from rig.qc.station import identify_operator, load_station_config, read_pin
 from rig.qc.studies import StudyInputError, gate
 from rig.qc.trace import SessionTrace, measuring_equipment, now_utc, software_version, trace_session
@@ -298,7 +300,7 @@ def decider(spec: Spec, prep: Prepared, predicted: Callable[[Prediction], None] 
     the first estimate assumed), at the links' measured timing, and publish it
     (``prediction``: every progress display takes it over)."""
     def decide(result: RunResult) -> str | None:
-        evaluation = evaluate(spec, result.session.path)
+        evaluation = evaluate(spec, result.session.path, diagnose=not spec.model_free)
         labels = ", ".join(e.label for e in result.captured)
         open_ = [j.name for j in evaluation.judgement.characteristics if j.outcome is Outcome.INCONCLUSIVE]
         if not open_:
@@ -337,7 +339,7 @@ def partial_judge(spec: Spec, session_dir: Path) -> Callable[[ExperimentRecord],
             for entry in manifest["experiments"]:
                 shutil.copyfile(session_dir / entry["file"], scratch / entry["file"])
             Session(scratch, {}, manifest).write_experiment(record)
-            evaluation = evaluate(spec, scratch)
+            evaluation = evaluate(spec, scratch, diagnose=not spec.model_free)
         if any(j.outcome is Outcome.INCONCLUSIVE for j in evaluation.judgement.characteristics):
             return None
         return f"every characteristic decided ({evaluation.judgement.verdict.value})"
@@ -352,16 +354,17 @@ def stopping_note(result: RunResult, prep: Prepared) -> str:
             f"stopped: {result.decided or 'end of the plan'}")
 
 
-def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str | None,
+def qc_judge(session_dir: Path, spec_source: str | None, db: str | None, operator: str | None,
              create_db: bool = False, reason: str | None = None, out: Path | None = None,
              pin: str | None = None) -> int:
     """Judge stored data again (a new spec, a new model): a new record that refers to the
     first, in an existing database (``create_db``: a new one where none is).  The station
     is ``out``'s, else the session folder's own (a session lies in its station's folder):
     its station.toml names the database and its password and identifies who re-judges;
-    ``reason``: why, on record."""
-    spec = load_spec(spec_source)
-    check_model(spec)
+    ``reason``: why, on record.  No spec given: the one the data's first record was judged
+    with where it is a shipped one, else :data:`rig.qc.DEFAULT_SPEC`."""
+    if spec_source is not None:
+        check_model(load_spec(spec_source))
     session = Path(session_dir).resolve()
     if not (session / "dataset.json").is_file():
         raise BadInput(f"{session_dir}: not a session or dataset folder (no dataset.json)")
@@ -373,6 +376,11 @@ def qc_judge(session_dir: Path, spec_source: str, db: str | None, operator: str 
     try:
         trace = trace_session(session)
         first = records.first_for_data(trace.data_sha256)
+        if spec_source is None:
+            shipped = first is not None and (SPECS_DIR / f"{first.spec_name}.toml").is_file()
+            spec_source = first.spec_name if shipped and first is not None else DEFAULT_SPEC
+        spec = load_spec(spec_source)
+        check_model(spec)
         manifest = json.loads((session / "dataset.json").read_text())
         serial = first.serial if first else str(manifest.get("unit", {}).get("serial", "unknown"))
         rig = first.rig if first else str(manifest.get("source", {}).get("generator", "unknown"))
@@ -480,12 +488,56 @@ def judged_record(spec: Spec, trace: SessionTrace, evaluation: Evaluation, retes
     characteristics = tuple(
         CharacteristicRecord(c.name, c.measured.unit, c.measured.value, c.measured.std, c.measured.std_fit,
                              c.measured.u_cal, c.low, c.high, c.nominal, c.outcome, titles.get(c.name) or None,
-                             c.measured.basis)
+                             "predicted" if c.measured.predicted else c.measured.basis)
         for c in j.characteristics)
-    return QcRecord(**_base(spec, trace, uid, simulated=simulated, **identity), verdict=j.verdict,
+    base = _base(spec, trace, uid, simulated=simulated, **identity)
+    base["details"] = {**base["details"], **measurement_details(spec, evaluation)}
+    return QcRecord(**base, verdict=j.verdict,
                     status=RecordStatus.COMPLETE, characteristics=characteristics, diagnosis=tuple(j.diagnosis),
-                    remedy=retest if j.verdict is Outcome.INCONCLUSIVE else None, notes=tuple(evaluation.notes),
-                    rejudges=rejudges)
+                    remedy=remedy(j, retest) if j.verdict is Outcome.INCONCLUSIVE else None,
+                    notes=tuple(evaluation.notes), rejudges=rejudges)
+
+
+def measurement_details(spec: Spec, evaluation: Evaluation) -> dict[str, Any]:
+    """What a record holds beyond its columns (``details``): the spec's basis, and per
+    characteristic how it was obtained (measured or predicted), its definition, and a
+    measurand's uncertainty budget row by row (in its unit) with the cycles it covers."""
+    out: dict[str, Any] = {}
+    for m, c in zip(evaluation.measured, spec.characteristics, strict=True):
+        entry: dict[str, Any] = {"obtained": "predicted" if m.predicted else "measured",
+                                 "definition": m.definition or c.description}
+        if m.budget:
+            entry.update(budget=list(m.budget), cycles=m.cycles)
+        if m.predicted:
+            entry["model_discrepancy_relative"] = c.discrepancy
+        out[c.name] = entry
+    return {"spec_basis": spec.basis, "characteristics": out} if spec.basis or any(
+        c.measurand or c.predicted for c in spec.characteristics) else {}
+
+
+def remedy(judgement: Judgement, retest: str) -> str:
+    """The remedy of an INCONCLUSIVE verdict, true to its cause: more periods narrow only
+    the repeatability (type A, as 1/√n), so a retest with more periods is named only
+    where twice the periods would take every undecided characteristic's value ± k·u off
+    its limit; otherwise the unit is on a limit within what the rig can tell (its
+    calibration, the folding), and only a better measurement decides it."""
+    k = judgement.k
+    open_ = [c for c in judgement.characteristics if c.outcome is Outcome.INCONCLUSIVE and not c.measured.predicted]
+    hopeless = []
+    for c in open_:
+        m = c.measured
+        if m.value is None or m.std is None or not m.budget:
+            continue        # not measured, or a model's σ (a fit on more periods may narrow it): retest
+        u_a = m.std_fit or 0.0
+        u_twice = math.sqrt(max(m.std**2 - u_a**2 / 2, 0.0))
+        distance = min(abs(m.value - x) for x in (c.low, c.high) if x is not None)
+        if k * u_twice >= distance:
+            hopeless.append(c.title or c.name)
+    if open_ and len(hopeless) == len(open_):
+        return (f"{', '.join(hopeless)}: on a limit within the rig's uncertainty (more periods would not narrow "
+                "U enough: it is held by the calibration and the folding, see the budget); decide with a "
+                "better-calibrated rig or treat the unit as not conforming")
+    return retest
 
 
 def _print_summary(record: QcRecord, k: float, report: Path, database: str) -> None:

@@ -37,15 +37,28 @@ KINDS: dict[str, tuple[str, tuple[str, ...]]] = {
     "friction": ("force", ("pressure_bar",)),                         # θ8 + θ9·p
     "loop_energy": ("energy", ("experiment",)),                       # ∮F dq of a measured experiment
     "drop_peak_force": ("force", ("mass_kg", "velocity_m_s")),        # models.md drop test, identified model
+    # measurands (rig/qc/measurands.py): computed from the captured channels of a plan's experiment, no model
+    "gas_spring_pressure": ("pressure", ("experiment", "stroke_mm", "temperature_C")),
+    "damping_force": ("force", ("experiment", "velocity_m_s", "direction")),
+    "seal_friction": ("force", ("experiment",)),
+    "cycle_energy": ("energy", ("experiment",)),
 }
+MEASURANDS = ("gas_spring_pressure", "damping_force", "seal_friction", "cycle_energy")
 # Keys a kind may take besides: a loop energy's experiment conditions, from which the
 # identified model computes it where the plan does not run the experiment.
 OPTIONAL: dict[str, tuple[str, ...]] = {
     "loop_energy": ("static_mm", "amplitude_mm", "frequency_Hz"),
 }
-COMMON_KEYS = ("name", "kind", "unit", "nominal", "low", "high", "tolerance_percent", "u_cal", "description", "title")
+COMMON_KEYS = ("name", "kind", "unit", "nominal", "low", "high", "tolerance_percent", "u_cal", "description", "title",
+               "predicted", "discrepancy_percent")
 TOP_KEYS = ("name", "version", "title", "serial_pattern", "k", "periods", "capture", "identification", "steady_state",
-            "experiment", "characteristic", "diagnosis", "release")
+            "experiment", "characteristic", "diagnosis", "release", "basis", "measurement", "calibration")
+# The measurands' conditions of a spec ([measurement]) and the transducers' calibration ([calibration], per
+# channel: u_gain_percent, u_offset in the channel's unit), as GUM type B standard uncertainties.
+MEASUREMENT_KEYS = ("piston_area_mm2", "moving_mass_kg")
+CALIBRATION_CHANNELS = {"stroke_mm": ("stroke", 1e-3), "force_N": ("force", 1.0), "pressure_bar": ("pressure", 1e5),
+                        "gas_temperature_C": ("temperature", 1.0)}
+MEASURAND_DIRECTIONS = ("compression", "rebound")
 DIRECTIONS = ("low", "high")
 
 
@@ -69,6 +82,13 @@ class Characteristic:
     args: dict[str, Any]
     description: str = ""
     title: str = ""           # the readable name reports and screens show (``name`` is the identifier)
+    predicted: bool = False   # computed from the identified model: shown, labelled predicted, never decides
+    discrepancy: float = 0.0  # a predicted one's model discrepancy σ_δ, relative (from a type test)
+
+    @property
+    def measurand(self) -> bool:
+        """Measured at the axle from the captured channels (rig/qc/measurands.py)."""
+        return self.kind in MEASURANDS
 
     @property
     def shown(self) -> str:
@@ -98,6 +118,14 @@ class Spec:
     characteristics: tuple[Characteristic, ...]
     causes: dict[tuple[str, str], str] = field(default_factory=dict)   # (characteristic, low|high) → cause
     release_required: bool = False    # ``release = true``: a unit needs a second person's qc release
+    basis: str = ""                    # what the nominal values and tolerances rest on (a type test, a model)
+    measurement: dict[str, float] = field(default_factory=dict)   # [measurement]: the measurands' constants (SI)
+    calibration: dict[str, tuple[float, float]] = field(default_factory=dict)   # channel → (u gain rel., u offset SI)
+
+    @property
+    def model_free(self) -> bool:
+        """Every characteristic that decides is a measurand: the verdict needs no fit."""
+        return all(c.measurand for c in self.characteristics if not c.predicted)
 
     def check_serial(self, serial: str) -> str:
         if not re.fullmatch(self.serial_pattern, serial):
@@ -179,7 +207,46 @@ def load_spec(source: str) -> Spec:
                 model=str(ident.get("model", "2dof")), estimate=tuple(estimate),
                 grid_points=int(_number(ident, "grid_points", f"{where}, [identification]", default=800)),
                 start=start, steady_state=_steady_state(doc, where), plan=plan, characteristics=characteristics,
-                causes=causes, release_required=release)
+                causes=causes, release_required=release, basis=str(doc.get("basis", "")),
+                measurement=_measurement(doc, where, characteristics), calibration=_calibration(doc, where))
+
+
+def _measurement(doc: dict[str, Any], where: str, characteristics: tuple[Characteristic, ...]) -> dict[str, float]:
+    table = doc.get("measurement", {})
+    at = f"{where}, [measurement]"
+    if not isinstance(table, dict):
+        raise SpecError(f"{at}: expected a table")
+    _no_unknown(table, MEASUREMENT_KEYS, at)
+    if any(c.kind == "damping_force" for c in characteristics):
+        for key in MEASUREMENT_KEYS:
+            if key not in table:
+                raise SpecError(f"{at}: missing key {key!r} (the damping force subtracts the gas force and the "
+                                "moving mass)")
+    out = {}
+    if "piston_area_mm2" in table:
+        out["area_m2"] = _number(table, "piston_area_mm2", at) * 1e-6
+    if "moving_mass_kg" in table:
+        out["moving_mass_kg"] = _number(table, "moving_mass_kg", at)
+    return out
+
+
+def _calibration(doc: dict[str, Any], where: str) -> dict[str, tuple[float, float]]:
+    table = doc.get("calibration", {})
+    at = f"{where}, [calibration]"
+    if not isinstance(table, dict):
+        raise SpecError(f"{at}: expected a table")
+    _no_unknown(table, tuple(CALIBRATION_CHANNELS), at)
+    out = {}
+    for channel, entry in table.items():
+        name, si = CALIBRATION_CHANNELS[channel]
+        if not isinstance(entry, dict):
+            raise SpecError(f"{at}: {channel!r} must be a table of u_gain_percent and u_offset")
+        _no_unknown(entry, ("u_gain_percent", "u_offset"), f"{at}, {channel}")
+        gain, offset = (_number(entry, key, f"{at}, {channel}", default=0.0) for key in ("u_gain_percent", "u_offset"))
+        if gain < 0 or offset < 0:
+            raise SpecError(f"{at}, {channel}: uncertainties must not be negative")
+        out[name] = (gain / 100, offset * si)
+    return out
 
 
 def _steady_state(doc: dict[str, Any], where: str) -> SteadyStateCriteria:
@@ -235,7 +302,18 @@ def _characteristic(c: Any, i: int, where: str, plan: Plan) -> Characteristic:
     for key in given:
         args[key] = _number(c, key, at)
     for key in extra:
-        if key == "experiment":
+        if key == "direction":
+            direction = _str(c, key, at)
+            if direction not in MEASURAND_DIRECTIONS:
+                raise SpecError(f"{at}: direction must be one of {', '.join(MEASURAND_DIRECTIONS)}, not {direction!r}")
+            args[key] = direction
+        elif key == "experiment" and kind in MEASURANDS:
+            letter = _str(c, key, at)
+            spec = next((e for e in plan.experiments if e.letter == letter), None)
+            if spec is None:
+                raise SpecError(f"{at}: the plan has no experiment {letter!r} to measure it in")
+            args[key] = letter
+        elif key == "experiment":
             letter = _str(c, key, at)
             spec = next((e for e in plan.experiments if e.letter == letter), None)
             if spec is None and given:
@@ -250,8 +328,16 @@ def _characteristic(c: Any, i: int, where: str, plan: Plan) -> Characteristic:
             args[key] = letter
         else:
             args[key] = _number(c, key, at)
+    predicted = c.get("predicted", False)
+    if not isinstance(predicted, bool):
+        raise SpecError(f"{at}: 'predicted' must be true or false")
+    if predicted and kind in MEASURANDS:
+        raise SpecError(f"{at}: a measurand is measured, not predicted")
+    discrepancy = _number(c, "discrepancy_percent", at, default=0.0) / 100
+    if discrepancy < 0 or (discrepancy and not predicted):
+        raise SpecError(f"{at}: 'discrepancy_percent' is a predicted characteristic's model discrepancy (≥ 0)")
     return Characteristic(name, kind, unit, nominal, low, high, u_cal, args, str(c.get("description", "")),
-                          str(c.get("title", "")))
+                          str(c.get("title", "")), predicted, discrepancy)
 
 
 def _no_unknown(table: dict[str, Any], known: tuple[str, ...], where: str) -> None:
