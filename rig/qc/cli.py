@@ -449,8 +449,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
     run = qsub.add_parser("run", help="test one unit: plan, identification, verdict, record, report")
     run.add_argument("--spec", default=DEFAULT_SPEC,
-                     help=f"a shipped spec ({DEFAULT_SPEC}: measurands at the axle, the default; default: the "
-                          "model-based one of before; transient; measurands-model) or QC.toml")
+                     help=f"a shipped spec ({DEFAULT_SPEC}, the default: identified characteristics; measurands: "
+                          "measured at the axle; measurands-model; transient) or QC.toml")
     run.add_argument("--serial", required=True, help="the unit's serial number (format set by the spec)")
     run.add_argument("--shaker", help="tcp://HOST:PORT or rtu:///dev/DEVICE (default: station.toml's shaker)")
     run.add_argument("--daq", help="device path, socket://HOST:PORT or any pyserial URL (default: station.toml's)")
