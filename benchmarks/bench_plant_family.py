@@ -30,7 +30,7 @@ import _setup  # noqa: F401  (first: one BLAS thread, the repository importable)
 
 # isort: split
 import numpy as np
-from bench_plant_fidelity import PROCEDURES, Finding, findings, fit_procedure, friction_jumps, generate_world, loop_area
+from bench_plant_fidelity import Finding, findings, loop_area, run_world
 from bench_plant_fidelity import World as FidelityWorld
 
 from identify.dataset import read_dataset
@@ -81,16 +81,6 @@ def headline(k: PlantConstants, folder: Path | None) -> Headline:
                     float(np.max(drop.force_N)), float(np.max(drop.stroke_m) * 1e3), reversals)
 
 
-def run_variant(name: str, truth, out: Path, seed: int, reuse: bool, procedures: list[str]) -> FidelityWorld:
-    t0 = time.perf_counter()
-    gen_s, gen_cpu = generate_world(name, truth, out, seed, reuse)
-    friction = friction_jumps(out)
-    fits = {p: fit_procedure(out, friction, PROCEDURES[p]) for p in procedures}
-    area, noise = loop_area(out, "a")
-    print(f"  {name}: fits done ({time.perf_counter() - t0:.0f} s in all)", flush=True)
-    return FidelityWorld(name, out, gen_s, gen_cpu, fits, area, noise, friction)
-
-
 def theta16_small(w: FidelityWorld, procedure: str) -> str:
     s = w.fits[procedure].singles2
     return " ".join(f"{s[k].values['theta16']:+.3g}" if s[k].converged else "--" for k in SMALL)
@@ -118,11 +108,11 @@ def main() -> None:
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(args.keep) if args.keep else Path(tmp)
-        worlds["model world"] = run_variant("model world", load_truth(), root / "model", args.seed, args.reuse,
+        worlds["model world"] = run_world("model world", load_truth(), root / "model", args.seed, args.reuse,
                                             procedures)
         for n in names:
             k = variant_constants(n)
-            worlds[n] = run_variant(n, PlantDamper(k), root / n, args.seed, args.reuse, procedures)
+            worlds[n] = run_world(n, PlantDamper(k), root / n, args.seed, args.reuse, procedures)
             heads[n] = headline(k, root / n)
     table: dict[tuple[str, str], list[Finding]] = {(w, p): findings(worlds[w], p) for w in worlds for p in procedures}
     keys = [f.key for f in table[("model world", procedures[0])]]
