@@ -126,7 +126,8 @@ def test_a_bad_spec_is_refused_in_one_line_before_anything_moves(case, tmp_path,
     (["--serial", "SN-0042", "--db", "mysql://u:pw@host/db"], "unsupported database 'mysql'"),
     (["--serial", "SN-0042", "--spec", "no/such/spec.toml"], "spec 'no/such/spec.toml': no such spec and no such file"),
     (["--serial", "SN-0042", "--spec", "defualt"], "spec 'defualt': no such spec and no such file (did you mean "
-                                                   "'default'?); the specs shipped: default, measurands, measurands-model, transient"),
+                                                   "'default'?); the specs shipped: default, measurands, "
+                                                   "measurands-model, transient"),
 ])
 def test_bad_serial_database_or_spec_file_exit_2(args, message, tmp_path, capsys):
     code, err = qc(capsys, "run", "--shaker", "tcp://127.0.0.1:9", "--daq", "socket://127.0.0.1:9", "--out",
