@@ -25,32 +25,13 @@ from identify.parameters import Parameters
 from identify.plans import ExperimentSpec
 from identify.result import FitResult
 from identify.transient import drop_test
-from rig.qc.measuring import measured
+from rig.qc.measuring import Measured, measured
 from rig.qc.spec import Characteristic, Spec, SpecError
 
 CELSIUS = 273.15
 DROP_WINDOW_S = 1.0        # the first compression, where the peak force lies, is over by about 0.5 s
 DROP_STEP_S = 2.5e-4
 RELATIVE_STEP = 1e-5       # of |θ| for the finite differences (1e-3 for the integrated drop test)
-
-
-@dataclass(frozen=True)
-class Measured:
-    """A characteristic's value and standard uncertainties, in its unit; ``value`` None
-    when it could not be computed (``note`` says why)."""
-
-    name: str
-    unit: str
-    value: float | None
-    std: float | None        # combined: sqrt(std_fit² + u_cal²)
-    std_fit: float | None    # from the fit's covariance, or from the scatter of the periods
-    u_cal: float
-    note: str = ""
-    basis: str | None = None  # which σ: "noise" or "residual" (the fit's), "scatter" (of the periods), "budget"
-    definition: str = ""      # a measurand's: what is measured under which conditions (rig.qc.measurands)
-    budget: tuple[dict[str, object], ...] = ()   # a measurand's GUM budget rows, in its unit
-    cycles: int = 0           # a measurand's: the cycles it was measured over
-    predicted: bool = False   # from the identified model (shown, never decides)
 
 
 @dataclass(frozen=True)

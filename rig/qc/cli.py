@@ -322,7 +322,8 @@ def _history_unreachable(out: Path, exc: Exception) -> int:
 
 def _verify(records, args: argparse.Namespace) -> int:
     """``history --verify``: every station's hash chain, and the station's own copies (``--out``)."""
-    from rig.qc.integrity import sentence, station_copies, verify
+    from rig.qc.integrity import sentence, verify
+    from rig.qc.records import station_copies
 
     found = records.find(station=args.station)
     copies = station_copies(Path(args.out), records.name) if args.out else []

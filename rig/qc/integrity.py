@@ -22,16 +22,30 @@ import json
 from collections.abc import Sequence
 from dataclasses import dataclass
 from enum import StrEnum
-from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
-if TYPE_CHECKING:
-    from rig.qc.records import QcRecord
+
+class Chained(Protocol):
+    """What the chain reads of a record (rig.qc.records.QcRecord; a protocol here, so that
+    the records' module can take its hash from this one without a loop)."""
+
+    @property
+    def uid(self) -> str: ...
+    @property
+    def serial(self) -> str: ...
+    @property
+    def station(self) -> str | None: ...
+    @property
+    def record_sha256(self) -> str | None: ...
+    @property
+    def previous_sha256(self) -> str | None: ...
+
+    def to_journal(self) -> dict[str, Any]: ...
 
 NUMERIC = ("value", "std", "std_fit", "u_cal", "low", "high", "nominal")
 
 
-def canonical(record: QcRecord) -> bytes:
+def canonical(record: Chained) -> bytes:
     """The bytes a record's hash is taken of."""
     doc: dict[str, Any] = record.to_journal()
     doc.pop("record_sha256", None)
@@ -43,7 +57,7 @@ def canonical(record: QcRecord) -> bytes:
     return json.dumps(doc, sort_keys=True, separators=(",", ":"), ensure_ascii=False).encode()
 
 
-def record_sha256(record: QcRecord) -> str:
+def record_sha256(record: Chained) -> str:
     return hashlib.sha256(canonical(record)).hexdigest()
 
 
@@ -73,7 +87,7 @@ class Verification:
         return not self.problems
 
 
-def verify(records: list[QcRecord], copies: Sequence[QcRecord] = ()) -> Verification:
+def verify(records: list[Chained], copies: Sequence[Chained] = ()) -> Verification:
     """``records`` in the order written (the whole database, or one station's records);
     ``copies``: a station's own copies of what it sent, each of which must be there."""
     last: dict[str | None, str | None] = {}
@@ -95,16 +109,6 @@ def verify(records: list[QcRecord], copies: Sequence[QcRecord] = ()) -> Verifica
     held = {r.uid for r in records}
     problems += [Problem(Finding.MISSING, c.station, c.uid, c.serial) for c in copies if c.uid not in held]
     return Verification(checked, unchained, tuple(problems))
-
-
-def station_copies(folder: Path, database: str) -> list[QcRecord]:
-    """The records a station folder says it sent (``qc-queue/sent/``) to ``database`` (its name
-    as rig.qc.records.safe_url gives it; each copy says which database it was queued for)."""
-    from rig.qc.records import QcRecord
-
-    sent = Path(folder) / "qc-queue" / "sent"
-    docs = [json.loads(p.read_text()) for p in sorted(sent.glob("*.json"))] if sent.is_dir() else []
-    return [QcRecord.from_journal(d) for d in docs if d.get("queued_for") == database]
 
 
 def sentence(problem: Problem) -> str:

@@ -1,9 +1,11 @@
 """A spec's measurand characteristics measured on a session's experiments: the spec's
 words (kind, conditions, units, the rig's calibration) turned into a
-:class:`rig.qc.measurands.Definition` and a :class:`rig.qc.characteristics.Measured`
+:class:`rig.qc.measurands.Definition` and a :class:`Measured`
 with its budget.  The arithmetic is rig.qc.measurands'; this is the spec's side of it."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 from identify.dataset import Experiment
 from rig.qc.measurands import CELSIUS, Calibration, Definition, MeasurandError, Record, measure
@@ -37,15 +39,33 @@ def describe(spec: Spec, c: Characteristic) -> str:
     return definition(spec, c).describe(conditions(spec, c))
 
 
+@dataclass(frozen=True)
+class Measured:
+    """A characteristic's value and standard uncertainties, in its unit; ``value`` None
+    when it could not be computed (``note`` says why)."""
+
+    name: str
+    unit: str
+    value: float | None
+    std: float | None        # combined: sqrt(std_fit² + u_cal²)
+    std_fit: float | None    # from the fit's covariance, or from the scatter of the periods
+    u_cal: float
+    note: str = ""
+    basis: str | None = None  # which σ: "noise" or "residual" (the fit's), "scatter" (of the periods), "budget"
+    definition: str = ""      # a measurand's: what is measured under which conditions (rig.qc.measurands)
+    budget: tuple[dict[str, object], ...] = ()   # a measurand's GUM budget rows, in its unit
+    cycles: int = 0           # a measurand's: the cycles it was measured over
+    predicted: bool = False   # from the identified model (shown, never decides)
+
+
+
 def experiment_of(c: Characteristic, experiments: list[Experiment]) -> Experiment | None:
     return next((e for e in experiments if e.label.endswith(c.args["experiment"])), None)
 
 
-def measured(spec: Spec, c: Characteristic, experiments: list[Experiment]):  # -> characteristics.Measured
+def measured(spec: Spec, c: Characteristic, experiments: list[Experiment]) -> Measured:
     """``c`` measured on the session's experiment, in its unit, with its budget; no value
     (and a note why) when the experiment is missing or does not hold what it needs."""
-    from rig.qc.characteristics import Measured
-
     exp = experiment_of(c, experiments)
     text = describe(spec, c)
     if exp is None:

@@ -882,3 +882,11 @@ def _create_triggers(conn: Connection, tables: tuple[str, ...] = IMMUTABLE) -> N
         for table in tables:
             conn.exec_driver_sql(f"CREATE TRIGGER {table}_immutable BEFORE UPDATE OR DELETE OR TRUNCATE ON {table} "
                                  "FOR EACH STATEMENT EXECUTE FUNCTION qc_refuse_change()")
+
+
+def station_copies(folder: Path, database: str) -> list[QcRecord]:
+    """The records a station folder says it sent (``qc-queue/sent/``) to ``database`` (its name
+    as rig.qc.records.safe_url gives it; each copy says which database it was queued for)."""
+    sent = Path(folder) / "qc-queue" / "sent"
+    docs = [json.loads(p.read_text()) for p in sorted(sent.glob("*.json"))] if sent.is_dir() else []
+    return [QcRecord.from_journal(d) for d in docs if d.get("queued_for") == database]
