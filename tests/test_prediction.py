@@ -94,7 +94,7 @@ def test_qc_run_publishes_its_re_prediction_as_an_event(monkeypatch, tmp_path):
         judgement=SimpleNamespace(characteristics=[SimpleNamespace(name="gas_precharge_bar",
                                                                    outcome=Outcome.INCONCLUSIVE)]),
         fit=SimpleNamespace(converged=True, params=params))
-    monkeypatch.setattr(qc_run, "evaluate", lambda spec, path: evaluation)
+    monkeypatch.setattr(qc_run, "evaluate", lambda spec, path, **options: evaluation)
     bus, events = EventBus(), []
     bus.subscribe(events.append, inline=True)
     session = SimpleNamespace(path=tmp_path, label=lambda letter: f"261126{letter}")
