@@ -350,7 +350,8 @@ def cmd_db_init(args: argparse.Namespace) -> int:
     print(f"{name}: QC records schema version {version}"
           + (f", owned by {rights.role}" if rights else ""))
     for role in args.grant or ():
-        print(f"  {role}: SELECT on every table, INSERT on qc_record, qc_characteristic, qc_release and qc_study; nothing else")
+        print(f"  {role}: SELECT on every table, INSERT on qc_record, qc_characteristic, qc_release and qc_study; "
+              "nothing else")
     if rights is not None and not args.grant:
         print("  no station role granted (--grant ROLE): stations cannot write yet")
     return 0
