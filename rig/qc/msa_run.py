@@ -181,12 +181,8 @@ def run_type1(opt: QcOptions, master: str, reference_file: str, runs: int, say: 
                   records, summary)
     charts = {r.characteristic: run_chart(spec, r, [x.value for x in table if x.characteristic == r.characteristic])
               for r in results}
-    path = keep(opt, study, say)
-    report = _write_report(Path(opt.out), study, type1_html(spec, study, results, charts), charts)
-    for r in results:
-        say(type1_line(spec, r))
-    say(f"type 1 study {'met its goals' if passed else 'missed its goals'}: {summary}; record {path}; report {report}")
-    return EXIT_GOALS_MET if passed else EXIT_GOALS_MISSED
+    return _conclude_study(opt, study, type1_html(spec, study, results, charts), charts,
+                           [type1_line(spec, r) for r in results], say)
 
 
 def type1_line(spec: Spec, r: msa.Type1) -> str:
@@ -248,12 +244,8 @@ def run_type3(opt: QcOptions, units: list[str], repeats: int, say: Say, mount: C
                   {"rows": [r.__dict__ for r in table], "order": order,
                    "figures": [{**r.__dict__, "anova": [a.__dict__ for a in r.anova]} for r in results]},
                   records, summary)
-    path = keep(opt, study, say)
-    report = _write_report(Path(opt.out), study, type3_html(spec, study, results), {})
-    for r in results:
-        say(type3_line(spec, r))
-    say(f"type 3 study {'met its goals' if passed else 'missed its goals'}: {summary}; record {path}; report {report}")
-    return EXIT_GOALS_MET if passed else EXIT_GOALS_MISSED
+    return _conclude_study(opt, study, type3_html(spec, study, results), {}, [type3_line(spec, r) for r in results],
+                           say)
 
 
 def type3_line(spec: Spec, r: msa.Type3) -> str:
@@ -377,6 +369,21 @@ def type3_html(spec: Spec, study: StudyRecord, results: list[msa.Type3]) -> str:
             "<h2>ANOVA tables</h2>" + anova_html
             + "<p>Order of the runs: " + html.escape(", ".join(f"{u}#{k}" for u, k in study.result["order"])) + "</p>")
     return _page(f"Type 3 study — {len(study.units)} units", study, body)
+
+
+STUDY_NAMES = {"type1": "type 1", "type3": "type 3"}
+
+
+def _conclude_study(opt: QcOptions, study: StudyRecord, page: str, charts: dict[str, bytes], lines: list[str],
+                    say: Say) -> int:
+    """A type 1 or type 3 study kept as a record, its report written, its figures said."""
+    path = keep(opt, study, say)
+    report = _write_report(Path(opt.out), study, page, charts)
+    for line in lines:
+        say(line)
+    say(f"{STUDY_NAMES[study.kind]} study {'met its goals' if study.passed else 'missed its goals'}: "
+        f"{study.summary}; record {path}; report {report}")
+    return EXIT_GOALS_MET if study.passed else EXIT_GOALS_MISSED
 
 
 def _write_report(folder: Path, study: StudyRecord, page: str, charts: dict[str, bytes]) -> Path:

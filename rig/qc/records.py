@@ -547,15 +547,19 @@ class Records:
                                  f"{', '.join(map(str, versions)) or 'none'}; this program reads and writes "
                                  f"version {SCHEMA_VERSION}")
 
-    def add(self, record: QcRecord) -> bool:
-        """The record and its characteristics, in one transaction; False (and nothing
-        written) when the database holds a record of this uid already."""
+    def _create_pending(self) -> None:
+        """The database made with its first write, where opening it found none."""
         if self._pending:
             with self._errors("cannot be created"):
                 if self.url.get_backend_name() == "sqlite":
                     Path(str(self.url.database)).parent.mkdir(parents=True, exist_ok=True)
                 self._ensure_schema(create=True)
             self._pending = False
+
+    def add(self, record: QcRecord) -> bool:
+        """The record and its characteristics, in one transaction; False (and nothing
+        written) when the database holds a record of this uid already."""
+        self._create_pending()
         with self._errors("cannot be opened"):
             self._check_writer()
         with self._errors("refused the record"), self.engine.begin() as conn:
@@ -659,12 +663,7 @@ class Records:
     def add_study(self, uid: str, kind: str, at: str, station: str | None, spec: tuple[str, str, str], passed: bool,
                   simulated: bool, units: list[str], summary: str, document: dict[str, Any]) -> bool:
         """A study or master check, once (False: the database holds its uid already)."""
-        if self._pending:
-            with self._errors("cannot be created"):
-                if self.url.get_backend_name() == "sqlite":
-                    Path(str(self.url.database)).parent.mkdir(parents=True, exist_ok=True)
-                self._ensure_schema(create=True)
-            self._pending = False
+        self._create_pending()
         row = dict(uid=uid, kind=kind, at=at, station=station, spec_name=spec[0], spec_version=spec[1],
                    spec_sha256=spec[2], passed=passed, simulated=simulated, units=json.dumps(units),
                    summary=summary, document=json.dumps(document, sort_keys=True))
